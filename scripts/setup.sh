@@ -1,0 +1,56 @@
+#!/usr/bin/env bash
+# Idempotent set-up for a fresh Debian bookworm machine (CPU) or a GPU machine.
+#  1. the Vulkan software renderer (Mesa >= 24.3 lavapipe from bookworm-backports) unless Vulkan already works;
+#  2. a virtual environment in .venv with a CPU build of torch (only where no torch is present) and wamplan.
+# The backports source is derived from the mirror already configured in apt; no host is written here.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+VENV=${WAMPLAN_VENV:-.venv}
+PY=${PYTHON:-python3}
+log() { printf '[setup] %s\n' "$*"; }
+
+mesa_ok() {
+  # True when a GPU Vulkan driver is installed or lavapipe from Mesa >= 24.3 is.
+  ls /usr/share/vulkan/icd.d/nvidia_icd.json /etc/vulkan/icd.d/nvidia_icd.json \
+     /usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json >/dev/null 2>&1 && return 0
+  local v
+  v=$(dpkg-query -W -f='${Version}' mesa-vulkan-drivers 2>/dev/null || true)
+  [ -n "$v" ] && dpkg --compare-versions "$v" ge 24.3 && [ -f /usr/share/vulkan/icd.d/lvp_icd.json ]
+}
+
+install_renderer() {
+  if mesa_ok; then log "Vulkan driver present"; return; fi
+  if ! command -v apt-get >/dev/null || [ "$(id -u)" != 0 ]; then
+    log "cannot install Mesa lavapipe (need root and apt); run 'wamplan env check' for what to do"; return
+  fi
+  local src=/etc/apt/sources.list.d/wamplan-backports.sources
+  if [ ! -f "$src" ]; then
+    # The first Debian mirror URI of the existing sources (deb822 or one-line format).
+    local uri
+    uri=$(grep -hE '^URIs:' /etc/apt/sources.list.d/*.sources 2>/dev/null | awk '{print $2}' | grep -v -- '-security' | grep -E '/debian/?$' | head -n1 || true)
+    [ -n "$uri" ] || uri=$(grep -hE '^deb ' /etc/apt/sources.list 2>/dev/null | awk '{print $2}' | grep -E '/debian/?$' | head -n1 || true)
+    [ -n "$uri" ] || { log "no Debian mirror found in apt sources; cannot add bookworm-backports"; return 1; }
+    printf 'Types: deb\nURIs: %s\nSuites: bookworm-backports\nComponents: main\nSigned-By: /usr/share/keyrings/debian-archive-keyring.gpg\n' "$uri" >"$src"
+    log "added bookworm-backports from the configured mirror"
+  fi
+  apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive apt-get install -y -qq -t bookworm-backports mesa-vulkan-drivers libvulkan1 >/dev/null
+  log "installed mesa-vulkan-drivers $(dpkg-query -W -f='${Version}' mesa-vulkan-drivers)"
+}
+
+install_python() {
+  [ -x "$VENV/bin/python" ] || { log "creating $VENV"; "$PY" -m venv "$VENV"; }
+  local pip="$VENV/bin/python -m pip"
+  if ! "$VENV/bin/python" -c 'import torch' 2>/dev/null; then
+    # A CPU wheel of this version lies on the machine's disk; an unpinned torch pulls a multi-GB CUDA build.
+    log "installing torch (CPU)"; $pip install -q torch==2.13.0
+  fi
+  local stamp="$VENV/.wamplan-installed"
+  if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
+    log "installing wamplan and its dependencies"; $pip install -q -e '.[dev]'; touch "$stamp"
+  fi
+}
+
+install_renderer
+install_python
+log "done"

@@ -1,0 +1,124 @@
+"""Config helpers: frozen dataclasses, validated in ``__post_init__``, that round-trip through JSON
+and double as argparse options (a field's ``help`` metadata is its ``--help`` text).
+
+    @dataclass(frozen=True)
+    class TrainConfig:
+        lr: float = field(3e-4, "peak learning rate")
+        def __post_init__(self):
+            require(self.lr > 0, f"lr must be > 0, got {self.lr}; pass a positive --lr")
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import types
+import typing
+from pathlib import Path
+from typing import Any, TypeVar
+
+from wamplan.errors import UserError
+
+T = TypeVar("T")
+
+
+class ConfigError(UserError, ValueError):
+    """A config value is wrong; the message says which and how to fix it."""
+
+
+def field(default: Any = dataclasses.MISSING, help: str = "", **kw: Any) -> Any:
+    """A dataclass field with a help string (used for ``--help``). Mutable defaults: pass a tuple."""
+    return dataclasses.field(default=default, metadata={"help": help}, **kw)
+
+
+def require(cond: bool, message: str) -> None:
+    """Raise ConfigError(message) unless cond holds."""
+    if not cond:
+        raise ConfigError(message)
+
+
+def to_dict(cfg: Any) -> dict[str, Any]:
+    """A JSON-ready dict of a (possibly nested) config dataclass; tuples become lists."""
+    out = {}
+    for f in dataclasses.fields(cfg):
+        v = getattr(cfg, f.name)
+        if dataclasses.is_dataclass(v):
+            v = to_dict(v)
+        elif isinstance(v, tuple):
+            v = list(v)
+        out[f.name] = v
+    return out
+
+
+def _hints(cls: type) -> dict[str, Any]:
+    return typing.get_type_hints(cls)
+
+
+def from_dict(cls: type[T], data: dict[str, Any]) -> T:
+    """Build ``cls`` from a dict, rejecting unknown keys (a typo must not pass silently)."""
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - names)
+    require(not unknown, f"{cls.__name__}: unknown keys {unknown}; known keys are {sorted(names)}")
+    hints = _hints(cls)
+    kwargs = {}
+    for k, v in data.items():
+        t = hints[k]
+        if dataclasses.is_dataclass(t) and isinstance(v, dict):
+            v = from_dict(t, v)
+        elif isinstance(v, list):
+            v = tuple(v)
+        kwargs[k] = v
+    return cls(**kwargs)
+
+
+def save_json(cfg: Any, path: str | Path) -> None:
+    Path(path).write_text(json.dumps(to_dict(cfg), indent=2) + "\n")
+
+
+def load_json(cls: type[T], path: str | Path) -> T:
+    return from_dict(cls, json.loads(Path(path).read_text()))
+
+
+def _scalar_type(t: Any) -> Any:
+    """The argparse type of an annotation: unwrap Optional[X] and tuple[X, ...]."""
+    origin = typing.get_origin(t)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(t) if a is not type(None)]
+        return _scalar_type(args[0])
+    if origin is tuple:
+        return _scalar_type(typing.get_args(t)[0])
+    return t
+
+
+def add_arguments(parser: argparse.ArgumentParser, cls: type, prefix: str = "") -> None:
+    """Add one ``--name`` option per scalar field of ``cls`` (default None = keep the config default)."""
+    hints = _hints(cls)
+    for f in dataclasses.fields(cls):
+        t = hints[f.name]
+        if dataclasses.is_dataclass(t):
+            continue
+        flag = "--" + (prefix + f.name).replace("_", "-")
+        help_ = f.metadata.get("help", "")
+        default = f.default if f.default is not dataclasses.MISSING else None
+        help_ = f"{help_} (default: {default})" if help_ else f"(default: {default})"
+        st = _scalar_type(t)
+        if st is bool:
+            parser.add_argument(flag, dest=prefix + f.name, default=None,
+                                action=argparse.BooleanOptionalAction, help=help_)
+        elif typing.get_origin(t) is tuple:
+            parser.add_argument(flag, dest=prefix + f.name, default=None, nargs="+", type=st, help=help_)
+        else:
+            parser.add_argument(flag, dest=prefix + f.name, default=None,
+                                type=st if st in (int, float, str) else str, help=help_)
+
+
+def from_args(cls: type[T], args: argparse.Namespace, base: T | None = None, prefix: str = "") -> T:
+    """Overlay the options the user passed (not None) onto ``base`` (or the defaults)."""
+    base = base if base is not None else cls()
+    changes = {}
+    for f in dataclasses.fields(cls):
+        v = getattr(args, prefix + f.name, None)
+        if v is not None:
+            changes[f.name] = tuple(v) if isinstance(v, list) else v
+    return dataclasses.replace(base, **changes)
