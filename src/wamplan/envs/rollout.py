@@ -1,0 +1,55 @@
+"""Run one episode of a policy in an :class:`InsertionEnv`, rendering only when someone needs images."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from wamplan.envs.core import InsertionEnv
+from wamplan.policies.base import Observation, Policy
+
+# Called after every step with (obs_before, action, obs_after, info); may return nothing.
+StepHook = Callable[[Observation, np.ndarray, Observation, dict], None]
+
+
+@dataclass
+class EpisodeResult:
+    seed: int
+    success: bool
+    outcome: str
+    length: int  # control steps executed (first success, or the truncation limit)
+    reached: dict[str, bool]
+    wall_time: float
+    policy_info: dict[str, Any] = field(default_factory=dict)
+
+    def summary(self) -> dict[str, Any]:
+        return dict(seed=self.seed, success=self.success, outcome=self.outcome, length=self.length,
+                    wall_time=round(self.wall_time, 3), **({"policy_info": self.policy_info} if self.policy_info else {}))
+
+
+def run_episode(env: InsertionEnv, policy: Policy, seed: int, *, images_at: Callable[[int], bool] | None = None,
+                on_step: StepHook | None = None, stop_on_success: bool = True) -> EpisodeResult:
+    """Roll ``policy`` out from ``env.reset(seed)``.
+
+    Images are rendered at step t when ``policy.wants_images(t)`` or ``images_at(t)`` is true.
+    The episode ends at the first success (``stop_on_success``) or at the step limit.
+    """
+    t0 = time.perf_counter()
+    want = (lambda t: policy.wants_images(t) or (images_at is not None and images_at(t)))
+    policy.reset(seed)
+    obs = env.reset(seed, with_images=want(0))
+    steps = 0
+    while steps < env.config.max_episode_steps:
+        action = env.check_action(policy.act(obs))
+        nxt, info = env.step(action, with_images=want(steps + 1))
+        steps += 1
+        if on_step is not None:
+            on_step(obs, action, nxt, info)
+        obs = nxt
+        if stop_on_success and info["success"]:
+            break
+    return EpisodeResult(seed=seed, success=env.success, outcome=env.outcome(), length=steps,
+                         reached=dict(env.reached), wall_time=time.perf_counter() - t0, policy_info=policy.info())

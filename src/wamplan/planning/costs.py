@@ -1,0 +1,105 @@
+"""Planning costs: distance between predicted terminal embeddings and the WAM's target embedding.
+
+A cost maps predictions for B candidates and ONE target to B costs, lower is better:
+
+    patch: pred (B, V, N, D), target (V, N, D) -> (B,)   the paper's eq. 3
+    cls:   pred (B, V, D),    target (V, D)    -> (B,)   one class token per view
+
+Eq. 3 is the mean squared distance pooled over views, patches and dims, C = ||z_WM - z_WAM||^2 / |z|.
+Optional ``view_weights`` (V,) pool the per-view MSEs by a weighted average instead (normalised to
+sum 1; uniform weights give eq. 3 exactly); a zero weight drops a camera, e.g. (0, 0, 1) = wrist only.
+Costs are computed in float32 whatever the prediction dtype (bf16 squared distances are too coarse
+to rank candidates).
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+from typing import Callable, Sequence
+
+import torch
+from torch import Tensor
+
+from wamplan.config import field, require
+from wamplan.errors import UserError
+
+CostFn = Callable[[Tensor, Tensor], Tensor]  # (pred (B, V, ...), target (V, ...)) -> (B,)
+COSTS: dict[str, Callable[..., Tensor]] = {}
+
+
+def register_cost(name: str) -> Callable:
+    """Decorator: register ``fn(pred, target, view_weights=None) -> (B,)`` under ``name``."""
+
+    def deco(fn: Callable[..., Tensor]) -> Callable[..., Tensor]:
+        if name in COSTS:
+            raise ValueError(f"cost '{name}' is registered twice")
+        COSTS[name] = fn
+        return fn
+
+    return deco
+
+
+def _check(pred: Tensor, target: Tensor, layout: str) -> None:
+    dims = len(layout.split(","))  # e.g. "V, N, D" -> 3
+    if pred.dim() != dims + 1 or target.shape != pred.shape[1:]:
+        raise ValueError(f"expected predictions (B, {layout}) and a target ({layout}), got "
+                         f"{tuple(pred.shape)} and {tuple(target.shape)}; drop the target's batch "
+                         f"dimension, or use the {'cls' if dims == 3 else 'patch'} cost for the other layout")
+
+
+def _pool_views(per_view: Tensor, view_weights: Tensor | None) -> Tensor:
+    """(B, V) per-view MSE -> (B,): plain mean, or the weighted average with weights (V,)."""
+    if view_weights is None:
+        return per_view.mean(dim=1)  # (B,)
+    if view_weights.shape != per_view.shape[1:]:
+        raise ValueError(f"view_weights has {view_weights.numel()} entries for {per_view.shape[1]} "
+                         f"views; give one weight per camera view")
+    w = view_weights.to(per_view)  # (V,) on the predictions' device
+    w = w / w.sum()  # (V,) sums to 1
+    return per_view @ w  # (B,)
+
+
+@register_cost("patch")
+def patch_cost(pred: Tensor, target: Tensor, view_weights: Tensor | None = None) -> Tensor:
+    """Eq. 3: MSE over views, patches and dims. pred (B, V, N, D), target (V, N, D) -> (B,)."""
+    _check(pred, target, "V, N, D")
+    diff = pred.float() - target.float().unsqueeze(0)  # (B, V, N, D)
+    return _pool_views(diff.square().mean(dim=(2, 3)), view_weights)  # (B, V) -> (B,)
+
+
+@register_cost("cls")
+def cls_cost(pred: Tensor, target: Tensor, view_weights: Tensor | None = None) -> Tensor:
+    """Class-token MSE over views and dims. pred (B, V, D), target (V, D) -> (B,)."""
+    _check(pred, target, "V, D")
+    diff = pred.float() - target.float().unsqueeze(0)  # (B, V, D)
+    return _pool_views(diff.square().mean(dim=2), view_weights)  # (B, V) -> (B,)
+
+
+def make_cost(name: str = "patch", view_weights: Sequence[float] | None = None) -> CostFn:
+    """The cost ``name`` as ``fn(pred, target) -> (B,)``, with optional per-view weights (V,)."""
+    if name not in COSTS:
+        raise UserError(f"unknown cost '{name}'; choose one of {sorted(COSTS)}")
+    if not view_weights:
+        return COSTS[name]
+    require(all(w >= 0 for w in view_weights) and sum(view_weights) > 0,
+            f"view_weights must be >= 0 with a positive sum, got {tuple(view_weights)}")
+    weights = torch.tensor(tuple(view_weights), dtype=torch.float32)  # (V,), moved per call
+    return functools.partial(COSTS[name], view_weights=weights)
+
+
+@dataclass(frozen=True)
+class CostConfig:
+    """Which planning cost to use (paper: the patch cost over all three cameras)."""
+
+    name: str = field("patch", "planning cost: 'patch' (eq. 3) or 'cls' (class tokens)")
+    view_weights: tuple[float, ...] = field((), "per-camera weights (empty = uniform, the paper)")
+
+    def __post_init__(self) -> None:
+        require(self.name in COSTS, f"unknown cost '{self.name}'; choose one of {sorted(COSTS)}")
+        require(all(w >= 0 for w in self.view_weights) and
+                (not self.view_weights or sum(self.view_weights) > 0),
+                f"view_weights must be >= 0 with a positive sum, got {self.view_weights}")
+
+    def build(self) -> CostFn:
+        return make_cost(self.name, self.view_weights or None)
