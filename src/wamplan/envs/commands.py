@@ -157,9 +157,9 @@ def cmd_rollout(args: argparse.Namespace) -> int:
         frames: list = []
         hook = None
         if args.video is not None:
-            def hook(_o, _a, nxt, _i, frames=frames):
-                frames.append(nxt.images)
-        r = run_episode(env, policy, seed, images_at=(lambda t: True) if args.video else None, on_step=hook)
+            def hook(_env, obs, _action, frames=frames):
+                frames.append(obs.images)
+        r = run_episode(env, policy, seed, images_at=(lambda t: True) if args.video else None, on_obs=hook)
         if args.video is not None:
             _write_video(args.video / f"{args.policy.replace('/', '_')}_seed{seed}.mp4", frames)
         records.append(r.summary())

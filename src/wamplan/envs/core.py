@@ -45,7 +45,7 @@ class EnvConfig:
         """The kwargs that define the task's physics and pictures (what must match across a dataset)."""
         return dict(camera_size=self.camera_size, clearance=self.clearance, cube_half_size=self.cube_half_size,
                     mount_height=self.mount_height, robot_init_qpos_noise=self.robot_init_qpos_noise,
-                    max_episode_steps=self.max_episode_steps, control_mode=CONTROL_MODE, env_id=ENV_ID)
+                    control_mode=CONTROL_MODE, env_id=ENV_ID)
 
 
 @dataclass
@@ -75,7 +75,7 @@ class InsertionEnv:
 
         self.config = config or EnvConfig()
         kw = self.config.task_kwargs()
-        kw.pop("env_id"), kw.pop("max_episode_steps")
+        kw.pop("env_id")
         self._gym = gym.make(ENV_ID, obs_mode="state_dict", reward_mode="none", num_envs=1,
                              sim_backend=self.config.sim_backend, render_backend=self.config.render_backend, **kw)
         self.base = self._gym.unwrapped
@@ -153,7 +153,14 @@ class InsertionEnv:
                     cube_pose=b.cube.pose.raw_pose[0].numpy().copy(),
                     hole_pos=np.array([*b.hole_xy.tolist(), b.mount_height], dtype=np.float32),
                     cube_half_size=np.float32(b.cube_half_size),
-                    grasped=np.bool_(self._last.get("grasped", False)))
+                    stages=np.array([self._last.get(s, False) for s in STAGES], bool))
+
+    def sim_state(self) -> np.ndarray:
+        """ManiSkill's flat physics state (S,) float32: enough to restore poses and velocities and re-render."""
+        return self.base.get_state()[0].numpy().astype(np.float32)
+
+    def drive_targets(self) -> np.ndarray:
+        return self.base.agent.robot.get_drive_targets()[0].numpy().astype(np.float32)
 
     def render(self, cameras: tuple[str, ...] = CAMERAS) -> dict[str, np.ndarray]:
         """Render the current state: camera -> (H, W, 3) uint8."""

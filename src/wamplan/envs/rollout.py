@@ -11,8 +11,8 @@ import numpy as np
 from wamplan.envs.core import InsertionEnv
 from wamplan.policies.base import Observation, Policy
 
-# Called after every step with (obs_before, action, obs_after, info); may return nothing.
-StepHook = Callable[[Observation, np.ndarray, Observation, dict], None]
+# Called with (env, obs, action) after the reset (action None) and after every step (the action that led to obs).
+ObsHook = Callable[[InsertionEnv, Observation, "np.ndarray | None"], None]
 
 
 @dataclass
@@ -31,24 +31,29 @@ class EpisodeResult:
 
 
 def run_episode(env: InsertionEnv, policy: Policy, seed: int, *, images_at: Callable[[int], bool] | None = None,
-                on_step: StepHook | None = None, stop_on_success: bool = True) -> EpisodeResult:
+                on_obs: ObsHook | None = None, stop_on_success: bool = True,
+                max_steps: int | None = None) -> EpisodeResult:
     """Roll ``policy`` out from ``env.reset(seed)``.
 
     Images are rendered at step t when ``policy.wants_images(t)`` or ``images_at(t)`` is true.
-    The episode ends at the first success (``stop_on_success``) or at the step limit.
+    The episode ends at the first success (``stop_on_success``) or at the step limit (``max_steps``,
+    default the env's ``max_episode_steps``).
     """
+    limit = min(max_steps or env.config.max_episode_steps, env.config.max_episode_steps)
     t0 = time.perf_counter()
     want = (lambda t: policy.wants_images(t) or (images_at is not None and images_at(t)))
     policy.reset(seed)
     obs = env.reset(seed, with_images=want(0))
+    if on_obs is not None:
+        on_obs(env, obs, None)
     steps = 0
-    while steps < env.config.max_episode_steps:
+    while steps < limit:
         action = env.check_action(policy.act(obs))
         nxt, info = env.step(action, with_images=want(steps + 1))
         steps += 1
-        if on_step is not None:
-            on_step(obs, action, nxt, info)
         obs = nxt
+        if on_obs is not None:
+            on_obs(env, obs, action)
         if stop_on_success and info["success"]:
             break
     return EpisodeResult(seed=seed, success=env.success, outcome=env.outcome(), length=steps,

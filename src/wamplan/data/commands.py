@@ -1,0 +1,157 @@
+"""``wamplan collect`` and ``wamplan data info|view``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from collections import Counter, defaultdict
+from pathlib import Path
+
+from wamplan.config import add_arguments, from_args
+from wamplan.errors import UserError
+
+SOURCES = ("expert", "noisy-expert", "pink", "policy")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    from wamplan.envs.core import EnvConfig
+
+    p = sub.add_parser("collect", help="collect episodes into an episode store (parallel, resumable)")
+    p.add_argument("--source", required=True, choices=SOURCES)
+    p.add_argument("--episodes", type=int, required=True, help="number of seeds, from --seed-start")
+    p.add_argument("--out", type=Path, required=True, help="the store directory (created or resumed)")
+    p.add_argument("--seed-start", type=int, default=0)
+    p.add_argument("--workers", type=int, default=1, help="worker processes (one simulator each)")
+    p.add_argument("--policy", default=None, help="with --source policy: a WAM checkpoint directory")
+    p.add_argument("--image-every", type=int, default=4, help="store the three views every N steps (and the last)")
+    p.add_argument("--max-steps", type=int, default=None, help="truncate episodes earlier than the env's limit")
+    add_arguments(p, EnvConfig)
+    p.set_defaults(func=cmd_collect)
+
+    d = sub.add_parser("data", help="inspect episode stores")
+    dsub = d.add_subparsers(dest="data_command", metavar="DATA_COMMAND")
+    p = dsub.add_parser("info", help="episodes, frames, size; per source: success rate and outcomes")
+    p.add_argument("dir", type=Path)
+    p.add_argument("--json", action="store_true", help="print JSON instead of text")
+    p.set_defaults(func=cmd_info)
+    p = dsub.add_parser("view", help="a contact sheet of the three views over one episode")
+    p.add_argument("dir", type=Path)
+    p.add_argument("--episode", type=int, default=0, help="index in the store's sorted episode list")
+    p.add_argument("--out", type=Path, default=Path("sheet.png"))
+    p.add_argument("--frames", type=int, default=8, help="frames across the episode")
+    p.set_defaults(func=cmd_view)
+
+
+def cmd_collect(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from wamplan.data.collect import CollectJob, run_collection, throughput
+    from wamplan.data.store import EpisodeStore
+    from wamplan.envs.core import EnvConfig
+    from wamplan.provenance import provenance
+
+    if args.episodes <= 0 or args.workers <= 0 or args.image_every <= 0:
+        raise UserError("--episodes, --workers and --image-every must be positive")
+    if args.source == "policy":
+        if not args.policy:
+            raise UserError("--source policy needs --policy CKPT (a WAM checkpoint directory)")
+        spec, source = args.policy, f"policy:{Path(args.policy).resolve().name}"
+    else:
+        if args.policy:
+            raise UserError(f"--policy is only for --source policy (got --source {args.source})")
+        spec, source = args.source, args.source
+    env_cfg = from_args(EnvConfig, args)
+    store = EpisodeStore(args.out, create=True, env=env_cfg.task_kwargs(), image_every=args.image_every,
+                         provenance=provenance())
+    if (n := store.clean_partial()):
+        print(f"removed {n} partial episode file(s) left by an interrupted run")
+    seeds = list(range(args.seed_start, args.seed_start + args.episodes))
+    have = store.finished_seeds(source) & set(seeds)
+    if have:
+        print(f"resuming: {len(have)} of {len(seeds)} episodes already in {args.out}")
+    job = CollectJob(store=str(args.out), source=source, policy_spec=spec, env=env_cfg,
+                     image_every=args.image_every, max_steps=args.max_steps)
+    counts, start, n = Counter(), time.perf_counter(), 0
+    bar = tqdm(total=len(seeds), initial=len(have), desc=f"collect {source}", unit="ep")
+    for rec in run_collection(job, seeds, workers=args.workers):
+        n += 1
+        counts[rec["outcome"]] += 1
+        bar.update(1)
+        bar.set_postfix(ep_per_min=f"{throughput(start, n):.1f}", success=f"{counts['success']}/{n}")
+    bar.close()
+    el = time.perf_counter() - start
+    print(json.dumps(dict(source=source, collected=n, skipped=len(have), seconds=round(el, 1),
+                          episodes_per_min=round(throughput(start, n), 2) if n else None, outcomes=dict(counts))))
+    return 0
+
+
+def store_info(root: Path) -> dict:
+    from wamplan.data.store import EpisodeStore
+
+    store = EpisodeStore(root)
+    per: dict[str, dict] = defaultdict(lambda: dict(episodes=0, steps=0, frames=0, outcomes=Counter()))
+    for m in store.iter_meta():
+        s = per[m["source"]]
+        s["episodes"] += 1
+        s["steps"] += m["length"]
+        s["frames"] += m["frames"]
+        s["outcomes"][m["outcome"]] += 1
+    size = sum(p.stat().st_size for p in store.episode_paths())
+    sources = {k: dict(v, outcomes=dict(v["outcomes"]), success_rate=v["outcomes"]["success"] / v["episodes"])
+               for k, v in sorted(per.items())}
+    n = sum(v["episodes"] for v in sources.values())
+    return dict(dir=str(root), episodes=n, steps=sum(v["steps"] for v in sources.values()),
+                image_frames=sum(v["frames"] for v in sources.values()), bytes=size,
+                bytes_per_episode=size // n if n else None, image_every=store.image_every, env=store.env,
+                sources=sources)
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    info = store_info(args.dir)
+    if args.json:
+        print(json.dumps(info, indent=1))
+        return 0
+    print(f"{info['dir']}: {info['episodes']} episodes, {info['steps']} steps, {info['image_frames']} image frames "
+          f"(every {info['image_every']} steps), {info['bytes'] / 2**20:.1f} MiB")
+    for src, s in info["sources"].items():
+        outs = ", ".join(f"{k} {v}" for k, v in sorted(s["outcomes"].items()))
+        print(f"  {src:20s} {s['episodes']:5d} episodes  success {100 * s['success_rate']:5.1f}%  ({outs})")
+    return 0
+
+
+def cmd_view(args: argparse.Namespace) -> int:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from wamplan.data.store import EpisodeStore
+    from wamplan.policies.base import CAMERAS
+
+    store = EpisodeStore(args.dir)
+    paths = store.episode_paths()
+    if not 0 <= args.episode < len(paths):
+        raise UserError(f"--episode {args.episode} is out of range: {args.dir} holds {len(paths)} episodes (0..{len(paths) - 1})")
+    with store.open_episode(paths[args.episode]) as f:
+        steps = f["image_steps"][:]
+        idx = np.unique(np.linspace(0, len(steps) - 1, min(args.frames, len(steps))).round().astype(int))
+        imgs = {c: f["images"][c][idx] for c in CAMERAS}  # (F, H, W, 3) each
+        title = (f"{f.attrs['source']} seed {f.attrs['seed']}: {f.attrs['outcome']}, {f.attrs['length']} steps")
+    fig, axes = plt.subplots(len(CAMERAS), len(idx), figsize=(2 * len(idx), 2 * len(CAMERAS) + 0.4), squeeze=False)
+    for r, c in enumerate(CAMERAS):
+        for j, k in enumerate(idx):
+            ax = axes[r][j]
+            ax.imshow(imgs[c][j])
+            ax.set_xticks([]), ax.set_yticks([])
+            if r == 0:
+                ax.set_title(f"t={steps[k]}", fontsize=9)
+            if j == 0:
+                ax.set_ylabel(c)
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(args.out, dpi=80)
+    print(f"wrote {args.out}")
+    return 0

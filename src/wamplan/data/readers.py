@@ -1,0 +1,168 @@
+"""Torch datasets over one or more episode stores, for the two consumers.
+
+* :class:`WAMSamples` (WAM training): the observation at step t, the action chunk t..t+H-1 and the
+  three views at t+H (H = 16; past the episode's end the last action is held and the final frame is
+  the target, since the scene stays where it ended).
+* :class:`WorldModelWindows` (world-model training, paper eq. 1-2): ``history + horizon`` frames at
+  stride Δ starting at any stored step s; frame i is step s + iΔ with its images (or cached encoder
+  features), its proprio, and the Δ-step action block executed from it, flattened to (Δ·5,).
+
+The train/validation split is by episode, from a hash of (source, seed), so it is the same on every
+run and machine and no episode contributes to both sides.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import h5py
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from wamplan.data.store import EpisodeStore, StoreError
+from wamplan.policies.base import CAMERAS
+
+
+def split_of(source: str, seed: int, val_fraction: float) -> str:
+    """'val' for a stable ``val_fraction`` of episodes (by hash of source and seed), else 'train'."""
+    h = int(hashlib.sha1(f"{source}:{seed}".encode()).hexdigest()[:8], 16) / 0xFFFFFFFF
+    return "val" if h < val_fraction else "train"
+
+
+@dataclass(frozen=True)
+class EpisodeRef:
+    path: str
+    source: str
+    seed: int
+    length: int
+    image_steps: tuple[int, ...]
+    image_every: int
+    features: str | None  # the feature-cache file for this episode's store, if used
+
+
+def index_episodes(stores: Sequence[str | Path], split: str = "all", val_fraction: float = 0.1,
+                   features: str | None = None, sources: Sequence[str] | None = None) -> list[EpisodeRef]:
+    """The episodes of ``stores`` in ``split`` ('train', 'val' or 'all'), optionally only some sources."""
+    if split not in ("train", "val", "all"):
+        raise ValueError(f"split must be train, val or all, got {split!r}")
+    refs, envs = [], {}
+    for root in stores:
+        store = EpisodeStore(root)
+        envs[str(root)] = store.env
+        feat = None
+        if features is not None:
+            feat = str(Path(root) / "features" / f"{features}.h5")
+            if not Path(feat).is_file():
+                raise StoreError(f"{root} has no '{features}' feature cache; run `wamplan wm encode --data {root} "
+                                 f"--encoder {features}` first")
+        for p in store.episode_paths():
+            with store.open_episode(p) as f:
+                src, seed = str(f.attrs["source"]), int(f.attrs["seed"])
+                if sources is not None and src not in sources:
+                    continue
+                if split != "all" and split_of(src, seed, val_fraction) != split:
+                    continue
+                refs.append(EpisodeRef(str(p), src, seed, int(f.attrs["length"]),
+                                       tuple(int(s) for s in f["image_steps"][:]), store.image_every, feat))
+    if len({tuple(sorted(e.items())) for e in envs.values()}) > 1:
+        raise StoreError(f"the stores {list(envs)} were collected with different env settings; train on stores "
+                         f"with the same settings")
+    return refs
+
+
+class _H5Cache:
+    """Open HDF5 files lazily, per process (h5py handles must not cross a fork)."""
+
+    def __init__(self):
+        self._files: dict[str, h5py.File] = {}
+
+    def get(self, path: str) -> h5py.File:
+        f = self._files.get(path)
+        if f is None:
+            f = self._files[path] = h5py.File(path, "r")
+        return f
+
+    def __getstate__(self):
+        return {"_files": {}}
+
+
+class WAMSamples(Dataset):
+    """Items: ``images`` (V, H, W, 3) uint8 at t, ``proprio`` (10,), ``actions`` (H, 5), ``future`` (V, H, W, 3)
+    at t+H, plus ``step``. V follows ``CAMERAS`` (front, side, wrist)."""
+
+    def __init__(self, stores: Sequence[str | Path], chunk: int = 16, split: str = "train", val_fraction: float = 0.1,
+                 sources: Sequence[str] | None = None):
+        self.chunk = chunk
+        self.episodes = index_episodes(stores, split, val_fraction, sources=sources)
+        for e in self.episodes:
+            if chunk % e.image_every:
+                raise StoreError(f"chunk length {chunk} is not a multiple of the store's image stride {e.image_every}")
+        # every stored step before the end can start a chunk
+        self.items = [(i, k) for i, e in enumerate(self.episodes) for k, t in enumerate(e.image_steps) if t < e.length]
+        self._h5 = _H5Cache()
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def __getitem__(self, idx: int) -> dict[str, torch.Tensor]:
+        i, k = self.items[idx]
+        e = self.episodes[i]
+        f = self._h5.get(e.path)
+        t = e.image_steps[k]
+        t_end = min(t + self.chunk, e.length)
+        k_end = e.image_steps.index(t_end)
+        acts = f["actions"][t:t_end]  # (<=H, 5)
+        if len(acts) < self.chunk:  # hold the last action past the episode's end
+            acts = np.concatenate([acts, np.repeat(acts[-1:], self.chunk - len(acts), 0)])
+        return dict(images=torch.from_numpy(np.stack([f["images"][c][k] for c in CAMERAS])),  # (V, H, W, 3)
+                    proprio=torch.from_numpy(f["proprio"][t]),  # (10,)
+                    actions=torch.from_numpy(acts.astype(np.float32)),  # (H, 5)
+                    future=torch.from_numpy(np.stack([f["images"][c][k_end] for c in CAMERAS])),  # (V, H, W, 3)
+                    step=torch.tensor(t))
+
+
+class WorldModelWindows(Dataset):
+    """Items: ``q`` (T, 10), ``a`` (T, Δ·5), and ``z`` (T, V, N, D) cached features (with ``features``) or
+    ``images`` (T, V, H, W, 3) uint8, where T = history + horizon frames at stride Δ (``frameskip``).
+
+    ``a[i]`` is the block of Δ actions executed from frame i's step, so frame i+1 = step(frame i, a[i])."""
+
+    def __init__(self, stores: Sequence[str | Path], frameskip: int = 4, history: int = 3, horizon: int = 2,
+                 split: str = "train", val_fraction: float = 0.1, features: str | None = None,
+                 sources: Sequence[str] | None = None):
+        self.frameskip, self.frames = frameskip, history + horizon
+        self.features = features
+        self.episodes = index_episodes(stores, split, val_fraction, features=features, sources=sources)
+        for e in self.episodes:
+            if frameskip % e.image_every:
+                raise StoreError(f"frameskip {frameskip} is not a multiple of the store's image stride "
+                                 f"{e.image_every}; collect with --image-every dividing it")
+        span = self.frames * frameskip  # steps covered by the frames and the last action block
+        self.items = [(i, k) for i, e in enumerate(self.episodes) for k, s in enumerate(e.image_steps)
+                      if s % e.image_every == 0 and s + span <= e.length]
+        self._h5 = _H5Cache()
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def __getitem__(self, idx: int) -> dict[str, torch.Tensor]:
+        i, k = self.items[idx]
+        e = self.episodes[i]
+        f = self._h5.get(e.path)
+        stride = self.frameskip // e.image_every
+        ks = [k + j * stride for j in range(self.frames)]  # image indices of the frames
+        steps = [e.image_steps[j] for j in ks]
+        acts = f["actions"][steps[0]:steps[-1] + self.frameskip]  # (T·Δ, 5)
+        out = dict(q=torch.from_numpy(f["proprio"][steps]),  # (T, 10)
+                   a=torch.from_numpy(acts.reshape(self.frames, -1).astype(np.float32)),  # (T, Δ·5)
+                   steps=torch.tensor(steps))
+        if self.features is not None:
+            cache = self._h5.get(e.features)
+            out["z"] = torch.from_numpy(cache[Path(e.path).stem][ks])  # (T, V, N, D)
+        else:
+            out["images"] = torch.from_numpy(np.stack([f["images"][c][ks] for c in CAMERAS], 1))  # (T, V, H, W, 3)
+        return out

@@ -1,0 +1,208 @@
+"""The episode store: one directory, one HDF5 file per episode, a manifest that pins the env settings.
+
+Why HDF5 (h5py): chunked, compressed, random access by frame, one self-describing file per episode
+(ManiSkill's own trajectory format is HDF5 too), and a file that is written under a temporary name and
+``os.replace``-d into place is either complete or absent, so a killed collection loses at most the
+episodes in flight and never leaves a half-written episode behind.
+
+Layout::
+
+    DIR/store.json                         schema version, env settings (task kwargs), image stride,
+                                           cameras, provenance of the store's creation
+    DIR/episodes/<source>-s<seed>.h5       one episode (``source`` with ':' and '/' made safe)
+
+Episode schema (T = executed control steps; step t's action is applied to the state at step t)::
+
+    attrs: seed, source, success, outcome, length (= T), policy (JSON), provenance (JSON), reached (JSON)
+    actions         (T, 5)      float32  action executed at step t (after clipping to [-1, 1])
+    proprio         (T+1, 10)   float32  proprio at steps 0..T
+    stages          (T+1, 5)    bool     grasped, lifted, aligned, descended, seated at steps 0..T
+    cube_pose       (T+1, 7)    float32  privileged cube pose (xyz, wxyz quaternion)
+    tcp_pose        (T+1, 7)    float32  privileged TCP pose
+    sim_state       (T+1, S)    float32  ManiSkill ``get_state()`` (enough to restore physics and re-render)
+    drive_targets   (T+1, 9)    float32  joint drive targets (``get_state`` leaves them out)
+    image_steps     (K,)        int32    steps whose images are stored: every ``image_every``-th step and T
+    images/<camera> (K, H, W, 3) uint8   one chunk per frame, gzip-compressed
+
+Frames every ``image_every`` steps are what the consumers need: the world model's frameskip Δ and the
+WAM's chunk length H must be multiples of it (Δ=4, H=16 with the default 4; the paper's Δ=5 needs 1 or 5).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterator
+
+import h5py
+import numpy as np
+
+from wamplan.errors import UserError
+from wamplan.policies.base import CAMERAS
+
+SCHEMA_VERSION = 1
+MANIFEST = "store.json"
+EPISODES = "episodes"
+
+
+class StoreError(UserError):
+    """A directory is not a (compatible, intact) wamplan episode store."""
+
+
+def source_tag(source: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", source)
+
+
+@dataclass
+class EpisodeData:
+    """One episode in memory, as collected (see the module docstring for shapes)."""
+
+    seed: int
+    source: str
+    success: bool
+    outcome: str
+    actions: np.ndarray
+    proprio: np.ndarray
+    stages: np.ndarray
+    cube_pose: np.ndarray
+    tcp_pose: np.ndarray
+    sim_state: np.ndarray
+    drive_targets: np.ndarray
+    image_steps: np.ndarray
+    images: dict[str, np.ndarray]
+    reached: dict[str, bool]
+    policy: dict[str, Any]
+    provenance: dict[str, Any]
+
+    @property
+    def length(self) -> int:
+        return int(len(self.actions))
+
+
+class EpisodeStore:
+    """Create or open a store. ``env`` (task kwargs) and ``image_every`` must match an existing store."""
+
+    def __init__(self, root: str | Path, *, create: bool = False, env: dict | None = None, image_every: int | None = None,
+                 provenance: dict | None = None):
+        self.root = Path(root)
+        man = self.root / MANIFEST
+        if man.is_file():
+            self.manifest = self._read_manifest(man)
+            if env is not None and self.manifest["env"] != env:
+                diff = {k: (self.manifest["env"].get(k), env.get(k)) for k in set(env) | set(self.manifest["env"])
+                        if self.manifest["env"].get(k) != env.get(k)}
+                raise StoreError(f"{self.root} was collected with other env settings {diff} (stored, requested); "
+                                 f"use another --out directory or the stored settings")
+            if image_every is not None and self.manifest["image_every"] != image_every:
+                raise StoreError(f"{self.root} stores images every {self.manifest['image_every']} steps, not "
+                                 f"{image_every}; use another --out directory or --image-every {self.manifest['image_every']}")
+        elif create:
+            if self.root.exists() and any(p.name != EPISODES for p in self.root.iterdir()):
+                raise StoreError(f"{self.root} exists and is not a wamplan episode store; choose an empty or new --out")
+            if env is None or image_every is None:
+                raise ValueError("creating a store needs env and image_every")
+            self.root.mkdir(parents=True, exist_ok=True)
+            self.manifest = dict(format="wamplan-episode-store", schema_version=SCHEMA_VERSION, env=env,
+                                 image_every=int(image_every), cameras=list(CAMERAS), provenance=provenance or {})
+            tmp = man.with_suffix(".json.tmp")
+            tmp.write_text(json.dumps(self.manifest, indent=2) + "\n")
+            os.replace(tmp, man)
+        else:
+            raise StoreError(f"{self.root} is not a wamplan episode store (no {MANIFEST}); collect one with "
+                             f"`wamplan collect --out {self.root}` or check the path")
+        (self.root / EPISODES).mkdir(exist_ok=True)
+
+    @staticmethod
+    def _read_manifest(path: Path) -> dict:
+        try:
+            m = json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError) as e:
+            raise StoreError(f"{path} is damaged ({e}); restore it or collect into a new directory") from e
+        if not isinstance(m, dict) or m.get("format") != "wamplan-episode-store":
+            raise StoreError(f"{path} is not a wamplan episode store manifest; check the path")
+        if m.get("schema_version") != SCHEMA_VERSION:
+            raise StoreError(f"{path} has schema version {m.get('schema_version')}, this wamplan reads "
+                             f"{SCHEMA_VERSION}; re-collect it or use a matching wamplan version")
+        return m
+
+    # ------------------------------------------------------------------ paths
+    @property
+    def image_every(self) -> int:
+        return int(self.manifest["image_every"])
+
+    @property
+    def env(self) -> dict:
+        return dict(self.manifest["env"])
+
+    def episode_path(self, source: str, seed: int) -> Path:
+        return self.root / EPISODES / f"{source_tag(source)}-s{int(seed):07d}.h5"
+
+    def episode_paths(self) -> list[Path]:
+        return sorted((self.root / EPISODES).glob("*.h5"))
+
+    def finished_seeds(self, source: str) -> set[int]:
+        prefix = source_tag(source) + "-s"
+        return {int(p.stem[len(prefix):]) for p in self.episode_paths() if p.stem.startswith(prefix)
+                and p.stem[len(prefix):].isdigit()}
+
+    def clean_partial(self) -> int:
+        """Delete temporary files that a killed writer left behind; returns how many."""
+        n = 0
+        for p in (self.root / EPISODES).glob(".tmp-*"):
+            p.unlink(missing_ok=True)
+            n += 1
+        return n
+
+    # ------------------------------------------------------------------ write
+    def write(self, ep: EpisodeData) -> Path:
+        """Write one episode atomically (temporary file, fsync, rename)."""
+        final = self.episode_path(ep.source, ep.seed)
+        if final.exists():
+            raise StoreError(f"{final} exists already; a store never overwrites an episode")
+        tmp = final.with_name(f".tmp-{final.stem}-{os.getpid()}.h5")
+        with h5py.File(tmp, "w") as f:
+            f.attrs.update(seed=ep.seed, source=ep.source, success=bool(ep.success), outcome=ep.outcome, length=ep.length,
+                           policy=json.dumps(ep.policy), provenance=json.dumps(ep.provenance),
+                           reached=json.dumps(ep.reached))
+            for name in ("actions", "proprio", "cube_pose", "tcp_pose", "sim_state", "drive_targets"):
+                f.create_dataset(name, data=np.asarray(getattr(ep, name), np.float32))
+            f.create_dataset("stages", data=np.asarray(ep.stages, bool))
+            f.create_dataset("image_steps", data=np.asarray(ep.image_steps, np.int32))
+            g = f.create_group("images")
+            for cam, arr in ep.images.items():  # (K, H, W, 3) uint8
+                g.create_dataset(cam, data=arr, chunks=(1, *arr.shape[1:]), compression="gzip", compression_opts=4)
+            f.flush()
+            os.fsync(f.id.get_vfd_handle())
+        os.replace(tmp, final)
+        return final
+
+    # ------------------------------------------------------------------ read
+    def open_episode(self, path: str | Path) -> h5py.File:
+        try:
+            f = h5py.File(path, "r")
+            f["actions"], f["image_steps"]  # noqa: B018  (raises if the file is not an episode)
+            return f
+        except (OSError, KeyError) as e:
+            raise StoreError(f"episode file {path} is damaged or not a wamplan episode ({e}); delete it and "
+                             f"re-run the same `wamplan collect` command to re-collect that seed") from e
+
+    def iter_meta(self) -> Iterator[dict[str, Any]]:
+        """Per-episode attributes (cheap: no arrays are read)."""
+        for p in self.episode_paths():
+            with self.open_episode(p) as f:
+                yield dict(path=str(p), seed=int(f.attrs["seed"]), source=str(f.attrs["source"]),
+                           success=bool(f.attrs["success"]), outcome=str(f.attrs["outcome"]),
+                           length=int(f.attrs["length"]), frames=int(f["image_steps"].shape[0]))
+
+    def load(self, path: str | Path) -> EpisodeData:
+        with self.open_episode(path) as f:
+            return EpisodeData(seed=int(f.attrs["seed"]), source=str(f.attrs["source"]), success=bool(f.attrs["success"]),
+                               outcome=str(f.attrs["outcome"]), actions=f["actions"][:], proprio=f["proprio"][:],
+                               stages=f["stages"][:], cube_pose=f["cube_pose"][:], tcp_pose=f["tcp_pose"][:],
+                               sim_state=f["sim_state"][:], drive_targets=f["drive_targets"][:],
+                               image_steps=f["image_steps"][:], images={c: f["images"][c][:] for c in f["images"]},
+                               reached=json.loads(f.attrs["reached"]), policy=json.loads(f.attrs["policy"]),
+                               provenance=json.loads(f.attrs["provenance"]))

@@ -1,0 +1,275 @@
+"""The world-action-model (WAM) interface (paper §3.1), its registry, and a WAM run as a policy.
+
+A WAM maps the current observation ``o_t = (q_t, I_t)`` and a language instruction to an action chunk
+``a_{t:t+H-1}`` (H = ``chunk_length``) AND the images it expects at ``t + H`` for each camera:
+
+    out = wam.predict(obs, "insert the cube into the hole")
+    out.actions          # (H, A) float32 in [-1, 1]
+    out.images["front"]  # (h, w, 3) uint8, the predicted view at t + H
+
+Implementations register with ``@register_wam(name)`` and are built with ``make_wam(name, **kw)``;
+trained ones also register a checkpoint loader with ``@register_wam_loader(kind)`` so that
+``load_wam(path)`` can dispatch on the checkpoint's kind. :class:`WAMPolicy` executes each chunk open
+loop and re-queries the WAM every H steps: the no-planning baseline.
+"""
+
+from __future__ import annotations
+
+import abc
+import importlib
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, ClassVar
+
+import numpy as np
+
+from wamplan.errors import UserError
+from wamplan.policies.base import ACTION_DIM, CAMERAS, Observation, Policy
+
+# Modules that register WAMs or checkpoint loaders; imported on demand by make_wam / load_wam.
+# Whoever adds a WAM module (TinyWAM, the expert oracle) adds it here.
+BUILTIN_WAM_MODULES = ["wamplan.wam.cosmos_client"]
+
+# The cube-insertion task's language instruction, used when none is given (the paper does not quote one).
+DEFAULT_INSTRUCTION = "insert the cube into the square hole"
+
+
+class WAMError(UserError):
+    """A WAM cannot be built, loaded or used; the message names the problem and the fix."""
+
+
+class WAMOutputError(WAMError):
+    """A WAM returned an output that breaks the contract (shape, dtype, finiteness, range)."""
+
+
+class WAMServerError(WAMError):
+    """A remote WAM server is unreachable, failed, or answered something malformed."""
+
+
+@dataclass
+class WAMOutput:
+    """One WAM query: the action chunk and the predicted images at the end of the chunk."""
+
+    actions: np.ndarray  # (H, A) float32 in [-1, 1]
+    images: dict[str, np.ndarray]  # camera -> (h, w, 3) uint8, predicted observation at t + H
+    value: float | None = None  # predicted value of the outcome, when the WAM has a value head
+    timing: dict[str, float] = field(default_factory=dict)  # seconds, e.g. {"query_s": 1.2}
+    extras: dict[str, Any] = field(default_factory=dict)  # implementation-specific diagnostics
+
+
+def validate_wam_output(out: WAMOutput, *, chunk_length: int, action_dim: int,
+                        cameras: tuple[str, ...], source: str = "WAM") -> WAMOutput:
+    """Return ``out`` unchanged if it keeps the contract; otherwise raise :class:`WAMOutputError`.
+
+    Never repairs an output (no silent zeros): a broken chunk must stop the episode loudly.
+    """
+
+    def fail(problem: str) -> None:
+        raise WAMOutputError(f"{source} returned {problem}; fix the WAM (or its server) so that it returns "
+                             f"({chunk_length}, {action_dim}) float32 actions in [-1, 1] and uint8 (h, w, 3) "
+                             f"images for {list(cameras)}")
+
+    if not isinstance(out, WAMOutput):
+        fail(f"a {type(out).__name__} instead of a WAMOutput")
+    a = out.actions
+    if not isinstance(a, np.ndarray):
+        fail(f"actions of type {type(a).__name__}, not a numpy array")
+    if a.shape != (chunk_length, action_dim):
+        fail(f"actions of shape {a.shape}, expected ({chunk_length}, {action_dim})")
+    if a.dtype != np.float32:
+        fail(f"actions of dtype {a.dtype}, expected float32")
+    if not np.isfinite(a).all():
+        fail(f"non-finite actions ({int((~np.isfinite(a)).sum())} NaN/inf values)")
+    if np.abs(a).max() > 1.0:
+        fail(f"actions outside [-1, 1] (max |a| = {float(np.abs(a).max()):.4g})")
+    if not isinstance(out.images, dict):
+        fail(f"images of type {type(out.images).__name__}, not a dict camera -> image")
+    missing = [c for c in cameras if c not in out.images]
+    if missing:
+        fail(f"no image for camera(s) {missing} (got {sorted(out.images)})")
+    for cam in cameras:
+        img = out.images[cam]
+        if not isinstance(img, np.ndarray) or img.ndim != 3 or img.shape[2] != 3 or min(img.shape[:2]) < 1:
+            fail(f"a '{cam}' image of shape {getattr(img, 'shape', None)}, expected (h, w, 3)")
+        if img.dtype != np.uint8:
+            fail(f"a '{cam}' image of dtype {img.dtype}, expected uint8")
+    if out.value is not None and not (isinstance(out.value, (int, float, np.floating)) and np.isfinite(out.value)):
+        fail(f"value {out.value!r}, expected a finite float or None")
+    return out
+
+
+class WAM(abc.ABC):
+    """A world action model. Subclasses set ``name`` (via ``@register_wam``) and the three attributes below
+    (class attributes, instance attributes or properties)."""
+
+    name: ClassVar[str] = ""
+    chunk_length: int = 16  # H: actions per chunk; the images are predicted for t + H
+    action_dim: int = ACTION_DIM  # A
+    cameras: tuple[str, ...] = CAMERAS  # cameras the WAM reads and predicts
+    default_instruction: str = DEFAULT_INSTRUCTION  # what WAMPolicy sends when given no instruction
+
+    @abc.abstractmethod
+    def predict(self, obs: Observation, instruction: str) -> WAMOutput:
+        """The chunk and predicted images for ``obs`` (which carries images for ``self.cameras``)."""
+
+    def reset(self) -> None:
+        """Start a new episode (clear any internal state, e.g. a history of frames)."""
+
+    def close(self) -> None:
+        """Release resources (network sessions, worker processes)."""
+
+    def validate(self, out: WAMOutput) -> WAMOutput:
+        """``validate_wam_output`` against this WAM's own shape contract."""
+        return validate_wam_output(out, chunk_length=self.chunk_length, action_dim=self.action_dim,
+                                   cameras=tuple(self.cameras), source=f"WAM '{self.name}'")
+
+    def config_dict(self) -> dict[str, Any]:
+        """The WAM's configuration, stored as provenance with evaluation results."""
+        return {"name": self.name}
+
+
+WAMS: dict[str, Callable[..., WAM]] = {}
+WAM_LOADERS: dict[str, Callable[[Path], WAM]] = {}
+
+
+def register_wam(name: str) -> Callable[[type[WAM]], type[WAM]]:
+    """Class decorator: make a WAM constructible by name (``make_wam``)."""
+
+    def deco(cls: type[WAM]) -> type[WAM]:
+        if name in WAMS:
+            raise ValueError(f"WAM '{name}' is registered twice")
+        cls.name = name
+        WAMS[name] = cls
+        return cls
+
+    return deco
+
+
+def register_wam_loader(kind: str) -> Callable[[Callable[[Path], WAM]], Callable[[Path], WAM]]:
+    """Decorator: ``fn(path) -> WAM`` loads checkpoints whose ``config.json`` has ``"kind": kind``."""
+
+    def deco(fn: Callable[[Path], WAM]) -> Callable[[Path], WAM]:
+        if kind in WAM_LOADERS:
+            raise ValueError(f"WAM checkpoint kind '{kind}' is registered twice")
+        WAM_LOADERS[kind] = fn
+        return fn
+
+    return deco
+
+
+def _import_builtin_wams() -> None:
+    for module in BUILTIN_WAM_MODULES:
+        importlib.import_module(module)
+
+
+def make_wam(name: str, **kwargs: Any) -> WAM:
+    """Build the WAM registered as ``name``."""
+    _import_builtin_wams()
+    if name not in WAMS:
+        raise WAMError(f"unknown WAM '{name}'; choose one of {sorted(WAMS)}")
+    return WAMS[name](**kwargs)
+
+
+def load_wam(path: str | Path) -> WAM:
+    """Load a WAM checkpoint directory, dispatching on its kind (see ``register_wam_loader``)."""
+    from wamplan.checkpoint import CONFIG_FILE, MODEL_FILE, CheckpointError  # imports torch: only when needed
+
+    _import_builtin_wams()
+    p = Path(path)
+    if not (p / CONFIG_FILE).is_file() or not (p / MODEL_FILE).is_file():
+        raise CheckpointError(f"{p} is not a wamplan checkpoint (needs {CONFIG_FILE} and {MODEL_FILE}); "
+                              f"train a WAM first or pass the right --ckpt")
+    try:
+        kind = json.loads((p / CONFIG_FILE).read_text()).get("kind")
+    except (json.JSONDecodeError, AttributeError) as e:
+        raise CheckpointError(f"{p / CONFIG_FILE} is not a valid checkpoint config ({e}); "
+                              f"re-save the checkpoint or pass the right --ckpt") from e
+    if kind not in WAM_LOADERS:
+        known = sorted(WAM_LOADERS) or "none registered yet"
+        raise CheckpointError(f"{p} holds a '{kind}' checkpoint, which is not a WAM (WAM kinds: {known}); "
+                              f"pass a WAM checkpoint to --ckpt")
+    return WAM_LOADERS[kind](p)
+
+
+class WAMPolicy(Policy):
+    """A WAM as a policy: query at steps 0, H, 2H, ... and execute each chunk open loop.
+
+    ``refine(obs, out) -> (H, A) actions``, if given, replaces each proposed chunk before it is executed
+    (the planner's hook); the WAM's own output stays available as ``last_output``. Without an
+    ``instruction`` the WAM's ``default_instruction`` is sent. Executed actions are
+    clipped to [-1, 1], the range every policy promises. Not in the policy registry: it needs a WAM
+    (``WAMPolicy(load_wam(path))``), so a name alone cannot build it.
+    """
+
+    name = "wam"
+
+    def __init__(self, wam: WAM, instruction: str | None = None,
+                 refine: Callable[[Observation, WAMOutput], np.ndarray] | None = None):
+        if wam.action_dim != ACTION_DIM:
+            raise WAMError(f"WAM '{wam.name}' outputs {wam.action_dim}-D actions but the environment takes "
+                           f"{ACTION_DIM}-D ones; configure the WAM's action dimensions")
+        self.wam = wam
+        self.instruction = instruction if instruction is not None else wam.default_instruction
+        self.refine = refine
+        self.reset()
+
+    @property
+    def chunk_length(self) -> int:
+        return int(self.wam.chunk_length)
+
+    def reset(self, seed: int | None = None) -> None:
+        self.wam.reset()
+        self.last_output: WAMOutput | None = None  # the WAM's latest proposal (planner target, diagnostics)
+        self.current_chunk: np.ndarray | None = None  # (H, A) the chunk being executed
+        self._index = 0  # next row of current_chunk
+        self._query_steps: list[int] = []
+        self._query_s: list[float] = []
+        self._refine_s: list[float] = []
+
+    def wants_images(self, step: int) -> bool:
+        return step % self.chunk_length == 0
+
+    def act(self, obs: Observation) -> np.ndarray:
+        if self.current_chunk is None or self._index >= self.chunk_length:
+            self._start_chunk(obs)
+        assert self.current_chunk is not None
+        action = self.current_chunk[self._index].copy()  # (A,)
+        self._index += 1
+        return action
+
+    def _start_chunk(self, obs: Observation) -> None:
+        H = self.chunk_length
+        if obs.step % H != 0:
+            raise WAMError(f"WAMPolicy starts a chunk at step {obs.step}, not a multiple of {H}; "
+                           f"call reset() at the start of every episode and act() once per step")
+        if obs.images is None:
+            raise WAMError(f"the observation at step {obs.step} carries no images but the WAM needs them; "
+                           f"render images whenever policy.wants_images(step) is True")
+        t0 = time.perf_counter()
+        out = self.wam.validate(self.wam.predict(obs, self.instruction))
+        self._query_s.append(time.perf_counter() - t0)
+        self._query_steps.append(obs.step)
+        chunk = out.actions  # (H, A)
+        if self.refine is not None:
+            t1 = time.perf_counter()
+            chunk = np.asarray(self.refine(obs, out), dtype=np.float32)  # (H, A)
+            self._refine_s.append(time.perf_counter() - t1)
+            if chunk.shape != out.actions.shape or not np.isfinite(chunk).all():
+                raise WAMError(f"the refined chunk has shape {chunk.shape} or non-finite values; the refine "
+                               f"hook must return finite ({H}, {self.wam.action_dim}) actions")
+        self.last_output = out
+        self.current_chunk = np.clip(chunk, -1.0, 1.0).astype(np.float32)  # (H, A)
+        self._index = 0
+
+    def info(self) -> dict[str, Any]:
+        info: dict[str, Any] = {"wam": self.wam.name, "chunks": len(self._query_s),
+                                "query_steps": list(self._query_steps), "wam_query_s": list(self._query_s)}
+        if self.refine is not None:
+            info["refine_s"] = list(self._refine_s)
+        return info
+
+    def config_dict(self) -> dict[str, Any]:
+        return {"name": self.name, "wam": self.wam.config_dict(), "instruction": self.instruction,
+                "chunk_length": self.chunk_length, "refined": self.refine is not None}

@@ -1,0 +1,282 @@
+"""A Cosmos Policy server (or ``wamplan wam serve``) used as a WAM over HTTP.
+
+    wam = CosmosPolicyClient(CosmosClientConfig(url="http://127.0.0.1:8777/act"))
+    out = wam.predict(obs, "insert the cube into the hole")   # WAMOutput, validated
+
+The client adapts wamplan's observation to what the server was trained on (camera -> request field,
+proprio length, chunk length, which action columns are wamplan's 5-D action) and maps the predicted
+views back to wamplan cameras. Every failure (server down, timeout, HTTP error, the "error" answer,
+a malformed or non-finite answer) raises :class:`WAMServerError` with one line naming the fix.
+
+CLI flags: ``wamplan.config.add_arguments(parser, CosmosClientConfig, prefix="wam_")`` gives
+``--wam-url``, ``--wam-timeout-s``, ...; error messages name those flags.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+from typing import Any
+from urllib.parse import urlparse
+
+import numpy as np
+import requests
+
+from wamplan.config import field, require, to_dict
+from wamplan.policies.base import CAMERAS, Observation
+from wamplan.wam import protocol
+from wamplan.wam.base import WAM, WAMError, WAMOutput, WAMOutputError, WAMServerError, register_wam
+
+FLAG_PREFIX = "--wam-"
+
+
+def _flag(name: str) -> str:
+    return FLAG_PREFIX + name.replace("_", "-")
+
+
+def _pairs(items: tuple[str, ...], option: str) -> list[tuple[str, str]]:
+    out = []
+    for item in items:
+        cam, sep, name = item.partition("=")
+        require(bool(sep and cam and name),
+                f"{_flag(option)}: '{item}' is not CAMERA=FIELD (e.g. front=primary_image)")
+        require(cam in CAMERAS,
+                f"{_flag(option)}: unknown camera '{cam}' in '{item}'; cameras are {list(CAMERAS)}")
+        out.append((cam, name))
+    return out
+
+
+@dataclass(frozen=True)
+class CosmosClientConfig:
+    """How to reach a Cosmos Policy /act server and adapt wamplan's observations to it."""
+
+    url: str = field(f"http://127.0.0.1:{protocol.DEFAULT_PORT}{protocol.ROUTE}", "the server's /act endpoint")
+    request_fields: tuple[str, ...] = field(
+        ("front=primary_image", "side=left_wrist_image", "wrist=right_wrist_image"),
+        "CAMERA=FIELD: which wamplan camera fills each request image (all three fields are required)")
+    response_fields: tuple[str, ...] = field(
+        ("front=future_image", "side=future_wrist_image", "wrist=future_wrist_image2"),
+        "CAMERA=FIELD: which predicted future image becomes each wamplan camera's target")
+    chunk_length: int = field(16, "actions per chunk the server returns (H); the images are for t + H")
+    action_indices: tuple[int, ...] = field((0, 1, 2, 3, 4), "columns of the server's actions that form "
+                                            "wamplan's action (dx, dy, dz, dyaw, gripper)")
+    clip_actions: bool = field(True, "clip actions into [-1, 1] (sampled actions can overshoot slightly); "
+                               "off: an out-of-range action is an error")
+    proprio_dim: int | None = field(None, "proprio length the server expects (truncate or pad wamplan's 10-D "
+                                    "proprio); None sends it unchanged")
+    proprio_pad: float = field(0.0, "value used to pad proprio up to proprio_dim")
+    send_image_size: int | None = field(None, "resize camera images to this square size before sending; "
+                                        "None sends them as rendered")
+    image_size: int | None = field(None, "resize predicted images to this square size; None keeps the server's")
+    timeout_s: float = field(60.0, "seconds to wait for one answer")
+    connect_timeout_s: float = field(5.0, "seconds to wait for a connection")
+    retries: int = field(2, "extra attempts when the server cannot be reached (not after a timeout)")
+    backoff_s: float = field(0.5, "wait before the first retry; doubles after each")
+
+    def __post_init__(self) -> None:
+        require(self.url.startswith(("http://", "https://")),
+                f"{_flag('url')} must be an http(s) URL such as http://127.0.0.1:8777/act, got '{self.url}'")
+        req = _pairs(self.request_fields, "request_fields")
+        names = sorted(n for _, n in req)
+        require(names == sorted(protocol.REQUEST_IMAGE_FIELDS),
+                f"{_flag('request_fields')} must fill each of {list(protocol.REQUEST_IMAGE_FIELDS)} exactly once, "
+                f"got {list(self.request_fields)}")
+        resp = _pairs(self.response_fields, "response_fields")
+        require(len(resp) > 0, f"{_flag('response_fields')} must map at least one camera")
+        cams = [c for c, _ in resp]
+        require(len(set(cams)) == len(cams),
+                f"{_flag('response_fields')} maps a camera twice: {list(self.response_fields)}")
+        for _, name in resp:
+            require(name in protocol.KNOWN_RESPONSE_IMAGE_FIELDS,
+                    f"{_flag('response_fields')}: unknown field '{name}'; Cosmos Policy predicts "
+                    f"{list(protocol.KNOWN_RESPONSE_IMAGE_FIELDS)}")
+        require(self.chunk_length >= 1, f"{_flag('chunk_length')} must be >= 1, got {self.chunk_length}")
+        require(len(self.action_indices) >= 1 and min(self.action_indices) >= 0
+                and len(set(self.action_indices)) == len(self.action_indices),
+                f"{_flag('action_indices')} must be distinct non-negative column indices, "
+                f"got {self.action_indices}")
+        for name in ("proprio_dim", "send_image_size", "image_size"):
+            v = getattr(self, name)
+            require(v is None or v >= 1, f"{_flag(name)} must be >= 1 (or unset), got {v}")
+        require(self.timeout_s > 0 and self.connect_timeout_s > 0,
+                f"{_flag('timeout_s')} and {_flag('connect_timeout_s')} must be > 0")
+        require(self.retries >= 0, f"{_flag('retries')} must be >= 0, got {self.retries}")
+        require(self.backoff_s >= 0, f"{_flag('backoff_s')} must be >= 0, got {self.backoff_s}")
+
+    @property
+    def request_map(self) -> dict[str, str]:
+        """request field -> wamplan camera."""
+        return {name: cam for cam, name in _pairs(self.request_fields, "request_fields")}
+
+    @property
+    def response_map(self) -> dict[str, str]:
+        """wamplan camera -> response field."""
+        return dict(_pairs(self.response_fields, "response_fields"))
+
+
+def resize_image(img: np.ndarray, size: int) -> np.ndarray:
+    """(h, w, 3) uint8 -> (size, size, 3) uint8, bilinear with antialiasing."""
+    if img.shape[0] == size and img.shape[1] == size:
+        return img
+    import torch
+    import torch.nn.functional as F
+
+    x = torch.from_numpy(np.ascontiguousarray(img)).permute(2, 0, 1)[None].float()  # (1, 3, h, w)
+    y = F.interpolate(x, size=(size, size), mode="bilinear", antialias=True, align_corners=False)  # (1, 3, s, s)
+    return y[0].permute(1, 2, 0).round().clamp(0, 255).to(torch.uint8).numpy()  # (s, s, 3)
+
+
+def _short_reason(e: requests.exceptions.ConnectionError, connect_timeout_s: float) -> str:
+    text = str(e)
+    if isinstance(e, requests.exceptions.ConnectTimeout):
+        return f"no connection within {connect_timeout_s:g} s"
+    for needle, reason in (("Connection refused", "connection refused"),
+                           ("Name or service not known", "unknown host"),
+                           ("nodename nor servname", "unknown host"),
+                           ("Connection reset", "connection reset"),
+                           ("RemoteDisconnected", "the server closed the connection"),
+                           ("Connection aborted", "the connection was aborted")):
+        if needle in text:
+            return reason
+    return text[:160]
+
+
+@register_wam("cosmos")
+class CosmosPolicyClient(WAM):
+    """A WAM served over the Cosmos Policy /act protocol. ``overrides`` replace config fields."""
+
+    def __init__(self, config: CosmosClientConfig | None = None, *, session: Any = None, **overrides: Any):
+        base = config if config is not None else CosmosClientConfig()
+        if overrides:
+            known = {f.name for f in dataclasses.fields(CosmosClientConfig)}
+            unknown = sorted(set(overrides) - known)
+            require(not unknown, f"CosmosPolicyClient: unknown option(s) {unknown}; known: {sorted(known)}")
+            base = dataclasses.replace(base, **{k: tuple(v) if isinstance(v, list) else v
+                                                for k, v in overrides.items()})
+        self.config = base
+        self.chunk_length = base.chunk_length
+        self.action_dim = len(base.action_indices)
+        self.cameras = tuple(base.response_map)
+        self._request_map = base.request_map  # field -> camera
+        self._response_map = base.response_map  # camera -> field
+        if session is None:
+            session = requests.Session()
+            # A proxy from the environment must not capture a server on this machine.
+            session.trust_env = urlparse(base.url).hostname not in ("127.0.0.1", "localhost", "::1")
+        self._session = session
+        self.attempts_made = 0  # HTTP attempts of the last query (diagnostics, tests)
+
+    @property
+    def _where(self) -> str:
+        return f"Cosmos Policy server at {self.config.url}"
+
+    def config_dict(self) -> dict[str, Any]:
+        return {"name": self.name, **to_dict(self.config)}
+
+    def close(self) -> None:
+        self._session.close()
+
+    # -- request -------------------------------------------------------------------------------------
+    def _request(self, obs: Observation, instruction: str) -> protocol.ActRequest:
+        cfg = self.config
+        if obs.images is None:
+            raise WAMError(f"the observation at step {obs.step} has no images; the Cosmos client needs "
+                           f"{sorted(set(self._request_map.values()))}")
+        images = {}
+        for name, cam in self._request_map.items():
+            if cam not in obs.images:
+                raise WAMError(f"the observation has no '{cam}' image (has {sorted(obs.images)}); render it or "
+                               f"change {_flag('request_fields')}")
+            img = np.asarray(obs.images[cam], dtype=np.uint8)  # (H, W, 3)
+            images[name] = resize_image(img, cfg.send_image_size) if cfg.send_image_size else img
+        proprio = np.asarray(obs.proprio, dtype=np.float32).reshape(-1)  # (10,)
+        if not np.isfinite(proprio).all():
+            raise WAMError(f"the observation at step {obs.step} has non-finite proprio {proprio}; "
+                           f"check the environment's state")
+        if cfg.proprio_dim is not None:
+            out = np.full(cfg.proprio_dim, cfg.proprio_pad, dtype=np.float32)  # (P,)
+            n = min(cfg.proprio_dim, proprio.shape[0])
+            out[:n] = proprio[:n]
+            proprio = out
+        return protocol.ActRequest(images=images, proprio=proprio, task_description=instruction)
+
+    # -- transport -----------------------------------------------------------------------------------
+    def _post(self, body: bytes) -> requests.Response:
+        cfg = self.config
+        attempts = cfg.retries + 1
+        reason = ""
+        for attempt in range(attempts):
+            self.attempts_made = attempt + 1
+            try:
+                return self._session.post(cfg.url, data=body, headers=protocol.JSON_HEADERS,
+                                          timeout=(cfg.connect_timeout_s, cfg.timeout_s))
+            except requests.exceptions.ConnectionError as e:  # refused, reset, connect timeout: retry
+                reason = _short_reason(e, cfg.connect_timeout_s)
+                if attempt + 1 < attempts:
+                    time.sleep(cfg.backoff_s * 2 ** attempt)
+            except requests.exceptions.Timeout as e:  # read timeout: the server is busy; do not pile on
+                raise WAMServerError(f"{self._where} did not answer within {cfg.timeout_s:g} s; raise "
+                                     f"{_flag('timeout_s')} or check that the server is not stuck") from e
+            except requests.exceptions.RequestException as e:
+                raise WAMServerError(f"request to {self._where} failed ({type(e).__name__}: {str(e)[:160]}); "
+                                     f"check {_flag('url')}") from e
+        raise WAMServerError(f"{self._where} is not reachable ({reason}, {attempts} attempt(s)); "
+                             f"start it or pass {_flag('url')}")
+
+    # -- answer --------------------------------------------------------------------------------------
+    def _decode(self, resp: requests.Response, sent_proprio: int) -> protocol.ActResponse:
+        if resp.status_code == 404:
+            raise WAMServerError(f"{self._where} has no such route (HTTP 404); Cosmos Policy serves POST "
+                                 f"{protocol.ROUTE}: check {_flag('url')}")
+        if resp.status_code != 200:
+            raise WAMServerError(f"{self._where} answered HTTP {resp.status_code} ({resp.text[:120]!r}); "
+                                 f"check the server's log and {_flag('url')}")
+        try:
+            return protocol.decode_response(resp.content)
+        except protocol.ErrorReply as e:
+            raise WAMServerError(f"{self._where} answered \"error\" (it failed on this request; its log has the "
+                                 f"traceback); check that it was started for these cameras, {sent_proprio}-D "
+                                 f"proprio (see {_flag('proprio_dim')}) and this task") from e
+        except protocol.ProtocolError as e:
+            raise WAMServerError(f"{self._where} sent a malformed answer: {e}; check that {_flag('url')} is a "
+                                 f"Cosmos Policy /act server") from e
+
+    def _output(self, ans: protocol.ActResponse) -> WAMOutput:
+        cfg = self.config
+        H, A_srv = ans.actions.shape
+        if H != cfg.chunk_length:
+            raise WAMServerError(f"{self._where} returned {H}-step chunks but {_flag('chunk_length')} is "
+                                 f"{cfg.chunk_length}; pass {_flag('chunk_length')} {H} or serve a model "
+                                 f"trained with {cfg.chunk_length}-step chunks")
+        if max(cfg.action_indices) >= A_srv:
+            raise WAMServerError(f"{self._where} returned {A_srv}-D actions but {_flag('action_indices')} "
+                                 f"{list(cfg.action_indices)} needs column {max(cfg.action_indices)}; pick "
+                                 f"columns below {A_srv}")
+        actions = ans.actions[:, list(cfg.action_indices)].astype(np.float32)  # (H, A)
+        if cfg.clip_actions:
+            actions = np.clip(actions, -1.0, 1.0)
+        images = {}
+        for cam, name in self._response_map.items():
+            if name not in ans.future_images:
+                raise WAMServerError(f"{self._where} returned no '{name}' image (it sent "
+                                     f"{sorted(ans.future_images)}); map only those in {_flag('response_fields')}")
+            img = ans.future_images[name]  # (h, w, 3)
+            images[cam] = resize_image(img, cfg.image_size) if cfg.image_size else img
+        return WAMOutput(actions=actions, images=images, value=ans.value)
+
+    def predict(self, obs: Observation, instruction: str) -> WAMOutput:
+        t0 = time.perf_counter()
+        req = self._request(obs, instruction)
+        body = protocol.encode_request(req).encode()
+        t_post = time.perf_counter()
+        resp = self._post(body)
+        http_s = time.perf_counter() - t_post
+        out = self._output(self._decode(resp, sent_proprio=req.proprio.shape[0]))
+        try:
+            self.validate(out)
+        except WAMOutputError as e:
+            raise WAMServerError(f"{self._where}: {e}") from e
+        out.timing = {"query_s": time.perf_counter() - t0, "http_s": http_s}
+        out.extras = {"attempts": self.attempts_made, "url": self.config.url}
+        return out

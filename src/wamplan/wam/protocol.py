@@ -1,0 +1,170 @@
+"""The Cosmos Policy ``/act`` wire protocol, shared by the client and the server.
+
+It follows NVlabs/cosmos-policy ``cosmos_policy/experiments/robot/aloha/deploy.py``:
+
+* ``POST /act`` with a JSON body whose numpy arrays are encoded by ``json_numpy``
+  (``{"__numpy__": <base64>, "dtype": ..., "shape": [...]}``). Request fields: ``primary_image``,
+  ``left_wrist_image``, ``right_wrist_image`` (uint8 (H, W, 3), all three required), ``proprio``
+  (float32 (P,)) and ``task_description`` (str). A body ``{"encoded": "<json_numpy string>"}`` (the
+  "double-encoded" form for clients without json_numpy) is accepted too.
+* The answer is a dict with ``actions`` (a list of (A,) rows, or an (H, A) array),
+  ``future_image_predictions`` (a dict ``future_image`` / ``future_wrist_image`` / ``future_wrist_image2``
+  -> uint8 (h, w, 3), or None for a view the model does not predict) and ``value_prediction`` (float).
+  The answer may itself be double-encoded (a JSON string holding the json_numpy text).
+* On any failure the server answers the JSON string ``"error"`` with HTTP 200; there is no health route.
+
+Decoders raise :class:`ProtocolError` (malformed message) or :class:`ErrorReply` (the ``"error"`` answer);
+callers turn those into errors for people, naming the server.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import json_numpy
+import numpy as np
+
+ROUTE = "/act"
+DEFAULT_PORT = 8777
+REQUEST_IMAGE_FIELDS = ("primary_image", "left_wrist_image", "right_wrist_image")
+# The fields Cosmos Policy fills for a 3-camera (ALOHA-style) model; RoboCasa models add future_image2.
+RESPONSE_IMAGE_FIELDS = ("future_image", "future_wrist_image", "future_wrist_image2")
+KNOWN_RESPONSE_IMAGE_FIELDS = RESPONSE_IMAGE_FIELDS + ("future_image2",)
+ERROR_REPLY = "error"
+JSON_HEADERS = {"Content-Type": "application/json"}
+
+
+class ProtocolError(ValueError):
+    """A request or answer does not follow the /act protocol; the message says what is wrong."""
+
+
+class ErrorReply(Exception):
+    """The server answered the string "error": it failed while handling the request."""
+
+
+@dataclass
+class ActRequest:
+    images: dict[str, np.ndarray]  # request field -> (H, W, 3) uint8
+    proprio: np.ndarray  # (P,) float32
+    task_description: str
+
+
+@dataclass
+class ActResponse:
+    actions: np.ndarray  # (H, A) float32, finite
+    future_images: dict[str, np.ndarray]  # response field -> (h, w, 3) uint8; views left out are absent
+    value: float | None = None
+
+
+def _loads(body: bytes | str, what: str) -> Any:
+    try:
+        return json_numpy.loads(body)
+    except (ValueError, TypeError, KeyError) as e:  # bad JSON, bad base64, size/shape mismatch
+        raise ProtocolError(f"the {what} is not valid json_numpy JSON ({type(e).__name__}: {e})") from e
+
+
+def _image(x: Any, what: str) -> np.ndarray:
+    """A (h, w, 3) uint8 copy of ``x``; a leading batch axis of 1 is dropped."""
+    if isinstance(x, list):
+        try:
+            x = np.asarray(x)
+        except ValueError as e:
+            raise ProtocolError(f"{what} is a ragged list, not an image") from e
+    if not isinstance(x, np.ndarray):
+        raise ProtocolError(f"{what} is a {type(x).__name__}, not an image array")
+    if x.ndim == 4 and x.shape[0] == 1:
+        x = x[0]  # (1, h, w, 3) -> (h, w, 3)
+    if x.ndim != 3 or x.shape[2] != 3 or min(x.shape[:2]) < 1:
+        raise ProtocolError(f"{what} has shape {x.shape}, expected (h, w, 3)")
+    if x.dtype != np.uint8:
+        if not np.issubdtype(x.dtype, np.integer) or x.min() < 0 or x.max() > 255:
+            raise ProtocolError(f"{what} has dtype {x.dtype}, expected uint8")
+        x = x.astype(np.uint8)
+    return np.array(x, dtype=np.uint8, copy=True)  # json_numpy arrays are read-only views
+
+
+def _numbers(x: Any, what: str, ndim: int) -> np.ndarray:
+    """A finite float32 array of ``ndim`` dims from an array or (nested) list of numbers."""
+    try:
+        arr = np.array(x, dtype=np.float32)
+    except (ValueError, TypeError) as e:
+        raise ProtocolError(f"{what} is not a numeric array ({e})") from e
+    if arr.ndim == ndim + 1 and arr.shape[0] == 1:
+        arr = arr[0]  # drop a batch axis of 1
+    if arr.ndim != ndim or arr.size == 0:
+        raise ProtocolError(f"{what} has shape {arr.shape}, expected {ndim} non-empty dimension(s)")
+    if not np.isfinite(arr).all():
+        raise ProtocolError(f"{what} holds non-finite values ({int((~np.isfinite(arr)).sum())} NaN/inf)")
+    return arr
+
+
+def encode_request(req: ActRequest) -> str:
+    """The JSON body of ``POST /act``."""
+    payload = {name: np.ascontiguousarray(req.images[name], dtype=np.uint8) for name in REQUEST_IMAGE_FIELDS}
+    payload["proprio"] = np.ascontiguousarray(req.proprio, dtype=np.float32)  # (P,)
+    payload["task_description"] = str(req.task_description)
+    return json_numpy.dumps(payload)
+
+
+def decode_request(body: bytes | str) -> ActRequest:
+    """Parse and check a request body (server side)."""
+    payload = _loads(body, "request body")
+    if isinstance(payload, Mapping) and "encoded" in payload:  # double-encoded form
+        payload = _loads(payload["encoded"], "'encoded' request payload")
+    if not isinstance(payload, Mapping):
+        raise ProtocolError(f"the request body is a JSON {type(payload).__name__}, expected an object")
+    missing = [k for k in (*REQUEST_IMAGE_FIELDS, "proprio", "task_description") if k not in payload]
+    if missing:
+        raise ProtocolError(f"the request lacks field(s) {missing}")
+    images = {k: _image(payload[k], f"request field '{k}'") for k in REQUEST_IMAGE_FIELDS}
+    proprio = _numbers(payload["proprio"], "request field 'proprio'", ndim=1)  # (P,)
+    task = payload["task_description"]
+    if not isinstance(task, str):
+        raise ProtocolError(f"request field 'task_description' is a {type(task).__name__}, expected a string")
+    return ActRequest(images=images, proprio=proprio, task_description=task)
+
+
+def encode_response(resp: ActResponse) -> str:
+    """The JSON answer, shaped like Cosmos Policy's: actions as a list of (A,) rows."""
+    actions = np.ascontiguousarray(resp.actions, dtype=np.float32)  # (H, A)
+    future = {name: None for name in RESPONSE_IMAGE_FIELDS}
+    future.update({name: np.ascontiguousarray(img, dtype=np.uint8) for name, img in resp.future_images.items()})
+    return json_numpy.dumps({
+        "actions": [row for row in actions],  # H x (A,)
+        "future_image_predictions": future,
+        "value_prediction": None if resp.value is None else float(resp.value),
+    })
+
+
+def error_reply() -> str:
+    """The body Cosmos Policy sends (with HTTP 200) when a request fails."""
+    return json.dumps(ERROR_REPLY)
+
+
+def decode_response(body: bytes | str) -> ActResponse:
+    """Parse and check an answer (client side). Raises ErrorReply for "error", ProtocolError if malformed."""
+    obj = _loads(body, "answer")
+    if isinstance(obj, str) and obj != ERROR_REPLY:  # double-encoded answer
+        obj = _loads(obj, "double-encoded answer")
+    if isinstance(obj, str) and obj == ERROR_REPLY:
+        raise ErrorReply(ERROR_REPLY)
+    if isinstance(obj, list):
+        raise ProtocolError("the answer is a bare action list without future_image_predictions; "
+                            "the server must predict future images")
+    if not isinstance(obj, Mapping):
+        raise ProtocolError(f"the answer is a JSON {type(obj).__name__}, expected an object")
+    if "actions" not in obj:
+        raise ProtocolError(f"the answer has no 'actions' (keys: {sorted(obj)})")
+    actions = _numbers(obj["actions"], "'actions'", ndim=2)  # (H, A)
+    preds = obj.get("future_image_predictions")
+    if not isinstance(preds, Mapping):
+        raise ProtocolError("the answer has no 'future_image_predictions' dict "
+                            f"(got {type(preds).__name__}); the server must predict future images")
+    future = {str(k): _image(v, f"future image '{k}'") for k, v in preds.items() if v is not None}
+    value = obj.get("value_prediction")
+    if value is not None:
+        value = float(_numbers([value], "'value_prediction'", ndim=1).reshape(-1)[0])
+    return ActResponse(actions=actions, future_images=future, value=value)

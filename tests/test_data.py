@@ -1,0 +1,188 @@
+"""Episode store, collection (resume, kill -9), readers (shapes and action-block alignment), errors."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from wamplan.cli import main
+from wamplan.data.readers import WAMSamples, WorldModelWindows, split_of
+from wamplan.data.store import EpisodeStore, StoreError
+from wamplan.policies.base import CAMERAS
+
+SMALL = ["--camera-size", "64"]
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    root = tmp_path_factory.mktemp("store") / "expert"
+    assert main(["collect", "--source", "expert", "--episodes", "2", "--out", str(root), *SMALL]) == 0
+    assert main(["collect", "--source", "pink", "--episodes", "2", "--seed-start", "10", "--max-steps", "30",
+                 "--out", str(root), *SMALL]) == 0
+    return root
+
+
+def test_store_contents(store):
+    s = EpisodeStore(store)
+    metas = list(s.iter_meta())
+    assert sorted((m["source"], m["seed"]) for m in metas) == [("expert", 0), ("expert", 1), ("pink", 10), ("pink", 11)]
+    for m in metas:
+        ep = s.load(m["path"])
+        T = ep.length
+        assert ep.actions.shape == (T, 5) and ep.proprio.shape == (T + 1, 10) and ep.stages.shape == (T + 1, 5)
+        assert ep.sim_state.shape[0] == T + 1 and ep.drive_targets.shape == (T + 1, 9)
+        assert ep.image_steps[0] == 0 and ep.image_steps[-1] == T
+        assert all(t % 4 == 0 for t in ep.image_steps[:-1])
+        for c in CAMERAS:
+            assert ep.images[c].shape == (len(ep.image_steps), 64, 64, 3) and ep.images[c].dtype == np.uint8
+        assert ep.provenance["wamplan_version"] and ep.policy["name"] == m["source"]
+    expert = [m for m in metas if m["source"] == "expert"]
+    assert all(m["success"] for m in expert)
+    assert all(m["length"] == 30 and not m["success"] for m in metas if m["source"] == "pink")
+
+
+def test_stored_images_match_rerender(store, env):
+    """The stored sim state restores the scene: re-rendering it gives the stored picture."""
+    from wamplan.envs.core import EnvConfig, InsertionEnv
+
+    s = EpisodeStore(store)
+    ep = s.load(s.episode_path("expert", 1))
+    e = InsertionEnv(EnvConfig(camera_size=64))
+    e.reset(1)
+    k = 5
+    t = ep.image_steps[k]
+    import torch
+
+    e.base.set_state(torch.as_tensor(ep.sim_state[t][None]))
+    views = e.render()
+    for c in ("front", "side"):
+        diff = np.abs(views[c].astype(int) - ep.images[c][k].astype(int))
+        assert diff.mean() < 2.0, (c, diff.mean())
+    e.close()
+
+
+def test_resume_skips_finished(store, capsys):
+    assert main(["collect", "--source", "expert", "--episodes", "2", "--out", str(store), *SMALL]) == 0
+    out = capsys.readouterr().out
+    assert "already in" in out and '"collected": 0' in out
+
+
+def test_incompatible_settings_rejected(store, capsys):
+    rc = main(["collect", "--source", "expert", "--episodes", "1", "--out", str(store), "--camera-size", "96"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "other env settings" in err and "camera_size" in err
+    rc = main(["collect", "--source", "expert", "--episodes", "1", "--out", str(store), "--image-every", "2", *SMALL])
+    assert rc == 2 and "images every 4 steps" in capsys.readouterr().err
+
+
+def test_world_model_windows_alignment(store):
+    ds = WorldModelWindows([store], frameskip=4, history=3, horizon=2, split="all")
+    s = EpisodeStore(store)
+    assert len(ds) > 10
+    for idx in (0, len(ds) // 2, len(ds) - 1):
+        item = ds[idx]
+        i, k = ds.items[idx]
+        ep = s.load(ds.episodes[i].path)
+        steps = item["steps"].numpy()
+        assert np.all(np.diff(steps) == 4) and item["q"].shape == (5, 10) and item["a"].shape == (5, 20)
+        assert item["images"].shape == (5, 3, 64, 64, 3)
+        for j, t in enumerate(steps):
+            np.testing.assert_array_equal(item["a"][j].numpy(), ep.actions[t:t + 4].reshape(-1))
+            np.testing.assert_array_equal(item["q"][j].numpy(), ep.proprio[t])
+            kk = list(ep.image_steps).index(t)
+            for v, c in enumerate(CAMERAS):
+                np.testing.assert_array_equal(item["images"][j, v].numpy(), ep.images[c][kk])
+
+
+def test_wam_samples_alignment(store):
+    ds = WAMSamples([store], chunk=16, split="all", sources=["expert"])
+    s = EpisodeStore(store)
+    for idx in (0, len(ds) - 1):
+        item = ds[idx]
+        ep = s.load(ds.episodes[ds.items[idx][0]].path)
+        t = int(item["step"])
+        t_end = min(t + 16, ep.length)
+        n = t_end - t
+        np.testing.assert_array_equal(item["actions"][:n].numpy(), ep.actions[t:t_end])
+        assert np.all(item["actions"][n:].numpy() == ep.actions[t_end - 1])  # held past the end
+        kk = list(ep.image_steps).index(t_end)
+        np.testing.assert_array_equal(item["future"][2].numpy(), ep.images["wrist"][kk])
+        np.testing.assert_array_equal(item["proprio"].numpy(), ep.proprio[t])
+
+
+def test_split_is_stable_and_disjoint(store):
+    tr = {(e.source, e.seed) for e in WorldModelWindows([store], split="train", val_fraction=0.5).episodes}
+    va = {(e.source, e.seed) for e in WorldModelWindows([store], split="val", val_fraction=0.5).episodes}
+    assert not tr & va and len(tr | va) == 4
+    assert split_of("expert", 3, 0.1) == split_of("expert", 3, 0.1)
+    frac = np.mean([split_of("noisy-expert", s, 0.1) == "val" for s in range(2000)])
+    assert 0.07 < frac < 0.13
+
+
+def test_foreign_and_damaged_dirs(tmp_path, capsys, store):
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("hello")
+    assert main(["data", "info", str(foreign)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "not a wamplan episode store" in err
+    assert main(["collect", "--source", "expert", "--episodes", "1", "--out", str(foreign)]) == 2
+    assert "not a wamplan episode store" in capsys.readouterr().err
+    assert (foreign / "notes.txt").read_text() == "hello"  # nothing lost
+    # a damaged episode file
+    import shutil
+
+    broken = tmp_path / "broken"
+    shutil.copytree(store, broken)
+    victim = sorted((broken / "episodes").glob("*.h5"))[0]
+    victim.write_bytes(b"\x00garbage")
+    assert main(["data", "info", str(broken)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "damaged" in err and victim.name in err
+    (broken / "store.json").write_text("{not json")
+    assert main(["data", "info", str(broken)]) == 2
+    assert "damaged" in capsys.readouterr().err
+
+
+def test_info_and_view(store, tmp_path, capsys):
+    assert main(["data", "info", str(store), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["episodes"] == 4 and info["sources"]["expert"]["success_rate"] == 1.0
+    assert info["sources"]["pink"]["outcomes"] == {"never_lifted": 2} and info["bytes_per_episode"] > 0
+    assert main(["data", "view", str(store), "--episode", "0", "--out", str(tmp_path / "s.png")]) == 0
+    import imageio.v3 as iio
+
+    assert iio.imread(tmp_path / "s.png").ndim == 3
+    assert main(["data", "view", str(store), "--episode", "99"]) == 2
+    assert "out of range" in capsys.readouterr().err
+
+
+def test_kill9_then_resume(tmp_path):
+    """kill -9 the whole collection (parent and workers) mid-run; resuming completes it exactly."""
+    out = tmp_path / "pink"
+    cmd = [sys.executable, "-m", "wamplan.cli", "collect", "--source", "pink", "--episodes", "6", "--max-steps", "12",
+           "--workers", "2", "--out", str(out), *SMALL]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    deadline = time.time() + 240
+    while time.time() < deadline and len(list((out / "episodes").glob("*.h5"))) < 2:
+        time.sleep(0.2)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    before = {p.name: p.read_bytes() for p in (out / "episodes").glob("*.h5")}
+    assert 2 <= len(before) < 6, "the kill should land mid-collection"
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    s = EpisodeStore(out)
+    assert s.finished_seeds("pink") == set(range(6))
+    assert len(s.episode_paths()) == 6 and not list((out / "episodes").glob(".tmp-*"))
+    for name, data in before.items():  # finished episodes are untouched
+        assert (out / "episodes" / name).read_bytes() == data
+    for p in s.episode_paths():
+        assert s.load(p).length == 12
+    assert json.loads(r.stdout.strip().splitlines()[-1])["collected"] == 6 - len(before)
