@@ -186,3 +186,25 @@ def test_kill9_then_resume(tmp_path):
     for p in s.episode_paths():
         assert s.load(p).length == 12
     assert json.loads(r.stdout.strip().splitlines()[-1])["collected"] == 6 - len(before)
+
+
+def test_feature_cache_feeds_windows(store):
+    from wamplan.data.features import encode_store, feature_dir
+    from wamplan.encoders import make_encoder
+
+    enc = make_encoder("patch-pixels")
+    done = list(encode_store(store, enc))
+    assert len(done) == 4 and list(encode_store(store, enc)) == []  # cached: a second pass encodes nothing
+    assert len(list(feature_dir(store, enc.name).glob("*.h5"))) == 4
+    ds = WorldModelWindows([store], split="all", features=enc.name)
+    item = ds[7]
+    assert item["z"].shape == (5, 3, enc.num_patches, enc.dim) and item["z"].dtype.is_floating_point
+    # the cached features are the encoder's features of the stored frames
+    raw = WorldModelWindows([store], split="all")[7]["images"]  # (T, V, H, W, 3)
+    ref = enc.encode(raw[2].reshape(-1, *raw.shape[2:])).reshape(3, enc.num_patches, enc.dim)
+    assert (item["z"][2].float() - ref).abs().max() < 2e-2  # float16 rounding
+
+
+def test_windows_without_cache_say_how_to_make_it(store):
+    with pytest.raises(StoreError, match="wamplan wm encode"):
+        WorldModelWindows([store], split="all", features="dinov3-vitl16")

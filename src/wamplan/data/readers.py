@@ -23,6 +23,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from wamplan.data.features import feature_dir
 from wamplan.data.store import EpisodeStore, StoreError
 from wamplan.policies.base import CAMERAS
 
@@ -41,7 +42,7 @@ class EpisodeRef:
     length: int
     image_steps: tuple[int, ...]
     image_every: int
-    features: str | None  # the feature-cache file for this episode's store, if used
+    features: str | None  # this episode's feature-cache file, if features are used
 
 
 def index_episodes(stores: Sequence[str | Path], split: str = "all", val_fraction: float = 0.1,
@@ -53,13 +54,14 @@ def index_episodes(stores: Sequence[str | Path], split: str = "all", val_fractio
     for root in stores:
         store = EpisodeStore(root)
         envs[str(root)] = store.env
-        feat = None
-        if features is not None:
-            feat = str(Path(root) / "features" / f"{features}.h5")
-            if not Path(feat).is_file():
-                raise StoreError(f"{root} has no '{features}' feature cache; run `wamplan wm encode --data {root} "
-                                 f"--encoder {features}` first")
+        fdir = feature_dir(root, features) if features is not None else None
         for p in store.episode_paths():
+            feat = None
+            if fdir is not None:
+                feat = str(fdir / f"{p.stem}.h5")
+                if not Path(feat).is_file():
+                    raise StoreError(f"{root} has no '{features}' features for {p.name}; run `wamplan wm encode "
+                                     f"--data {root} --encoder {features}` first")
             with store.open_episode(p) as f:
                 src, seed = str(f.attrs["source"]), int(f.attrs["seed"])
                 if sources is not None and src not in sources:
@@ -162,7 +164,7 @@ class WorldModelWindows(Dataset):
                    steps=torch.tensor(steps))
         if self.features is not None:
             cache = self._h5.get(e.features)
-            out["z"] = torch.from_numpy(cache[Path(e.path).stem][ks])  # (T, V, N, D)
+            out["z"] = torch.from_numpy(cache["z"][ks])  # (T, V, N, D) float16
         else:
             out["images"] = torch.from_numpy(np.stack([f["images"][c][ks] for c in CAMERAS], 1))  # (T, V, H, W, 3)
         return out
