@@ -1,18 +1,16 @@
 """Collect episodes into an :class:`EpisodeStore` with parallel worker processes.
 
-The CPU simulator allows one env per process, so each worker owns one ``InsertionEnv`` and pulls seeds
-from a queue. Every finished episode is written atomically by the worker itself; the parent only
-counts. Killing the run (Ctrl-C or ``kill -9``) loses at most the episodes in flight; re-running the
+The CPU simulator allows one env per process, so each worker (``wamplan.parallel``) owns one
+``InsertionEnv`` and takes seeds from a queue. Every finished episode is written atomically by the
+worker itself; the parent only counts. Killing the run (Ctrl-C or ``kill -9``) loses at most the episodes in flight; re-running the
 same command skips the seeds already in the store.
 """
 
 from __future__ import annotations
 
-import multiprocessing as mp
-import os
-import queue
 import time
 from dataclasses import dataclass
+from functools import partial
 from typing import Any, Iterator
 
 import numpy as np
@@ -20,6 +18,7 @@ import numpy as np
 from wamplan.data.store import EpisodeData, EpisodeStore
 from wamplan.envs.core import EnvConfig, InsertionEnv
 from wamplan.envs.rollout import run_episode
+from wamplan.parallel import imap_workers
 from wamplan.policies.base import CAMERAS, Policy
 from wamplan.provenance import provenance
 
@@ -74,72 +73,30 @@ def collect_one(env: InsertionEnv, policy: Policy, seed: int, source: str, image
                                              wall_time_s=round(r.wall_time, 3)))
 
 
-def _make_policy(spec: str) -> Policy:
-    from wamplan.envs.commands import load_policy
+class CollectWorker:
+    """Holds one env and one policy; ``worker(seed)`` collects and stores that seed's episode."""
 
-    return load_policy(spec)
+    def __init__(self, job: CollectJob):
+        from wamplan.envs.commands import load_policy
 
+        self.job = job
+        self.env = InsertionEnv(job.env)
+        self.policy = load_policy(job.policy_spec)
+        self.store = EpisodeStore(job.store)
 
-def _worker(job: CollectJob, seeds: "mp.Queue[int | None]", results: "mp.Queue[dict]", parent: int) -> None:
-    env = InsertionEnv(job.env)
-    policy = _make_policy(job.policy_spec)
-    store = EpisodeStore(job.store)
-    while os.getppid() == parent:  # an orphan (parent killed) stops instead of collecting on
-        seed = seeds.get()
-        if seed is None:
-            break
-        ep = collect_one(env, policy, seed, job.source, job.image_every, job.max_steps)
-        store.write(ep)
-        results.put(dict(seed=seed, success=ep.success, outcome=ep.outcome, length=ep.length))
-    env.close()
+    def __call__(self, seed: int) -> dict[str, Any]:
+        ep = collect_one(self.env, self.policy, seed, self.job.source, self.job.image_every, self.job.max_steps)
+        self.store.write(ep)
+        return dict(seed=seed, success=ep.success, outcome=ep.outcome, length=ep.length)
 
 
 def run_collection(job: CollectJob, seeds: list[int], workers: int = 1) -> Iterator[dict[str, Any]]:
     """Collect ``seeds`` not yet in the store; yields one summary dict per finished episode."""
     store = EpisodeStore(job.store)
     todo = sorted(set(seeds) - store.finished_seeds(job.source))
-    if not todo:
-        return
-    if workers <= 1:
-        env, policy = InsertionEnv(job.env), _make_policy(job.policy_spec)
-        try:
-            for seed in todo:
-                ep = collect_one(env, policy, seed, job.source, job.image_every, job.max_steps)
-                store.write(ep)
-                yield dict(seed=seed, success=ep.success, outcome=ep.outcome, length=ep.length)
-        finally:
-            env.close()
-        return
-    ctx = mp.get_context("spawn")
-    seed_q, res_q = ctx.Queue(), ctx.Queue()
-    for s in todo:
-        seed_q.put(s)
-    n = min(workers, len(todo))
-    for _ in range(n):
-        seed_q.put(None)
-    procs = [ctx.Process(target=_worker, args=(job, seed_q, res_q, os.getpid()), daemon=True) for _ in range(n)]
-    for p in procs:
-        p.start()
-    try:
-        done = 0
-        while done < len(todo):
-            try:
-                yield res_q.get(timeout=1.0)
-                done += 1
-            except queue.Empty:
-                dead = [p for p in procs if not p.is_alive() and p.exitcode not in (0, None)]
-                if dead:
-                    raise RuntimeError(f"a collection worker died (exit code {dead[0].exitcode}); finished episodes "
-                                       f"are kept, re-run the same command to resume")
-        for p in procs:
-            p.join()
-    finally:
-        for p in procs:
-            if p.is_alive():
-                p.terminate()
+    yield from imap_workers(partial(CollectWorker, job), todo, workers)
 
 
 def throughput(start: float, n: int) -> float:
     """Episodes per minute since ``start``."""
     return 60.0 * n / max(time.perf_counter() - start, 1e-9)
-

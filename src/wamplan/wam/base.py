@@ -30,7 +30,7 @@ from wamplan.policies.base import ACTION_DIM, CAMERAS, Observation, Policy
 
 # Modules that register WAMs or checkpoint loaders; imported on demand by make_wam / load_wam.
 # Whoever adds a WAM module (TinyWAM, the expert oracle) adds it here.
-BUILTIN_WAM_MODULES = ["wamplan.wam.cosmos_client"]
+BUILTIN_WAM_MODULES = ["wamplan.wam.cosmos_client", "wamplan.wam.tinywam", "wamplan.wam.oracle"]
 
 # The cube-insertion task's language instruction, used when none is given (the paper does not quote one).
 DEFAULT_INSTRUCTION = "insert the cube into the square hole"

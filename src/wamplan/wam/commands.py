@@ -1,14 +1,15 @@
-"""``wamplan wam ...``: serve a trained WAM over the Cosmos Policy /act protocol."""
+"""``wamplan wam ...``: train TinyWAM on episode stores; serve a trained WAM over the Cosmos Policy /act protocol."""
 
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from wamplan.errors import UserError
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser("wam", help="world action models: serve one over the /act protocol")
+    parser = subparsers.add_parser("wam", help="world action models: train TinyWAM, serve one over the /act protocol")
     sub = parser.add_subparsers(dest="wam_command", metavar="WAM_COMMAND")
     parser.set_defaults(func=lambda args: (parser.print_help(), 2)[1])
 
@@ -22,6 +23,25 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     serve.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"],
                        help="uvicorn log level (default: info)")
     serve.set_defaults(func=_serve)
+
+    from wamplan.config import add_arguments
+    from wamplan.wam.tinywam import TinyWAMConfig
+    from wamplan.wam.train import WAMTrainConfig
+
+    train = sub.add_parser("train", help="train TinyWAM on episode stores (re-run the same command to resume)",
+                           description="Train TinyWAM (actions + t+H images) into the checkpoint directory --out. "
+                                       "If --out holds an unfinished run, it is resumed; options left out keep "
+                                       "the saved values.")
+    train.add_argument("--data", required=True, help="episode store directory, or several separated by commas")
+    train.add_argument("--out", type=Path, required=True, help="checkpoint directory (created, or resumed)")
+    train.add_argument("--sources", default=None, help="train only on these sources, comma separated "
+                                                       "(e.g. expert); default: every episode in the stores")
+    train.add_argument("--max-steps", type=int, default=None,
+                       help="stop after this many optimisation steps in all (checkpointed; re-run to continue)")
+    train.add_argument("--no-progress", action="store_true", help="no progress bar (logs only)")
+    add_arguments(train, WAMTrainConfig)
+    add_arguments(train, TinyWAMConfig)
+    train.set_defaults(func=_train)
 
 
 def _serve(args: argparse.Namespace) -> int:
@@ -37,4 +57,31 @@ def _serve(args: argparse.Namespace) -> int:
         serve(wam, host=args.host, port=args.port, instruction_default=args.instruction, log_level=args.log_level)
     finally:
         wam.close()
+    return 0
+
+
+def _train(args: argparse.Namespace) -> int:
+    from wamplan.config import from_args
+    from wamplan.data.store import MANIFEST
+    from wamplan.wam.tinywam import TinyWAMConfig
+    from wamplan.wam.train import WAMTrainConfig, saved_configs, train_tinywam
+
+    stores = [s.strip() for s in args.data.split(",") if s.strip()]
+    if not stores:
+        raise UserError("--data is empty; pass an episode store directory (several: DIR1,DIR2)")
+    for s in stores:
+        if not (Path(s) / MANIFEST).is_file():
+            raise UserError(f"--data {s} is not an episode store (no {MANIFEST}); collect one with "
+                            f"`wamplan collect --source expert --episodes N --out {s}`")
+    if args.max_steps is not None and args.max_steps <= 0:
+        raise UserError(f"--max-steps must be > 0, got {args.max_steps}")
+    sources = [s.strip() for s in args.sources.split(",") if s.strip()] if args.sources else None
+    saved = saved_configs(args.out) if args.out.is_dir() else None
+    model_cfg = from_args(TinyWAMConfig, args, base=saved[0] if saved else None)
+    train_cfg = from_args(WAMTrainConfig, args, base=saved[1] if saved else None)
+    result = train_tinywam(stores, args.out, model_cfg, train_cfg, sources=sources, max_steps=args.max_steps,
+                           progress=not args.no_progress)
+    if not result.finished_before:
+        print(f"checkpoint: {args.out} (epoch {result.state['epoch']}, step {result.state['global_step']}); "
+              f"load it with wamplan.wam.load_wam or `wamplan env rollout --policy {args.out}`")
     return 0

@@ -1,0 +1,68 @@
+"""``wamplan eval`` and ``wamplan report``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections import Counter
+from pathlib import Path
+
+from wamplan.config import add_arguments, from_args
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    from wamplan.evaluation.runner import EvalConfig
+
+    p = sub.add_parser("eval", help="run the paper's evaluation conditions (resumable, parallel)")
+    p.add_argument("--conditions", default="1,6,7", help="e.g. 1,6,7 or 1-7 (paper §4)")
+    p.add_argument("--episodes", type=int, default=50)
+    p.add_argument("--seed-start", type=int, default=0)
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--workers", type=int, default=1)
+    add_arguments(p, EvalConfig)
+    p.set_defaults(func=cmd_eval)
+
+    p = sub.add_parser("report", help="Table 1, Figure 3 (and Table 2, timings) from an evaluation directory")
+    p.add_argument("dir", type=Path)
+    p.set_defaults(func=cmd_report)
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from wamplan.errors import UserError
+    from wamplan.evaluation.conditions import parse_conditions
+    from wamplan.evaluation.records import read_records, record_key
+    from wamplan.evaluation.runner import EvalConfig, run_evaluation
+
+    conds = parse_conditions(args.conditions)
+    if args.episodes <= 0 or args.workers <= 0:
+        raise UserError("--episodes and --workers must be positive")
+    cfg = from_args(EvalConfig, args)
+    cfg.check_for(conds)
+    seeds = list(range(args.seed_start, args.seed_start + args.episodes))
+    done = {record_key(r) for r in read_records(args.out)}
+    total = len(conds) * len(seeds)
+    have = sum((c, s, cfg.first_chunk) in done for c in conds for s in seeds)
+    if have:
+        print(f"resuming: {have} of {total} episodes already recorded in {args.out}")
+    counts: dict[int, Counter] = {c: Counter() for c in conds}
+    bar = tqdm(total=total, initial=have, desc="eval", unit="ep")
+    for rec in run_evaluation(cfg, conds, seeds, args.out, workers=args.workers):
+        counts[rec["condition"]][rec["outcome"]] += 1
+        bar.update(1)
+        tqdm.write(f"cond {rec['condition']} seed {rec['seed']:4d} {rec['outcome']:22s} len {rec['length']:3d} "
+                   f"{rec['wall_time_s']:.0f}s")
+    bar.close()
+    summary = {c: dict(v) for c, v in counts.items() if v}
+    print(json.dumps({"new_episodes": summary}))
+    return 0
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    from wamplan.evaluation.report import write_report
+
+    paths = write_report(args.dir)
+    print((args.dir / "table1.md").read_text())
+    print("wrote " + ", ".join(str(p) for p in paths.values()))
+    return 0

@@ -1,0 +1,151 @@
+"""``wamplan report DIR``: Table 1, Figure 3, Table 2 and the timing summary from evaluation records."""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections import Counter, defaultdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from wamplan.envs.core import OUTCOMES
+from wamplan.evaluation.conditions import CONDITIONS
+from wamplan.evaluation.records import read_records
+
+# Figure 3's colours: success, then the furthest stage reached by failures
+OUTCOME_COLORS = {"success": "#2e7d32", "descended_not_seated": "#9ccc65", "aligned_not_descended": "#c5e1a5",
+                  "lifted_not_aligned": "#ffb74d", "never_lifted": "#e53935"}
+
+
+def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """95% Wilson score interval of a success rate k/n (sensible at 0% and 100% too)."""
+    if n == 0:
+        return (float("nan"), float("nan"))
+    p = k / n
+    den = 1 + z * z / n
+    centre = (p + z * z / (2 * n)) / den
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def table1(records: list[dict[str, Any]], variant: str = "open-loop") -> list[dict[str, Any]]:
+    rows = []
+    by_c = defaultdict(list)
+    for r in records:
+        if r.get("variant", "open-loop") == variant:
+            by_c[r["condition"]].append(r)
+    for cid in sorted(by_c):
+        rs, c = by_c[cid], CONDITIONS[cid]
+        k, n = sum(r["success"] for r in rs), len(rs)
+        lo, hi = wilson(k, n)
+        lengths = [r["length"] for r in rs if r["success"]]
+        timing = defaultdict(list)
+        for r in rs:
+            for key, v in r.get("chunk_timing_s", {}).items():
+                timing[key].append(v)
+        rows.append(dict(condition=cid, dynamics=c.label, seed=c.seed.upper() if c.seed == "wam" else "Expert",
+                         target="—" if c.target == "none" else ("WAM" if c.target == "wam" else "Expert"),
+                         episodes=n, successes=k, success_rate=k / n, ci_low=lo, ci_high=hi,
+                         mean_length=float(np.mean(lengths)) if lengths else None,
+                         median_length=float(np.median(lengths)) if lengths else None,
+                         outcomes=dict(Counter(r["outcome"] for r in rs)),
+                         seeds=f"{min(r['seed'] for r in rs)}-{max(r['seed'] for r in rs)}",
+                         **{f"mean_{k}": float(np.mean(v)) for k, v in timing.items()}))
+    return rows
+
+
+def _fmt(x: float | None, digits: int = 0) -> str:
+    return "—" if x is None else f"{x:.{digits}f}"
+
+
+def markdown_table1(rows: list[dict[str, Any]]) -> str:
+    out = ["| Condition | Dynamics | Seed | Target | Episodes | Success (95% CI) | Length mean | Length median |",
+           "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        out.append(f"| {r['condition']} | {r['dynamics']} | {r['seed']} | {r['target']} | {r['episodes']} "
+                   f"| {100 * r['success_rate']:.0f}% ({100 * r['ci_low']:.0f}–{100 * r['ci_high']:.0f}) "
+                   f"| {_fmt(r['mean_length'])} | {_fmt(r['median_length'])} |")
+    return "\n".join(out)
+
+
+def markdown_timing(rows: list[dict[str, Any]]) -> str:
+    out = ["| Condition | WAM query (s/chunk) | target encoding (s/chunk) | search (s/chunk) |", "|---|---|---|---|"]
+    for r in rows:
+        out.append(f"| {r['condition']} | {_fmt(r.get('mean_wam_s'), 3)} | {_fmt(r.get('mean_target_encode_s'), 3)} "
+                   f"| {_fmt(r.get('mean_search_s'), 3)} |")
+    return "\n".join(out)
+
+
+def markdown_table2(records: list[dict[str, Any]]) -> str | None:
+    """First chunk skipped vs planned, for conditions run both ways (appendix A, Table 2)."""
+    variants = defaultdict(lambda: defaultdict(list))
+    for r in records:
+        variants[r["condition"]][r.get("variant", "open-loop")].append(r)
+    both = [c for c, v in variants.items() if {"open-loop", "rest-history"} <= set(v)]
+    if not both:
+        return None
+    out = ["| Condition | First chunk | Episodes | Success | Never lifted | Aligned, not inserted |", "|---|---|---|---|---|---|"]
+    for c in sorted(both):
+        for v, name in (("open-loop", "skipped"), ("rest-history", "planned")):
+            rs = variants[c][v]
+            n = len(rs)
+            pct = lambda o: 100 * sum(r["outcome"] == o for r in rs) / n  # noqa: E731
+            not_ins = pct("aligned_not_descended") + pct("descended_not_seated")
+            out.append(f"| {c} | {name} | {n} | {pct('success'):.0f}% | {pct('never_lifted'):.0f}% | {not_ins:.0f}% |")
+    return "\n".join(out)
+
+
+def figure3(rows: list[dict[str, Any]], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(1.3 * len(rows) + 2.5, 4))
+    x = np.arange(len(rows))
+    bottom = np.zeros(len(rows))
+    for o in OUTCOMES:
+        frac = np.array([r["outcomes"].get(o, 0) / r["episodes"] for r in rows])
+        ax.bar(x, 100 * frac, bottom=100 * bottom, color=OUTCOME_COLORS[o], label=o.replace("_", " "), width=0.7)
+        bottom += frac
+    for i, r in enumerate(rows):
+        ax.text(i, 101, f"{100 * r['success_rate']:.0f}%", ha="center", va="bottom", fontsize=9)
+    ax.set_xticks(x, [f"{r['condition']}\n{r['dynamics']}\n{r['seed']}/{r['target']}" for r in rows], fontsize=8)
+    ax.set_ylabel("episodes (%)")
+    ax.set_ylim(0, 112)
+    n = sorted({r["episodes"] for r in rows})
+    ax.set_title(f"Episode outcomes per condition ({'/'.join(map(str, n))} episodes)", fontsize=10)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize=8, frameon=False)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def write_report(out_dir: str | Path) -> dict[str, Path]:
+    from wamplan.errors import UserError
+
+    out = Path(out_dir)
+    records = read_records(out)
+    if not records:
+        raise UserError(f"{out} has no evaluation records; run `wamplan eval --out {out}` first")
+    rows = table1(records)
+    paths = {"table1_md": out / "table1.md", "table1_csv": out / "table1.csv", "figure3": out / "figure3.png",
+             "report": out / "report.md"}
+    md1 = markdown_table1(rows)
+    paths["table1_md"].write_text(md1 + "\n")
+    with open(paths["table1_csv"], "w", newline="") as f:
+        keys = [k for k in rows[0] if k != "outcomes"] + list(OUTCOMES)
+        w = csv.DictWriter(f, fieldnames=keys, extrasaction="ignore")
+        w.writeheader()
+        for r in rows:
+            w.writerow({**r, **{o: r["outcomes"].get(o, 0) for o in OUTCOMES}})
+    figure3(rows, paths["figure3"])
+    parts = ["# Evaluation report", "", "## Table 1: success rate and length of successful episodes", "", md1, "",
+             "![Figure 3](figure3.png)", "", "## Per-chunk timing (planned chunks)", "", markdown_timing(rows)]
+    t2 = markdown_table2(records)
+    if t2:
+        parts += ["", "## Table 2: first chunk skipped vs planned", "", t2]
+    paths["report"].write_text("\n".join(parts) + "\n")
+    return paths

@@ -1,0 +1,120 @@
+"""Dynamics backends: what turns a batch of candidate chunks into predicted terminal embeddings.
+
+Both backends implement :class:`Dynamics`: ``prepare(context)`` once per chunk, then
+``terminal(actions (B, L, A)) -> (B, V, N, D)`` for every batch of candidates. ``L`` is the number of
+actions the backend's rollout covers (``covered``): Δ·⌊H/Δ⌋ for the learned world model (16 with Δ=4;
+15 with the paper's Δ=5, the trailing action then being left to the WAM), H for the simulator.
+
+* :class:`LearnedDynamics` rolls all candidates of an iteration out in one batched, KV-cached forward
+  of the predictor; the context frames before the current one are encoded once per chunk (batch 1) and
+  shared by every candidate and every CEM iteration.
+* :class:`SimulatorDynamics` (the oracle) restores the chunk-boundary snapshot, steps each candidate,
+  renders its terminal views and encodes them; it restores the snapshot again afterwards (twice, since
+  PhysX keeps hidden solver state) so that the chosen plan executes from the same state.
+"""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from wamplan.policies.base import CAMERAS
+
+
+@dataclass
+class PlanningContext:
+    """The history a backend may use at a chunk boundary (the most recent frame last).
+
+    z (Tc, V, N, D) encoded views of the history frames at stride Δ; q (Tc, P) their proprio;
+    a (Tc-1, Δ·A) the action blocks executed from all but the current frame.
+    """
+
+    z: torch.Tensor
+    q: torch.Tensor
+    a: torch.Tensor
+
+
+class Dynamics(abc.ABC):
+    needs_history: bool = False
+
+    @abc.abstractmethod
+    def covered(self, chunk: int) -> int:
+        """How many leading actions of a ``chunk``-step chunk a rollout covers (the planner optimises these)."""
+
+    def prepare(self, context: PlanningContext | None) -> None:
+        """Per-chunk set-up (cache the context, take a snapshot)."""
+
+    @abc.abstractmethod
+    def terminal(self, actions: torch.Tensor) -> torch.Tensor:
+        """actions (B, L, A) -> predicted terminal embeddings (B, V, N, D)."""
+
+
+class LearnedDynamics(Dynamics):
+    """The block-causal world-model predictor (``wamplan.worldmodel``)."""
+
+    needs_history = True
+
+    def __init__(self, predictor):
+        self.model = predictor.eval()
+        self.frameskip = predictor.cfg.frameskip
+        self.context = predictor.cfg.context
+        self._prefix = None
+        self._cur: tuple[torch.Tensor, torch.Tensor] | None = None
+
+    @property
+    def device(self) -> torch.device:
+        return next(self.model.parameters()).device
+
+    def covered(self, chunk: int) -> int:
+        return self.frameskip * (chunk // self.frameskip)
+
+    @torch.inference_mode()
+    def prepare(self, context: PlanningContext | None) -> None:
+        if context is None:
+            raise ValueError("the learned world model needs a history of frames to plan from")
+        dev = self.device
+        z, q, a = context.z.to(dev), context.q.to(dev), context.a.to(dev)
+        self._prefix = self.model.encode_prefix(z[None, :-1], q[None, :-1], a[None])  # batch 1, shared
+        self._cur = (z[None, -1], q[None, -1])  # (1, V, N, D), (1, P)
+
+    @torch.inference_mode()
+    def terminal(self, actions: torch.Tensor) -> torch.Tensor:
+        b, length, na = actions.shape
+        blocks = actions.to(self.device).reshape(b, length // self.frameskip, self.frameskip * na)  # (B, S, Δ·A)
+        z, _ = self.model.rollout_from_prefix(self._prefix, *self._cur, blocks)  # (B, S, V, N, D)
+        return z[:, -1]  # (B, V, N, D)
+
+
+class SimulatorDynamics(Dynamics):
+    """The simulator oracle: privileged, exact dynamics, at the price of stepping and rendering."""
+
+    def __init__(self, env, encoder, cameras: tuple[str, ...] = CAMERAS):
+        self.env, self.encoder, self.cameras = env, encoder, cameras
+        self._snap = None
+
+    def covered(self, chunk: int) -> int:
+        return chunk
+
+    def prepare(self, context: PlanningContext | None) -> None:
+        self._snap = self.env.snapshot()
+
+    def restore(self) -> None:
+        self.env.restore(self._snap)
+        self.env.restore(self._snap)
+
+    @torch.inference_mode()
+    def terminal(self, actions: torch.Tensor) -> torch.Tensor:
+        views = []
+        for cand in actions.detach().cpu().numpy():  # (L, A)
+            self.restore()
+            for a in cand:
+                self.env.step(np.asarray(a, np.float32))
+            views.append(self.env.render(self.cameras))
+        self.restore()
+        imgs = torch.from_numpy(np.stack([[v[c] for c in self.cameras] for v in views]))  # (B, V, H, W, 3)
+        b, nv = imgs.shape[:2]
+        z = self.encoder.encode(imgs.flatten(0, 1).to(self.encoder.device))  # (B·V, N, D)
+        return z.reshape(b, nv, *z.shape[1:])  # (B, V, N, D)

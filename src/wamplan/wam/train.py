@@ -1,0 +1,383 @@
+"""Training TinyWAM on episode stores (``wamplan wam train``).
+
+    loss = MSE(actions, expert chunk) + image_weight * {L1 | MSE}(predicted views at t+H, true views at t+H)
+
+The stores are read once into memory at the model's ``image_size`` (frames shared between the items
+that use them; ~37 kB a frame of three 64-px views), so an epoch costs only the network. Optional
+augmentation shifts each view by a random whole number of pixels (border replicated), the same shift
+for its current and its future picture, so the pair stays consistent.
+
+The checkpoint is the directory ``--out`` itself (``model.safetensors`` + ``config.json`` +
+``training_state/``), written at every epoch end, every ``save_every_steps``, on ``max_steps`` and on
+Ctrl-C. Re-running the same command resumes it exactly: the data order of epoch e is a permutation
+seeded by (seed, e), the augmentation of step s is seeded by (seed, s), and weights, optimizer,
+scheduler and counters are restored. Per-epoch validation metrics are kept in the training state
+(``history``) and printed.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+from torch.utils.data import DataLoader
+
+from wamplan.checkpoint import (CONFIG_FILE, STATE_DIR, CheckpointError, has_training_state, load_training_state,
+                                load_weights, read_config, save_checkpoint)
+from wamplan.config import field, from_dict, require, to_dict
+from wamplan.device import resolve_device
+from wamplan.errors import UserError
+from wamplan.policies.base import CAMERAS
+from wamplan.wam.tinywam import KIND, TinyWAMConfig, TinyWAMNet, to_model_frames
+
+# WAMTrainConfig fields that may change when a run is resumed (everything else must match).
+RUN_ONLY_FIELDS = ("epochs", "num_workers", "device", "save_every_steps")
+IMAGE_LOSSES = ("l1", "mse")
+
+
+@dataclass(frozen=True)
+class WAMTrainConfig:
+    """How to train TinyWAM."""
+
+    epochs: int = field(30, "passes over the training items (raise it and re-run to train a finished run longer)")
+    batch_size: int = field(32, "items per optimisation step")
+    lr: float = field(1e-3, "peak learning rate (AdamW)")
+    weight_decay: float = field(1e-4, "AdamW weight decay on weight matrices and kernels")
+    warmup_epochs: float = field(1.0, "linear warm-up length in epochs, then cosine decay")
+    min_lr_ratio: float = field(0.05, "the cosine decays to lr * min_lr_ratio")
+    grad_clip: float = field(1.0, "clip the gradient norm to this (0: no clipping)")
+    image_weight: float = field(10.0, "lambda, weight of the image loss against the action MSE (image MSE is ~10x smaller)")
+    image_loss: str = field("mse", "image loss: mse or l1 (pixels in [0, 1]; l1 tends to stall at \"nothing moves\")")
+    shift_pixels: int = field(4, "augmentation: random shift of each view by up to this many pixels (0: off)")
+    val_fraction: float = field(0.1, "fraction of episodes held out for validation (by a hash of source and seed)")
+    seed: int = field(0, "seed of the initialisation, data order and augmentation")
+    device: str = field("auto", "torch device: auto, cpu, cuda, cuda:1, mps, ...")
+    num_workers: int = field(0, "worker processes that read the stores into memory at the start")
+    save_every_steps: int = field(0, "also checkpoint every this many steps (0: at epoch ends only)")
+
+    def __post_init__(self) -> None:
+        for name in ("epochs", "batch_size"):
+            v = getattr(self, name)
+            require(isinstance(v, int) and v > 0, f"WAMTrainConfig.{name} must be a positive int, got {v!r}")
+        require(self.lr > 0, f"WAMTrainConfig.lr must be > 0, got {self.lr}; pass a positive --lr")
+        require(self.weight_decay >= 0, f"WAMTrainConfig.weight_decay must be >= 0, got {self.weight_decay}")
+        require(self.warmup_epochs >= 0, f"WAMTrainConfig.warmup_epochs must be >= 0, got {self.warmup_epochs}")
+        require(0 <= self.min_lr_ratio <= 1, f"WAMTrainConfig.min_lr_ratio must be in [0, 1], got {self.min_lr_ratio}")
+        require(self.grad_clip >= 0, f"WAMTrainConfig.grad_clip must be >= 0 (0 disables it), got {self.grad_clip}")
+        require(self.image_weight >= 0, f"WAMTrainConfig.image_weight must be >= 0, got {self.image_weight}")
+        require(self.image_loss in IMAGE_LOSSES,
+                f"WAMTrainConfig.image_loss must be one of {list(IMAGE_LOSSES)}, got {self.image_loss!r}")
+        require(isinstance(self.shift_pixels, int) and self.shift_pixels >= 0,
+                f"WAMTrainConfig.shift_pixels must be an int >= 0, got {self.shift_pixels!r}")
+        require(0 <= self.val_fraction < 1, f"WAMTrainConfig.val_fraction must be in [0, 1), got {self.val_fraction}")
+        require(self.num_workers >= 0, f"WAMTrainConfig.num_workers must be >= 0, got {self.num_workers}")
+        require(self.save_every_steps >= 0, f"WAMTrainConfig.save_every_steps must be >= 0, got {self.save_every_steps}")
+
+
+# ----------------------------------------------------------------------------------------------- data
+@dataclass
+class WAMItems:
+    """A split of WAM training items held in memory. Item i is the pair (frames[cur[i]], frames[fut[i]])."""
+
+    frames: torch.Tensor  # (F, V, 3, S, S) uint8, each stored frame once
+    cur: torch.Tensor  # (N,) int64, frame index at t
+    fut: torch.Tensor  # (N,) int64, frame index at t + H
+    proprio: torch.Tensor  # (N, P) float32 at t
+    actions: torch.Tensor  # (N, H, A) float32, t .. t+H-1
+
+    def __len__(self) -> int:
+        return int(self.cur.shape[0])
+
+
+def load_items(stores: Sequence[str | Path], cfg: TinyWAMConfig, split: str, val_fraction: float,
+               sources: Sequence[str] | None = None, num_workers: int = 0) -> WAMItems:
+    """Read the items of ``split`` from ``stores`` into memory at ``cfg.image_size``."""
+    from wamplan.data.readers import WAMSamples
+
+    ds = WAMSamples(stores, chunk=cfg.chunk_length, split=split, val_fraction=val_fraction, sources=sources)
+    views = [CAMERAS.index(c) for c in cfg.cameras]
+    keys: dict[tuple[int, int], int] = {}
+    frames: list[torch.Tensor] = []
+    cur, fut, proprio, actions = [], [], [], []
+
+    def frame_index(key: tuple[int, int], img: torch.Tensor) -> int:
+        if key not in keys:
+            keys[key] = len(frames)
+            frames.append(to_model_frames(img[views], cfg.image_size))  # (V, 3, S, S)
+        return keys[key]
+
+    loader = DataLoader(ds, batch_size=None, shuffle=False, num_workers=num_workers)
+    for (i, k), item in zip(ds.items, loader):
+        e = ds.episodes[i]
+        t = e.image_steps[k]
+        cur.append(frame_index((i, t), item["images"]))
+        fut.append(frame_index((i, min(t + cfg.chunk_length, e.length)), item["future"]))
+        proprio.append(item["proprio"].float())
+        actions.append(item["actions"][:, :cfg.action_dim].float())
+    S, V = cfg.image_size, len(views)
+    return WAMItems(frames=torch.stack(frames) if frames else torch.zeros(0, V, 3, S, S, dtype=torch.uint8),
+                    cur=torch.tensor(cur, dtype=torch.long), fut=torch.tensor(fut, dtype=torch.long),
+                    proprio=torch.stack(proprio) if proprio else torch.zeros(0, cfg.proprio_dim),
+                    actions=torch.stack(actions) if actions else torch.zeros(0, cfg.chunk_length, cfg.action_dim))
+
+
+def compute_stats(items: WAMItems) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Image mean/std per channel (3,) in [0, 1] units over the frames; proprio mean/std (P,) over the items."""
+    x = items.frames.double() / 255.0  # (F, V, 3, S, S)
+    img_mean = x.mean(dim=(0, 1, 3, 4))  # (3,)
+    img_std = x.std(dim=(0, 1, 3, 4))  # (3,)
+    q = items.proprio.double()  # (N, P)
+    return img_mean.float(), img_std.float(), q.mean(0).float(), (q.std(0) if len(q) > 1 else torch.ones_like(q[0])).float()
+
+
+def random_shift(x: torch.Tensor, pad: int, generator: torch.Generator) -> torch.Tensor:
+    """Shift each (B, V) slice of x (B, V, C, S, S) by whole pixels in [-pad, pad]^2, replicating the border."""
+    B, V, C, S, _ = x.shape
+    shifts = torch.randint(-pad, pad + 1, (B * V, 2), generator=generator)  # (BV, 2) pixels (dx, dy)
+    base = torch.linspace(-1, 1, S, device=x.device)  # (S,) pixel centres (align_corners=True)
+    gy, gx = torch.meshgrid(base, base, indexing="ij")  # (S, S) each
+    step = 2.0 / (S - 1)
+    off = shifts.to(x.device, x.dtype) * step  # (BV, 2)
+    grid = torch.stack([gx[None] + off[:, 0, None, None], gy[None] + off[:, 1, None, None]], dim=-1)  # (BV, S, S, 2)
+    y = F.grid_sample(x.reshape(B * V, C, S, S), grid, mode="nearest", padding_mode="border", align_corners=True)
+    return y.view(B, V, C, S, S)
+
+
+def make_batch(items: WAMItems, idx: torch.Tensor, device: torch.device, shift: int = 0,
+               generator: torch.Generator | None = None) -> dict[str, torch.Tensor]:
+    """A batch of items ``idx`` (B,): images/future (B, V, 3, S, S) float in [0, 1], proprio (B, P), actions (B, H, A)."""
+    cur = items.frames[items.cur[idx]].to(device).float() / 255.0  # (B, V, 3, S, S)
+    fut = items.frames[items.fut[idx]].to(device).float() / 255.0  # (B, V, 3, S, S)
+    if shift > 0:
+        assert generator is not None
+        both = random_shift(torch.cat([cur, fut], dim=2), shift, generator)  # (B, V, 6, S, S): one shift per view
+        cur, fut = both[:, :, :3], both[:, :, 3:]
+    return {"images": cur, "future": fut, "proprio": items.proprio[idx].to(device),
+            "actions": items.actions[idx].to(device)}
+
+
+def wam_loss(net: TinyWAMNet, batch: dict[str, torch.Tensor], cfg: WAMTrainConfig) -> tuple[torch.Tensor, dict[str, float]]:
+    actions, future = net(batch["images"], batch["proprio"])  # (B, H, A), (B, V, 3, S, S)
+    act = F.mse_loss(actions, batch["actions"])
+    img = (F.l1_loss if cfg.image_loss == "l1" else F.mse_loss)(future, batch["future"])
+    return act + cfg.image_weight * img, {"act": act.item(), "img": img.item()}
+
+
+@torch.no_grad()
+def evaluate(net: TinyWAMNet, items: WAMItems, batch_size: int = 64) -> dict[str, float]:
+    """Validation metrics: action MSE (and its gripper part), image MSE of the clamped prediction, and the
+    image MSE of the copy-the-current-view baseline (what a model that predicts no motion would get)."""
+    device = next(net.parameters()).device
+    was_training = net.training
+    net.eval()
+    sums = {"action_mse": 0.0, "gripper_mse": 0.0, "image_mse": 0.0, "copy_image_mse": 0.0}
+    for start in range(0, len(items), batch_size):
+        idx = torch.arange(start, min(start + batch_size, len(items)))
+        b = make_batch(items, idx, device)
+        actions, future = net(b["images"], b["proprio"])  # (B, H, A), (B, V, 3, S, S)
+        n = len(idx)
+        sums["action_mse"] += float(F.mse_loss(actions, b["actions"])) * n
+        sums["gripper_mse"] += float(F.mse_loss(actions[..., -1], b["actions"][..., -1])) * n
+        sums["image_mse"] += float(F.mse_loss(future.clamp(0, 1), b["future"])) * n
+        sums["copy_image_mse"] += float(F.mse_loss(b["images"], b["future"])) * n
+    net.train(was_training)
+    return {k: v / max(1, len(items)) for k, v in sums.items()}
+
+
+# ----------------------------------------------------------------------------------------------- optimisation
+def make_optimizer(net: nn.Module, cfg: WAMTrainConfig) -> torch.optim.AdamW:
+    """AdamW; weight decay on >= 2-D parameters only (not biases, norms, embeddings' scale)."""
+    params = [p for p in net.parameters() if p.requires_grad]
+    groups = [{"params": [p for p in params if p.ndim >= 2], "weight_decay": cfg.weight_decay},
+              {"params": [p for p in params if p.ndim < 2], "weight_decay": 0.0}]
+    return torch.optim.AdamW(groups, lr=cfg.lr)
+
+
+def warmup_cosine(opt: torch.optim.Optimizer, warmup_steps: int, total_steps: int,
+                  min_ratio: float) -> torch.optim.lr_scheduler.LambdaLR:
+    """lr factor: linear up to 1 over ``warmup_steps``, then cosine down to ``min_ratio`` at ``total_steps``."""
+    def factor(step: int) -> float:
+        if step < warmup_steps:
+            return (step + 1) / warmup_steps
+        progress = min(1.0, (step - warmup_steps) / max(1, total_steps - warmup_steps))
+        return min_ratio + (1.0 - min_ratio) * 0.5 * (1.0 + math.cos(math.pi * progress))
+    return torch.optim.lr_scheduler.LambdaLR(opt, factor)
+
+
+def _mismatch(saved: dict[str, Any], now: dict[str, Any], skip: Sequence[str] = ()) -> list[str]:
+    return sorted(k for k in set(saved) | set(now) if k not in skip and saved.get(k) != now.get(k))
+
+
+def _saved_epoch(out: Path) -> int:
+    return int(json.loads((out / STATE_DIR / "state.json").read_text())["train_state"]["epoch"])
+
+
+def _check_out_dir(out: Path) -> None:
+    if out.exists() and not out.is_dir():
+        raise UserError(f"--out {out} is a file; pass a directory for the checkpoint")
+    if out.is_dir() and not (out / CONFIG_FILE).is_file() and any(out.iterdir()):
+        raise UserError(f"--out {out} exists and is not a TinyWAM checkpoint (it would be replaced); pass a new "
+                        f"or empty directory")
+
+
+@dataclass
+class TrainResult:
+    net: TinyWAMNet
+    state: dict[str, Any]  # epoch, global_step, history, ...
+    finished_before: bool  # the checkpoint had already done all its epochs: nothing was trained
+
+
+def train_tinywam(stores: Sequence[str | Path], out: str | Path, model_cfg: TinyWAMConfig | None = None,
+                  train_cfg: WAMTrainConfig | None = None, *, sources: Sequence[str] | None = None,
+                  max_steps: int | None = None, progress: bool = True, log=print) -> TrainResult:
+    """Train TinyWAM on ``stores`` into the checkpoint directory ``out``, or resume it if it holds one.
+
+    When resuming, the saved model config is used and the training config must match the saved one
+    except for :data:`RUN_ONLY_FIELDS`; ``model_cfg`` / ``train_cfg`` of None mean "as saved" (or the
+    defaults for a new run). ``max_steps`` stops after that many optimisation steps in all
+    (checkpointed; call again to continue)."""
+    from tqdm.auto import tqdm
+
+    out = Path(out)
+    _check_out_dir(out)
+    stores = [str(Path(s).resolve()) for s in stores]
+    data_info = {"stores": stores, "sources": list(sources) if sources else None}
+    resuming = has_training_state(out)
+    if (out / CONFIG_FILE).is_file() and not resuming:
+        raise CheckpointError(f"{out} holds a checkpoint without training state, so it cannot be resumed; pass a "
+                              f"new --out")
+    if resuming:
+        saved = read_config(out, KIND)
+        saved_model = from_dict(TinyWAMConfig, saved["model"])
+        saved_train = from_dict(WAMTrainConfig, saved["train"])
+        model_cfg = model_cfg or saved_model
+        train_cfg = train_cfg or saved_train
+        diff = _mismatch(to_dict(saved_model), to_dict(model_cfg))
+        diff += _mismatch(to_dict(saved_train), to_dict(train_cfg), RUN_ONLY_FIELDS)
+        if saved["data"]["stores"] != stores or saved["data"]["sources"] != data_info["sources"]:
+            diff.append("data")
+        if diff:
+            raise UserError(f"{out} was trained with different {', '.join(diff)}; re-run with the same options to "
+                            f"resume (only {', '.join(RUN_ONLY_FIELDS)} may change) or pass a new --out")
+    model_cfg = model_cfg or TinyWAMConfig()
+    train_cfg = train_cfg or WAMTrainConfig()
+    if resuming and _saved_epoch(out) >= train_cfg.epochs:  # say so before reading any data
+        net = TinyWAMNet(model_cfg)
+        load_weights(out, net)
+        state = json.loads((out / STATE_DIR / "state.json").read_text())["train_state"]
+        last = state["history"][-1] if state.get("history") else {}
+        log(f"{out} has already finished {state['epoch']} epochs ({state['global_step']} steps"
+            + (f", val action_mse {last['val/action_mse']:.4g}" if "val/action_mse" in last else "")
+            + f"); nothing to do. Pass --epochs > {state['epoch']} to train longer, or a new --out.")
+        return TrainResult(net.eval(), state, finished_before=True)
+    device = resolve_device(train_cfg.device)
+
+    t0 = time.perf_counter()
+    train_items = load_items(stores, model_cfg, "train", train_cfg.val_fraction, sources, train_cfg.num_workers)
+    val_items = load_items(stores, model_cfg, "val", train_cfg.val_fraction, sources, train_cfg.num_workers)
+    n, bs = len(train_items), train_cfg.batch_size
+    if n < bs:
+        raise UserError(f"the training split has {n} items, fewer than batch_size {bs}; collect more episodes or "
+                        f"lower --batch-size")
+    log(f"data: {n} train items, {len(val_items)} val items, {len(train_items.frames) + len(val_items.frames)} "
+        f"frames at {model_cfg.image_size} px in memory "
+        f"({(train_items.frames.numel() + val_items.frames.numel()) / 2**20:.0f} MiB), read in "
+        f"{time.perf_counter() - t0:.1f} s; device {device}")
+    if len(val_items) == 0:
+        log(f"note: no validation episodes at val_fraction {train_cfg.val_fraction}; collect more episodes or raise "
+            f"--val-fraction to get validation losses")
+    from wamplan.data.store import EpisodeStore
+
+    data_info.update(train_items=n, val_items=len(val_items),
+                     camera_size=EpisodeStore(stores[0]).env.get("camera_size"))
+
+    torch.manual_seed(train_cfg.seed)
+    net = TinyWAMNet(model_cfg).to(device)
+    steps_per_epoch = n // bs
+    total = steps_per_epoch * train_cfg.epochs
+    opt = make_optimizer(net, train_cfg)
+    sched = warmup_cosine(opt, round(train_cfg.warmup_epochs * steps_per_epoch), total, train_cfg.min_lr_ratio)
+    state: dict[str, Any] = {"epoch": 0, "step_in_epoch": 0, "global_step": 0, "history": []}
+    if resuming:
+        load_weights(out, net, device)
+        saved_state = load_training_state(out, opt, sched)
+        state.update({k: saved_state[k] for k in state})
+        if saved_state.get("steps_per_epoch") != steps_per_epoch:
+            raise UserError(f"{out} was trained with {saved_state.get('steps_per_epoch')} steps per epoch but the data "
+                            f"now give {steps_per_epoch}; the stores changed: pass a new --out")
+        log(f"resuming {out} at epoch {state['epoch'] + 1}, step {state['global_step']}")
+    else:
+        net.set_stats(*[s.to(device) for s in compute_stats(train_items)])
+    config = {"model": to_dict(model_cfg), "train": to_dict(train_cfg), "data": data_info}
+
+    def save() -> None:
+        save_checkpoint(out, net, config, kind=KIND, optimizer=opt, scheduler=sched,
+                        train_state=dict(state, steps_per_epoch=steps_per_epoch))
+
+    net.train()
+    try:
+        while state["epoch"] < train_cfg.epochs:
+            epoch, start = state["epoch"], state["step_in_epoch"]
+            g = torch.Generator().manual_seed(train_cfg.seed * 1_000_003 + epoch)
+            order = torch.randperm(n, generator=g)[: steps_per_epoch * bs]  # (steps * B,)
+            bar = tqdm(total=steps_per_epoch, initial=start, desc=f"tinywam {epoch + 1}/{train_cfg.epochs}",
+                       disable=not progress, dynamic_ncols=True)
+            sums, count, t_epoch, seen = {"loss": 0.0, "act": 0.0, "img": 0.0}, 0, time.perf_counter(), 0
+            for step in range(start, steps_per_epoch):
+                aug = torch.Generator().manual_seed(train_cfg.seed * 7_919 + state["global_step"] + 1)
+                batch = make_batch(train_items, order[step * bs:(step + 1) * bs], device, train_cfg.shift_pixels, aug)
+                loss, logs = wam_loss(net, batch, train_cfg)
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                if train_cfg.grad_clip > 0:
+                    nn.utils.clip_grad_norm_(net.parameters(), train_cfg.grad_clip)
+                opt.step()
+                sched.step()
+                state["global_step"] += 1
+                state["step_in_epoch"] += 1
+                count, seen = count + 1, seen + bs
+                for k, v in (("loss", loss.item()), *logs.items()):
+                    sums[k] += v
+                bar.update(1)
+                bar.set_postfix(loss=f"{sums['loss'] / count:.4g}", act=f"{sums['act'] / count:.4g}",
+                                img=f"{sums['img'] / count:.4g}",
+                                sps=f"{seen / (time.perf_counter() - t_epoch):.0f}")
+                if train_cfg.save_every_steps and state["global_step"] % train_cfg.save_every_steps == 0:
+                    save()
+                if max_steps is not None and state["global_step"] >= max_steps:
+                    bar.close()
+                    save()
+                    log(f"stopped at step {state['global_step']} (max_steps); re-run to continue")
+                    return TrainResult(net.eval(), state, finished_before=False)
+            bar.close()
+            state["epoch"], state["step_in_epoch"] = epoch + 1, 0
+            record: dict[str, Any] = {"epoch": epoch + 1, "global_step": state["global_step"],
+                                      "lr": sched.get_last_lr()[0],
+                                      "samples_per_s": seen / max(1e-9, time.perf_counter() - t_epoch)}
+            record.update({f"train/{k}": v / max(1, count) for k, v in sums.items()})
+            if len(val_items):
+                record.update({f"val/{k}": v for k, v in evaluate(net, val_items, 2 * bs).items()})
+            state["history"].append(record)
+            save()
+            log(f"epoch {epoch + 1}: " + " ".join(f"{k}={v:.4g}" for k, v in record.items()
+                                                   if isinstance(v, float) and k != "lr"))
+    except KeyboardInterrupt:
+        save()
+        log(f"interrupted: checkpoint saved at step {state['global_step']}; re-run the same command to resume")
+        raise
+    return TrainResult(net.eval(), state, finished_before=False)
+
+
+def saved_configs(out: str | Path) -> tuple[TinyWAMConfig, WAMTrainConfig] | None:
+    """The model and training configs of a resumable TinyWAM checkpoint at ``out``, else None."""
+    if not has_training_state(out):
+        return None
+    saved = read_config(out, KIND)
+    return from_dict(TinyWAMConfig, saved["model"]), from_dict(WAMTrainConfig, saved["train"])

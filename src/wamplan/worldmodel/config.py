@@ -1,0 +1,124 @@
+"""Configs of the world model: predictor, decoder, and one optimisation config used by both trainers.
+
+Frozen dataclasses validated in ``__post_init__``; field help strings are the ``--help`` text
+(``wamplan.config.add_arguments``). The ``paper`` and ``mini`` values live in ``presets.py``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from wamplan.config import field, require
+
+
+@dataclass(frozen=True)
+class PredictorConfig:
+    """Block-causal ViT over the patch tokens of V views x H_ctx frames (paper §3.2, Table 3)."""
+
+    encoder: str = field("patch-pixels", "registry name of the frozen encoder whose features this predicts")
+    num_views: int = field(3, "V, camera views per frame (front, side, wrist)")
+    num_patches: int = field(16, "N, patch tokens per view (the encoder's num_patches)")
+    enc_dim: int = field(128, "D_enc, feature size of one patch token (the encoder's dim)")
+    proprio_dim: int = field(10, "P, proprioception size")
+    action_dim: int = field(5, "A, action size of one control step")
+    frameskip: int = field(4, "Delta, control steps between frames; one frame carries Delta*A actions")
+    context: int = field(3, "H_ctx, frames in the attention window (current + H_ctx-1 previous)")
+    depth: int = field(4, "transformer blocks")
+    heads: int = field(4, "attention heads")
+    head_dim: int = field(32, "size of one head; model width = heads * head_dim")
+    mlp_dim: int = field(512, "hidden size of each block's MLP")
+    proprio_emb: int = field(64, "output size of the proprioception MLP projector")
+    action_emb: int = field(64, "output size of the action-block MLP projector")
+    rope_base: float = field(100.0, "base of the temporal rotary embedding (frequencies base^-i, i in [0,1))")
+    predict_delta: bool = field(True, "predict the change from the current frame (True) or the next frame itself")
+    dropout: float = field(0.0, "dropout in attention output and MLP")
+
+    def __post_init__(self) -> None:
+        for name in ("num_views", "num_patches", "enc_dim", "proprio_dim", "action_dim", "frameskip",
+                     "context", "depth", "heads", "head_dim", "mlp_dim", "proprio_emb", "action_emb"):
+            v = getattr(self, name)
+            require(isinstance(v, int) and v > 0, f"PredictorConfig.{name} must be a positive int, got {v!r}")
+        require(self.head_dim % 2 == 0, f"PredictorConfig.head_dim must be even (rotary pairs), got {self.head_dim}")
+        require(self.rope_base > 1.0, f"PredictorConfig.rope_base must be > 1, got {self.rope_base}")
+        require(0.0 <= self.dropout < 1.0, f"PredictorConfig.dropout must be in [0, 1), got {self.dropout}")
+        require(bool(self.encoder), "PredictorConfig.encoder must name the encoder (e.g. patch-pixels)")
+
+    @property
+    def width(self) -> int:
+        """Model width d = heads * head_dim."""
+        return self.heads * self.head_dim
+
+    @property
+    def tokens_per_frame(self) -> int:
+        """M = V * N visual tokens per frame."""
+        return self.num_views * self.num_patches
+
+    @property
+    def action_block_dim(self) -> int:
+        """Delta * A, the size of one frame's action block."""
+        return self.frameskip * self.action_dim
+
+
+@dataclass(frozen=True)
+class DecoderConfig:
+    """ViT over one view's patch tokens with a convolutional upsampling head to pixels."""
+
+    num_patches: int = field(16, "N, patch tokens of one view (a square grid)")
+    enc_dim: int = field(128, "D_enc, feature size of one patch token")
+    image_size: int = field(64, "side of the square output image; image_size / sqrt(N) must be a power of 2")
+    width: int = field(256, "transformer width")
+    depth: int = field(4, "transformer blocks")
+    heads: int = field(8, "attention heads")
+    mlp_dim: int = field(1024, "hidden size of each block's MLP")
+    head_channels: int = field(128, "channels of the first upsampling stage (halved each stage, min 16)")
+
+    def __post_init__(self) -> None:
+        for name in ("num_patches", "enc_dim", "image_size", "width", "depth", "heads", "mlp_dim", "head_channels"):
+            v = getattr(self, name)
+            require(isinstance(v, int) and v > 0, f"DecoderConfig.{name} must be a positive int, got {v!r}")
+        g = int(round(self.num_patches ** 0.5))
+        require(g * g == self.num_patches, f"DecoderConfig.num_patches must be a square grid, got {self.num_patches}")
+        up = self.image_size // g
+        require(self.image_size % g == 0 and up & (up - 1) == 0,
+                f"DecoderConfig.image_size / grid must be a power of 2; got {self.image_size} / {g}; "
+                f"pick image_size = {g} * 2**k")
+        require(self.width % self.heads == 0, f"DecoderConfig.width {self.width} must be divisible by heads {self.heads}")
+
+    @property
+    def grid(self) -> int:
+        return int(round(self.num_patches ** 0.5))
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Optimisation of the predictor (or, with the decoder preset values, of the decoder)."""
+
+    horizon: int = field(2, "K, autoregressive prediction steps per window (windows hold H_ctx + K frames)")
+    gamma: float = field(0.95, "discount of step h's loss: gamma**(h-1)")
+    lr: float = field(5e-5, "peak learning rate (AdamW)")
+    weight_decay: float = field(1e-3, "AdamW weight decay")
+    betas: tuple[float, ...] = field((0.9, 0.999), "AdamW betas")
+    batch_size: int = field(24, "windows per optimisation step")
+    epochs: int = field(24, "passes over the training set")
+    warmup_epochs: float = field(1.0, "linear warm-up length in epochs (then cosine decay)")
+    min_lr_ratio: float = field(0.0, "final learning rate as a fraction of lr")
+    grad_clip: float = field(1.0, "max global gradient norm (0 = no clipping)")
+    seed: int = field(0, "seed of initialisation and data order")
+    num_workers: int = field(0, "DataLoader worker processes")
+    save_every_steps: int = field(0, "also checkpoint every this many steps (0 = at epoch ends only)")
+
+    def __post_init__(self) -> None:
+        require(self.horizon >= 1, f"TrainConfig.horizon (K) must be >= 1, got {self.horizon}")
+        require(0.0 < self.gamma <= 1.0, f"TrainConfig.gamma must be in (0, 1], got {self.gamma}")
+        require(self.lr > 0, f"TrainConfig.lr must be > 0, got {self.lr}; pass a positive --lr")
+        require(self.weight_decay >= 0, f"TrainConfig.weight_decay must be >= 0, got {self.weight_decay}")
+        require(len(self.betas) == 2 and all(0 <= b < 1 for b in self.betas),
+                f"TrainConfig.betas must be two numbers in [0, 1), got {self.betas}")
+        require(self.batch_size >= 1, f"TrainConfig.batch_size must be >= 1, got {self.batch_size}")
+        require(self.epochs >= 1, f"TrainConfig.epochs must be >= 1, got {self.epochs}")
+        require(0 <= self.warmup_epochs <= self.epochs,
+                f"TrainConfig.warmup_epochs must be in [0, epochs={self.epochs}], got {self.warmup_epochs}")
+        require(0 <= self.min_lr_ratio <= 1, f"TrainConfig.min_lr_ratio must be in [0, 1], got {self.min_lr_ratio}")
+        require(self.grad_clip >= 0, f"TrainConfig.grad_clip must be >= 0, got {self.grad_clip}")
+        require(self.num_workers >= 0, f"TrainConfig.num_workers must be >= 0, got {self.num_workers}")
+        require(self.save_every_steps >= 0, f"TrainConfig.save_every_steps must be >= 0, got {self.save_every_steps}")

@@ -1,0 +1,118 @@
+"""The decoder g_psi: one view's patch tokens -> an RGB image, for looking at predictions only.
+
+A ViT (LayerNorm + linear in, learned positions, ``depth`` blocks) over the N tokens, reshaped to the
+sqrt(N) x sqrt(N) grid, then a convolutional head of 2x upsampling stages (nearest + 3x3 conv + GELU)
+to ``image_size`` and a sigmoid: pixels in [0, 1]. Trained alone with pixel MSE (paper §3.2); it is
+never used for planning and never back-propagates into the predictor.
+
+Dataset items for ``train_decoder``: ``{"z": (N, D) features, "image": (H, W, 3) uint8}`` (the image the
+features were computed from; resized to ``image_size`` when H, W differ).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+from torch.utils.data import DataLoader, Dataset
+
+from wamplan.checkpoint import load_weights, read_config
+from wamplan.config import from_dict, to_dict
+from wamplan.device import resolve_device
+from wamplan.worldmodel.config import DecoderConfig, TrainConfig
+from wamplan.worldmodel.layers import Block, init_weights
+from wamplan.worldmodel.loop import checkpoint_path, fit
+
+KIND = "wm-decoder"
+
+
+class Decoder(nn.Module):
+    def __init__(self, cfg: DecoderConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        w = cfg.width
+        self.in_norm = nn.LayerNorm(cfg.enc_dim)
+        self.in_proj = nn.Linear(cfg.enc_dim, w)
+        self.pos = nn.Parameter(torch.zeros(cfg.num_patches, w))  # (N, w)
+        self.blocks = nn.ModuleList(Block(w, cfg.heads, w // cfg.heads, cfg.mlp_dim) for _ in range(cfg.depth))
+        self.norm = nn.LayerNorm(w)
+        stages = int(math.log2(cfg.image_size // cfg.grid))
+        chans = [max(16, cfg.head_channels >> i) for i in range(stages + 1)]
+        layers: list[nn.Module] = [nn.Conv2d(w, chans[0], kernel_size=1)]
+        for c_in, c_out in zip(chans[:-1], chans[1:]):
+            layers += [nn.Upsample(scale_factor=2, mode="nearest"), nn.Conv2d(c_in, c_out, 3, padding=1), nn.GELU()]
+        layers += [nn.Conv2d(chans[-1], 3, 3, padding=1), nn.Sigmoid()]
+        self.head = nn.Sequential(*layers)
+        init_weights(self)
+        nn.init.trunc_normal_(self.pos, std=0.02)
+
+    def forward(self, z: torch.Tensor) -> torch.Tensor:
+        """z (B, N, D) -> images (B, 3, S, S) in [0, 1]."""
+        b, g = z.shape[0], self.cfg.grid
+        x = self.in_proj(self.in_norm(z.float())) + self.pos  # (B, N, w)
+        for blk in self.blocks:
+            x, _ = blk(x)  # (B, N, w), full attention within the view
+        x = self.norm(x).transpose(1, 2).reshape(b, -1, g, g)  # (B, w, g, g), row-major patches
+        return self.head(x)  # (B, 3, S, S)
+
+    def num_params(self) -> int:
+        return sum(p.numel() for p in self.parameters())
+
+
+def _target(images: torch.Tensor, size: int) -> torch.Tensor:
+    """uint8 (B, H, W, 3) -> float (B, 3, S, S) in [0, 1]."""
+    x = images.permute(0, 3, 1, 2).float() / 255.0  # (B, 3, H, W)
+    if x.shape[-2:] != (size, size):
+        x = F.interpolate(x, size=(size, size), mode="bilinear", align_corners=False, antialias=True)
+    return x
+
+
+def decoder_loss(model: Decoder, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, float]]:
+    """Pixel MSE between the decoded image and the (resized) original."""
+    pred = model(batch["z"])  # (B, 3, S, S)
+    loss = F.mse_loss(pred, _target(batch["image"], model.cfg.image_size))
+    return loss, {}
+
+
+@torch.no_grad()
+def evaluate_decoder(model: Decoder, dataset: Dataset, batch_size: int = 64,
+                     device: torch.device | None = None) -> dict[str, float]:
+    """Pixel MSE and PSNR (dB) on ``dataset``."""
+    device = device or next(model.parameters()).device
+    total, count = 0.0, 0
+    for batch in DataLoader(dataset, batch_size=batch_size, shuffle=False):
+        pred = model(batch["z"].to(device))  # (B, 3, S, S)
+        err = (pred - _target(batch["image"].to(device), model.cfg.image_size)).pow(2).flatten(1).mean(1)  # (B,)
+        total, count = total + float(err.sum()), count + err.numel()
+    mse = total / max(count, 1)
+    return {"pixel_mse": mse, "psnr": 10 * math.log10(1.0 / max(mse, 1e-12))}
+
+
+def train_decoder(train_set: Dataset, cfg: DecoderConfig, train: TrainConfig, out_dir: str | Path, *,
+                  val_set: Dataset | None = None, device: str | torch.device = "auto", resume: bool = False,
+                  max_steps: int | None = None, progress: bool = True,
+                  encoder_info: dict[str, Any] | None = None) -> tuple[Decoder, dict[str, Any]]:
+    """Train (or resume) a decoder on (features, image) pairs; same checkpoint layout as the predictor.
+    ``train.horizon``/``train.gamma`` are not used."""
+    dev = resolve_device(device) if isinstance(device, str) else device
+    torch.manual_seed(train.seed)
+    model = Decoder(cfg).to(dev)
+    config = {"decoder": to_dict(cfg), "train": to_dict(train), "encoder": encoder_info}
+    metrics = fit(model, train_set, train, kind=KIND, config=config, out_dir=out_dir, device=dev,
+                  loss_fn=decoder_loss,
+                  evaluate=(lambda m: evaluate_decoder(m, val_set, 2 * train.batch_size, dev)) if val_set is not None else None,
+                  resume=resume, max_steps=max_steps, progress=progress, desc="decoder")
+    return model.eval(), metrics
+
+
+def load_decoder(path: str | Path, device: str | torch.device = "cpu") -> Decoder:
+    """A trained decoder (eval mode) from a checkpoint directory (or a training ``out_dir``)."""
+    ckpt = checkpoint_path(path)
+    cfg = from_dict(DecoderConfig, read_config(ckpt, KIND)["decoder"])
+    model = Decoder(cfg)
+    load_weights(ckpt, model)
+    return model.to(resolve_device(device) if isinstance(device, str) else device).eval()

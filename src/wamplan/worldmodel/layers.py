@@ -1,0 +1,82 @@
+"""Transformer pieces shared by the predictor and the decoder: pre-norm blocks whose attention takes
+an optional rotary embedding, a boolean mask, and cached keys/values of earlier frames.
+
+Notation: B batch, L query tokens, S key tokens, h heads, e head dim, d model width.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+KV = tuple[torch.Tensor, torch.Tensor]  # (k, v), each (B or 1, h, M, e)
+
+
+def rope_angles(positions: torch.Tensor, inv_freq: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """positions (L,) float, inv_freq (e/2,) -> cos, sin each (L, e) for ``apply_rope``."""
+    ang = positions[:, None] * inv_freq[None, :]  # (L, e/2)
+    ang = torch.cat([ang, ang], dim=-1)  # (L, e)
+    return ang.cos(), ang.sin()
+
+
+def apply_rope(x: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor) -> torch.Tensor:
+    """Rotate pairs (i, i + e/2) of x (B, h, L, e) by the angles in cos/sin (L, e)."""
+    x1, x2 = x.chunk(2, dim=-1)  # (B, h, L, e/2) each
+    return x * cos + torch.cat([-x2, x1], dim=-1) * sin  # (B, h, L, e)
+
+
+class Attention(nn.Module):
+    def __init__(self, dim: int, heads: int, head_dim: int, dropout: float = 0.0) -> None:
+        super().__init__()
+        self.heads, self.head_dim = heads, head_dim
+        self.qkv = nn.Linear(dim, 3 * heads * head_dim)
+        self.proj = nn.Linear(heads * head_dim, dim)
+        self.drop = nn.Dropout(dropout)
+
+    def forward(self, x: torch.Tensor, rope: tuple[torch.Tensor, torch.Tensor] | None = None,
+                mask: torch.Tensor | None = None, past: list[KV] | None = None) -> tuple[torch.Tensor, KV]:
+        """x (B, L, d); rope cos/sin (L, e); mask (L, S) bool, True = may attend; past: cached (k, v)
+        of earlier frames, each (B or 1, h, M, e), prepended to this call's keys (expanded to B).
+        Returns the output (B, L, d) and this call's own (k, v), each (B, h, L, e), for a cache."""
+        b, n, _ = x.shape
+        qkv = self.qkv(x).view(b, n, 3, self.heads, self.head_dim).permute(2, 0, 3, 1, 4)  # (3, B, h, L, e)
+        q, k, v = qkv.unbind(0)  # (B, h, L, e) each
+        if rope is not None:
+            q, k = apply_rope(q, *rope), apply_rope(k, *rope)
+        own = (k, v)
+        if past:
+            k = torch.cat([pk.expand(b, -1, -1, -1) for pk, _ in past] + [k], dim=2)  # (B, h, S, e)
+            v = torch.cat([pv.expand(b, -1, -1, -1) for _, pv in past] + [v], dim=2)  # (B, h, S, e)
+        o = F.scaled_dot_product_attention(q, k, v, attn_mask=mask)  # (B, h, L, e)
+        o = o.transpose(1, 2).reshape(b, n, self.heads * self.head_dim)  # (B, L, h e)
+        return self.drop(self.proj(o)), own
+
+
+class Block(nn.Module):
+    """Pre-norm transformer block: x + attn(ln(x)), then x + mlp(ln(x))."""
+
+    def __init__(self, dim: int, heads: int, head_dim: int, mlp_dim: int, dropout: float = 0.0) -> None:
+        super().__init__()
+        self.norm1 = nn.LayerNorm(dim)
+        self.attn = Attention(dim, heads, head_dim, dropout)
+        self.norm2 = nn.LayerNorm(dim)
+        self.mlp = nn.Sequential(nn.Linear(dim, mlp_dim), nn.GELU(), nn.Linear(mlp_dim, dim), nn.Dropout(dropout))
+
+    def forward(self, x: torch.Tensor, rope: tuple[torch.Tensor, torch.Tensor] | None = None,
+                mask: torch.Tensor | None = None, past: list[KV] | None = None) -> tuple[torch.Tensor, KV]:
+        a, kv = self.attn(self.norm1(x), rope, mask, past)  # (B, L, d)
+        x = x + a
+        return x + self.mlp(self.norm2(x)), kv  # (B, L, d)
+
+
+def init_weights(module: nn.Module) -> None:
+    """ViT-style init: truncated normal(0.02) linears, zero biases, unit LayerNorms."""
+    for m in module.modules():
+        if isinstance(m, nn.Linear):
+            nn.init.trunc_normal_(m.weight, std=0.02)
+            if m.bias is not None:
+                nn.init.zeros_(m.bias)
+        elif isinstance(m, nn.LayerNorm):
+            nn.init.ones_(m.weight)
+            nn.init.zeros_(m.bias)

@@ -1,0 +1,147 @@
+"""Training the predictor (paper eq. 2) on windows of H_ctx + K frames.
+
+A dataset item is a dict of one window of T >= H_ctx + K frames (frameskip Delta apart)::
+
+    {"z": (T, V, N, D) float16/32 frozen features, "q": (T, P) float32, "a": (T, Delta*A) float32}
+
+where ``a[t]`` is the block of Delta actions executed from frame t. From the H_ctx context frames the
+predictor unrolls K steps autoregressively with the ground-truth actions (its predictions fed back), and
+
+    loss = sum_{h=1..K} gamma**(h-1) * (MSE(z_pred_h, z_h) + MSE(q_pred_h, q_h))
+
+with MSE the *mean* over elements (the paper writes squared norms; the mean keeps the two terms and
+the learning rate on a sane scale whatever V, N, D; it is the norm divided by the element count).
+
+Normalisation: proprioception and actions are used as they are (roughly unit scale). Visual features
+are normalised per dimension at the predictor's *input* with a mean/std (D,) computed from the training
+set (``compute_feature_stats``) and kept as buffers in the checkpoint; outputs are scaled back, so the
+loss (and the planner's cost, eq. 3) is in the raw feature space the encoder produces.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch.utils.data import DataLoader, Dataset
+
+from wamplan.checkpoint import load_weights, read_config
+from wamplan.config import from_dict, to_dict
+from wamplan.device import resolve_device
+from wamplan.worldmodel.config import PredictorConfig, TrainConfig
+from wamplan.worldmodel.loop import checkpoint_path, fit
+from wamplan.worldmodel.predictor import WorldModelPredictor
+
+KIND = "wm-predictor"
+
+
+def _split(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int):
+    """Context, actions and targets of a batch of windows."""
+    z, q, a = batch["z"].float(), batch["q"].float(), batch["a"].float()  # (B, T, V, N, D), (B, T, P), (B, T, DA)
+    h = model.cfg.context
+    if z.shape[1] < h + horizon:
+        raise ValueError(f"windows hold {z.shape[1]} frames; need H_ctx + K = {h + horizon}")
+    ctx = (z[:, :h], q[:, :h], a[:, :h - 1])  # (B, H, V, N, D), (B, H, P), (B, H-1, DA)
+    a_future = a[:, h - 1:h - 1 + horizon]  # (B, K, DA), a_future[:, 0] executed from the current frame
+    target = (z[:, h:h + horizon], q[:, h:h + horizon])  # (B, K, V, N, D), (B, K, P)
+    return ctx, a_future, target
+
+
+def per_horizon_mse(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """pred, target (B, K, ...) -> MSE per sample and step (B, K)."""
+    return (pred - target).pow(2).flatten(2).mean(dim=-1)
+
+
+def window_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int,
+                gamma: float) -> tuple[torch.Tensor, dict[str, float]]:
+    """Eq. 2: the discounted K-step autoregressive loss of a batch of windows."""
+    (zc, qc, ac), a_future, (zt, qt) = _split(model, batch, horizon)
+    zp, qp = model.rollout(zc, qc, ac, a_future)  # (B, K, V, N, D), (B, K, P)
+    ez = per_horizon_mse(zp, zt).mean(dim=0)  # (K,)
+    eq = per_horizon_mse(qp, qt).mean(dim=0)  # (K,)
+    w = gamma ** torch.arange(horizon, device=ez.device, dtype=ez.dtype)  # (K,)
+    loss = (w * (ez + eq)).sum()
+    return loss, {"z_mse_h1": float(ez[0].detach()), "q_mse_h1": float(eq[0].detach())}
+
+
+@torch.no_grad()
+def evaluate_predictor(model: WorldModelPredictor, dataset: Dataset, horizon: int, gamma: float,
+                       batch_size: int = 64, device: torch.device | None = None) -> dict[str, float]:
+    """Per-horizon MSEs of the model and of the copy-the-last-context-frame baseline, and the loss."""
+    device = device or next(model.parameters()).device
+    was_training = model.training
+    model.eval()
+    sums: dict[str, torch.Tensor] = {}
+    count = 0
+    for batch in DataLoader(dataset, batch_size=batch_size, shuffle=False):
+        batch = {k: v.to(device) for k, v in batch.items()}
+        (zc, qc, ac), a_future, (zt, qt) = _split(model, batch, horizon)
+        zp, qp = model.rollout(zc, qc, ac, a_future)  # (B, K, V, N, D), (B, K, P)
+        parts = {"z_mse": per_horizon_mse(zp, zt), "q_mse": per_horizon_mse(qp, qt),
+                 "copy_z_mse": per_horizon_mse(zc[:, -1:].expand_as(zt), zt),
+                 "copy_q_mse": per_horizon_mse(qc[:, -1:].expand_as(qt), qt)}  # each (B, K)
+        for k, v in parts.items():
+            sums[k] = sums.get(k, 0) + v.sum(dim=0).double()  # (K,)
+        count += zc.shape[0]
+    model.train(was_training)
+    w = gamma ** torch.arange(horizon, dtype=torch.float64)
+    out: dict[str, float] = {}
+    for k, v in sums.items():
+        mean = (v / max(count, 1)).cpu()  # (K,)
+        out.update({f"{k}_h{i + 1}": float(mean[i]) for i in range(horizon)})
+    out["loss"] = float((w * (sums["z_mse"] + sums["q_mse"]).cpu() / max(count, 1)).sum())
+    out["copy_loss"] = float((w * (sums["copy_z_mse"] + sums["copy_q_mse"]).cpu() / max(count, 1)).sum())
+    return out
+
+
+def compute_feature_stats(dataset: Dataset, max_items: int = 2000, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-dimension mean and std (D,) of the visual features over up to ``max_items`` random windows."""
+    n = len(dataset)  # type: ignore[arg-type]
+    idx = torch.randperm(n, generator=torch.Generator().manual_seed(seed))[:max_items].tolist()
+    s = s2 = None
+    count = 0
+    for i in idx:
+        z = dataset[i]["z"].double().flatten(0, -2)  # (T V N, D)
+        s = z.sum(0) if s is None else s + z.sum(0)
+        s2 = z.pow(2).sum(0) if s2 is None else s2 + z.pow(2).sum(0)
+        count += z.shape[0]
+    mean = s / count  # (D,)
+    std = (s2 / count - mean.pow(2)).clamp_min(0).sqrt()  # (D,)
+    return mean.float(), std.float()
+
+
+def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig, out_dir: str | Path, *,
+                    val_set: Dataset | None = None, device: str | torch.device = "auto", resume: bool = False,
+                    max_steps: int | None = None, progress: bool = True,
+                    encoder_info: dict[str, Any] | None = None) -> tuple[WorldModelPredictor, dict[str, Any]]:
+    """Train (or resume) a predictor; checkpoints go to ``out_dir/checkpoint``, metrics to
+    ``out_dir/metrics.jsonl``. ``encoder_info`` (e.g. ``encoder.config_dict()``) is stored as provenance.
+    Returns the trained model (eval mode) and the last metrics (with ``val/...`` entries if ``val_set``)."""
+    dev = resolve_device(device) if isinstance(device, str) else device
+    torch.manual_seed(train.seed)
+    model = WorldModelPredictor(cfg).to(dev)
+    config = {"predictor": to_dict(cfg), "train": to_dict(train), "encoder": encoder_info}
+
+    def fresh_stats() -> None:
+        mean, std = compute_feature_stats(train_set, seed=train.seed)
+        model.set_feature_stats(mean, std)
+
+    def evaluate(m: torch.nn.Module) -> dict[str, float]:
+        return evaluate_predictor(m, val_set, train.horizon, train.gamma, 2 * train.batch_size, dev)  # type: ignore[arg-type]
+
+    metrics = fit(model, train_set, train, kind=KIND, config=config, out_dir=out_dir, device=dev,
+                  loss_fn=lambda m, b: window_loss(m, b, train.horizon, train.gamma),
+                  evaluate=evaluate if val_set is not None else None, on_fresh_start=fresh_stats,
+                  resume=resume, max_steps=max_steps, progress=progress, desc="predictor")
+    return model.eval(), metrics
+
+
+def load_predictor(path: str | Path, device: str | torch.device = "cpu") -> WorldModelPredictor:
+    """A trained predictor (eval mode) from a checkpoint directory (or a training ``out_dir``)."""
+    ckpt = checkpoint_path(path)
+    cfg = from_dict(PredictorConfig, read_config(ckpt, KIND)["predictor"])
+    dev = resolve_device(device) if isinstance(device, str) else device
+    model = WorldModelPredictor(cfg)
+    load_weights(ckpt, model)
+    return model.to(dev).eval()

@@ -1,0 +1,81 @@
+"""Evaluation records (append, torn-line repair), conditions parsing, Table 1 / Figure 3 / Table 2."""
+
+import json
+
+import pytest
+
+from wamplan.cli import main
+from wamplan.errors import UserError
+from wamplan.evaluation.conditions import CONDITIONS, parse_conditions
+from wamplan.evaluation.records import RECORDS, append_record, read_records
+from wamplan.evaluation.report import table1, wilson, write_report
+
+
+def test_conditions_match_the_paper():
+    assert [(c.dynamics, c.seed, c.target) for c in CONDITIONS.values()] == [
+        ("none", "wam", "none"), ("simulator", "expert", "expert"), ("simulator", "expert", "wam"),
+        ("simulator", "wam", "expert"), ("simulator", "wam", "wam"), ("learned-plain", "wam", "wam"),
+        ("learned-augmented", "wam", "wam")]
+    assert parse_conditions("1,6,7") == [1, 6, 7] and parse_conditions("1-7") == list(range(1, 8))
+    with pytest.raises(UserError, match="unknown condition"):
+        parse_conditions("1,9")
+    with pytest.raises(UserError, match="not a list"):
+        parse_conditions("one")
+
+
+def _rec(c, s, outcome, length=120, variant="open-loop", timing=None):
+    return dict(condition=c, seed=s, variant=variant, success=outcome == "success", outcome=outcome, length=length,
+                chunk_timing_s=timing or {})
+
+
+def test_records_survive_a_torn_last_line(tmp_path):
+    append_record(tmp_path, _rec(1, 0, "success"))
+    append_record(tmp_path, _rec(1, 1, "never_lifted"))
+    with open(tmp_path / RECORDS, "a") as f:
+        f.write('{"condition": 1, "seed": 2, "succ')  # a kill mid-write
+    assert [r["seed"] for r in read_records(tmp_path)] == [0, 1]
+    read_records(tmp_path, repair=True)
+    append_record(tmp_path, _rec(1, 2, "success"))
+    assert [r["seed"] for r in read_records(tmp_path)] == [0, 1, 2]
+    # a complete record whose newline was lost is kept, and the file is mended
+    with open(tmp_path / RECORDS, "a") as f:
+        f.write(json.dumps(_rec(1, 3, "success")))
+    assert len(read_records(tmp_path, repair=True)) == 4
+    append_record(tmp_path, _rec(1, 4, "success"))
+    assert [r["seed"] for r in read_records(tmp_path)] == [0, 1, 2, 3, 4]
+
+
+def test_wilson_interval():
+    lo, hi = wilson(17, 50)
+    assert 0.21 < lo < 0.23 and 0.47 < hi < 0.49  # 34% of 50
+    assert wilson(0, 10)[0] == 0.0 and wilson(10, 10)[1] == 1.0
+
+
+def test_report_tables_and_figure(tmp_path):
+    outcomes = ["success"] * 3 + ["never_lifted", "descended_not_seated"]
+    for i, o in enumerate(outcomes):
+        append_record(tmp_path, _rec(1, i, o, length=100 + 10 * i))
+        append_record(tmp_path, _rec(7, i, "success" if i < 4 else "never_lifted", length=130,
+                                     timing={"wam_s": 0.01, "target_encode_s": 0.002, "search_s": 0.5}))
+        append_record(tmp_path, _rec(7, i, "never_lifted", variant="rest-history"))
+    rows = table1(read_records(tmp_path))
+    assert [r["condition"] for r in rows] == [1, 7]
+    assert rows[0]["success_rate"] == 0.6 and rows[0]["median_length"] == 110 and rows[0]["mean_length"] == 110
+    assert rows[1]["mean_search_s"] == 0.5 and rows[1]["outcomes"] == {"success": 4, "never_lifted": 1}
+    assert main(["report", str(tmp_path)]) == 0
+    md = (tmp_path / "report.md").read_text()
+    assert "| 1 | None (open loop) | WAM | — | 5 | 60% (23–88) | 110 | 110 |" in md
+    assert "Table 2" in md and "| 7 | planned | 5 | 0% | 100% | 0% |" in md
+    import imageio.v3 as iio
+
+    assert iio.imread(tmp_path / "figure3.png").shape[2] in (3, 4)
+    assert (tmp_path / "table1.csv").read_text().splitlines()[0].startswith("condition,")
+
+
+def test_eval_needs_its_checkpoints(tmp_path, capsys):
+    assert main(["eval", "--conditions", "1", "--episodes", "1", "--out", str(tmp_path)]) == 2
+    assert "--wam CKPT is required" in capsys.readouterr().err
+    assert main(["eval", "--conditions", "6", "--episodes", "1", "--out", str(tmp_path), "--wam", str(tmp_path)]) == 2
+    assert "condition 6 needs --wm-plain" in capsys.readouterr().err
+    assert main(["report", str(tmp_path / "nothing")]) == 2
+    assert "no evaluation records" in capsys.readouterr().err

@@ -1,0 +1,149 @@
+"""TinyWAM: shapes, learning, checkpoints (round trip, exact resume), the `wam train` CLI, and running as a policy."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from wamplan.cli import main
+from wamplan.config import ConfigError
+from wamplan.policies.base import CAMERAS, Observation
+from wamplan.wam import WAMPolicy, load_wam, make_wam
+from wamplan.wam.tinywam import TinyWAM, TinyWAMConfig, TinyWAMNet
+from wamplan.wam.train import WAMTrainConfig, load_items, make_batch, train_tinywam, wam_loss
+
+TINY = TinyWAMConfig(image_size=32, channels=(8, 16), latent_dim=32, trunk_dim=64)
+TINY_ARGS = ["--image-size", "32", "--channels", "8", "16", "--latent-dim", "32", "--trunk-dim", "64"]
+# seeds 0 and 1 of the expert: seed 0 lands in the training split, seed 1 in validation (val_fraction 0.1)
+TRAIN = WAMTrainConfig(epochs=2, batch_size=8, shift_pixels=2, device="cpu")
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    """These networks are tiny: one intra-op thread is as fast, and on a busy 2-core machine two threads spin."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    root = tmp_path_factory.mktemp("tinywam") / "expert"
+    assert main(["collect", "--source", "expert", "--episodes", "2", "--out", str(root), "--camera-size", "64"]) == 0
+    return root
+
+
+def _obs(size: int = 48, step: int = 0) -> Observation:
+    rng = np.random.default_rng(0)
+    return Observation(step=step, proprio=rng.normal(size=10).astype(np.float32),
+                       images={c: rng.integers(0, 256, (size, size, 3), dtype=np.uint8) for c in CAMERAS})
+
+
+def test_forward_shapes_and_predict_contract():
+    net = TinyWAMNet(TINY)
+    actions, future = net(torch.rand(2, 3, 3, 32, 32), torch.randn(2, 10))
+    assert actions.shape == (2, 16, 5) and future.shape == (2, 3, 3, 32, 32)
+    assert actions.abs().max() <= 1.0
+    # zero-initialised residual head: an untrained model predicts "nothing changes"
+    x = torch.rand(1, 3, 3, 32, 32)
+    assert torch.allclose(net(x, torch.randn(1, 10))[1], x)
+
+    wam = make_wam("tinywam", config=TINY, device="cpu")
+    out = wam.validate(wam.predict(_obs(48), "insert"))  # 48-px views are resized to 32
+    assert out.actions.shape == (16, 5) and out.actions.dtype == np.float32
+    assert all(out.images[c].shape == (32, 32, 3) and out.images[c].dtype == np.uint8 for c in CAMERAS)
+
+
+def test_configs_reject_bad_values_with_the_fix():
+    with pytest.raises(ConfigError, match="multiple of 2"):
+        TinyWAMConfig(image_size=30, channels=(8, 16))
+    with pytest.raises(ConfigError, match="cameras"):
+        TinyWAMConfig(cameras=("front", "top"))
+    with pytest.raises(ConfigError, match="image_loss"):
+        WAMTrainConfig(image_loss="l2")
+    with pytest.raises(ConfigError, match="batch_size"):
+        WAMTrainConfig(batch_size=0)
+
+
+def test_training_steps_reduce_the_loss_on_a_fixed_batch(store):
+    items = load_items([store], TINY, "train", 0.1)
+    assert len(items) > 8 and items.frames.shape[1:] == (3, 3, 32, 32)
+    torch.manual_seed(0)
+    net = TinyWAMNet(TINY)
+    opt = torch.optim.AdamW(net.parameters(), lr=3e-3)
+    batch = make_batch(items, torch.arange(8), torch.device("cpu"))
+    losses = []
+    for _ in range(25):
+        loss, _ = wam_loss(net, batch, TRAIN)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(float(loss))
+    assert losses[-1] < 0.5 * losses[0], losses
+
+
+def test_checkpoint_round_trip_and_exact_resume(store, tmp_path):
+    logs: list[str] = []
+    full = train_tinywam([store], tmp_path / "full", TINY, TRAIN, progress=False, log=logs.append)
+    assert full.state["epoch"] == 2 and len(full.state["history"]) == 2
+    assert "val/action_mse" in full.state["history"][-1] and "val/copy_image_mse" in full.state["history"][-1]
+
+    # interrupted after 2 steps, then the same call again: continues from step 2 and ends where "full" did
+    part = train_tinywam([store], tmp_path / "part", TINY, TRAIN, max_steps=2, progress=False, log=logs.append)
+    assert part.state["global_step"] == 2
+    resumed = train_tinywam([store], tmp_path / "part", TINY, TRAIN, progress=False, log=logs.append)
+    assert any("resuming" in m and "step 2" in m for m in logs)
+    assert resumed.state["global_step"] == full.state["global_step"]
+    a, b = full.net.state_dict(), resumed.net.state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+    # a finished run says so and trains nothing
+    again = train_tinywam([store], tmp_path / "full", TINY, TRAIN, progress=False, log=logs.append)
+    assert again.finished_before and "already finished 2 epochs" in logs[-1]
+
+    # save -> load_wam -> identical predictions
+    wam = load_wam(tmp_path / "full")
+    assert isinstance(wam, TinyWAM) and wam.config == TINY
+    ref = TinyWAM(net=full.net, device="cpu").predict(_obs(64), "")
+    out = wam.predict(_obs(64), "")
+    np.testing.assert_array_equal(out.actions, ref.actions)
+    for c in CAMERAS:
+        np.testing.assert_array_equal(out.images[c], ref.images[c])
+    assert wam.trained_camera_size == 64
+    with pytest.warns(UserWarning, match="--camera-size 64"):  # a 48-px render is not what it was trained on
+        wam.predict(_obs(48), "")
+    saved = json.loads((tmp_path / "full" / "config.json").read_text())
+    assert saved["kind"] == "tinywam" and saved["config"]["data"]["train_items"] == len(load_items([store], TINY, "train", 0.1))
+
+
+def test_cli_train_resume_and_errors(store, tmp_path, capsys):
+    out = tmp_path / "ckpt"
+    args = ["wam", "train", "--data", str(store), "--out", str(out), "--epochs", "1", "--batch-size", "8",
+            "--no-progress", "--device", "cpu", *TINY_ARGS]
+    assert main(args) == 0
+    assert (out / "model.safetensors").is_file() and (out / "training_state").is_dir()
+    capsys.readouterr()
+    assert main(["wam", "train", "--data", str(store), "--out", str(out), "--epochs", "1"]) == 0  # saved options kept
+    assert "already finished 1 epochs" in capsys.readouterr().out
+
+    def one_line_error(argv: list[str], needle: str) -> None:
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("wamplan: error:") and needle in err and "\n" not in err, err
+
+    one_line_error(["wam", "train", "--data", str(tmp_path), "--out", str(tmp_path / "x")], "is not an episode store")
+    one_line_error(["wam", "train", "--data", str(store), "--out", str(store)], "is not a TinyWAM checkpoint")
+    one_line_error([*args[:-len(TINY_ARGS)], "--image-size", "64", "--channels", "8", "16"], "different image_size")
+    one_line_error([*args, "--lr", "0.5"], "different lr")
+
+
+def test_tinywam_runs_as_a_policy_and_queries_every_16_steps(env):
+    from wamplan.envs.rollout import run_episode
+
+    policy = WAMPolicy(make_wam("tinywam", config=TINY, device="cpu"))
+    result = run_episode(env, policy, seed=0, max_steps=32, stop_on_success=False)
+    assert result.length == 32
+    assert result.policy_info["query_steps"] == [0, 16] and result.policy_info["chunks"] == 2
+    assert policy.last_output is not None and policy.last_output.images["front"].shape == (32, 32, 3)

@@ -1,0 +1,269 @@
+"""World model: block causality, KV-cached rollout == naive, checkpoints, exact resume, learning, decoder."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import pytest
+import torch
+
+from wamplan.config import ConfigError, from_dict, to_dict
+from wamplan.errors import UserError
+from wamplan.worldmodel import (PRESETS, Decoder, DecoderConfig, PredictorConfig, TrainConfig, WorldModelPredictor,
+                                evaluate_predictor, get_preset, load_decoder, load_predictor, train_decoder,
+                                train_predictor)
+from wamplan.worldmodel.loop import CKPT_DIR, METRICS_FILE
+from wamplan.worldmodel.synthetic import SyntheticWindows
+
+TINY = PredictorConfig(num_views=2, num_patches=4, enc_dim=8, proprio_dim=10, action_dim=5, frameskip=2, context=3,
+                       depth=2, heads=2, head_dim=8, mlp_dim=32, proprio_emb=16, action_emb=16)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    """Tiny tensors run faster on one thread (and a busy 2-core box thrashes with two)."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def _model(cfg: PredictorConfig = TINY, seed: int = 0) -> WorldModelPredictor:
+    """A predictor with all weights random (the zero-initialised delta heads would hide bugs)."""
+    torch.manual_seed(seed)
+    m = WorldModelPredictor(cfg).eval()
+    with torch.no_grad():
+        for p in m.parameters():
+            p.normal_(0.0, 0.3)
+        m.set_feature_stats(torch.randn(cfg.enc_dim) * 0.1, torch.rand(cfg.enc_dim) + 0.5)
+    return m
+
+
+def _frames(cfg: PredictorConfig, b: int, t: int, seed: int = 1):
+    g = torch.Generator().manual_seed(seed)
+    z = torch.randn(b, t, cfg.num_views, cfg.num_patches, cfg.enc_dim, generator=g)  # (B, T, V, N, D)
+    q = torch.randn(b, t, cfg.proprio_dim, generator=g)  # (B, T, P)
+    a = torch.randn(b, t, cfg.action_block_dim, generator=g)  # (B, T, Delta*A)
+    return z, q, a
+
+
+# -- configs and presets ---------------------------------------------------------------------------------
+def test_configs_validate_with_messages_that_say_what_to_fix():
+    with pytest.raises(ConfigError, match="head_dim must be even"):
+        PredictorConfig(head_dim=7)
+    with pytest.raises(ConfigError, match="context must be a positive int"):
+        PredictorConfig(context=0)
+    with pytest.raises(ConfigError, match="power of 2"):
+        DecoderConfig(num_patches=16, image_size=48)
+    with pytest.raises(ConfigError, match="warmup_epochs must be in"):
+        TrainConfig(epochs=2, warmup_epochs=3)
+    with pytest.raises(ConfigError, match="pass a positive --lr"):
+        TrainConfig(lr=0)
+    for cfg in (TINY, DecoderConfig(), TrainConfig()):
+        assert from_dict(type(cfg), json.loads(json.dumps(to_dict(cfg)))) == cfg
+
+
+def test_paper_preset_is_table_3_and_mini_divides_the_chunk():
+    p = get_preset("paper")
+    pr, tr = p.predictor, p.train
+    assert (pr.depth, pr.heads, pr.head_dim, pr.mlp_dim, pr.proprio_emb, pr.action_emb) == (6, 16, 64, 2048, 64, 64)
+    assert (pr.context, pr.frameskip, tr.horizon, tr.gamma) == (3, 5, 2, 0.95)
+    assert (pr.num_views, pr.num_patches, pr.enc_dim, p.encoder) == (3, 196, 1024, "dinov3-vitl16")
+    assert (tr.lr, tr.weight_decay, tr.batch_size, tr.epochs, tr.warmup_epochs, tr.grad_clip) == (5e-5, 1e-3, 24, 24, 1, 1.0)
+    d, dt = p.decoder, p.decoder_train
+    assert (d.depth, d.heads, dt.lr, dt.weight_decay, dt.batch_size, dt.epochs, dt.warmup_epochs) == (4, 8, 3e-4, 1e-5, 16, 24, 2)
+    m = PRESETS["mini"]
+    assert 16 % m.predictor.frameskip == 0 and (m.predictor.context, m.train.horizon) == (3, 2)
+    from wamplan.encoders import make_encoder
+    enc = make_encoder(m.encoder, **m.encoder_kwargs)
+    assert (enc.num_patches, enc.dim) == (m.predictor.num_patches, m.predictor.enc_dim)
+    assert (m.decoder.num_patches, m.decoder.enc_dim) == (enc.num_patches, enc.dim)
+    with pytest.raises(UserError, match="unknown world-model preset"):
+        get_preset("huge")
+
+
+def test_preset_stats_counts_params_and_flops():
+    from wamplan.worldmodel.profile import preset_stats
+    s = preset_stats("mini")
+    m = WorldModelPredictor(PRESETS["mini"].predictor)
+    assert s["predictor"]["params"] == m.num_params()
+    assert 0 < s["predictor"]["forward_flops"] < s["predictor"]["plan_flops_cached"] < s["predictor"]["plan_flops_naive"]
+    assert s["decoder"]["params"] == Decoder(PRESETS["mini"].decoder).num_params()
+
+
+# -- the predictor -------------------------------------------------------------------------------------------
+def test_forward_shapes_and_input_checks():
+    m = _model()
+    z, q, a = _frames(TINY, 3, 4)
+    zp, qp = m(z, q, a)
+    assert zp.shape == z.shape and qp.shape == q.shape
+    with pytest.raises(ValueError, match="z must be"):
+        m(z[..., :4], q, a)
+    with pytest.raises(ValueError, match="Delta\\*A"):
+        m(z, q, a[..., :3])
+
+
+@torch.no_grad()
+def test_block_causal_a_later_frame_never_changes_earlier_outputs():
+    m = _model()
+    z, q, a = _frames(TINY, 2, 6)
+    zp, qp = m(z, q, a)
+    for name, idx in (("z", 0), ("q", 1), ("a", 2)):
+        inputs = [z.clone(), q.clone(), a.clone()]
+        inputs[idx][:, 3] += 1.0  # perturb frame 3 only
+        zp2, qp2 = m(*inputs)
+        assert torch.equal(zp2[:, :3], zp[:, :3]) and torch.equal(qp2[:, :3], qp[:, :3]), name
+        assert not torch.allclose(zp2[:, 3], zp[:, 3]), name  # and the frame itself does change
+
+
+@torch.no_grad()
+def test_frames_outside_the_window_have_no_effect():
+    one_layer = _model(dataclasses.replace(TINY, depth=1))  # receptive field = the H_ctx window exactly
+    z, q, a = _frames(TINY, 2, 6)
+    zp, _ = one_layer(z, q, a)
+    z2 = z.clone()
+    z2[:, 0] += 1.0
+    zp2, _ = one_layer(z2, q, a)
+    assert not torch.allclose(zp2[:, 2], zp[:, 2])  # frame 2 sees frame 0 (distance 2 < H_ctx = 3)
+    assert torch.equal(zp2[:, 3:], zp[:, 3:])  # frames 3.. do not (distance >= 3)
+    two_layers = _model()  # depth 2: receptive field depth * (H_ctx - 1) = 4 frames back
+    zp, _ = two_layers(z, q, a)
+    zp2, _ = two_layers(z2, q, a)
+    assert not torch.allclose(zp2[:, 4], zp[:, 4]) and torch.equal(zp2[:, 5], zp[:, 5])
+
+
+@pytest.mark.parametrize("context", [1, 2, 3])
+@torch.no_grad()
+def test_kv_cached_rollout_equals_naive(context):
+    cfg = dataclasses.replace(TINY, context=context)
+    m = _model(cfg)
+    b, s = 5, 4  # more steps than the window: the cache must slide
+    z, q, a = _frames(cfg, b, context)
+    a_future = _frames(cfg, b, s, seed=2)[2]  # (B, S, Delta*A)
+    cached = m.rollout(z, q, a[:, :-1], a_future)
+    naive = m.rollout(z, q, a[:, :-1], a_future, naive=True)
+    for c, n in zip(cached, naive):
+        assert c.shape == n.shape and torch.allclose(c, n, atol=1e-5), float((c - n).abs().max())
+    # the first step is the teacher-forced prediction from the ground-truth context
+    zf, qf = m(z, q, torch.cat([a[:, :-1], a_future[:, :1]], dim=1))
+    assert torch.allclose(cached[0][:, 0], zf[:, -1], atol=1e-5) and torch.allclose(cached[1][:, 0], qf[:, -1], atol=1e-5)
+
+
+@torch.no_grad()
+def test_broadcast_prefix_equals_per_candidate_context_and_is_reusable():
+    m = _model()
+    b, s = 6, 3
+    z, q, a = _frames(TINY, 1, 3)  # one shared context
+    a_future = _frames(TINY, b, s, seed=2)[2]  # (B, S, Delta*A)
+    expanded = m.rollout(z.expand(b, -1, -1, -1, -1), q.expand(b, -1, -1), a[:, :-1].expand(b, -1, -1), a_future,
+                         naive=True)
+    shared = m.rollout(z, q, a[:, :-1], a_future)  # context with batch 1, candidates with batch B
+    prefix = m.encode_prefix(z[:, :-1], q[:, :-1], a[:, :-1])  # once per chunk
+    assert prefix.batch == 1 and prefix.start == 2 and len(prefix.frames) == 2
+    first = m.rollout_from_prefix(prefix, z[:, -1], q[:, -1], a_future)
+    again = m.rollout_from_prefix(prefix, z[:, -1], q[:, -1], a_future.flip(0))  # another CEM iteration
+    third = m.rollout_from_prefix(prefix, z[:, -1], q[:, -1], a_future)
+    for e, sh, f, t, g in zip(expanded, shared, first, third, again):
+        assert sh.shape[0] == b
+        assert torch.allclose(sh, e, atol=1e-5) and torch.equal(f, sh) and torch.equal(t, f)  # prefix unchanged
+        assert torch.allclose(g.flip(0), f, atol=1e-5)
+
+
+# -- training -----------------------------------------------------------------------------------------------
+def test_training_beats_copy_last_frame_on_held_out_dynamics(tmp_path):
+    cfg = PredictorConfig(num_views=1, num_patches=4, enc_dim=8, frameskip=2, context=3, depth=2, heads=2,
+                          head_dim=16, mlp_dim=64, proprio_emb=16, action_emb=16)
+    train = TrainConfig(lr=3e-3, batch_size=8, epochs=12, warmup_epochs=0.5, min_lr_ratio=0.1, weight_decay=0.0)
+    frames = cfg.context + train.horizon
+    train_set = SyntheticWindows(256, cfg, frames, seed=0, shift=1.0)
+    val_set = SyntheticWindows(128, cfg, frames, seed=1, shift=1.0)
+    model, metrics = train_predictor(train_set, cfg, train, tmp_path, val_set=val_set, device="cpu", progress=False)
+    for h in (1, 2):
+        assert metrics[f"val/z_mse_h{h}"] < 0.6 * metrics[f"val/copy_z_mse_h{h}"], metrics
+        assert metrics[f"val/q_mse_h{h}"] < 0.2 * metrics[f"val/copy_q_mse_h{h}"], metrics
+    lines = (tmp_path / METRICS_FILE).read_text().splitlines()
+    assert len(lines) == train.epochs and json.loads(lines[-1])["global_step"] == 12 * (256 // 8)
+    # feature statistics were computed from the training set and saved with the weights
+    loaded = load_predictor(tmp_path)
+    assert torch.allclose(loaded.z_std, train_set.z.float().flatten(0, -2).std(0), rtol=1e-3)
+    again = evaluate_predictor(loaded, val_set, train.horizon, train.gamma)
+    assert again["z_mse_h1"] == pytest.approx(metrics["val/z_mse_h1"], rel=1e-5)
+
+
+TRAIN = TrainConfig(lr=1e-3, batch_size=4, epochs=3, warmup_epochs=1, weight_decay=1e-3, seed=3)
+
+
+def _windows(n: int = 14) -> SyntheticWindows:
+    return SyntheticWindows(n, TINY, TINY.context + TRAIN.horizon, seed=0)  # 14 // 4 = 3 steps per epoch
+
+
+def test_checkpoint_round_trip_gives_identical_outputs(tmp_path):
+    model, _ = train_predictor(_windows(), TINY, TRAIN, tmp_path, device="cpu", max_steps=2, progress=False)
+    fresh = load_predictor(tmp_path / CKPT_DIR)
+    assert torch.equal(fresh.z_mean, model.z_mean) and not torch.equal(fresh.z_mean, torch.zeros_like(fresh.z_mean))
+    z, q, a = _frames(TINY, 2, 3)
+    with torch.no_grad():
+        for x, y in zip(model(z, q, a), fresh(z, q, a)):
+            assert torch.equal(x, y)
+    with pytest.raises(UserError, match="not a wamplan checkpoint"):
+        load_predictor(tmp_path / "missing")
+    with pytest.raises(UserError, match="'wm-predictor' checkpoint, not 'wm-decoder'"):
+        load_decoder(tmp_path)
+
+
+def test_resume_continues_exactly(tmp_path):
+    data = _windows()
+    total = 3 * 3  # 3 epochs x 3 steps
+    full, _ = train_predictor(data, TINY, TRAIN, tmp_path / "full", device="cpu", progress=False)
+    train_predictor(data, TINY, TRAIN, tmp_path / "split", device="cpu", max_steps=4, progress=False)  # stops mid-epoch 2
+    with pytest.raises(UserError, match="pass --resume"):
+        train_predictor(data, TINY, TRAIN, tmp_path / "split", device="cpu", progress=False)
+    with pytest.raises(UserError, match="different config"):
+        train_predictor(data, TINY, dataclasses.replace(TRAIN, lr=2e-3), tmp_path / "split", device="cpu",
+                        resume=True, progress=False)
+    resumed, metrics = train_predictor(data, TINY, TRAIN, tmp_path / "split", device="cpu", resume=True, progress=False)
+    assert metrics["global_step"] == total
+    for (name, a), b in zip(full.state_dict().items(), resumed.state_dict().values()):
+        assert torch.equal(a, b), name
+    for run in ("full", "split"):
+        state = json.loads((tmp_path / run / CKPT_DIR / "training_state" / "state.json").read_text())
+        assert state["train_state"]["global_step"] == total and state["scheduler"]["last_epoch"] == total
+    states = [json.loads((tmp_path / r / CKPT_DIR / "training_state" / "state.json").read_text())["optimizer"]
+              for r in ("full", "split")]
+    assert states[0] == states[1]  # same step counts and learning rates
+
+
+# -- decoder -------------------------------------------------------------------------------------------------
+class _Pairs(torch.utils.data.Dataset):
+    """Images whose patch (i, j) is a flat colour set by token i * grid + j (checks the row-major layout)."""
+
+    def __init__(self, n: int, cfg: DecoderConfig, size: int = 32):
+        g = torch.Generator().manual_seed(0)
+        self.z = torch.randn(n, cfg.num_patches, cfg.enc_dim, generator=g)  # (n, N, D)
+        colour = torch.sigmoid(2 * self.z[:, :, :3]).view(n, cfg.grid, cfg.grid, 3)  # (n, g, g, 3)
+        cell = size // cfg.grid
+        img = colour.repeat_interleave(cell, 1).repeat_interleave(cell, 2)  # (n, H, W, 3)
+        self.img = (img * 255).round().to(torch.uint8)
+
+    def __len__(self) -> int:
+        return len(self.z)
+
+    def __getitem__(self, i: int):
+        return {"z": self.z[i], "image": self.img[i]}
+
+
+def test_decoder_outputs_images_in_unit_range_and_trains(tmp_path):
+    cfg = DecoderConfig(num_patches=4, enc_dim=8, image_size=16, width=32, depth=2, heads=4, mlp_dim=64, head_channels=16)
+    dec = Decoder(cfg)
+    with torch.no_grad():
+        out = dec(torch.randn(3, 4, 8) * 10)
+    assert out.shape == (3, 3, 16, 16) and float(out.min()) >= 0.0 and float(out.max()) <= 1.0
+    data = _Pairs(64, cfg)  # 32 px images, resized to 16 px for the loss
+    train = TrainConfig(lr=3e-3, batch_size=8, epochs=20, warmup_epochs=1, weight_decay=1e-5)
+    model, metrics = train_decoder(data, cfg, train, tmp_path, val_set=data, device="cpu", progress=False)
+    first = json.loads((tmp_path / METRICS_FILE).read_text().splitlines()[0])
+    assert metrics["val/pixel_mse"] < 0.5 * first["val/pixel_mse"], (first, metrics)
+    loaded = load_decoder(tmp_path)
+    with torch.no_grad():
+        assert torch.equal(loaded(data.z[:2]), model(data.z[:2]))
