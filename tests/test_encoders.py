@@ -130,7 +130,8 @@ def test_dinov3_from_env_var_and_from_config(tmp_path, monkeypatch):
 
 def test_missing_weights_name_what_to_get_and_where(tmp_path, monkeypatch):
     empty = tmp_path / "nothing-here"
-    with pytest.raises(UserError, match=r"facebook/dinov3-vitl16-pretrain-lvd1689m.*--encoder-path DIR.*WAMPLAN_DINOV3_PATH"):
+    want = r"facebook/dinov3-vitl16-pretrain-lvd1689m.*--encoder-path DIR.*WAMPLAN_DINOV3_PATH"
+    with pytest.raises(UserError, match=want):
         make_encoder("dinov3-vitl16", path=empty)
     monkeypatch.setenv("WAMPLAN_DINOV2_PATH", str(empty))
     with pytest.raises(UserError, match=r"facebook/dinov2-small.*WAMPLAN_DINOV2_PATH"):

@@ -70,9 +70,11 @@ def test_paper_preset_is_table_3_and_mini_divides_the_chunk():
     assert (pr.depth, pr.heads, pr.head_dim, pr.mlp_dim, pr.proprio_emb, pr.action_emb) == (6, 16, 64, 2048, 64, 64)
     assert (pr.context, pr.frameskip, tr.horizon, tr.gamma) == (3, 5, 2, 0.95)
     assert (pr.num_views, pr.num_patches, pr.enc_dim, p.encoder) == (3, 196, 1024, "dinov3-vitl16")
-    assert (tr.lr, tr.weight_decay, tr.batch_size, tr.epochs, tr.warmup_epochs, tr.grad_clip) == (5e-5, 1e-3, 24, 24, 1, 1.0)
+    assert (tr.lr, tr.weight_decay, tr.batch_size, tr.epochs, tr.warmup_epochs, tr.grad_clip) == \
+        (5e-5, 1e-3, 24, 24, 1, 1.0)
     d, dt = p.decoder, p.decoder_train
-    assert (d.depth, d.heads, dt.lr, dt.weight_decay, dt.batch_size, dt.epochs, dt.warmup_epochs) == (4, 8, 3e-4, 1e-5, 16, 24, 2)
+    assert (d.depth, d.heads, dt.lr, dt.weight_decay, dt.batch_size, dt.epochs, dt.warmup_epochs) == \
+        (4, 8, 3e-4, 1e-5, 16, 24, 2)
     m = PRESETS["mini"]
     assert 16 % m.predictor.frameskip == 0 and (m.predictor.context, m.train.horizon) == (3, 2)
     from wamplan.encoders import make_encoder
@@ -88,7 +90,8 @@ def test_preset_stats_counts_params_and_flops():
     s = preset_stats("mini")
     m = WorldModelPredictor(PRESETS["mini"].predictor)
     assert s["predictor"]["params"] == m.num_params()
-    assert 0 < s["predictor"]["forward_flops"] < s["predictor"]["plan_flops_cached"] < s["predictor"]["plan_flops_naive"]
+    pr = s["predictor"]
+    assert 0 < pr["forward_flops"] < pr["plan_flops_cached"] < pr["plan_flops_naive"]
     assert s["decoder"]["params"] == Decoder(PRESETS["mini"].decoder).num_params()
 
 
@@ -147,7 +150,8 @@ def test_kv_cached_rollout_equals_naive(context):
         assert c.shape == n.shape and torch.allclose(c, n, atol=1e-5), float((c - n).abs().max())
     # the first step is the teacher-forced prediction from the ground-truth context
     zf, qf = m(z, q, torch.cat([a[:, :-1], a_future[:, :1]], dim=1))
-    assert torch.allclose(cached[0][:, 0], zf[:, -1], atol=1e-5) and torch.allclose(cached[1][:, 0], qf[:, -1], atol=1e-5)
+    assert torch.allclose(cached[0][:, 0], zf[:, -1], atol=1e-5)
+    assert torch.allclose(cached[1][:, 0], qf[:, -1], atol=1e-5)
 
 
 @torch.no_grad()
@@ -212,17 +216,21 @@ def test_checkpoint_round_trip_gives_identical_outputs(tmp_path):
         load_decoder(tmp_path)
 
 
-def test_resume_continues_exactly(tmp_path):
+@pytest.mark.parametrize("stop", [4, 3])  # inside epoch 2; exactly at the end of epoch 1
+def test_resume_continues_exactly(tmp_path, stop):
     data = _windows()
     total = 3 * 3  # 3 epochs x 3 steps
     full, _ = train_predictor(data, TINY, TRAIN, tmp_path / "full", device="cpu", progress=False)
-    train_predictor(data, TINY, TRAIN, tmp_path / "split", device="cpu", max_steps=4, progress=False)  # stops mid-epoch 2
+    train_predictor(data, TINY, TRAIN, tmp_path / "split", device="cpu", max_steps=stop, progress=False)
     with pytest.raises(UserError, match="pass --resume"):
         train_predictor(data, TINY, TRAIN, tmp_path / "split", device="cpu", progress=False)
     with pytest.raises(UserError, match="different config"):
         train_predictor(data, TINY, dataclasses.replace(TRAIN, lr=2e-3), tmp_path / "split", device="cpu",
                         resume=True, progress=False)
-    resumed, metrics = train_predictor(data, TINY, TRAIN, tmp_path / "split", device="cpu", resume=True, progress=False)
+    with pytest.raises(UserError, match="steps per epoch"):
+        train_predictor(_windows(30), TINY, TRAIN, tmp_path / "split", device="cpu", resume=True, progress=False)
+    resumed, metrics = train_predictor(data, TINY, TRAIN, tmp_path / "split", device="cpu", resume=True,
+                                       progress=False)
     assert metrics["global_step"] == total
     for (name, a), b in zip(full.state_dict().items(), resumed.state_dict().values()):
         assert torch.equal(a, b), name
@@ -232,6 +240,8 @@ def test_resume_continues_exactly(tmp_path):
     states = [json.loads((tmp_path / r / CKPT_DIR / "training_state" / "state.json").read_text())["optimizer"]
               for r in ("full", "split")]
     assert states[0] == states[1]  # same step counts and learning rates
+    logged = [json.loads(x)["epoch"] for x in (tmp_path / "split" / METRICS_FILE).read_text().splitlines()]
+    assert logged == [1, 2, 3]  # every epoch validated and logged once
 
 
 # -- decoder -------------------------------------------------------------------------------------------------
@@ -254,7 +264,8 @@ class _Pairs(torch.utils.data.Dataset):
 
 
 def test_decoder_outputs_images_in_unit_range_and_trains(tmp_path):
-    cfg = DecoderConfig(num_patches=4, enc_dim=8, image_size=16, width=32, depth=2, heads=4, mlp_dim=64, head_channels=16)
+    cfg = DecoderConfig(num_patches=4, enc_dim=8, image_size=16, width=32, depth=2, heads=4, mlp_dim=64,
+                        head_channels=16)
     dec = Decoder(cfg)
     with torch.no_grad():
         out = dec(torch.randn(3, 4, 8) * 10)
@@ -267,3 +278,20 @@ def test_decoder_outputs_images_in_unit_range_and_trains(tmp_path):
     loaded = load_decoder(tmp_path)
     with torch.no_grad():
         assert torch.equal(loaded(data.z[:2]), model(data.z[:2]))
+
+
+def test_action_blocks_are_time_major_and_models_run_in_bfloat16():
+    from wamplan.worldmodel import action_blocks
+    acts = torch.arange(2 * 8 * 5).view(2, 8, 5).float()  # (B, S*Delta, A) with Delta = 2
+    blocks = action_blocks(acts, 2)  # (B, 4, 10)
+    assert blocks.shape == (2, 4, 10) and torch.equal(blocks[1, 2], torch.cat([acts[1, 4], acts[1, 5]]))
+    with pytest.raises(ValueError, match="frameskip 3"):
+        action_blocks(acts, 3)
+    m = _model().to(torch.bfloat16)
+    z, q, a = _frames(TINY, 1, 3)
+    a_future = _frames(TINY, 4, 2, seed=2)[2]
+    with torch.no_grad():
+        zc, qc = m.rollout(z, q, a[:, :-1], a_future)
+        zn, qn = m.rollout(z, q, a[:, :-1], a_future, naive=True)
+    assert zc.dtype == torch.bfloat16 and zc.shape == (4, 2, 2, 4, 8)
+    assert torch.allclose(zc.float(), zn.float(), atol=0.1, rtol=0.05)

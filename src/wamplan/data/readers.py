@@ -168,3 +168,26 @@ class WorldModelWindows(Dataset):
         else:
             out["images"] = torch.from_numpy(np.stack([f["images"][c][ks] for c in CAMERAS], 1))  # (T, V, H, W, 3)
         return out
+
+
+class FeatureFrames(Dataset):
+    """Items: ``z`` (N, D) cached features of one view of one stored frame and its ``image`` (H, W, 3)
+    uint8 (for training the decoder)."""
+
+    def __init__(self, stores: Sequence[str | Path], features: str, split: str = "train", val_fraction: float = 0.1,
+                 cameras: Sequence[str] = CAMERAS, sources: Sequence[str] | None = None):
+        self.episodes = index_episodes(stores, split, val_fraction, features=features, sources=sources)
+        self.cameras = list(cameras)
+        self.items = [(i, k, v) for i, e in enumerate(self.episodes) for k in range(len(e.image_steps))
+                      for v, c in enumerate(CAMERAS) if c in self.cameras]
+        self._h5 = _H5Cache()
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def __getitem__(self, idx: int) -> dict[str, torch.Tensor]:
+        i, k, v = self.items[idx]
+        e = self.episodes[i]
+        z = self._h5.get(e.features)["z"][k, v]  # (N, D)
+        img = self._h5.get(e.path)["images"][CAMERAS[v]][k]  # (H, W, 3)
+        return dict(z=torch.from_numpy(z), image=torch.from_numpy(img))

@@ -96,7 +96,10 @@ class FrozenEncoder(nn.Module):
 
     def encode(self, images: torch.Tensor | np.ndarray, return_cls: bool = False
                ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor | None]:
-        """uint8 images (B, H, W, 3) -> patch tokens (B, N, D) float32 [, CLS (B, D) or None]."""
+        """uint8 images (B, H, W, 3) -> patch tokens (B, N, D) float32 [, CLS (B, D) or None].
+
+        Runs under ``torch.inference_mode``: the results are inference tensors (``.clone()`` them
+        outside inference mode before an in-place op or saving them for backward)."""
         with torch.inference_mode():
             patches, cls = self._features(self.preprocess(images))
             patches = patches.float()  # (B, N, D)

@@ -123,8 +123,8 @@ class EvalWorker:
 
         cid, seed = job
         r = run_episode(self.env, self.policy(cid), seed, max_steps=self.cfg.max_steps)
-        chunks = r.policy_info.get("chunks", [])
-        planned = [ch for ch in chunks if ch.get("planned")]
+        chunks = r.policy_info.get("chunks")  # PlannedPolicy: per-chunk records; WAMPolicy: a count
+        planned = [ch for ch in chunks if ch.get("planned")] if isinstance(chunks, list) else []
         timing = {k: float(np.mean([ch[k] for ch in planned])) for k in ("wam_s", "target_encode_s", "search_s")} \
             if planned else {}
         wam_s = r.policy_info.get("wam_query_s")

@@ -4,16 +4,17 @@ decoder for inspection, their training, and the ``paper``/``mini`` presets.
     from wamplan.worldmodel import load_predictor
     wm = load_predictor("runs/wm")                                  # eval mode
     prefix = wm.encode_prefix(z[:, :2], q[:, :2], a_past)          # once per chunk, batch 1
-    z_pred, q_pred = wm.rollout_from_prefix(prefix, z[:, 2], q[:, 2], a_candidates)  # (C, S, ...)
+    z_pred, q_pred = wm.rollout_from_prefix(prefix, z[:, 2], q[:, 2], a_cand)  # (C, S, ...)
 """
 
 from wamplan.worldmodel.config import DecoderConfig, PredictorConfig, TrainConfig
 from wamplan.worldmodel.decoder import Decoder, evaluate_decoder, load_decoder, train_decoder
-from wamplan.worldmodel.predictor import PrefixCache, WorldModelPredictor
+from wamplan.worldmodel.predictor import PrefixCache, WorldModelPredictor, action_blocks
 from wamplan.worldmodel.presets import PRESETS, WorldModelPreset, get_preset
 from wamplan.worldmodel.train import (compute_feature_stats, evaluate_predictor, load_predictor, train_predictor,
                                       window_loss)
 
-__all__ = ["DecoderConfig", "PredictorConfig", "TrainConfig", "Decoder", "PrefixCache", "WorldModelPredictor",
-           "WorldModelPreset", "PRESETS", "get_preset", "compute_feature_stats", "evaluate_decoder",
-           "evaluate_predictor", "load_decoder", "load_predictor", "train_decoder", "train_predictor", "window_loss"]
+__all__ = ["action_blocks", "DecoderConfig", "PredictorConfig", "TrainConfig", "Decoder", "PrefixCache",
+           "WorldModelPredictor", "WorldModelPreset", "PRESETS", "get_preset", "compute_feature_stats",
+           "evaluate_decoder", "evaluate_predictor", "load_decoder", "load_predictor", "train_decoder",
+           "train_predictor", "window_loss"]

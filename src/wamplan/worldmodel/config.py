@@ -73,7 +73,8 @@ class DecoderConfig:
     head_channels: int = field(128, "channels of the first upsampling stage (halved each stage, min 16)")
 
     def __post_init__(self) -> None:
-        for name in ("num_patches", "enc_dim", "image_size", "width", "depth", "heads", "mlp_dim", "head_channels"):
+        for name in ("num_patches", "enc_dim", "image_size", "width", "depth", "heads", "mlp_dim",
+                     "head_channels"):
             v = getattr(self, name)
             require(isinstance(v, int) and v > 0, f"DecoderConfig.{name} must be a positive int, got {v!r}")
         g = int(round(self.num_patches ** 0.5))
@@ -82,7 +83,8 @@ class DecoderConfig:
         require(self.image_size % g == 0 and up & (up - 1) == 0,
                 f"DecoderConfig.image_size / grid must be a power of 2; got {self.image_size} / {g}; "
                 f"pick image_size = {g} * 2**k")
-        require(self.width % self.heads == 0, f"DecoderConfig.width {self.width} must be divisible by heads {self.heads}")
+        require(self.width % self.heads == 0,
+                f"DecoderConfig.width {self.width} must be divisible by heads {self.heads}")
 
     @property
     def grid(self) -> int:

@@ -102,9 +102,11 @@ def train_decoder(train_set: Dataset, cfg: DecoderConfig, train: TrainConfig, ou
     torch.manual_seed(train.seed)
     model = Decoder(cfg).to(dev)
     config = {"decoder": to_dict(cfg), "train": to_dict(train), "encoder": encoder_info}
+    def evaluate(m: torch.nn.Module) -> dict[str, float]:
+        return evaluate_decoder(m, val_set, 2 * train.batch_size, dev)  # type: ignore[arg-type]
+
     metrics = fit(model, train_set, train, kind=KIND, config=config, out_dir=out_dir, device=dev,
-                  loss_fn=decoder_loss,
-                  evaluate=(lambda m: evaluate_decoder(m, val_set, 2 * train.batch_size, dev)) if val_set is not None else None,
+                  loss_fn=decoder_loss, evaluate=evaluate if val_set is not None else None,
                   resume=resume, max_steps=max_steps, progress=progress, desc="decoder")
     return model.eval(), metrics
 

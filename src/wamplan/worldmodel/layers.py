@@ -15,13 +15,14 @@ KV = tuple[torch.Tensor, torch.Tensor]  # (k, v), each (B or 1, h, M, e)
 
 def rope_angles(positions: torch.Tensor, inv_freq: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """positions (L,) float, inv_freq (e/2,) -> cos, sin each (L, e) for ``apply_rope``."""
-    ang = positions[:, None] * inv_freq[None, :]  # (L, e/2)
+    ang = positions.float()[:, None] * inv_freq.float()[None, :]  # (L, e/2), float32 whatever the model dtype
     ang = torch.cat([ang, ang], dim=-1)  # (L, e)
     return ang.cos(), ang.sin()
 
 
 def apply_rope(x: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor) -> torch.Tensor:
     """Rotate pairs (i, i + e/2) of x (B, h, L, e) by the angles in cos/sin (L, e)."""
+    cos, sin = cos.to(x.dtype), sin.to(x.dtype)
     x1, x2 = x.chunk(2, dim=-1)  # (B, h, L, e/2) each
     return x * cos + torch.cat([-x2, x1], dim=-1) * sin  # (B, h, L, e)
 

@@ -93,7 +93,8 @@ def fit(model: nn.Module, train_set: Dataset, cfg: TrainConfig, *, kind: str, co
     n = len(train_set)  # type: ignore[arg-type]
     steps_per_epoch = n // bs
     if steps_per_epoch < 1:
-        raise UserError(f"training set has {n} items, fewer than batch_size {bs}; collect more data or lower --batch-size")
+        raise UserError(f"training set has {n} items, fewer than batch_size {bs}; "
+                        f"collect more data or lower --batch-size")
     total = steps_per_epoch * cfg.epochs
     opt = make_optimizer(model, cfg)
     sched = warmup_cosine(opt, round(cfg.warmup_epochs * steps_per_epoch), total, cfg.min_lr_ratio)
@@ -102,9 +103,13 @@ def fit(model: nn.Module, train_set: Dataset, cfg: TrainConfig, *, kind: str, co
         raise UserError(f"{out} already holds a training checkpoint; pass --resume to continue it or a new --out")
     if resume and has_training_state(ckpt):
         if _comparable(read_config(ckpt, kind)) != _comparable(config):
-            raise UserError(f"{ckpt} was trained with a different config; resume with the same config or use a new --out")
+            raise UserError(f"{ckpt} was trained with a different config; "
+                            f"resume with the same config or use a new --out")
         load_weights(ckpt, model, device)
         saved = load_training_state(ckpt, opt, sched)
+        if saved.get("steps_per_epoch") != steps_per_epoch:
+            raise UserError(f"{ckpt} was trained with {saved.get('steps_per_epoch')} steps per epoch, this dataset "
+                            f"gives {steps_per_epoch}; resume with the same dataset and batch size")
         state.update({k: saved[k] for k in state})
         torch.set_rng_state(torch.tensor(saved["rng_cpu"], dtype=torch.uint8))
     elif on_fresh_start is not None:
@@ -119,7 +124,7 @@ def fit(model: nn.Module, train_set: Dataset, cfg: TrainConfig, *, kind: str, co
         with open(out / METRICS_FILE, "a") as f:
             f.write(json.dumps(record) + "\n")
 
-    metrics: dict[str, Any] = {}
+    metrics: dict[str, Any] = {"epoch": state["epoch"], "global_step": state["global_step"]}
     try:
         while state["epoch"] < cfg.epochs:
             epoch, start = state["epoch"], state["step_in_epoch"]
@@ -127,7 +132,7 @@ def fit(model: nn.Module, train_set: Dataset, cfg: TrainConfig, *, kind: str, co
             order = torch.randperm(n, generator=g)[: steps_per_epoch * bs][start * bs:].tolist()
             loader = DataLoader(train_set, batch_size=bs, sampler=order, drop_last=True,
                                 num_workers=cfg.num_workers, generator=g,
-                                pin_memory=device.type == "cuda")
+                                pin_memory=device.type != "cpu")
             bar = tqdm(total=steps_per_epoch, initial=start, desc=f"{desc} {epoch + 1}/{cfg.epochs}",
                        disable=not progress, dynamic_ncols=True)
             loss_sum, loss_n, t0, seen = 0.0, 0, time.perf_counter(), 0
@@ -150,10 +155,11 @@ def fit(model: nn.Module, train_set: Dataset, cfg: TrainConfig, *, kind: str, co
                 if cfg.save_every_steps and state["global_step"] % cfg.save_every_steps == 0:
                     save()
                 if max_steps is not None and state["global_step"] >= max_steps:
-                    bar.close()
-                    save()
-                    return {"global_step": state["global_step"], "epoch": epoch, "stopped": "max_steps"}
+                    break
             bar.close()
+            if state["step_in_epoch"] < steps_per_epoch:  # stopped by max_steps inside the epoch
+                save()
+                return {"global_step": state["global_step"], "epoch": epoch, "stopped": "max_steps"}
             state["epoch"], state["step_in_epoch"] = epoch + 1, 0
             metrics = {"epoch": epoch + 1, "global_step": state["global_step"],
                        "train_loss": loss_sum / max(1, loss_n), "lr": sched.get_last_lr()[0],
@@ -168,6 +174,8 @@ def fit(model: nn.Module, train_set: Dataset, cfg: TrainConfig, *, kind: str, co
             if progress:
                 tqdm.write(f"{desc} epoch {epoch + 1}: " + " ".join(
                     f"{k}={v:.4g}" for k, v in metrics.items() if isinstance(v, float)))
+            if max_steps is not None and state["global_step"] >= max_steps:
+                return dict(metrics, stopped="max_steps")
     except KeyboardInterrupt:
         save()
         raise

@@ -1,10 +1,18 @@
 """The latent predictor f_theta (paper §3.2): a block-causal ViT over frozen patch tokens.
 
 A frame t is its visual tokens z_t (V, N, D), its proprioception q_t (P,) and its action block
-a_t (Delta*A,), the Delta actions executed from frame t. q_t and a_t go through their own MLP
-projectors and are concatenated to every visual token of frame t; one linear maps the concatenation
-to the model width, and a learned spatial embedding per (view, patch) is added. The output at frame t
-predicts frame t+1 (Delta control steps later): tokens (V, N, D) and proprioception (P,).
+a_t (Delta*A,): the Delta actions executed from frame t, flattened time-major (``action_blocks``).
+q_t and a_t go through their own MLP projectors and are concatenated to every visual token of frame t;
+one linear maps the concatenation to the model width, and a learned spatial embedding per
+(view, patch) is added. The output at frame t predicts frame t+1 (Delta control steps later): tokens
+(V, N, D) and proprioception (P,) (by default as a change from frame t: ``predict_delta``).
+
+Planning use (one chunk; context frames t-2, t-1 and the current frame t, candidates a (C, S, Delta*A)):
+
+    prefix = wm.encode_prefix(z[:, :2], q[:, :2], a_past)   # (1, 2, ...): once per chunk, batch 1
+    for it in range(iterations):                             # CEM iterations reuse the prefix
+        z_pred, q_pred = wm.rollout_from_prefix(prefix, z[:, 2], q[:, 2], a)   # (C, S, V, N, D), (C, S, P)
+        cost = (z_pred[:, -1] - z_target).pow(2).flatten(1).mean(1)          # (C,), paper eq. 3
 
 Time. Tokens of frame t attend to every token of frames t-H_ctx+1 .. t and to nothing later (a sliding
 window, block-causal). Time enters only through a rotary embedding of the frame index on queries and
@@ -33,6 +41,15 @@ from torch import nn
 
 from wamplan.worldmodel.config import PredictorConfig
 from wamplan.worldmodel.layers import KV, Block, init_weights, rope_angles
+
+
+def action_blocks(actions: torch.Tensor, frameskip: int) -> torch.Tensor:
+    """Per-step actions (..., S*Delta, A) -> frame action blocks (..., S, Delta*A), time-major:
+    block s is [a_{s Delta}, a_{s Delta + 1}, ...] flattened. The one layout for datasets and planners."""
+    *lead, steps, dim = actions.shape
+    if steps % frameskip:
+        raise ValueError(f"{steps} actions do not split into blocks of frameskip {frameskip}")
+    return actions.reshape(*lead, steps // frameskip, frameskip * dim)
 
 
 @dataclass
@@ -91,10 +108,11 @@ class WorldModelPredictor(nn.Module):
         cfg = self.cfg
         w, b = self.in_proj.weight, self.in_proj.bias  # (d, D + Eq + Ea), (d,)
         i_q, i_a = cfg.enc_dim, cfg.enc_dim + cfg.proprio_emb
-        zn = (z.float() - self.z_mean) / self.z_std  # (Bz, T, V, N, D)
+        dt = w.dtype
+        zn = (z.to(dt) - self.z_mean) / self.z_std  # (Bz, T, V, N, D)
         xz = F.linear(zn.flatten(2, 3), w[:, :i_q])  # (Bz, T, M, d)
-        xq = F.linear(self.proprio_proj(q.float()), w[:, i_q:i_a])  # (Bq, T, d)
-        xa = F.linear(self.action_proj(a.float()), w[:, i_a:], b)  # (Ba, T, d)
+        xq = F.linear(self.proprio_proj(q.to(dt)), w[:, i_q:i_a])  # (Bq, T, d)
+        xa = F.linear(self.action_proj(a.to(dt)), w[:, i_a:], b)  # (Ba, T, d)
         return xz + (xq + xa)[:, :, None] + self.pos  # (B, T, M, d)
 
     def _blocks(self, x: torch.Tensor, t0: int, past: list[list[KV]]) -> tuple[torch.Tensor, list[KV]]:
@@ -126,7 +144,7 @@ class WorldModelPredictor(nn.Module):
         dz = self.z_head(h).unflatten(2, (cfg.num_views, cfg.num_patches)) * self.z_std  # (B, T, V, N, D)
         dq = self.q_head(h.mean(dim=2))  # (B, T, P), pooled over the frame's tokens
         if cfg.predict_delta:
-            return z.float() + dz, q.float() + dq
+            return z.to(dz.dtype) + dz, q.to(dq.dtype) + dq
         return dz + self.z_mean, dq
 
     def _check(self, z: torch.Tensor, q: torch.Tensor, a: torch.Tensor, frames: int | None = None) -> None:
@@ -203,8 +221,9 @@ class WorldModelPredictor(nn.Module):
     def _rollout_naive(self, z_ctx: torch.Tensor, q_ctx: torch.Tensor, a_ctx_past: torch.Tensor,
                        a_future: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         b = max(z_ctx.shape[0], a_future.shape[0])
-        zs = z_ctx.float().expand(b, -1, -1, -1, -1)  # (B, Tc, V, N, D)
-        qs = q_ctx.float().expand(b, -1, -1)  # (B, Tc, P)
+        dt = self.in_proj.weight.dtype
+        zs = z_ctx.to(dt).expand(b, -1, -1, -1, -1)  # (B, Tc, V, N, D)
+        qs = q_ctx.to(dt).expand(b, -1, -1)  # (B, Tc, P)
         acts = torch.cat([a_ctx_past.expand(b, -1, -1), a_future[:, :1].expand(b, -1, -1)], dim=1)  # (B, Tc, DA)
         out_z, out_q = [], []
         for s in range(a_future.shape[1]):

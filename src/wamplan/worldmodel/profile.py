@@ -88,12 +88,12 @@ def time_plan(model: WorldModelPredictor, candidates: int = 32, iterations: int 
     times = []
     with torch.inference_mode():
         for i in range(repeats + 1):
-            if dev.type == "cuda":
-                torch.cuda.synchronize()
+            if dev.type != "cpu":
+                torch.accelerator.synchronize()
             t0 = time.perf_counter()
             plan_once(model, z, q, a, candidates, iterations, CHUNK // c.frameskip, naive)
-            if dev.type == "cuda":
-                torch.cuda.synchronize()
+            if dev.type != "cpu":
+                torch.accelerator.synchronize()
             if i:
                 times.append(time.perf_counter() - t0)
     return statistics.median(times)
@@ -114,7 +114,8 @@ def main(argv: list[str] | None = None) -> None:
               f"x {pr['tokens_per_frame']} tokens (batch 1): {pr['forward_flops'] / 1e9:.2f} GFLOP; "
               f"one CEM plan (32 x 4 iters x {pr['rollout_steps_per_chunk']} steps): "
               f"{pr['plan_flops_cached'] / 1e9:.1f} GFLOP cached, {pr['plan_flops_naive'] / 1e9:.1f} GFLOP naive")
-        print(f"[{name}] decoder {de['params'] / 1e6:.2f} M params; {de['forward_flops_one_view'] / 1e9:.2f} GFLOP / view")
+        print(f"[{name}] decoder {de['params'] / 1e6:.2f} M params; "
+              f"{de['forward_flops_one_view'] / 1e9:.2f} GFLOP / view")
     torch.manual_seed(0)
     for name in args.time:
         model = WorldModelPredictor(get_preset(name).predictor).eval()

@@ -2,10 +2,11 @@
 
 A blob sits at position p in [-1, 1]^2. Each view renders it as a token field: the token of the patch
 centred at c is ``b * u_v + (1 - b) * w_v + shift * (p_x r_v + p_y s_v)`` with
-``b = exp(-|c - p|^2 / (2 s^2))`` and fixed random unit vectors u_v, w_v, r_v, s_v per view (the
-last term, a global shift with p, is quick to learn; the bump's motion takes longer). Action step k moves p by ``step * (a_k[0], a_k[1])`` (clipped to the
-square); proprioception is ``(p_x, p_y, 0, ...)``. Copying the last frame is wrong by exactly the
-motion, which the action block explains, so a working predictor must beat the copy baseline.
+``b = exp(-|c - p|^2 / (2 s^2))`` and fixed random unit vectors u_v, w_v, r_v, s_v per view (the last
+term, a global shift with p, is quick to learn; the bump's motion takes longer). Action step k moves p
+by ``step * (a_k[0], a_k[1])`` (clipped to the square); proprioception is ``(p_x, p_y, 0, ...)``.
+Copying the last frame is wrong by exactly the motion, which the action block explains, so a working
+predictor must beat the copy baseline.
 """
 
 from __future__ import annotations

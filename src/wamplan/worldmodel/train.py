@@ -128,7 +128,8 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
         model.set_feature_stats(mean, std)
 
     def evaluate(m: torch.nn.Module) -> dict[str, float]:
-        return evaluate_predictor(m, val_set, train.horizon, train.gamma, 2 * train.batch_size, dev)  # type: ignore[arg-type]
+        return evaluate_predictor(m, val_set, train.horizon, train.gamma,  # type: ignore[arg-type]
+                                  2 * train.batch_size, dev)
 
     metrics = fit(model, train_set, train, kind=KIND, config=config, out_dir=out_dir, device=dev,
                   loss_fn=lambda m, b: window_loss(m, b, train.horizon, train.gamma),
@@ -145,3 +146,15 @@ def load_predictor(path: str | Path, device: str | torch.device = "cpu") -> Worl
     model = WorldModelPredictor(cfg)
     load_weights(ckpt, model)
     return model.to(dev).eval()
+
+
+def load_world_model(path: str | Path, device: str | torch.device = "cpu"):
+    """(predictor, encoder) from a predictor checkpoint; the encoder is rebuilt from the stored config."""
+    from wamplan.encoders import make_encoder
+
+    ckpt = checkpoint_path(path)
+    info = dict(read_config(ckpt, KIND).get("encoder") or {})
+    model = load_predictor(path, device)
+    name = info.pop("name", model.cfg.encoder)
+    enc = make_encoder(name, **info).to(next(model.parameters()).device)
+    return model, enc

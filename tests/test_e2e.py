@@ -1,0 +1,48 @@
+"""Tiny end to end: collect 2 episodes -> train TinyWAM and the world model a few steps -> evaluate
+conditions 1 and 6 (one planned chunk) -> resume -> report. Catches wiring breaks, not quality."""
+
+import json
+
+import pytest
+
+from wamplan.cli import main
+from wamplan.evaluation.records import read_records
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    root = tmp_path_factory.mktemp("e2e")
+    store = root / "expert"
+    assert main(["collect", "--source", "expert", "--episodes", "2", "--out", str(store), "--camera-size", "64"]) == 0
+    assert main(["wam", "train", "--data", str(store), "--out", str(root / "wam"), "--epochs", "1", "--max-steps", "3",
+                 "--batch-size", "8", "--channels", "8", "16", "--latent-dim", "32", "--trunk-dim", "64",
+                 "--no-progress"]) == 0
+    assert main(["wm", "train", "--data", str(store), "--out", str(root / "wm"), "--epochs", "1", "--max-steps", "3",
+                 "--batch-size", "8"]) == 0
+    return root
+
+
+def test_eval_conditions_1_and_6_then_resume_and_report(run, capsys):
+    args = ["eval", "--conditions", "1,6", "--episodes", "1", "--seed-start", "7", "--out", str(run / "eval"),
+            "--wam", str(run / "wam"), "--wm-plain", str(run / "wm"), "--camera-size", "64", "--max-steps", "20",
+            "--num-candidates", "4", "--num-elites", "2", "--iterations", "1"]
+    assert main(args) == 0
+    recs = {r["condition"]: r for r in read_records(run / "eval")}
+    assert set(recs) == {1, 6} and all(r["seed"] == 7 and r["length"] == 20 for r in recs.values())
+    assert recs[1]["planned_chunks"] == 0 and recs[6]["planned_chunks"] == 1  # chunk 1 open loop, chunk 2 planned
+    assert recs[6]["chunk_timing_s"]["search_s"] > 0
+    capsys.readouterr()
+    assert main(args) == 0  # resume: nothing left to do
+    assert "already recorded" in capsys.readouterr().out and len(read_records(run / "eval")) == 2
+    assert main(["report", str(run / "eval")]) == 0
+    assert (run / "eval" / "figure3.png").is_file()
+    other = [*args[:-6], "--num-candidates", "8", "--num-elites", "2", "--iterations", "1"]
+    assert main(other) == 2 and "other settings" in capsys.readouterr().err
+
+
+def test_wm_eval_reports_copy_baseline(run, tmp_path):
+    out = tmp_path / "m.json"
+    assert main(["wm", "eval", "--ckpt", str(run / "wm"), "--data", str(run / "expert"), "--split", "all",
+                 "--horizon", "2", "--json", str(out)]) == 0
+    m = json.loads(out.read_text())
+    assert m["windows"] > 0 and {"z_mse_h1", "z_mse_h2", "copy_z_mse_h1", "copy_z_mse_h2"} <= set(m)
