@@ -79,3 +79,21 @@ def test_eval_needs_its_checkpoints(tmp_path, capsys):
     assert "condition 6 needs --wm-plain" in capsys.readouterr().err
     assert main(["report", str(tmp_path / "nothing")]) == 2
     assert "no evaluation records" in capsys.readouterr().err
+
+
+def test_reproduce_stages_wire_the_pipeline(tmp_path):
+    from wamplan.evaluation.reproduce import PRESETS, SEED_BASE, stages
+
+    st = dict(stages(PRESETS["mini"], tmp_path, None, 2))
+    names = list(st)
+    assert names[:4] == ["collect expert", "collect noisy", "collect pink", "train TinyWAM"]
+    assert names.index("collect on-policy") > names.index("train TinyWAM") and names[-1] == "report"
+    wam = st["train TinyWAM"][0][st["train TinyWAM"][0].index("--out") + 1]
+    on_policy = st["collect on-policy"][0]
+    assert on_policy[on_policy.index("--policy") + 1] == wam
+    plain = st["train plain world model"][0][3]
+    aug = st["train augmented world model"][0][3]
+    assert "on_policy" not in plain and aug.startswith(plain) and aug.endswith("on_policy")
+    assert min(SEED_BASE.values()) >= PRESETS["paper"].eval_episodes  # training seeds never overlap eval seeds
+    given = dict(stages(PRESETS["mini"], tmp_path, "/ckpt/wam", 1))
+    assert "train TinyWAM" not in given and "/ckpt/wam" in given["evaluate"][0]

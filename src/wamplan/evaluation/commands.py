@@ -22,6 +22,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_arguments(p, EvalConfig)
     p.set_defaults(func=cmd_eval)
 
+    p = sub.add_parser("reproduce", help="the whole pipeline: data, TinyWAM, world models, evaluation, report")
+    p.add_argument("--preset", default="mini", help="mini (this CPU machine) or paper")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--wam", default=None, help="use this WAM checkpoint instead of training TinyWAM")
+    p.add_argument("--workers", type=int, default=1)
+    p.set_defaults(func=cmd_reproduce)
+
     p = sub.add_parser("report", help="Table 1, Figure 3 (and Table 2, timings) from an evaluation directory")
     p.add_argument("dir", type=Path)
     p.set_defaults(func=cmd_report)
@@ -65,4 +72,11 @@ def cmd_report(args: argparse.Namespace) -> int:
     paths = write_report(args.dir)
     print((args.dir / "table1.md").read_text())
     print("wrote " + ", ".join(str(p) for p in paths.values()))
+    return 0
+
+
+def cmd_reproduce(args: argparse.Namespace) -> int:
+    from wamplan.evaluation.reproduce import reproduce
+
+    reproduce(args.preset, args.out, wam=args.wam, workers=args.workers)
     return 0

@@ -9,9 +9,13 @@ and 256 head channels, decoder grad clip 1.0.
 
 ``mini``: the ``patch-pixels`` encoder (64 px, 16 px patches, fixed random projection to 128 dims:
 3 views x 16 tokens x 128), Delta 4 (divides the 16-step chunk: 4 rollout steps end exactly at t+16),
-a width-128 depth-4 predictor that predicts the change from the current frame, larger lr and batch.
-Sized so one CEM plan (32 candidates x 4 iterations x 4 steps, KV-cached) takes ~0.5-0.7 s on the
-2-core CPU and 8 epochs over ~20k windows take ~25 min (see ``profile.py``).
+a width-128 depth-4 predictor (0.86 M params) that predicts the change from the current frame, lr 1e-3
+(better than 3e-4 on the synthetic task at this size), batch 64, 5 epochs. Measured on the 2-core CPU
+while another job used ~1.2 cores: one CEM plan (32 candidates x 4 iterations x 4 steps, KV-cached)
+~0.65 s with 2 threads when the box was quieter, ~1.1 s with 1 thread under load; training ~50
+windows/s with 1 thread, i.e. ~6.5 min per epoch of 20k windows (``profile.py`` prints the figures).
+When other processes share the 2 cores, use ``torch.set_num_threads(1)``: 2 threads then thrash
+(a training step measured 80x slower).
 """
 
 from __future__ import annotations
@@ -55,7 +59,7 @@ MINI = WorldModelPreset(
     predictor=PredictorConfig(encoder="patch-pixels", num_views=3, num_patches=16, enc_dim=128,
                               proprio_dim=10, action_dim=5, frameskip=4, context=3, depth=4, heads=4,
                               head_dim=32, mlp_dim=512, proprio_emb=64, action_emb=64, predict_delta=True),
-    train=TrainConfig(horizon=2, gamma=0.95, lr=3e-4, weight_decay=1e-3, batch_size=64, epochs=8,
+    train=TrainConfig(horizon=2, gamma=0.95, lr=1e-3, weight_decay=1e-3, batch_size=64, epochs=5,
                       warmup_epochs=0.5, grad_clip=1.0),
     decoder=DecoderConfig(num_patches=16, enc_dim=128, image_size=64, width=192, depth=4, heads=8,
                           mlp_dim=768, head_channels=128),

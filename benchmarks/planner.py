@@ -1,0 +1,91 @@
+"""Per-chunk planning time of the CEM search in the learned world model, KV-cached against a
+straightforward rollout that re-runs the full predictor over the window at every step, side by side in
+one run. Random weights (timing only). Prints one line per preset and the speed-up ratio.
+
+    .venv/bin/python benchmarks/planner.py                       # mini and paper presets, paper CEM
+    .venv/bin/python benchmarks/planner.py --presets mini --repeats 10
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import statistics
+import time
+
+import torch
+
+from wamplan.device import resolve_device
+from wamplan.planning import CEMConfig, make_cost, make_planner
+from wamplan.planning.dynamics import LearnedDynamics, PlanningContext
+from wamplan.worldmodel.predictor import WorldModelPredictor
+from wamplan.worldmodel.presets import get_preset
+
+CHUNK = 16
+
+
+class NaiveDynamics(LearnedDynamics):
+    """The reference: every rollout step re-runs ``forward`` over the whole growing sequence, for every
+    candidate, with nothing cached across candidates, steps or iterations."""
+
+    def prepare(self, context):
+        self._ctx = context
+
+    @torch.inference_mode()
+    def terminal(self, actions):
+        c, dev = self._ctx, self.device
+        b, length, na = actions.shape
+        blocks = actions.to(dev).reshape(b, length // self.frameskip, self.frameskip * na)
+        z, _ = self.model.rollout(c.z[None].to(dev), c.q[None].to(dev), c.a[None].to(dev), blocks, naive=True)
+        return z[:, -1]
+
+
+def time_search(dyn, ctx, target, planner, repeats: int) -> float:
+    cost = make_cost("patch")
+    covered = dyn.covered(CHUNK)
+    seed = torch.zeros(covered, 5)
+    times = []
+    for i in range(repeats + 1):
+        if dyn.device.type != "cpu":
+            torch.accelerator.synchronize()
+        t0 = time.perf_counter()
+        dyn.prepare(ctx)
+        planner.plan(seed, lambda c: cost(dyn.terminal(c), target), seed=i)
+        if dyn.device.type != "cpu":
+            torch.accelerator.synchronize()
+        if i:  # the first is a warm-up
+            times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--presets", nargs="+", default=["mini", "paper"])
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--device", default="auto")
+    ap.add_argument("--dtype", default="float32", choices=("float32", "bfloat16"))
+    ap.add_argument("--iterations", type=int, default=4, help="CEM iterations (paper: 4)")
+    args = ap.parse_args()
+    dev = resolve_device(args.device)
+    dtype = getattr(torch, args.dtype)
+    print(f"device {dev} ({platform.processor() or platform.machine()}, {torch.get_num_threads()} threads), "
+          f"torch {torch.__version__}, {args.dtype}, CEM 32 candidates x {args.iterations} iterations")
+    planner = make_planner("cem", CEMConfig(iterations=args.iterations))
+    for name in args.presets:
+        torch.manual_seed(0)
+        cfg = get_preset(name).predictor
+        model = WorldModelPredictor(cfg).to(dev, dtype).eval()
+        ctx = PlanningContext(z=torch.randn(cfg.context, cfg.num_views, cfg.num_patches, cfg.enc_dim, dtype=dtype),
+                              q=torch.randn(cfg.context, cfg.proprio_dim, dtype=dtype),
+                              a=torch.rand(cfg.context - 1, cfg.action_block_dim, dtype=dtype) * 2 - 1)
+        target = torch.randn(cfg.num_views, cfg.num_patches, cfg.enc_dim, device=dev, dtype=dtype)
+        fast = time_search(LearnedDynamics(model), ctx, target, planner, args.repeats)
+        slow = time_search(NaiveDynamics(model), ctx, target, planner, args.repeats)
+        steps = CHUNK // cfg.frameskip
+        print(f"[{name}] {model.num_params() / 1e6:.1f} M params, {cfg.num_views}x{cfg.num_patches} tokens/frame, "
+              f"{steps} rollout steps/chunk: KV-cached search {fast:.3f} s/chunk, naive {slow:.3f} s/chunk, "
+              f"speed-up {slow / fast:.2f}x")
+
+
+if __name__ == "__main__":
+    main()

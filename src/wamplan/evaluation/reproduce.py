@@ -1,0 +1,104 @@
+"""``wamplan reproduce``: the paper's whole pipeline, stage by stage, each skipping what exists.
+
+collect expert / noisy / pink -> train TinyWAM -> collect on-policy rollouts of it -> train the plain and
+the augmented world models -> evaluate the conditions -> report. Every stage is itself resumable (the
+stores, trainers and evaluation records are), so an interrupted run continues where it stopped.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+from wamplan.errors import UserError
+
+
+@dataclass(frozen=True)
+class ReproducePreset:
+    name: str
+    expert: int
+    noisy: int
+    pink: int
+    on_policy: int
+    pink_max_steps: int
+    image_every: int
+    wam_epochs: int
+    wm_preset: str
+    eval_episodes: int
+    sim_eval_episodes: int  # the simulator conditions (2-5) are costly on a CPU
+
+
+PRESETS = {
+    # paper §4: 100 expert, 500 noisy, 500 pink-noise (42k frames: ~84 steps each), 500 on-policy; 50 episodes
+    "paper": ReproducePreset("paper", 100, 500, 500, 500, 84, 1, 30, "paper", 50, 50),
+    # this 2-core CPU machine: smaller datasets, the mini world model
+    "mini": ReproducePreset("mini", 100, 150, 150, 150, 100, 4, 12, "mini", 50, 10),
+}
+SEED_BASE = {"expert": 1000, "noisy": 2000, "pink": 3000, "on_policy": 4000}  # evaluation uses seeds 0..49
+
+
+def stages(p: ReproducePreset, out: Path, wam: str | None, workers: int) -> list[tuple[str, list[list[str]]]]:
+    d = out / "data"
+    w = ["--workers", str(workers)]
+    ie = ["--image-every", str(p.image_every)]
+    wam_ckpt = wam or str(out / "runs" / "tinywam")
+    plain = ",".join(str(d / s) for s in ("expert", "noisy", "pink"))
+    aug = plain + "," + str(d / "on_policy")
+    evals = [["eval", "--conditions", "1,6,7", "--episodes", str(p.eval_episodes), "--out", str(out / "eval"),
+              "--wam", wam_ckpt, "--wm-plain", str(out / "runs" / "wm_plain"),
+              "--wm-augmented", str(out / "runs" / "wm_augmented"), *w]]
+    if p.sim_eval_episodes:
+        evals.append([*evals[0][:2], "2,3,4,5", "--episodes", str(p.sim_eval_episodes), *evals[0][5:]])
+    out_stages = [
+        ("collect expert", [["collect", "--source", "expert", "--episodes", str(p.expert), "--seed-start",
+                             str(SEED_BASE["expert"]), "--out", str(d / "expert"), *ie, *w]]),
+        ("collect noisy", [["collect", "--source", "noisy-expert", "--episodes", str(p.noisy), "--seed-start",
+                            str(SEED_BASE["noisy"]), "--out", str(d / "noisy"), *ie, *w]]),
+        ("collect pink", [["collect", "--source", "pink", "--episodes", str(p.pink), "--seed-start",
+                           str(SEED_BASE["pink"]), "--max-steps", str(p.pink_max_steps), "--out", str(d / "pink"), *ie,
+                           *w]]),
+    ]
+    if wam is None:
+        out_stages.append(("train TinyWAM", [["wam", "train", "--data", str(d / "expert"), "--out", wam_ckpt,
+                                              "--sources", "expert", "--epochs", str(p.wam_epochs)]]))
+    out_stages += [
+        ("collect on-policy", [["collect", "--source", "policy", "--policy", wam_ckpt, "--episodes", str(p.on_policy),
+                                "--seed-start", str(SEED_BASE["on_policy"]), "--out", str(d / "on_policy"), *ie, *w]]),
+        ("train plain world model", [["wm", "train", "--data", plain, "--out", str(out / "runs" / "wm_plain"),
+                                      "--preset", p.wm_preset]]),
+        ("train augmented world model", [["wm", "train", "--data", aug, "--out", str(out / "runs" / "wm_augmented"),
+                                          "--preset", p.wm_preset]]),
+        ("train decoder", [["wm", "train-decoder", "--data", aug, "--out", str(out / "runs" / "decoder"),
+                            "--preset", p.wm_preset]]),
+        ("evaluate", evals),
+        ("report", [["report", str(out / "eval")]]),
+    ]
+    return out_stages
+
+
+def reproduce(preset: str, out: Path, wam: str | None = None, workers: int = 1,
+              run: Callable[[list[str]], int] | None = None) -> dict[str, float]:
+    """Run every stage in order; returns seconds per stage (also written to ``out/stage_times.json``)."""
+    from wamplan.cli import main
+
+    if preset not in PRESETS:
+        raise UserError(f"unknown preset '{preset}'; choose one of {sorted(PRESETS)}")
+    run = run or main
+    out.mkdir(parents=True, exist_ok=True)
+    times: dict[str, float] = {}
+    for name, commands in stages(PRESETS[preset], out, wam, workers):
+        t0 = time.perf_counter()
+        print(f"== {name}", flush=True)
+        for argv in commands:
+            rc = run(argv)
+            if rc:
+                raise UserError(f"stage '{name}' failed (wamplan {' '.join(argv)} exited {rc}); fix it and re-run "
+                                f"`wamplan reproduce` to resume")
+        times[name] = round(time.perf_counter() - t0, 1)
+        (out / "stage_times.json").write_text(json.dumps(times, indent=1) + "\n")
+    for name, s in times.items():
+        print(f"{name:30s} {s / 60:7.1f} min")
+    return times
