@@ -136,19 +136,22 @@ class EvalWorker:
 
 
 def _check_same_settings(out: Path, cfg: EvalConfig) -> None:
-    """Records of one directory must come from one configuration (the first-chunk variant may differ)."""
+    """Records of one directory must come from one configuration. The first-chunk variant may differ
+    (Table 2), the device does not matter, and a world model not given before may be added later."""
     from wamplan.errors import UserError
 
     path = out / "eval_config.json"
-    now = {k: v for k, v in to_dict(cfg).items() if k != "first_chunk"}
+    now = {k: v for k, v in to_dict(cfg).items() if k not in ("first_chunk", "device")}
     if path.is_file():
-        before = {k: v for k, v in json.loads(path.read_text()).items() if k != "first_chunk"}
-        diff = {k: (before.get(k), now.get(k)) for k in set(before) | set(now) if before.get(k) != now.get(k)}
+        before = json.loads(path.read_text())
+        addable = ("wm_plain", "wm_augmented", "sim_encoder")
+        diff = {k: (before.get(k), now.get(k)) for k in set(before) | set(now)
+                if before.get(k) != now.get(k) and not (k in addable and not (before.get(k) and now.get(k)))}
         if diff:
             raise UserError(f"{out} holds an evaluation with other settings {diff} (stored, requested); "
                             f"use another --out or the same settings")
-    else:
-        path.write_text(json.dumps(now, indent=1) + "\n")
+        now = {k: now.get(k) or before.get(k) for k in set(before) | set(now)}
+    path.write_text(json.dumps(now, indent=1, sort_keys=True) + "\n")
 
 
 def run_evaluation(cfg: EvalConfig, conditions: list[int], seeds: list[int], out_dir: str | Path,
