@@ -144,10 +144,13 @@ def test_kv_cached_rollout_equals_naive(context):
     b, s = 5, 4  # more steps than the window: the cache must slide
     z, q, a = _frames(cfg, b, context)
     a_future = _frames(cfg, b, s, seed=2)[2]  # (B, S, Delta*A)
-    cached = m.rollout(z, q, a[:, :-1], a_future)
+    cached = m.rollout(z, q, a[:, :-1], a_future)  # no grad: preallocated KV rings
+    with torch.enable_grad():
+        concat = m.rollout(z, q, a[:, :-1], a_future)  # with autograd (training): concatenated KV
     naive = m.rollout(z, q, a[:, :-1], a_future, naive=True)
-    for c, n in zip(cached, naive):
+    for c, g, n in zip(cached, concat, naive):
         assert c.shape == n.shape and torch.allclose(c, n, atol=1e-5), float((c - n).abs().max())
+        assert g.requires_grad and torch.allclose(g, n, atol=1e-5), float((g - n).abs().max())
     # the first step is the teacher-forced prediction from the ground-truth context
     zf, qf = m(z, q, torch.cat([a[:, :-1], a_future[:, :1]], dim=1))
     assert torch.allclose(cached[0][:, 0], zf[:, -1], atol=1e-5)

@@ -117,3 +117,19 @@ def load_training_state(path: str | Path, optimizer: torch.optim.Optimizer, sche
     if scheduler is not None and extra.get("scheduler") is not None:
         scheduler.load_state_dict(extra["scheduler"])
     return extra["train_state"]
+
+
+def export_for_inference(src: str | Path, dst: str | Path, dtype: torch.dtype = torch.float16) -> Path:
+    """Copy a checkpoint without its training state, floating-point weights cast to ``dtype`` (half the
+    size for the demo checkpoints that ship in git; loading casts back to the model's dtype)."""
+    src, final = Path(src), Path(dst)
+    if not (src / MODEL_FILE).is_file():
+        raise CheckpointError(f"{src} is not a checkpoint directory (no {MODEL_FILE})")
+    tmp = _atomic_dir(final)
+    weights = {k: (v.to(dtype) if v.is_floating_point() else v) for k, v in load_file(str(src / MODEL_FILE)).items()}
+    save_file(weights, str(tmp / MODEL_FILE))
+    meta = json.loads((src / CONFIG_FILE).read_text())
+    meta["exported"] = {"from": str(src), "dtype": str(dtype).removeprefix("torch."), **provenance()}
+    (tmp / CONFIG_FILE).write_text(json.dumps(meta, indent=2) + "\n")
+    _swap_in(tmp, final)
+    return final

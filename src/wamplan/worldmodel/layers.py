@@ -27,6 +27,32 @@ def apply_rope(x: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor) -> torch.T
     return x * cos + torch.cat([-x2, x1], dim=-1) * sin  # (B, h, L, e)
 
 
+class KVRing:
+    """One layer's keys/values for an inference rollout, preallocated for ``frames`` frames (H_ctx).
+
+    Each step writes the new frame's (k, v) into a slot, overwriting the frame that left the window, and
+    attends over the filled slots. Without a mask the key order does not matter (softmax over a set, RoPE
+    already applied), so nothing is shifted or concatenated. In-place writes: inference only (no autograd).
+    """
+
+    def __init__(self, frames: int, prefix: list[KV]) -> None:
+        self.frames, self.prefix = frames, prefix
+        self.k: torch.Tensor | None = None  # (B, h, frames M, e)
+        self.v: torch.Tensor | None = None
+
+    def write_and_read(self, k: torch.Tensor, v: torch.Tensor, slot: int, valid: int) -> KV:
+        """Store k, v (B, h, M, e) in ``slot``; return the keys/values of the first ``valid`` slots."""
+        b, h, m, e = k.shape
+        if self.k is None or self.v is None:  # first step: allocate, copy the (broadcast) prefix once
+            self.k, self.v = k.new_empty(b, h, self.frames * m, e), v.new_empty(b, h, self.frames * m, e)
+            for i, (pk, pv) in enumerate(self.prefix):
+                self.k[:, :, i * m:(i + 1) * m] = pk
+                self.v[:, :, i * m:(i + 1) * m] = pv
+        self.k[:, :, slot * m:(slot + 1) * m] = k
+        self.v[:, :, slot * m:(slot + 1) * m] = v
+        return self.k[:, :, :valid * m], self.v[:, :, :valid * m]  # (B, h, valid M, e) each
+
+
 class Attention(nn.Module):
     def __init__(self, dim: int, heads: int, head_dim: int, dropout: float = 0.0) -> None:
         super().__init__()
@@ -36,9 +62,11 @@ class Attention(nn.Module):
         self.drop = nn.Dropout(dropout)
 
     def forward(self, x: torch.Tensor, rope: tuple[torch.Tensor, torch.Tensor] | None = None,
-                mask: torch.Tensor | None = None, past: list[KV] | None = None) -> tuple[torch.Tensor, KV]:
+                mask: torch.Tensor | None = None, past: list[KV] | None = None,
+                ring: tuple[KVRing, int, int] | None = None) -> tuple[torch.Tensor, KV]:
         """x (B, L, d); rope cos/sin (L, e); mask (L, S) bool, True = may attend; past: cached (k, v)
-        of earlier frames, each (B or 1, h, M, e), prepended to this call's keys (expanded to B).
+        of earlier frames, each (B or 1, h, M, e), prepended to this call's keys (expanded to B);
+        or ring = (KVRing, slot, valid) instead of past (inference).
         Returns the output (B, L, d) and this call's own (k, v), each (B, h, L, e), for a cache."""
         b, n, _ = x.shape
         qkv = self.qkv(x).view(b, n, 3, self.heads, self.head_dim).permute(2, 0, 3, 1, 4)  # (3, B, h, L, e)
@@ -46,7 +74,9 @@ class Attention(nn.Module):
         if rope is not None:
             q, k = apply_rope(q, *rope), apply_rope(k, *rope)
         own = (k, v)
-        if past:
+        if ring is not None:
+            k, v = ring[0].write_and_read(k, v, ring[1], ring[2])  # (B, h, S, e)
+        elif past:
             k = torch.cat([pk.expand(b, -1, -1, -1) for pk, _ in past] + [k], dim=2)  # (B, h, S, e)
             v = torch.cat([pv.expand(b, -1, -1, -1) for _, pv in past] + [v], dim=2)  # (B, h, S, e)
         o = F.scaled_dot_product_attention(q, k, v, attn_mask=mask)  # (B, h, L, e)
@@ -65,8 +95,9 @@ class Block(nn.Module):
         self.mlp = nn.Sequential(nn.Linear(dim, mlp_dim), nn.GELU(), nn.Linear(mlp_dim, dim), nn.Dropout(dropout))
 
     def forward(self, x: torch.Tensor, rope: tuple[torch.Tensor, torch.Tensor] | None = None,
-                mask: torch.Tensor | None = None, past: list[KV] | None = None) -> tuple[torch.Tensor, KV]:
-        a, kv = self.attn(self.norm1(x), rope, mask, past)  # (B, L, d)
+                mask: torch.Tensor | None = None, past: list[KV] | None = None,
+                ring: tuple[KVRing, int, int] | None = None) -> tuple[torch.Tensor, KV]:
+        a, kv = self.attn(self.norm1(x), rope, mask, past, ring)  # (B, L, d)
         x = x + a
         return x + self.mlp(self.norm2(x)), kv  # (B, L, d)
 

@@ -40,7 +40,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from wamplan.worldmodel.config import PredictorConfig
-from wamplan.worldmodel.layers import KV, Block, init_weights, rope_angles
+from wamplan.worldmodel.layers import KV, Block, KVRing, init_weights, rope_angles
 
 
 def action_blocks(actions: torch.Tensor, frameskip: int) -> torch.Tensor:
@@ -115,12 +115,14 @@ class WorldModelPredictor(nn.Module):
         xa = F.linear(self.action_proj(a.to(dt)), w[:, i_a:], b)  # (Ba, T, d)
         return xz + (xq + xa)[:, :, None] + self.pos  # (B, T, M, d)
 
-    def _blocks(self, x: torch.Tensor, t0: int, past: list[list[KV]]) -> tuple[torch.Tensor, list[KV]]:
+    def _blocks(self, x: torch.Tensor, t0: int, past: list[list[KV]],
+                ring: tuple[list[KVRing], int, int] | None = None) -> tuple[torch.Tensor, list[KV]]:
         """Run frames t0 .. t0+T-1 (x (B, T, M, d)) attending to ``past`` frames t0-len(past) .. t0-1 and
         to each other, within the H_ctx window. Returns hidden (B, T, M, d) and per-layer (k, v) of
-        the new frames, each (B, heads, T*M, e)."""
+        the new frames, each (B, heads, T*M, e). ``ring`` = (per-layer KVRing, slot, valid frames)
+        replaces ``past`` for one-frame inference steps."""
         b, t, m, d = x.shape
-        n_past = len(past)
+        n_past = len(past) if ring is None else ring[2] - 1
         fq = torch.arange(t0, t0 + t, device=x.device)  # (T,) query frame indices
         mask = None  # one new frame with at most H_ctx-1 cached ones: every key is visible
         if t > 1 or n_past + t > self.cfg.context:
@@ -132,7 +134,10 @@ class WorldModelPredictor(nn.Module):
         h = x.reshape(b, t * m, d)  # (B, T M, d)
         kvs = []
         for layer, blk in enumerate(self.blocks):
-            h, kv = blk(h, rope, mask, [frame[layer] for frame in past])
+            if ring is not None:
+                h, kv = blk(h, rope, None, None, (ring[0][layer], ring[1], ring[2]))
+            else:
+                h, kv = blk(h, rope, mask, [frame[layer] for frame in past])
             kvs.append(kv)
         return h.view(b, t, m, d), kvs
 
@@ -188,17 +193,25 @@ class WorldModelPredictor(nn.Module):
         or B); a_future (B, S, Delta*A): a_future[:, 0] is executed from the current frame.
         Returns predicted frames 1..S after the current one: z (B, S, V, N, D), q (B, S, P)."""
         self._check(z_cur[:, None], q_cur[:, None], a_future[:, :1], frames=1)
-        keep = self.cfg.context - 1
+        h_ctx, keep = self.cfg.context, self.cfg.context - 1
         window, t = list(prefix.frames), prefix.start
+        # Without autograd, keys/values live in preallocated per-layer rings (no per-step concatenation).
+        rings = None
+        if keep > 0 and not torch.is_grad_enabled():
+            rings = [KVRing(h_ctx, [frame[layer] for frame in window]) for layer in range(len(self.blocks))]
         z_t, q_t = z_cur[:, None], q_cur[:, None]  # (Bc, 1, V, N, D), (Bc, 1, P)
         zs, qs = [], []
         for s in range(a_future.shape[1]):
             x = self._embed(z_t, q_t, a_future[:, s:s + 1])  # (B, 1, M, d)
-            h, kv = self._blocks(x, t, window)  # (B, 1, M, d); per layer (B, heads, M, e)
+            if rings is not None:
+                n = len(window) + s  # frames already in the rings' history
+                h, _ = self._blocks(x, t, [], (rings, n % h_ctx, min(n + 1, h_ctx)))  # (B, 1, M, d)
+            else:
+                h, kv = self._blocks(x, t, window)  # (B, 1, M, d); per layer (B, heads, M, e)
+                window = (window + [kv])[-keep:] if keep > 0 else []  # the last H_ctx-1 frames
             z_t, q_t = self._readout(h, z_t, q_t)  # (B, 1, V, N, D), (B, 1, P)
             zs.append(z_t)
             qs.append(q_t)
-            window = (window + [kv])[-keep:] if keep > 0 else []  # the last H_ctx-1 frames
             t += 1
         return torch.cat(zs, dim=1), torch.cat(qs, dim=1)  # (B, S, V, N, D), (B, S, P)
 
