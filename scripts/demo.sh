@@ -1,16 +1,28 @@
 #!/usr/bin/env bash
-# The main job on this machine, until the evaluation lands: check the renderer, show the task,
-# roll the scripted expert out, collect one episode and draw its contact sheet.
+# The main job on this machine: show the task, then evaluate the WAM open loop (condition 1) against the
+# WAM with world-model feedback planning (condition 7, or 6 when only the plain model ships) on a handful
+# of seeds with the small pretrained checkpoints in checkpoints/mini, and write the report.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${1:-out/demo}
+SEEDS=${DEMO_SEEDS:-8}
 W=.venv/bin/wamplan
+CK=checkpoints/mini
 mkdir -p "$OUT"
 $W env check
 $W env render --seed 0 --out "$OUT/views.png"
-$W env rollout --policy expert --episodes 5 --seed-start 0 --json "$OUT/expert_rollout.json" --video "$OUT/videos"
-rm -rf "$OUT/store"
-$W collect --source expert --episodes 1 --out "$OUT/store"
-$W data info "$OUT/store"
-$W data view "$OUT/store" --episode 0 --out "$OUT/expert_sheet.png"
-echo "demo outputs in $OUT: views.png, expert_rollout.json, videos/, expert_sheet.png"
+$W env rollout --policy expert --episodes 1 --seed-start 0 --json "$OUT/expert_rollout.json" --video "$OUT/videos"
+if [ -f "$CK/tinywam/model.safetensors" ]; then
+  args=(--wam "$CK/tinywam" --episodes "$SEEDS" --seed-start 0 --out "$OUT/eval" --workers 2)
+  if [ -f "$CK/wm_augmented/model.safetensors" ]; then
+    $W eval --conditions 1,7 "${args[@]}" --wm-augmented "$CK/wm_augmented"
+  elif [ -f "$CK/wm_plain/model.safetensors" ]; then
+    $W eval --conditions 1,6 "${args[@]}" --wm-plain "$CK/wm_plain"
+  else
+    $W eval --conditions 1 "${args[@]}"
+  fi
+  $W report "$OUT/eval"
+else
+  echo "no demo checkpoints in $CK: see README 'Demo checkpoints' for the command that makes them"
+fi
+echo "demo outputs in $OUT: views.png, expert_rollout.json, videos/, eval/report.md, eval/figure3.png"
