@@ -17,7 +17,11 @@ T = TypeVar("T")
 R = TypeVar("R")
 
 
-def _serve(make_worker: Callable[[], Callable[[T], R]], items: "mp.Queue", results: "mp.Queue", parent: int) -> None:
+def _serve(make_worker: Callable[[], Callable[[T], R]], items: "mp.Queue", results: "mp.Queue", parent: int,
+           threads: int) -> None:
+    import torch
+
+    torch.set_num_threads(threads)  # oversubscribed cores make torch's thread pools collapse (~50x slower)
     work = make_worker()
     while os.getppid() == parent:
         item = items.get()
@@ -42,7 +46,9 @@ def imap_workers(make_worker: Callable[[], Callable[[T], R]], items: list[T], wo
         item_q.put(it)
     for _ in range(n):
         item_q.put(None)
-    procs = [ctx.Process(target=_serve, args=(make_worker, item_q, res_q, os.getpid()), daemon=True) for _ in range(n)]
+    threads = max(1, (os.cpu_count() or 1) // n)
+    procs = [ctx.Process(target=_serve, args=(make_worker, item_q, res_q, os.getpid(), threads), daemon=True)
+             for _ in range(n)]
     for p in procs:
         p.start()
     try:

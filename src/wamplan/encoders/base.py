@@ -55,7 +55,8 @@ class FrozenEncoder(nn.Module):
         raise NotImplementedError
 
     def config_dict(self) -> dict[str, Any]:
-        """What rebuilds this encoder (stored as provenance next to features and checkpoints)."""
+        """``{"name": ..., **kwargs}`` such that ``make_encoder(**config_dict())`` rebuilds this encoder
+        (stored as provenance next to features and checkpoints)."""
         return {"name": self.name, "input_size": self.input_size}
 
     # -- shared --------------------------------------------------------------------------------------

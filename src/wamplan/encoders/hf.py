@@ -107,7 +107,13 @@ class HFViTEncoder(FrozenEncoder):
         return hidden[:, self.num_prefix_tokens:], hidden[:, 0]  # (B, N, D), CLS (B, D)
 
     def config_dict(self) -> dict[str, Any]:
-        return {"name": self.name, "input_size": self.input_size, "source": self.source}
+        """make_encoder kwargs that rebuild this encoder; ``path`` only when loaded from a local directory
+        (drop it to rely on the env var / HF cache on another machine)."""
+        out: dict[str, Any] = {"name": self.name, "input_size": self.input_size,
+                               "dtype": str(next(self.model.parameters()).dtype).removeprefix("torch.")}
+        if self.source is not None and Path(self.source).expanduser().is_dir():
+            out["path"] = self.source
+        return out
 
 
 def _make_factory(name: str):

@@ -9,11 +9,13 @@ and 256 head channels, decoder grad clip 1.0.
 
 ``mini``: the ``patch-pixels`` encoder (64 px, 16 px patches, fixed random projection to 128 dims:
 3 views x 16 tokens x 128), Delta 4 (divides the 16-step chunk: 4 rollout steps end exactly at t+16),
-a width-128 depth-4 predictor (0.86 M params) that predicts the change from the current frame, lr 1e-3
-(better than 3e-4 on the synthetic task at this size), batch 64, 5 epochs. Measured on the 2-core CPU
-while another job used ~1.2 cores: one CEM plan (32 candidates x 4 iterations x 4 steps, KV-cached)
-~0.65 s with 2 threads when the box was quieter, ~1.1 s with 1 thread under load; training ~50
-windows/s with 1 thread, i.e. ~6.5 min per epoch of 20k windows (``profile.py`` prints the figures).
+a width-128 depth-4 predictor with MLP 384 (0.73 M params) that predicts the change from the current
+frame, lr 1e-3 (better than 3e-4 on the synthetic task at this size), batch 64, 5 epochs.
+Measured on the 2-core CPU while two other jobs used ~1.1 cores (``python -m wamplan.worldmodel.profile
+--threads 1``): one CEM plan (32 candidates x 4 iterations x 4 steps, KV-cached) 0.94-1.11 s, naive
+re-running 4.4-4.7x slower (MLP 512 took 1.18 s, so it was trimmed; on the quieter box at the start of
+the session MLP 512 took ~0.65 s with 2 threads); training ~55 windows/s on 1 thread, i.e. ~6 min per
+epoch of 20k windows, ~30 min for the 5 epochs.
 When other processes share the 2 cores, use ``torch.set_num_threads(1)``: 2 threads then thrash
 (a training step measured 80x slower).
 """
@@ -58,7 +60,7 @@ MINI = WorldModelPreset(
     encoder_kwargs={"input_size": 64, "patch_size": 16, "proj_dim": 128, "seed": 0},
     predictor=PredictorConfig(encoder="patch-pixels", num_views=3, num_patches=16, enc_dim=128,
                               proprio_dim=10, action_dim=5, frameskip=4, context=3, depth=4, heads=4,
-                              head_dim=32, mlp_dim=512, proprio_emb=64, action_emb=64, predict_delta=True),
+                              head_dim=32, mlp_dim=384, proprio_emb=64, action_emb=64, predict_delta=True),
     train=TrainConfig(horizon=2, gamma=0.95, lr=1e-3, weight_decay=1e-3, batch_size=64, epochs=5,
                       warmup_epochs=0.5, grad_clip=1.0),
     decoder=DecoderConfig(num_patches=16, enc_dim=128, image_size=64, width=192, depth=4, heads=8,

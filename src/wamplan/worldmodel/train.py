@@ -29,6 +29,7 @@ from torch.utils.data import DataLoader, Dataset
 from wamplan.checkpoint import load_weights, read_config
 from wamplan.config import from_dict, to_dict
 from wamplan.device import resolve_device
+from wamplan.errors import UserError
 from wamplan.worldmodel.config import PredictorConfig, TrainConfig
 from wamplan.worldmodel.loop import checkpoint_path, fit
 from wamplan.worldmodel.predictor import WorldModelPredictor
@@ -157,4 +158,8 @@ def load_world_model(path: str | Path, device: str | torch.device = "cpu"):
     model = load_predictor(path, device)
     name = info.pop("name", model.cfg.encoder)
     enc = make_encoder(name, **info).to(next(model.parameters()).device)
+    if (enc.num_patches, enc.dim) != (model.cfg.num_patches, model.cfg.enc_dim):
+        raise UserError(f"{ckpt}: encoder {name} gives {enc.num_patches} x {enc.dim} tokens, the predictor "
+                        f"was trained on {model.cfg.num_patches} x {model.cfg.enc_dim}; "
+                        f"use the encoder it was trained with")
     return model, enc
