@@ -10,7 +10,7 @@ one, a CLS token ``(B, D)``). Encoders are frozen: always in eval mode, no param
 
 from __future__ import annotations
 
-from typing import Any, Callable, ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -18,6 +18,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from wamplan.errors import UserError
+from wamplan.registry import Registry
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -119,17 +120,8 @@ class FrozenEncoder(nn.Module):
         return torch.cat(parts) if parts else torch.empty(0, self.num_patches, self.dim)
 
 
-ENCODERS: dict[str, Callable[..., FrozenEncoder]] = {}
-
-
-def register_encoder(name: str) -> Callable[[Callable[..., FrozenEncoder]], Callable[..., FrozenEncoder]]:
-    """Register a FrozenEncoder subclass or a factory function under ``name``."""
-    def deco(obj: Callable[..., FrozenEncoder]) -> Callable[..., FrozenEncoder]:
-        if name in ENCODERS:
-            raise ValueError(f"encoder '{name}' is registered twice")
-        ENCODERS[name] = obj
-        return obj
-    return deco
+ENCODERS = Registry("encoder")
+register_encoder = ENCODERS.register  # a FrozenEncoder subclass or a factory function, by name
 
 
 def encoder_names() -> list[str]:

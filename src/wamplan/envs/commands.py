@@ -155,11 +155,9 @@ def cmd_rollout(args: argparse.Namespace) -> int:
     bar = tqdm(range(args.seed_start, args.seed_start + args.episodes), desc=f"rollout {args.policy}", unit="ep")
     for seed in bar:
         frames: list = []
-        hook = None
-        if args.video is not None:
-            def hook(_env, obs, _action, frames=frames):
-                frames.append(obs.images)
-        r = run_episode(env, policy, seed, images_at=(lambda t: True) if args.video else None, on_obs=hook)
+        record = args.video is not None
+        r = run_episode(env, policy, seed, images_at=(lambda t: True) if record else None,
+                        on_obs=(lambda _e, obs, _a: frames.append(obs.images)) if record else None)
         if args.video is not None:
             _write_video(args.video / f"{args.policy.replace('/', '_')}_seed{seed}.mp4", frames)
         records.append(r.summary())

@@ -25,7 +25,7 @@ import torch
 from torch import Tensor
 
 from wamplan.config import ConfigError, field, from_dict, require
-from wamplan.errors import UserError
+from wamplan.registry import Registry
 
 Objective = Callable[[Tensor], Tensor]  # candidates (B, H_opt, A) -> costs (B,)
 
@@ -213,28 +213,14 @@ def _score(objective: Objective, cand: Tensor) -> Tensor:
     return costs.to(device=cand.device, dtype=torch.float32)
 
 
-PLANNERS: dict[str, type[Planner]] = {}
-
-
-def register_planner(name: str) -> Callable[[type[Planner]], type[Planner]]:
-    """Class decorator: make a planner constructible by name (``make_planner``)."""
-
-    def deco(cls: type[Planner]) -> type[Planner]:
-        if name in PLANNERS:
-            raise ValueError(f"planner '{name}' is registered twice")
-        cls.name = name
-        PLANNERS[name] = cls
-        return cls
-
-    return deco
+PLANNERS = Registry("planner", set_name=True)
+register_planner = PLANNERS.register  # class decorator: make a planner constructible by name
 
 
 def make_planner(name: str, config: Any = None) -> Planner:
     """The planner ``name`` built from ``config``: its config dataclass, a dict of overrides, or None
     (the defaults)."""
-    if name not in PLANNERS:
-        raise UserError(f"unknown planner '{name}'; choose one of {sorted(PLANNERS)}")
-    cls = PLANNERS[name]
+    cls = PLANNERS.lookup(name)
     if isinstance(config, dict):
         config = from_dict(cls.config_cls, config)
     return cls(config)

@@ -22,22 +22,11 @@ import torch
 from torch import Tensor
 
 from wamplan.config import field, require
-from wamplan.errors import UserError
+from wamplan.registry import Registry
 
 CostFn = Callable[[Tensor, Tensor], Tensor]  # (pred (B, V, ...), target (V, ...)) -> (B,)
-COSTS: dict[str, Callable[..., Tensor]] = {}
-
-
-def register_cost(name: str) -> Callable:
-    """Decorator: register ``fn(pred, target, view_weights=None) -> (B,)`` under ``name``."""
-
-    def deco(fn: Callable[..., Tensor]) -> Callable[..., Tensor]:
-        if name in COSTS:
-            raise ValueError(f"cost '{name}' is registered twice")
-        COSTS[name] = fn
-        return fn
-
-    return deco
+COSTS = Registry("cost")
+register_cost = COSTS.register  # decorator: ``fn(pred, target, view_weights=None) -> (B,)`` by name
 
 
 def _check(pred: Tensor, target: Tensor, layout: str) -> None:
@@ -78,14 +67,13 @@ def cls_cost(pred: Tensor, target: Tensor, view_weights: Tensor | None = None) -
 
 def make_cost(name: str = "patch", view_weights: Sequence[float] | None = None) -> CostFn:
     """The cost ``name`` as ``fn(pred, target) -> (B,)``, with optional per-view weights (V,)."""
-    if name not in COSTS:
-        raise UserError(f"unknown cost '{name}'; choose one of {sorted(COSTS)}")
+    fn = COSTS.lookup(name)
     if not view_weights:
-        return COSTS[name]
+        return fn
     require(all(w >= 0 for w in view_weights) and sum(view_weights) > 0,
             f"view_weights must be >= 0 with a positive sum, got {tuple(view_weights)}")
     weights = torch.tensor(tuple(view_weights), dtype=torch.float32)  # (V,), moved per call
-    return functools.partial(COSTS[name], view_weights=weights)
+    return functools.partial(fn, view_weights=weights)
 
 
 @dataclass(frozen=True)

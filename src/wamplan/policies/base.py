@@ -11,9 +11,11 @@ from __future__ import annotations
 
 import abc
 from dataclasses import dataclass, field
-from typing import Any, Callable, ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
+
+from wamplan.registry import Registry
 
 CAMERAS = ("front", "side", "wrist")
 ACTION_DIM = 5
@@ -55,25 +57,9 @@ class Policy(abc.ABC):
         return {"name": self.name}
 
 
-POLICIES: dict[str, Callable[..., Policy]] = {}
-
-
-def register_policy(name: str) -> Callable[[type[Policy]], type[Policy]]:
-    """Class decorator: make a policy constructible by name (``make_policy``)."""
-
-    def deco(cls: type[Policy]) -> type[Policy]:
-        if name in POLICIES:
-            raise ValueError(f"policy '{name}' is registered twice")
-        cls.name = name
-        POLICIES[name] = cls
-        return cls
-
-    return deco
+POLICIES = Registry("policy", set_name=True)
+register_policy = POLICIES.register  # class decorator: make a policy constructible by name
 
 
 def make_policy(name: str, **kwargs: Any) -> Policy:
-    from wamplan.errors import UserError
-
-    if name not in POLICIES:
-        raise UserError(f"unknown policy '{name}'; choose one of {sorted(POLICIES)}")
-    return POLICIES[name](**kwargs)
+    return POLICIES.lookup(name)(**kwargs)

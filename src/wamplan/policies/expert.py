@@ -91,7 +91,6 @@ class ExpertPolicy(Policy):
         self.phase_steps += 1
         grip = 1.0
         yaw_act = 0.0
-        tcp_yaw = quat_yaw(tq)
         cube_yaw_err = wrap_quarter(quat_yaw(cq))  # cube yaw relative to the hole (yaw 0), mod 90°
         if self.phase in ("approach", "descend"):
             # Finger yaw must match the cube's (mod 90°); the TCP frame is flipped (z down), so yaw signs differ.

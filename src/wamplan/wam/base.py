@@ -27,6 +27,7 @@ import numpy as np
 
 from wamplan.errors import UserError
 from wamplan.policies.base import ACTION_DIM, CAMERAS, Observation, Policy
+from wamplan.registry import Registry
 
 # Modules that register WAMs or checkpoint loaders; imported on demand by make_wam / load_wam.
 # Whoever adds a WAM module (TinyWAM, the expert oracle) adds it here.
@@ -130,33 +131,11 @@ class WAM(abc.ABC):
         return {"name": self.name}
 
 
-WAMS: dict[str, Callable[..., WAM]] = {}
-WAM_LOADERS: dict[str, Callable[[Path], WAM]] = {}
-
-
-def register_wam(name: str) -> Callable[[type[WAM]], type[WAM]]:
-    """Class decorator: make a WAM constructible by name (``make_wam``)."""
-
-    def deco(cls: type[WAM]) -> type[WAM]:
-        if name in WAMS:
-            raise ValueError(f"WAM '{name}' is registered twice")
-        cls.name = name
-        WAMS[name] = cls
-        return cls
-
-    return deco
-
-
-def register_wam_loader(kind: str) -> Callable[[Callable[[Path], WAM]], Callable[[Path], WAM]]:
-    """Decorator: ``fn(path) -> WAM`` loads checkpoints whose ``config.json`` has ``"kind": kind``."""
-
-    def deco(fn: Callable[[Path], WAM]) -> Callable[[Path], WAM]:
-        if kind in WAM_LOADERS:
-            raise ValueError(f"WAM checkpoint kind '{kind}' is registered twice")
-        WAM_LOADERS[kind] = fn
-        return fn
-
-    return deco
+WAMS = Registry("WAM", set_name=True)
+register_wam = WAMS.register  # class decorator: make a WAM constructible by name (``make_wam``)
+WAM_LOADERS = Registry("WAM checkpoint kind")
+# decorator: ``fn(path) -> WAM`` loads checkpoints whose ``config.json`` has ``"kind": kind``
+register_wam_loader = WAM_LOADERS.register
 
 
 def _import_builtin_wams() -> None:
