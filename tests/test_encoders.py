@@ -11,6 +11,15 @@ from wamplan.encoders import (DINOV3_ENV, FrozenEncoder, PatchPixelEncoder, enco
 from wamplan.errors import UserError
 
 
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    """Tiny tensors run faster on one thread (and a busy 2-core box thrashes with two)."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 def _images(b: int = 2, size: int = 64, seed: int = 0) -> torch.Tensor:
     g = torch.Generator().manual_seed(seed)
     return torch.randint(0, 256, (b, size, size, 3), dtype=torch.uint8, generator=g)  # (B, H, W, 3)
@@ -28,6 +37,7 @@ def test_registry_lists_entries_and_rejects_unknown_names():
 
 def test_patch_pixels_shapes_and_frozen():
     enc = make_encoder("patch-pixels", input_size=64, patch_size=16, proj_dim=128)
+    assert make_encoder(**enc.config_dict()).config_dict() == enc.config_dict()
     assert (enc.num_patches, enc.dim, enc.input_size) == (16, 128, 64)
     z = enc.encode(_images(3, 100))  # resized from 100 px
     assert z.shape == (3, 16, 128) and z.dtype == torch.float32
@@ -111,7 +121,9 @@ def test_hf_encoder_loads_from_a_local_dir_and_slices_patch_tokens(tmp_path, nam
     assert hidden.shape[1] == n_prefix + grid * grid
     assert torch.allclose(z, hidden[:, -grid * grid:], atol=1e-5)
     assert torch.allclose(cls, hidden[:, 0], atol=1e-5)
-    assert enc.config_dict()["source"] == str(tmp_path)
+    cfg = enc.config_dict()
+    assert cfg == {"name": name, "input_size": size, "dtype": "float32", "path": str(tmp_path)}
+    assert torch.equal(make_encoder(**cfg).encode(imgs), z)  # the config rebuilds the encoder
 
 
 def test_dinov3_from_env_var_and_from_config(tmp_path, monkeypatch):

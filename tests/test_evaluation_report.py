@@ -8,7 +8,7 @@ from wamplan.cli import main
 from wamplan.errors import UserError
 from wamplan.evaluation.conditions import CONDITIONS, parse_conditions
 from wamplan.evaluation.records import RECORDS, append_record, read_records
-from wamplan.evaluation.report import table1, wilson, write_report
+from wamplan.evaluation.report import table1, wilson
 
 
 def test_conditions_match_the_paper():

@@ -206,8 +206,19 @@ def _windows(n: int = 14) -> SyntheticWindows:
 
 
 def test_checkpoint_round_trip_gives_identical_outputs(tmp_path):
-    model, _ = train_predictor(_windows(), TINY, TRAIN, tmp_path, device="cpu", max_steps=2, progress=False)
+    from wamplan.encoders import make_encoder
+    from wamplan.worldmodel.train import load_world_model
+    enc = make_encoder("patch-pixels", input_size=32, patch_size=16, proj_dim=8)  # 4 tokens x 8, as TINY
+    model, _ = train_predictor(_windows(), TINY, TRAIN, tmp_path, device="cpu", max_steps=2, progress=False,
+                               encoder_info=enc.config_dict())
     fresh = load_predictor(tmp_path / CKPT_DIR)
+    wm, enc2 = load_world_model(tmp_path)
+    assert enc2.config_dict() == enc.config_dict() and torch.equal(wm.z_std, model.z_std)
+    bad = make_encoder("patch-pixels", input_size=32, patch_size=16, proj_dim=16)
+    train_predictor(_windows(), TINY, TRAIN, tmp_path / "bad", device="cpu", max_steps=1, progress=False,
+                    encoder_info=bad.config_dict())
+    with pytest.raises(UserError, match="use the encoder it was trained with"):
+        load_world_model(tmp_path / "bad")
     assert torch.equal(fresh.z_mean, model.z_mean) and not torch.equal(fresh.z_mean, torch.zeros_like(fresh.z_mean))
     z, q, a = _frames(TINY, 2, 3)
     with torch.no_grad():
