@@ -24,6 +24,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                        help="uvicorn log level (default: info)")
     serve.set_defaults(func=_serve)
 
+    viz = sub.add_parser("viz", help="a WAM's predicted t+H views beside the real ones, on a stored episode")
+    viz.add_argument("--ckpt", required=True, help="WAM checkpoint directory")
+    viz.add_argument("--data", required=True, help="episode store")
+    viz.add_argument("--episode", type=int, default=0, help="index in the store's sorted episode list")
+    viz.add_argument("--starts", type=int, nargs="+", default=[16, 48, 80], help="chunk start steps (rows)")
+    viz.add_argument("--out", type=Path, default=Path("wam_pred.png"))
+    viz.set_defaults(func=_viz)
+
     from wamplan.config import add_arguments
     from wamplan.wam.tinywam import TinyWAMConfig
     from wamplan.wam.train import WAMTrainConfig
@@ -84,4 +92,16 @@ def _train(args: argparse.Namespace) -> int:
     if not result.finished_before:
         print(f"checkpoint: {args.out} (epoch {result.state['epoch']}, step {result.state['global_step']}); "
               f"load it with wamplan.wam.load_wam or `wamplan env rollout --policy {args.out}`")
+    return 0
+
+
+def _viz(args: argparse.Namespace) -> int:
+    import json
+
+    from wamplan.wam import load_wam
+    from wamplan.wam.viz import prediction_figure
+
+    errs = prediction_figure(load_wam(args.ckpt), args.data, args.episode, tuple(args.starts), args.out)
+    print(json.dumps(errs))
+    print(f"wrote {args.out}")
     return 0
