@@ -18,7 +18,6 @@ scheduler and counters are restored. Per-epoch validation metrics are kept in th
 from __future__ import annotations
 
 import json
-import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,6 +33,7 @@ from wamplan.checkpoint import (CONFIG_FILE, STATE_DIR, CheckpointError, has_tra
 from wamplan.config import field, from_dict, require, to_dict
 from wamplan.device import resolve_device
 from wamplan.errors import UserError
+from wamplan.optim import make_adamw, optimizer_step, warmup_cosine
 from wamplan.policies.base import CAMERAS
 from wamplan.wam.tinywam import KIND, TinyWAMConfig, TinyWAMNet, to_model_frames
 
@@ -193,22 +193,7 @@ def evaluate(net: TinyWAMNet, items: WAMItems, batch_size: int = 64) -> dict[str
 
 # ----------------------------------------------------------------------------------------------- optimisation
 def make_optimizer(net: nn.Module, cfg: WAMTrainConfig) -> torch.optim.AdamW:
-    """AdamW; weight decay on >= 2-D parameters only (not biases, norms, embeddings' scale)."""
-    params = [p for p in net.parameters() if p.requires_grad]
-    groups = [{"params": [p for p in params if p.ndim >= 2], "weight_decay": cfg.weight_decay},
-              {"params": [p for p in params if p.ndim < 2], "weight_decay": 0.0}]
-    return torch.optim.AdamW(groups, lr=cfg.lr)
-
-
-def warmup_cosine(opt: torch.optim.Optimizer, warmup_steps: int, total_steps: int,
-                  min_ratio: float) -> torch.optim.lr_scheduler.LambdaLR:
-    """lr factor: linear up to 1 over ``warmup_steps``, then cosine down to ``min_ratio`` at ``total_steps``."""
-    def factor(step: int) -> float:
-        if step < warmup_steps:
-            return (step + 1) / warmup_steps
-        progress = min(1.0, (step - warmup_steps) / max(1, total_steps - warmup_steps))
-        return min_ratio + (1.0 - min_ratio) * 0.5 * (1.0 + math.cos(math.pi * progress))
-    return torch.optim.lr_scheduler.LambdaLR(opt, factor)
+    return make_adamw(net, cfg.lr, cfg.weight_decay)
 
 
 def _mismatch(saved: dict[str, Any], now: dict[str, Any], skip: Sequence[str] = ()) -> list[str]:
@@ -334,12 +319,7 @@ def train_tinywam(stores: Sequence[str | Path], out: str | Path, model_cfg: Tiny
                 aug = torch.Generator().manual_seed(train_cfg.seed * 7_919 + state["global_step"] + 1)
                 batch = make_batch(train_items, order[step * bs:(step + 1) * bs], device, train_cfg.shift_pixels, aug)
                 loss, logs = wam_loss(net, batch, train_cfg)
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                if train_cfg.grad_clip > 0:
-                    nn.utils.clip_grad_norm_(net.parameters(), train_cfg.grad_clip)
-                opt.step()
-                sched.step()
+                optimizer_step(net, opt, sched, loss, train_cfg.grad_clip)
                 state["global_step"] += 1
                 state["step_in_epoch"] += 1
                 count, seen = count + 1, seen + bs

@@ -14,7 +14,6 @@ uninterrupted one only in its dropout masks.)
 from __future__ import annotations
 
 import json
-import math
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -26,6 +25,7 @@ from tqdm.auto import tqdm
 
 from wamplan.checkpoint import has_training_state, load_training_state, load_weights, read_config, save_checkpoint
 from wamplan.errors import UserError
+from wamplan.optim import make_adamw, optimizer_step, warmup_cosine
 from wamplan.worldmodel.config import TrainConfig
 
 CKPT_DIR = "checkpoint"
@@ -34,24 +34,8 @@ METRICS_FILE = "metrics.jsonl"
 RUN_ONLY_FIELDS = ("num_workers", "save_every_steps")
 
 
-def warmup_cosine(optimizer: torch.optim.Optimizer, warmup_steps: int, total_steps: int,
-                  min_ratio: float = 0.0) -> torch.optim.lr_scheduler.LambdaLR:
-    """lr factor: linear from 1/warmup to 1 over ``warmup_steps``, then cosine down to ``min_ratio``."""
-    def factor(step: int) -> float:
-        if step < warmup_steps:
-            return (step + 1) / warmup_steps
-        progress = min(1.0, (step - warmup_steps) / max(1, total_steps - warmup_steps))
-        return min_ratio + (1.0 - min_ratio) * 0.5 * (1.0 + math.cos(math.pi * progress))
-    return torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
-
-
 def make_optimizer(model: nn.Module, cfg: TrainConfig) -> torch.optim.AdamW:
-    """AdamW with weight decay on >= 2-D parameters only (not biases, norms, embeddings of size 1)."""
-    params = [p for p in model.parameters() if p.requires_grad]
-    decay = [p for p in params if p.ndim >= 2]
-    no_decay = [p for p in params if p.ndim < 2]
-    groups = [{"params": decay, "weight_decay": cfg.weight_decay}, {"params": no_decay, "weight_decay": 0.0}]
-    return torch.optim.AdamW(groups, lr=cfg.lr, betas=tuple(cfg.betas))
+    return make_adamw(model, cfg.lr, cfg.weight_decay, cfg.betas)
 
 
 def _to_device(batch: Any, device: torch.device) -> Any:
@@ -140,12 +124,7 @@ def fit(model: nn.Module, train_set: Dataset, cfg: TrainConfig, *, kind: str, co
             for batch in loader:
                 batch = _to_device(batch, device)
                 loss, logs = loss_fn(model, batch)
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                if cfg.grad_clip > 0:
-                    nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
-                opt.step()
-                sched.step()
+                optimizer_step(model, opt, sched, loss, cfg.grad_clip)
                 state["global_step"] += 1
                 state["step_in_epoch"] += 1
                 loss_sum, loss_n, seen = loss_sum + float(loss.detach()), loss_n + 1, seen + bs
