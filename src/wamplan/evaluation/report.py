@@ -103,7 +103,7 @@ def figure3(rows: list[dict[str, Any]], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(1.3 * len(rows) + 2.5, 4))
+    fig, ax = plt.subplots(figsize=(max(6.0, 1.3 * len(rows) + 3.0), 4))
     x = np.arange(len(rows))
     bottom = np.zeros(len(rows))
     for o in OUTCOMES:
