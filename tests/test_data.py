@@ -169,11 +169,11 @@ def test_kill9_then_resume(tmp_path):
            "--workers", "2", "--out", str(out), *SMALL]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     deadline = time.time() + 240
-    while time.time() < deadline and len(list((out / "episodes").glob("*.h5"))) < 2:
+    while time.time() < deadline and len(list((out / "episodes").glob("[!.]*.h5"))) < 2:
         time.sleep(0.2)
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
-    before = {p.name: p.read_bytes() for p in (out / "episodes").glob("*.h5")}
+    before = {p.name: p.read_bytes() for p in (out / "episodes").glob("[!.]*.h5")}
     assert 2 <= len(before) < 6, "the kill should land mid-collection"
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr

@@ -51,7 +51,7 @@ def encode_store(root: str | Path, encoder, batch_size: int = 64) -> Iterator[st
         with store.open_episode(path) as f:
             views = [encode_frames(encoder, f["images"][c][:], batch_size) for c in CAMERAS]  # V x (K, N, D)
         z = np.stack(views, axis=1)  # (K, V, N, D)
-        tmp = out_dir / f".tmp-{path.stem}-{os.getpid()}.h5"
+        tmp = out_dir / f".tmp-{path.stem}-{os.getpid()}.part"  # not *.h5 until complete
         with h5py.File(tmp, "w") as g:
             g.create_dataset("z", data=z, chunks=(1, *z.shape[1:]))
             g.attrs["encoder"] = cfg

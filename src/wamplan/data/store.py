@@ -141,7 +141,7 @@ class EpisodeStore:
         return self.root / EPISODES / f"{source_tag(source)}-s{int(seed):07d}.h5"
 
     def episode_paths(self) -> list[Path]:
-        return sorted((self.root / EPISODES).glob("*.h5"))
+        return sorted(p for p in (self.root / EPISODES).glob("*.h5") if not p.name.startswith("."))
 
     def finished_seeds(self, source: str) -> set[int]:
         prefix = source_tag(source) + "-s"
@@ -162,7 +162,7 @@ class EpisodeStore:
         final = self.episode_path(ep.source, ep.seed)
         if final.exists():
             raise StoreError(f"{final} exists already; a store never overwrites an episode")
-        tmp = final.with_name(f".tmp-{final.stem}-{os.getpid()}.h5")
+        tmp = final.with_name(f".tmp-{final.stem}-{os.getpid()}.part")  # not *.h5 until complete
         with h5py.File(tmp, "w") as f:
             f.attrs.update(seed=ep.seed, source=ep.source, success=bool(ep.success), outcome=ep.outcome, length=ep.length,
                            policy=json.dumps(ep.policy), provenance=json.dumps(ep.provenance),
