@@ -132,7 +132,9 @@ class EvalWorker:
             timing = {"wam_s": float(np.mean(wam_s)) if isinstance(wam_s, list) else float(wam_s)}
         return dict(condition=cid, seed=seed, variant=self.cfg.first_chunk, success=r.success, outcome=r.outcome,
                     length=r.length, reached=r.reached, wall_time_s=round(r.wall_time, 2),
-                    planned_chunks=len(planned), chunk_timing_s=timing, finished=time.time())
+                    planned_chunks=len(planned), chunk_timing_s=timing,
+                    chunks=[{k: (round(v, 4) if isinstance(v, float) else v) for k, v in ch.items()} for ch in planned],
+                    finished=time.time())
 
 
 def _check_same_settings(out: Path, cfg: EvalConfig) -> None:
