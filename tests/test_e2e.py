@@ -46,3 +46,28 @@ def test_wm_eval_reports_copy_baseline(run, tmp_path):
                  "--horizon", "2", "--json", str(out)]) == 0
     m = json.loads(out.read_text())
     assert m["windows"] > 0 and {"z_mse_h1", "z_mse_h2", "copy_z_mse_h1", "copy_z_mse_h2"} <= set(m)
+
+
+def test_eval_kill9_then_resume_loses_and_repeats_nothing(run):
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = run / "eval_kill"
+    cmd = [sys.executable, "-m", "wamplan.cli", "eval", "--conditions", "1", "--episodes", "5", "--out", str(out),
+           "--wam", str(run / "wam"), "--camera-size", "64", "--max-steps", "40", "--workers", "2"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    deadline = time.time() + 240
+    while time.time() < deadline and len(read_records(out)) < 1:
+        time.sleep(0.2)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    before = read_records(out)
+    assert 1 <= len(before) < 5, "the kill should land mid-evaluation"
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    after = read_records(out)
+    assert sorted(x["seed"] for x in after) == [0, 1, 2, 3, 4]  # nothing lost, nothing repeated
+    assert after[:len(before)] == before  # finished records untouched
