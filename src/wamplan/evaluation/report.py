@@ -15,8 +15,10 @@ from wamplan.evaluation.conditions import CONDITIONS
 from wamplan.evaluation.records import read_records
 
 # Figure 3's colours: success, then the furthest stage reached by failures
-OUTCOME_COLORS = {"success": "#2e7d32", "descended_not_seated": "#9ccc65", "aligned_not_descended": "#c5e1a5",
-                  "lifted_not_aligned": "#ffb74d", "never_lifted": "#e53935"}
+# Failures run red -> orange -> yellow -> light blue as they get closer to success, so no failure shade
+# can be mistaken for the success green.
+OUTCOME_COLORS = {"success": "#2e7d32", "descended_not_seated": "#90caf9", "aligned_not_descended": "#fdd835",
+                  "lifted_not_aligned": "#fb8c00", "never_lifted": "#d32f2f"}
 
 
 def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
