@@ -34,6 +34,9 @@ def test_eval_conditions_1_and_6_then_resume_and_report(run, capsys):
     capsys.readouterr()
     assert main(args) == 0  # resume: nothing left to do
     assert "already recorded" in capsys.readouterr().out and len(read_records(run / "eval")) == 2
+    (run / "wam_link").symlink_to(run / "wam")  # the same checkpoint spelled another way is the same setting
+    alias = [str(run / "wam_link") if a == str(run / "wam") else a for a in args]
+    assert main(alias) == 0 and len(read_records(run / "eval")) == 2
     assert main(["report", str(run / "eval")]) == 0
     assert (run / "eval" / "figure3.png").is_file()
     other = [*args[:-6], "--num-candidates", "8", "--num-elites", "2", "--iterations", "1"]

@@ -27,6 +27,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--wam", default=None, help="use this WAM checkpoint instead of training TinyWAM")
     p.add_argument("--workers", type=int, default=1)
+    p.add_argument("--sim-episodes", type=int, default=None,
+                   help="episodes for the simulator conditions 2-5 (default: the preset's; 0 skips them)")
     p.set_defaults(func=cmd_reproduce)
 
     p = sub.add_parser("report", help="Table 1, Figure 3 (and Table 2, timings) from an evaluation directory")
@@ -78,5 +80,5 @@ def cmd_report(args: argparse.Namespace) -> int:
 def cmd_reproduce(args: argparse.Namespace) -> int:
     from wamplan.evaluation.reproduce import reproduce
 
-    reproduce(args.preset, args.out, wam=args.wam, workers=args.workers)
+    reproduce(args.preset, args.out, wam=args.wam, workers=args.workers, sim_episodes=args.sim_episodes)
     return 0

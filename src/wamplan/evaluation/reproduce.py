@@ -27,21 +27,26 @@ class ReproducePreset:
     image_every: int
     wam_epochs: int
     wm_preset: str
+    wm_epochs: int  # world-model training epochs (the decoder keeps its preset's)
     eval_episodes: int
     sim_eval_episodes: int  # the simulator conditions (2-5) are costly on a CPU
 
 
 PRESETS = {
     # paper §4: 100 expert, 500 noisy, 500 pink-noise (42k frames: ~84 steps each), 500 on-policy; 50 episodes
-    "paper": ReproducePreset("paper", 100, 500, 500, 500, 84, 1, 30, "paper", 50, 50),
-    # this 2-core CPU machine: smaller datasets, the mini world model
-    "mini": ReproducePreset("mini", 100, 150, 150, 150, 100, 4, 12, "mini", 50, 10),
+    "paper": ReproducePreset("paper", 100, 500, 500, 500, 84, 1, 30, "paper", 24, 50, 50),
+    # this 2-core CPU machine: smaller datasets, the mini world model; the sizes the demo checkpoints were
+    # made with (README "Demo checkpoints"): about 3 h of collection and training on 2 cores
+    "mini": ReproducePreset("mini", 100, 150, 150, 100, 100, 4, 12, "mini", 4, 50, 10),
 }
 SEED_BASE = {"expert": 1000, "noisy": 2000, "pink": 3000, "on_policy": 4000}  # evaluation uses seeds 0..49
 
 
-def stages(p: ReproducePreset, out: Path, wam: str | None, workers: int) -> list[tuple[str, list[list[str]]]]:
+def stages(p: ReproducePreset, out: Path, wam: str | None, workers: int,
+           sim_episodes: int | None = None) -> list[tuple[str, list[list[str]]]]:
+    """The CLI commands of every stage; ``sim_episodes`` overrides the preset's count for conditions 2-5."""
     d = out / "data"
+    sim_episodes = p.sim_eval_episodes if sim_episodes is None else sim_episodes
     w = ["--workers", str(workers)]
     ie = ["--image-every", str(p.image_every)]
     wam_ckpt = wam or str(out / "runs" / "tinywam")
@@ -50,8 +55,8 @@ def stages(p: ReproducePreset, out: Path, wam: str | None, workers: int) -> list
     evals = [["eval", "--conditions", "1,6,7", "--episodes", str(p.eval_episodes), "--out", str(out / "eval"),
               "--wam", wam_ckpt, "--wm-plain", str(out / "runs" / "wm_plain"),
               "--wm-augmented", str(out / "runs" / "wm_augmented"), *w]]
-    if p.sim_eval_episodes:
-        evals.append([*evals[0][:2], "2,3,4,5", "--episodes", str(p.sim_eval_episodes), *evals[0][5:]])
+    if sim_episodes:
+        evals.append([*evals[0][:2], "2,3,4,5", "--episodes", str(sim_episodes), *evals[0][5:]])
     out_stages = [
         ("collect expert", [["collect", "--source", "expert", "--episodes", str(p.expert), "--seed-start",
                              str(SEED_BASE["expert"]), "--out", str(d / "expert"), *ie, *w]]),
@@ -68,9 +73,9 @@ def stages(p: ReproducePreset, out: Path, wam: str | None, workers: int) -> list
         ("collect on-policy", [["collect", "--source", "policy", "--policy", wam_ckpt, "--episodes", str(p.on_policy),
                                 "--seed-start", str(SEED_BASE["on_policy"]), "--out", str(d / "on_policy"), *ie, *w]]),
         ("train plain world model", [["wm", "train", "--data", plain, "--out", str(out / "runs" / "wm_plain"),
-                                      "--preset", p.wm_preset]]),
+                                      "--preset", p.wm_preset, "--epochs", str(p.wm_epochs)]]),
         ("train augmented world model", [["wm", "train", "--data", aug, "--out", str(out / "runs" / "wm_augmented"),
-                                          "--preset", p.wm_preset]]),
+                                          "--preset", p.wm_preset, "--epochs", str(p.wm_epochs)]]),
         ("train decoder", [["wm", "train-decoder", "--data", aug, "--out", str(out / "runs" / "decoder"),
                             "--preset", p.wm_preset]]),
         ("evaluate", evals),
@@ -79,7 +84,7 @@ def stages(p: ReproducePreset, out: Path, wam: str | None, workers: int) -> list
     return out_stages
 
 
-def reproduce(preset: str, out: Path, wam: str | None = None, workers: int = 1,
+def reproduce(preset: str, out: Path, wam: str | None = None, workers: int = 1, sim_episodes: int | None = None,
               run: Callable[[list[str]], int] | None = None) -> dict[str, float]:
     """Run every stage in order; returns seconds per stage (also written to ``out/stage_times.json``)."""
     from wamplan.cli import main
@@ -89,7 +94,7 @@ def reproduce(preset: str, out: Path, wam: str | None = None, workers: int = 1,
     run = run or main
     out.mkdir(parents=True, exist_ok=True)
     times: dict[str, float] = {}
-    for name, commands in stages(PRESETS[preset], out, wam, workers):
+    for name, commands in stages(PRESETS[preset], out, wam, workers, sim_episodes):
         t0 = time.perf_counter()
         print(f"== {name}", flush=True)
         for argv in commands:

@@ -8,6 +8,7 @@ the jobs already recorded, so an interrupted evaluation resumes without repeatin
 from __future__ import annotations
 
 import json
+import os
 import time
 from dataclasses import dataclass
 from functools import partial
@@ -137,6 +138,14 @@ class EvalWorker:
                     finished=time.time())
 
 
+def _same(a: Any, b: Any) -> bool:
+    """Equal settings; two spellings of one checkpoint path (relative, absolute, through a link) count as one."""
+    if a == b:
+        return True
+    return isinstance(a, str) and isinstance(b, str) and bool(a and b) and Path(a).exists() and \
+        os.path.realpath(a) == os.path.realpath(b)
+
+
 def _check_same_settings(out: Path, cfg: EvalConfig) -> None:
     """Records of one directory must come from one configuration. The first-chunk variant may differ
     (Table 2), the device does not matter, and a world model not given before may be added later."""
@@ -148,11 +157,11 @@ def _check_same_settings(out: Path, cfg: EvalConfig) -> None:
         before = json.loads(path.read_text())
         addable = ("wm_plain", "wm_augmented", "sim_encoder")
         diff = {k: (before.get(k), now.get(k)) for k in set(before) | set(now)
-                if before.get(k) != now.get(k) and not (k in addable and not (before.get(k) and now.get(k)))}
+                if not _same(before.get(k), now.get(k)) and not (k in addable and not (before.get(k) and now.get(k)))}
         if diff:
             raise UserError(f"{out} holds an evaluation with other settings {diff} (stored, requested); "
                             f"use another --out or the same settings")
-        now = {k: now.get(k) or before.get(k) for k in set(before) | set(now)}
+        now = {k: before.get(k) or now.get(k) for k in set(before) | set(now)}
     path.write_text(json.dumps(now, indent=1, sort_keys=True) + "\n")
 
 
@@ -162,7 +171,9 @@ def run_evaluation(cfg: EvalConfig, conditions: list[int], seeds: list[int], out
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     done = {record_key(r) for r in read_records(out, repair=True)}
-    jobs = [(c, s) for c in conditions for s in seeds if (c, s, cfg.first_chunk) not in done]
+    # Seed-major order: a run stopped early (or fanned out and cut short) has every condition on the same
+    # seeds, so its partial table still compares like with like.
+    jobs = [(c, s) for s in seeds for c in conditions if (c, s, cfg.first_chunk) not in done]
     _check_same_settings(out, cfg)
     for rec in imap_workers(partial(EvalWorker, cfg), jobs, workers):
         append_record(out, rec)
