@@ -28,16 +28,17 @@ class ReproducePreset:
     wam_epochs: int
     wm_preset: str
     wm_epochs: int  # world-model training epochs (the decoder keeps its preset's)
+    decoder_sources: tuple[str, ...]  # the stores the picture decoder learns from (never used for planning)
     eval_episodes: int
     sim_eval_episodes: int  # the simulator conditions (2-5) are costly on a CPU
 
 
 PRESETS = {
     # paper §4: 100 expert, 500 noisy, 500 pink-noise (42k frames: ~84 steps each), 500 on-policy; 50 episodes
-    "paper": ReproducePreset("paper", 100, 500, 500, 500, 84, 1, 30, "paper", 24, 50, 50),
+    "paper": ReproducePreset("paper", 100, 500, 500, 500, 84, 1, 30, "paper", 24, ("expert", "noisy", "pink", "on_policy"), 50, 50),
     # this 2-core CPU machine: smaller datasets, the mini world model; the sizes the demo checkpoints were
     # made with (README "Demo checkpoints"): about 3 h of collection and training on 2 cores
-    "mini": ReproducePreset("mini", 100, 150, 150, 100, 100, 4, 12, "mini", 4, 50, 10),
+    "mini": ReproducePreset("mini", 100, 150, 150, 100, 100, 4, 12, "mini", 4, ("expert",), 50, 10),
 }
 SEED_BASE = {"expert": 1000, "noisy": 2000, "pink": 3000, "on_policy": 4000}  # evaluation uses seeds 0..49
 
@@ -76,7 +77,8 @@ def stages(p: ReproducePreset, out: Path, wam: str | None, workers: int,
                                       "--preset", p.wm_preset, "--epochs", str(p.wm_epochs)]]),
         ("train augmented world model", [["wm", "train", "--data", aug, "--out", str(out / "runs" / "wm_augmented"),
                                           "--preset", p.wm_preset, "--epochs", str(p.wm_epochs)]]),
-        ("train decoder", [["wm", "train-decoder", "--data", aug, "--out", str(out / "runs" / "decoder"),
+        ("train decoder", [["wm", "train-decoder", "--data", ",".join(str(d / s) for s in p.decoder_sources),
+                            "--out", str(out / "runs" / "decoder"),
                             "--preset", p.wm_preset]]),
         ("evaluate", evals),
         ("report", [["report", str(out / "eval")]]),
