@@ -8,7 +8,7 @@ from wamplan.cli import main
 from wamplan.errors import UserError
 from wamplan.evaluation.conditions import CONDITIONS, parse_conditions
 from wamplan.evaluation.records import RECORDS, append_record, read_records
-from wamplan.evaluation.report import table1, wilson
+from wamplan.evaluation.report import markdown_paired, table1, wilson
 
 
 def test_conditions_match_the_paper():
@@ -26,6 +26,19 @@ def test_conditions_match_the_paper():
 def _rec(c, s, outcome, length=120, variant="open-loop", timing=None):
     return dict(condition=c, seed=s, variant=variant, success=outcome == "success", outcome=outcome, length=length,
                 chunk_timing_s=timing or {})
+
+
+def test_paired_comparison_counts_discordant_seeds():
+    reached = lambda o: {"aligned": o in ("success", "aligned_not_descended")}  # noqa: E731
+    base = ["success", "aligned_not_descended", "never_lifted", "never_lifted", "success"]
+    other = ["success", "success", "success", "never_lifted", "aligned_not_descended"]
+    recs = [dict(_rec(1, s, o), reached=reached(o)) for s, o in enumerate(base)]
+    recs += [dict(_rec(7, s, o), reached=reached(o)) for s, o in enumerate(other)]
+    recs.append(dict(_rec(7, 99, "success"), reached=reached("success")))  # a seed the baseline lacks: ignored
+    row = markdown_paired(recs).splitlines()[-1]
+    # seed 1 and 2 gained, seed 4 lost; p = 2 * (1 + 3) / 8 = 1.0; aligned: base 3 (2 seated), cond 7 4 (3 seated)
+    assert row == "| 7 | 5 | 2 | 1 | 1.00 | 67% of 3 → 75% of 4 |"
+    assert markdown_paired([r for r in recs if r["condition"] == 1]) is None
 
 
 def test_records_survive_a_torn_last_line(tmp_path):

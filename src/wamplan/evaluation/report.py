@@ -99,6 +99,38 @@ def markdown_table2(records: list[dict[str, Any]]) -> str | None:
     return "\n".join(out)
 
 
+def markdown_paired(records: list[dict[str, Any]], baseline: int = 1) -> str | None:
+    """Each condition against the baseline on the seeds both ran (paper §5: where the net gain comes from).
+
+    Gained / lost count seeds that only one of the two solved; p is the exact two-sided sign (McNemar) test
+    on those discordant seeds. "Inserted | aligned" is the share of episodes that reached the aligned stage
+    and went on to succeed: the insertion skill on its own.
+    """
+    by = defaultdict(dict)
+    for r in records:
+        if r.get("variant", "open-loop") == "open-loop":
+            by[r["condition"]][r["seed"]] = r
+    if baseline not in by or len(by) < 2:
+        return None
+    out = [f"| Condition | Seeds shared with {baseline} | Gained | Lost | p (sign test) | Inserted \\| aligned "
+           f"(cond. {baseline} → this) |", "|---|---|---|---|---|---|"]
+    for c in sorted(k for k in by if k != baseline):
+        seeds = sorted(set(by[c]) & set(by[baseline]))
+        if not seeds:
+            continue
+        gained = sum(by[c][s]["success"] and not by[baseline][s]["success"] for s in seeds)
+        lost = sum(by[baseline][s]["success"] and not by[c][s]["success"] for s in seeds)
+        n = gained + lost
+        p = min(1.0, 2 * sum(math.comb(n, i) for i in range(min(gained, lost) + 1)) / 2 ** n) if n else 1.0
+
+        def inserted(cid: int) -> str:
+            aligned = [by[cid][s] for s in seeds if by[cid][s].get("reached", {}).get("aligned")]
+            return f"{100 * sum(r['success'] for r in aligned) / len(aligned):.0f}% of {len(aligned)}" if aligned else "—"
+
+        out.append(f"| {c} | {len(seeds)} | {gained} | {lost} | {p:.2f} | {inserted(baseline)} → {inserted(c)} |")
+    return "\n".join(out) if len(out) > 2 else None
+
+
 def figure3(rows: list[dict[str, Any]], path: Path) -> None:
     import matplotlib
 
@@ -146,6 +178,9 @@ def write_report(out_dir: str | Path) -> dict[str, Path]:
     figure3(rows, paths["figure3"])
     parts = ["# Evaluation report", "", "## Table 1: success rate and length of successful episodes", "", md1, "",
              "![Figure 3](figure3.png)", "", "## Per-chunk timing (planned chunks)", "", markdown_timing(rows)]
+    paired = markdown_paired(records)
+    if paired:
+        parts += ["", "## Episode by episode against condition 1", "", paired]
     t2 = markdown_table2(records)
     if t2:
         parts += ["", "## Table 2: first chunk skipped vs planned", "", t2]
