@@ -142,3 +142,11 @@ def test_oracle_objective_is_zero_at_the_chunk_that_made_the_target(small_env, e
     other[:, 1] = -0.4
     costs = make_cost("patch")(dyn.terminal(torch.stack([torch.from_numpy(goal), other])), target)
     assert costs[0] < 1e-6 < 1e-3 < costs[1]
+
+
+def test_planned_policy_with_simulator_dynamics_runs_an_episode(small_env, encoder):
+    """The oracle steps the env inside the search's inference mode; the steps executed after the search must
+    still work (no inference tensor may leak into the controller's state)."""
+    pol = PlannedPolicy(EchoWAM(), _cem(4, 1), SimulatorDynamics(small_env, encoder), encoder, make_cost("patch"))
+    r = run_episode(small_env, pol, seed=4, max_steps=33)
+    assert r.length == 33 and [c["planned"] for c in r.policy_info["chunks"]] == [True, True, True]  # no history

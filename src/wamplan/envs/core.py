@@ -68,7 +68,12 @@ def _clone(x: Any) -> Any:
 
 
 class InsertionEnv:
-    """One CubeInsertion-v1 episode at a time; numpy in, numpy out."""
+    """One CubeInsertion-v1 episode at a time; numpy in, numpy out.
+
+    The methods that change simulator or controller state run with inference mode off, whatever the caller's
+    mode: a planner that steps the env inside ``torch.inference_mode()`` would otherwise leave inference tensors
+    in the controller, and the next ordinary step would fail on an in-place update.
+    """
 
     def __init__(self, config: EnvConfig | None = None):
         import wamplan.envs  # noqa: F401  (registers the task, configures Vulkan)
@@ -85,6 +90,7 @@ class InsertionEnv:
         self._last: dict[str, Any] = {}
 
     # ------------------------------------------------------------------ episode
+    @torch.inference_mode(False)
     def reset(self, seed: int, with_images: bool = False) -> Observation:
         self.seed = int(seed)
         self.base.reset(seed=self.seed)
@@ -93,6 +99,7 @@ class InsertionEnv:
         self._last = self._evaluate()
         return self.observe(with_images)
 
+    @torch.inference_mode(False)
     def step(self, action: np.ndarray, with_images: bool = False) -> tuple[Observation, dict[str, Any]]:
         """Apply one 5-D action (clipped to [-1, 1]); returns the next observation and step info."""
         a = self.check_action(action)
@@ -182,6 +189,7 @@ class InsertionEnv:
     def _controllers(self) -> dict[str, Any]:
         return self.base.agent.controller.controllers
 
+    @torch.inference_mode(False)
     def snapshot(self) -> Snapshot:
         ctrl = {}
         for name, c in self._controllers().items():
@@ -191,6 +199,7 @@ class InsertionEnv:
                         drive_targets=self.base.agent.robot.get_drive_targets().clone(),
                         step=self.step_count, reached=dict(self.reached))
 
+    @torch.inference_mode(False)
     def restore(self, snap: Snapshot) -> None:
         """Put the simulator back to ``snap``. Restore again before re-executing: PhysX keeps hidden
         solver state, so a restored rollout can differ by ~1e-3 m from one that was never restored."""
