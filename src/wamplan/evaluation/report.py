@@ -146,11 +146,11 @@ def figure3(rows: list[dict[str, Any]], path: Path) -> None:
         bottom += frac
     for i, r in enumerate(rows):
         ax.text(i, 101, f"{100 * r['success_rate']:.0f}%", ha="center", va="bottom", fontsize=9)
-    ax.set_xticks(x, [f"{r['condition']}\n{r['dynamics']}\n{r['seed']}/{r['target']}" for r in rows], fontsize=8)
+    ax.set_xticks(x, [f"{r['condition']}\n{r['dynamics']}\n{r['seed']}/{r['target']}\nn = {r['episodes']}"
+                      for r in rows], fontsize=8)
     ax.set_ylabel("episodes (%)")
     ax.set_ylim(0, 112)
-    n = sorted({r["episodes"] for r in rows})
-    ax.set_title(f"Episode outcomes per condition ({'/'.join(map(str, n))} episodes)", fontsize=10)
+    ax.set_title("Episode outcomes per condition (n = episodes, the same seeds from the first)", fontsize=10)
     ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize=8, frameon=False)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
