@@ -125,7 +125,9 @@ def markdown_paired(records: list[dict[str, Any]], baseline: int = 1) -> str | N
 
         def inserted(cid: int) -> str:
             aligned = [by[cid][s] for s in seeds if by[cid][s].get("reached", {}).get("aligned")]
-            return f"{100 * sum(r['success'] for r in aligned) / len(aligned):.0f}% of {len(aligned)}" if aligned else "—"
+            if not aligned:
+                return "—"
+            return f"{100 * sum(r['success'] for r in aligned) / len(aligned):.0f}% of {len(aligned)}"
 
         out.append(f"| {c} | {len(seeds)} | {gained} | {lost} | {p:.2f} | {inserted(baseline)} → {inserted(c)} |")
     return "\n".join(out) if len(out) > 2 else None

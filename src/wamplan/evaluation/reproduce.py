@@ -35,10 +35,15 @@ class ReproducePreset:
 
 PRESETS = {
     # paper §4: 100 expert, 500 noisy, 500 pink-noise (42k frames: ~84 steps each), 500 on-policy; 50 episodes
-    "paper": ReproducePreset("paper", 100, 500, 500, 500, 84, 1, 30, "paper", 24, ("expert", "noisy", "pink", "on_policy"), 50, 50),
+    "paper": ReproducePreset("paper", expert=100, noisy=500, pink=500, on_policy=500, pink_max_steps=84, image_every=1,
+                             wam_epochs=30, wm_preset="paper", wm_epochs=24,
+                             decoder_sources=("expert", "noisy", "pink", "on_policy"), eval_episodes=50,
+                             sim_eval_episodes=50),
     # this 2-core CPU machine: smaller datasets, the mini world model; the sizes the demo checkpoints were
     # made with (README "Demo checkpoints"): about 3 h of collection and training on 2 cores
-    "mini": ReproducePreset("mini", 100, 150, 150, 100, 100, 4, 12, "mini", 4, ("expert",), 50, 10),
+    "mini": ReproducePreset("mini", expert=100, noisy=150, pink=150, on_policy=100, pink_max_steps=100, image_every=4,
+                            wam_epochs=12, wm_preset="mini", wm_epochs=4, decoder_sources=("expert",), eval_episodes=50,
+                            sim_eval_episodes=10),
 }
 SEED_BASE = {"expert": 1000, "noisy": 2000, "pink": 3000, "on_policy": 4000}  # evaluation uses seeds 0..49
 
