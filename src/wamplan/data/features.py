@@ -10,15 +10,13 @@ where it stopped and training never runs the encoder per batch.
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 from typing import Iterator
 
-import h5py
 import numpy as np
 import torch
 
-from wamplan.data.store import EpisodeStore
+from wamplan.data.store import TMP_PREFIX, EpisodeStore, atomic_h5
 from wamplan.policies.base import CAMERAS
 
 
@@ -41,7 +39,7 @@ def encode_store(root: str | Path, encoder, batch_size: int = 64) -> Iterator[st
     store = EpisodeStore(root)
     out_dir = feature_dir(root, encoder.name)
     out_dir.mkdir(parents=True, exist_ok=True)
-    for p in out_dir.glob(".tmp-*"):
+    for p in out_dir.glob(TMP_PREFIX + "*"):
         p.unlink()
     cfg = json.dumps(encoder.config_dict())
     for path in store.episode_paths():
@@ -51,9 +49,7 @@ def encode_store(root: str | Path, encoder, batch_size: int = 64) -> Iterator[st
         with store.open_episode(path) as f:
             views = [encode_frames(encoder, f["images"][c][:], batch_size) for c in CAMERAS]  # V x (K, N, D)
         z = np.stack(views, axis=1)  # (K, V, N, D)
-        tmp = out_dir / f".tmp-{path.stem}-{os.getpid()}.part"  # not *.h5 until complete
-        with h5py.File(tmp, "w") as g:
+        with atomic_h5(final) as g:
             g.create_dataset("z", data=z, chunks=(1, *z.shape[1:]))
             g.attrs["encoder"] = cfg
-        os.replace(tmp, final)
         yield path.stem

@@ -33,6 +33,7 @@ from __future__ import annotations
 import json
 import os
 import re
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator
@@ -80,6 +81,21 @@ class EpisodeData:
     @property
     def length(self) -> int:
         return int(len(self.actions))
+
+
+TMP_PREFIX = ".tmp-"  # files being written; never *.h5 until complete, so listings cannot see them
+
+
+@contextmanager
+def atomic_h5(final: Path) -> Iterator[h5py.File]:
+    """Write the HDF5 file ``final`` under a temporary name, fsync it, then rename it into place: a reader
+    (or a kill -9) sees the whole file or none of it."""
+    tmp = final.with_name(f"{TMP_PREFIX}{final.stem}-{os.getpid()}.part")
+    with h5py.File(tmp, "w") as f:
+        yield f
+        f.flush()
+        os.fsync(f.id.get_vfd_handle())
+    os.replace(tmp, final)
 
 
 class EpisodeStore:
@@ -151,7 +167,7 @@ class EpisodeStore:
     def clean_partial(self) -> int:
         """Delete temporary files that a killed writer left behind; returns how many."""
         n = 0
-        for p in (self.root / EPISODES).glob(".tmp-*"):
+        for p in (self.root / EPISODES).glob(TMP_PREFIX + "*"):
             p.unlink(missing_ok=True)
             n += 1
         return n
@@ -162,8 +178,7 @@ class EpisodeStore:
         final = self.episode_path(ep.source, ep.seed)
         if final.exists():
             raise StoreError(f"{final} exists already; a store never overwrites an episode")
-        tmp = final.with_name(f".tmp-{final.stem}-{os.getpid()}.part")  # not *.h5 until complete
-        with h5py.File(tmp, "w") as f:
+        with atomic_h5(final) as f:
             f.attrs.update(seed=ep.seed, source=ep.source, success=bool(ep.success), outcome=ep.outcome, length=ep.length,
                            policy=json.dumps(ep.policy), provenance=json.dumps(ep.provenance),
                            reached=json.dumps(ep.reached))
@@ -174,9 +189,6 @@ class EpisodeStore:
             g = f.create_group("images")
             for cam, arr in ep.images.items():  # (K, H, W, 3) uint8
                 g.create_dataset(cam, data=arr, chunks=(1, *arr.shape[1:]), compression="gzip", compression_opts=4)
-            f.flush()
-            os.fsync(f.id.get_vfd_handle())
-        os.replace(tmp, final)
         return final
 
     # ------------------------------------------------------------------ read
