@@ -24,6 +24,7 @@ def test_oracle_predicts_the_expert_rollout_and_restores_the_env(env):
     obs = _advance(env, live, seed=3, steps=24)  # mid-episode, past the first phase change
     oracle = make_wam("expert-oracle", env=env)
     oracle.sync(live)
+    assert live.phase_for(obs) == live.phase  # the live phase fits the state, so the oracle keeps it
     before = (env.sim_state(), env.drive_targets(), env.step_count, env.proprio())
     out = oracle.validate(oracle.predict(env.observe(with_images=True), "insert"))
 
@@ -57,6 +58,13 @@ def test_oracle_as_a_policy_succeeds_like_the_expert(env):
     assert oracle.expert.phase in ("insert", "retreat")
 
 
+@pytest.mark.parametrize("seed", [1, 2])
+def test_resynchronised_oracle_keeps_the_expert_succeeding(env, seed):
+    """Re-synchronising at every query must not break the expert when it drives itself (conditions 2-3)."""
+    result = run_episode(env, WAMPolicy(ExpertOracleWAM(env, image_size=16)), seed=seed)
+    assert result.success, result.outcome
+
+
 def test_oracle_rejects_misuse(env):
     with pytest.raises(WAMError, match="live InsertionEnv"):
         ExpertOracleWAM(object())
@@ -67,3 +75,53 @@ def test_oracle_rejects_misuse(env):
     env.step(np.zeros(5, np.float32))
     with pytest.raises(WAMError, match="step 0"):
         oracle.predict(obs, "")  # stale observation: the env has moved on
+
+
+# ---------------------------------------------------------------- the expert's phase follows the state
+def _phase_fits(obs, phase: str) -> bool:
+    """Independent of ExpertPolicy.phase_for: a gripper-open reaching phase while the cube is free on the table,
+    a carrying phase while it is held above it."""
+    grasped, lifted = bool(obs.state["stages"][0]), bool(obs.state["stages"][1])
+    if not grasped and not lifted:
+        return phase in ("approach", "descend", "close")
+    if grasped and lifted:
+        return phase in ("lift", "transport", "insert")
+    return True
+
+
+def test_oracle_resynchronises_after_chunks_it_did_not_execute(env):
+    """Condition 4's situation: the oracle proposes chunks, something else is executed (here: holding still).
+    The oracle's expert must restart from the phase that fits the state, not from the phase its own
+    (never executed) chunks reached: without re-synchronisation it would be descending or closing its
+    gripper in mid-air by the third query."""
+    chained = ExpertPolicy()  # what the oracle used to continue from: the phase its own chunks reached
+    obs = _advance(env, chained, seed=5, steps=48)
+    assert chained.phase != "approach"
+    oracle = ExpertOracleWAM(env, image_size=16)
+    obs = env.reset(5)
+    hold = np.array([0, 0, 0, 0, 1], np.float32)
+    for k in range(4):
+        out = oracle.predict(obs, "")
+        assert out.extras["start_phase"] == "approach", (k, out.extras)
+        assert (out.actions[:4, 4] == 1.0).all()  # gripper open while reaching for the cube
+        for _ in range(16):
+            obs, _ = env.step(hold)
+
+
+def test_oracle_target_phase_fits_the_state_in_a_wam_driven_episode(env):
+    """Condition 4 (WAM seed, expert target): a TinyWAM drives the robot, the oracle is queried at every chunk
+    boundary; its start phase must fit the simulator state each time."""
+    from wamplan.wam import load_wam
+
+    wam = load_wam("checkpoints/mini/tinywam", device="cpu")
+    oracle = ExpertOracleWAM(env, image_size=16)
+    seen = []
+
+    def check(e, obs, action):
+        if obs.step % 16 == 0:
+            out = oracle.predict(e.observe(with_images=False), "")
+            seen.append((obs.step, out.extras["start_phase"], _phase_fits(e.observe(), out.extras["start_phase"])))
+
+    run_episode(env, WAMPolicy(wam), seed=7, on_obs=check, max_steps=160)
+    assert len(seen) >= 8 and all(fits for _, _, fits in seen), seen
+    assert len({p for _, p, _ in seen}) >= 2, seen  # the episode went through more than one phase

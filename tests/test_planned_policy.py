@@ -92,7 +92,8 @@ def test_planned_policy_history_and_first_chunk(small_env, encoder):
     ctx = seen[0]
     assert ctx.z.shape == (3, 3, encoder.num_patches, encoder.dim) and ctx.a.shape == (2, 20)
     np.testing.assert_allclose(ctx.a.numpy().reshape(8, 5), np.asarray(pol._executed[8:16]), atol=0)
-    assert pol.wants_images(4) and pol.wants_images(16) and not pol.wants_images(5)
+    # frames are rendered only where a chunk boundary's history needs them: t-8, t-4, t
+    assert [s for s in range(33) if pol.wants_images(s)] == [0, 8, 12, 16, 24, 28, 32]
 
 
 def test_rest_history_plans_first_chunk(small_env, encoder):
@@ -149,4 +150,130 @@ def test_planned_policy_with_simulator_dynamics_runs_an_episode(small_env, encod
     still work (no inference tensor may leak into the controller's state)."""
     pol = PlannedPolicy(EchoWAM(), _cem(4, 1), SimulatorDynamics(small_env, encoder), encoder, make_cost("patch"))
     r = run_episode(small_env, pol, seed=4, max_steps=33)
-    assert r.length == 33 and [c["planned"] for c in r.policy_info["chunks"]] == [True, True, True]  # no history
+    # the first chunk runs open loop in every condition (paper §3.3), the simulator's too
+    assert r.length == 33 and [c["planned"] for c in r.policy_info["chunks"]] == [False, True, True]
+    assert r.policy_info["open_loop_chunks"] == {"first-chunk": 1}
+    pol = PlannedPolicy(EchoWAM(), _cem(4, 1), SimulatorDynamics(small_env, encoder), encoder, make_cost("patch"),
+                        config=PlannedPolicyConfig(first_chunk="rest-history"))
+    r = run_episode(small_env, pol, seed=4, max_steps=17)
+    assert [c["planned"] for c in r.policy_info["chunks"]] == [True, True]  # the simulator needs no history
+
+
+# ---------------------------------------------------------------- paper frameskip Δ = 5 (does not divide H = 16)
+class _Recorder:
+    """Wraps a real cost: records the devices of what the planner hands it."""
+
+    def __init__(self, cost):
+        self.cost, self.devices = cost, set()
+
+    def __call__(self, pred, target):
+        self.devices.add((pred.device, target.device))
+        return self.cost(pred, target)
+
+
+def _delta5_predictor(encoder):
+    torch.manual_seed(0)
+    cfg = PredictorConfig(num_patches=encoder.num_patches, enc_dim=encoder.dim, frameskip=5, context=3,
+                          depth=1, heads=2, head_dim=8, mlp_dim=16, proprio_emb=8, action_emb=8)
+    return WorldModelPredictor(cfg).eval()
+
+
+def test_frameskip_5_plans_every_chunk_after_the_first(small_env, encoder):
+    """Δ = 5: the history of boundary t is t-10, t-5, t. Every chunk after the first is planned over a whole
+    300-step episode, with the right frames and actions, and the cost sees tensors on the search's device."""
+    cost = _Recorder(make_cost("patch"))
+    pol = PlannedPolicy(EchoWAM(), _cem(4, 1), LearnedDynamics(_delta5_predictor(encoder)), encoder, cost)
+    seen = []
+    orig = pol.dynamics.prepare
+    pol.dynamics.prepare = lambda ctx: (seen.append(ctx), orig(ctx))[1]
+    r = run_episode(small_env, pol, seed=0, max_steps=300, stop_on_success=False)
+    chunks = r.policy_info["chunks"]
+    assert r.length == 300 and len(chunks) == 19
+    assert [c["planned"] for c in chunks] == [False] + [True] * 18
+    assert r.policy_info["open_loop_chunks"] == {"first-chunk": 1}
+    assert [s for s in range(40) if pol.wants_images(s)] == [0, 6, 11, 16, 22, 27, 32, 38]
+    # the chunk at 32: frames at 22, 27, 32 with the actions executed from 22 to 31
+    ctx = seen[1]
+    assert ctx.a.shape == (2, 25)
+    np.testing.assert_array_equal(ctx.a.numpy().reshape(10, 5), np.asarray(pol._executed[22:32]))
+    small_env.reset(0)
+    for a in pol._executed[:22]:
+        small_env.step(a)
+    np.testing.assert_allclose(ctx.q[0].numpy(), small_env.proprio(), atol=1e-4)  # frame 0 of it is step 22
+    z22 = encoder.encode(torch.from_numpy(np.stack([small_env.render()[c] for c in CAMERAS])))
+    torch.testing.assert_close(ctx.z[0], z22, rtol=0, atol=1e-4)
+    # 15 actions are optimised, the 16th is the WAM's (paper §3.2); every cost call on the search's device
+    assert pol.dynamics.covered(16) == 15
+    assert cost.devices == {(pol.device, pol.device)}
+
+
+def test_a_gap_in_the_history_raises(small_env, encoder):
+    """A history frame the policy never saw is an error, never a silently unplanned chunk."""
+    from wamplan.planning.policy import PlanningError
+
+    pol = PlannedPolicy(EchoWAM(), _cem(4, 1), LearnedDynamics(_delta5_predictor(encoder)), encoder, make_cost("patch"))
+    pol.reset(0)
+    obs = small_env.reset(0, with_images=True)
+    for t in range(6):
+        obs, _ = small_env.step(pol.act(obs), with_images=(t + 1) % 16 == 0)  # no views at step 6
+    with pytest.raises(PlanningError, match="needs the views at step 6"):
+        pol.act(obs)
+    pol.reset(0)
+    obs = small_env.reset(0, with_images=True)
+    for t in range(32):
+        obs, _ = small_env.step(pol.act(obs), with_images=pol.wants_images(t + 1))
+    del pol._frames[22]  # a gap: the frame at t-10 of the chunk at 32
+    with pytest.raises(PlanningError, match=r"steps \[22\] are missing"):
+        pol.act(obs)
+
+
+def test_a_long_history_warms_up_open_loop_and_is_counted(small_env, encoder):
+    """(H_ctx-1)Δ = 20 > 16: the chunk at 16 cannot have its history yet; it runs open loop and is counted."""
+    torch.manual_seed(0)
+    cfg = PredictorConfig(num_patches=encoder.num_patches, enc_dim=encoder.dim, frameskip=10, context=3,
+                          depth=1, heads=2, head_dim=8, mlp_dim=16, proprio_emb=8, action_emb=8)
+    pol = PlannedPolicy(EchoWAM(), _cem(4, 1), LearnedDynamics(WorldModelPredictor(cfg).eval()), encoder,
+                        make_cost("patch"))
+    r = run_episode(small_env, pol, seed=1, max_steps=49)
+    assert [c["planned"] for c in r.policy_info["chunks"]] == [False, False, True, True]
+    assert r.policy_info["open_loop_chunks"] == {"first-chunk": 1, "warm-up": 1}
+
+
+def test_rest_history_context_is_the_first_frame_holding_still(small_env, encoder):
+    pol = PlannedPolicy(EchoWAM(), _cem(4, 1), LearnedDynamics(_predictor(encoder)), encoder, make_cost("patch"),
+                        config=PlannedPolicyConfig(first_chunk="rest-history"))
+    seen = []
+    orig = pol.dynamics.prepare
+    pol.dynamics.prepare = lambda ctx: (seen.append(ctx), orig(ctx))[1]
+    obs = small_env.reset(1, with_images=True)
+    pol.reset(1)
+    pol.act(obs)
+    ctx = seen[0]
+    z0 = encoder.encode(torch.from_numpy(np.stack([obs.images[c] for c in CAMERAS])))
+    for i in range(3):
+        torch.testing.assert_close(ctx.z[i], z0, rtol=0, atol=1e-5)
+        np.testing.assert_array_equal(ctx.q[i].numpy(), obs.proprio)
+    hold = np.tile(np.array([0, 0, 0, 0, 1], np.float32), 4)
+    np.testing.assert_array_equal(ctx.a.numpy(), np.stack([hold, hold]))
+
+
+def test_executed_chunk_is_the_plan(small_env, encoder):
+    pol = PlannedPolicy(EchoWAM(), _cem(8, 2), LearnedDynamics(_predictor(encoder)), encoder, make_cost("patch"))
+    executed = []
+    r = run_episode(small_env, pol, seed=2, max_steps=32, on_obs=lambda e, o, a: executed.append(a))
+    plan = pol.last_plan
+    np.testing.assert_allclose(np.stack(executed[17:33]), np.clip(plan.actions.numpy(), -1, 1), atol=1e-6)
+    assert r.policy_info["chunks"][1]["planned"] and not np.allclose(executed[17:33], executed[1:17])
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_planned_policy_on_cuda(small_env, encoder):
+    """Models on the GPU, env on the CPU: every tensor the cost sees is on the GPU, and the plan comes back."""
+    cuda = torch.device("cuda")
+    enc = make_encoder("patch-pixels", input_size=32, patch_size=16, proj_dim=16).to(cuda)
+    cost = _Recorder(make_cost("patch"))
+    pol = PlannedPolicy(EchoWAM(), _cem(4, 1), LearnedDynamics(_predictor(enc).to(cuda)), enc, cost)
+    r = run_episode(small_env, pol, seed=0, max_steps=33)
+    assert [c["planned"] for c in r.policy_info["chunks"]] == [False, True, True]
+    assert {d.type for pair in cost.devices for d in pair} == {"cuda"}

@@ -469,7 +469,7 @@ def test_load_wam_dispatches_on_kind_and_rejects_others(tmp_path):
         load_wam(_fake_checkpoint(tmp_path / "wm", "world_model"))
 
     @register_wam_loader("test-echo-wam")
-    def _load(path):
+    def _load(path, device="auto"):
         return EchoWAM(value=0.75)
 
     wam = load_wam(_fake_checkpoint(tmp_path / "echo", "test-echo-wam"))

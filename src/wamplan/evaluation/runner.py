@@ -70,7 +70,7 @@ class EvalWorker:
 
         self.cfg = cfg
         self.env = InsertionEnv(EnvConfig(camera_size=cfg.camera_size, max_episode_steps=cfg.max_steps))
-        self.wam = load_wam(cfg.wam)
+        self.wam = load_wam(cfg.wam, device=cfg.device)
         self._models: dict[str, Any] = {}
         self._policies: dict[int, Any] = {}
 
@@ -82,13 +82,14 @@ class EvalWorker:
         return self._models[path]  # (predictor, encoder)
 
     def _sim_encoder(self):
+        from wamplan.device import resolve_device
         from wamplan.encoders import make_encoder
 
         if self.cfg.sim_encoder:
-            return make_encoder(self.cfg.sim_encoder)
+            return make_encoder(self.cfg.sim_encoder).to(resolve_device(self.cfg.device))
         if self.cfg.wm_plain or self.cfg.wm_augmented:
             return self._world_model(self.cfg.wm_plain or self.cfg.wm_augmented)[1]
-        return make_encoder("patch-pixels")
+        return make_encoder("patch-pixels").to(resolve_device(self.cfg.device))
 
     def policy(self, cid: int):
         if cid in self._policies:
@@ -133,7 +134,8 @@ class EvalWorker:
             timing = {"wam_s": float(np.mean(wam_s)) if isinstance(wam_s, list) else float(wam_s)}
         return dict(condition=cid, seed=seed, variant=self.cfg.first_chunk, success=r.success, outcome=r.outcome,
                     length=r.length, reached=r.reached, wall_time_s=round(r.wall_time, 2),
-                    planned_chunks=len(planned), chunk_timing_s=timing,
+                    planned_chunks=len(planned), open_loop_chunks=r.policy_info.get("open_loop_chunks", {}),
+                    chunk_timing_s=timing,
                     chunks=[{k: (round(v, 4) if isinstance(v, float) else v) for k, v in ch.items()} for ch in planned],
                     finished=time.time())
 

@@ -40,6 +40,11 @@ class PlanningContext:
 class Dynamics(abc.ABC):
     needs_history: bool = False
 
+    @property
+    @abc.abstractmethod
+    def device(self) -> torch.device:
+        """Where ``terminal`` returns its embeddings; the planner's candidates and the target live here too."""
+
     @abc.abstractmethod
     def covered(self, chunk: int) -> int:
         """How many leading actions of a ``chunk``-step chunk a rollout covers (the planner optimises these)."""
@@ -94,6 +99,10 @@ class SimulatorDynamics(Dynamics):
     def __init__(self, env, encoder, cameras: tuple[str, ...] = CAMERAS):
         self.env, self.encoder, self.cameras = env, encoder, cameras
         self._snap = None
+
+    @property
+    def device(self) -> torch.device:
+        return self.encoder.device
 
     def covered(self, chunk: int) -> int:
         return chunk

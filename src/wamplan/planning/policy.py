@@ -4,8 +4,19 @@ At a chunk boundary t the policy queries the *seed* WAM for its chunk and the *t
 predicted t+H views (the same WAM unless an evaluation condition swaps in the expert oracle), encodes
 the target views, and lets the planner search for the chunk whose predicted terminal embedding is
 closest (paper §3.3). The planner only sees an objective; the dynamics backend decides what "predicted"
-means (learned world model or simulator). The history frames the world model conditions on (H_ctx frames
-at stride Δ, with the action blocks executed between them) are kept here.
+means (learned world model or simulator).
+
+Chunk rules, the same for every dynamics backend:
+* the first chunk runs open loop (paper §3.3 "Full-chunk deployment"), or is planned from a synthesised
+  rest-state history with ``first_chunk="rest-history"`` (appendix A);
+* the history a learned world model conditions on is anchored to the chunk boundaries: at boundary t it is
+  the frames at t-(H_ctx-1)Δ, ..., t-Δ, t with the actions executed between them, whether or not Δ divides
+  the chunk (paper Δ=5, H=16: frames t-10, t-5, t). ``wants_images`` asks for exactly those frames;
+* a boundary whose history reaches before step 0 (only when (H_ctx-1)Δ exceeds the chunk) runs open loop
+  and is counted in ``info()["open_loop_chunks"]``; a history frame that should exist but was never
+  shown to the policy is a :class:`PlanningError`, never a silent open-loop chunk.
+
+Devices: the target embedding, the seed chunk and every candidate live on ``dynamics.device``.
 """
 
 from __future__ import annotations
@@ -18,6 +29,7 @@ import numpy as np
 import torch
 
 from wamplan.config import field, require, to_dict
+from wamplan.errors import UserError
 from wamplan.planning.base import Planner
 from wamplan.planning.costs import CostFn
 from wamplan.planning.dynamics import Dynamics, PlanningContext
@@ -35,6 +47,10 @@ class PlannedPolicyConfig:
                 f"first_chunk must be open-loop or rest-history, got {self.first_chunk!r}")
 
 
+class PlanningError(UserError):
+    """The planned policy was driven in a way that leaves it without the history it needs."""
+
+
 class PlannedPolicy(Policy):
     name = "planned"
 
@@ -50,26 +66,43 @@ class PlannedPolicy(Policy):
         self.context = getattr(dynamics, "context", 1)
         self.reset()
 
+    @property
+    def device(self) -> torch.device:
+        """Where the search runs: the dynamics backend's device."""
+        return self.dynamics.device
+
     # ------------------------------------------------------------------ Policy
     def reset(self, seed: int | None = None) -> None:
         self.wam.reset()
         if self.target_wam is not self.wam:
             self.target_wam.reset()
         self._queue: list[np.ndarray] = []
-        self._hist: list[tuple[int, torch.Tensor, torch.Tensor]] = []  # (step, z (V, N, D), q (P,))
+        self._frames: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}  # step -> (z (V, N, D), q (P,)) on device
         self._executed: list[np.ndarray] = []
-        self.chunks: list[dict[str, float]] = []
+        self.chunks: list[dict[str, Any]] = []
         self.last_plan = None
         self._episode_seed = seed or 0
 
+    def _history_steps(self, t: int) -> list[int]:
+        """The steps of the history frames for the chunk boundary t, oldest first."""
+        return [t - i * self.frameskip for i in range(self.context - 1, -1, -1)]
+
+    def _is_history_step(self, step: int) -> bool:
+        """Whether ``step`` is t - iΔ (0 <= i < H_ctx) for some chunk boundary t >= step."""
+        return any((step + i * self.frameskip) % self.chunk == 0 for i in range(self.context))
+
     def wants_images(self, step: int) -> bool:
-        return step % self.chunk == 0 or (self.dynamics.needs_history and step % self.frameskip == 0)
+        return step % self.chunk == 0 or (self.dynamics.needs_history and self._is_history_step(step))
 
     def act(self, obs: Observation) -> np.ndarray:
         t = obs.step
-        if self.dynamics.needs_history and t % self.frameskip == 0:
-            self._hist.append((t, self._encode(obs.images), torch.as_tensor(obs.proprio)))
-            self._hist = self._hist[-self.context:]
+        if self.dynamics.needs_history and self._is_history_step(t):
+            if obs.images is None:
+                raise PlanningError(f"the planned policy needs the views at step {t} (a history frame) but "
+                                    f"got none; drive it with run_episode or render when wants_images(t) is true")
+            self._frames[t] = (self._encode(obs.images), torch.as_tensor(obs.proprio, device=self.device))
+            oldest = t - (self.context - 1) * self.frameskip - self.chunk  # nothing older is needed again
+            self._frames = {s: f for s, f in self._frames.items() if s >= oldest}
         if t % self.chunk == 0:
             self._queue = list(self._plan_chunk(obs))
         a = self._queue.pop(0)
@@ -79,7 +112,11 @@ class PlannedPolicy(Policy):
     def info(self) -> dict[str, Any]:
         keys = ("wam_s", "target_encode_s", "search_s")
         planned = [c for c in self.chunks if c["planned"]]
-        return dict(chunks=self.chunks, planned_chunks=len(planned),
+        open_loop: dict[str, int] = {}
+        for c in self.chunks:
+            if not c["planned"]:
+                open_loop[c["open_loop"]] = open_loop.get(c["open_loop"], 0) + 1
+        return dict(chunks=self.chunks, planned_chunks=len(planned), open_loop_chunks=open_loop,
                     mean_s={k: float(np.mean([c[k] for c in planned])) for k in keys} if planned else {})
 
     def config_dict(self) -> dict[str, Any]:
@@ -90,47 +127,58 @@ class PlannedPolicy(Policy):
     # ------------------------------------------------------------------ internals
     @torch.inference_mode()
     def _encode(self, images: dict[str, np.ndarray]) -> torch.Tensor:
-        x = torch.from_numpy(np.stack([images[c] for c in CAMERAS])).to(self.encoder.device)  # (V, H, W, 3)
-        return self.encoder.encode(x).float().cpu()  # (V, N, D)
+        """camera -> (H, W, 3) uint8 views -> (V, N, D) float32 on the search's device."""
+        x = torch.from_numpy(np.stack([images[c] for c in CAMERAS]))  # (V, H, W, 3)
+        return self.encoder.encode(x.to(self.encoder.device)).float().to(self.device)  # (V, N, D)
 
     def _context(self, t: int) -> PlanningContext | None:
-        """History frames at t-(Tc-1)Δ .. t and the action blocks between them; None if not available."""
-        if not self.dynamics.needs_history:
+        """History frames at t-(Tc-1)Δ .. t and the action blocks between them; None before enough steps exist
+        (then the chunk runs open loop), or a rest-state history with ``first_chunk="rest-history"``."""
+        steps = self._history_steps(t)
+        rest = self.config.first_chunk == "rest-history"
+        if steps[0] < 0 and not rest:
             return None
-        hist = self._hist
-        if len(hist) == self.context and all(s == t - (self.context - 1 - i) * self.frameskip for i, (s, _, _) in enumerate(hist)):
-            z = torch.stack([h[1] for h in hist])  # (Tc, V, N, D)
-            q = torch.stack([h[2] for h in hist])  # (Tc, P)
-            acts = np.stack(self._executed[hist[0][0]:t]) if t > hist[0][0] else np.zeros((0, 5), np.float32)
-            a = torch.from_numpy(acts.reshape(self.context - 1, -1).astype(np.float32))  # (Tc-1, Δ·A)
-            return PlanningContext(z, q, a)
-        if self.config.first_chunk == "rest-history" and t == 0 and hist:
-            _, z0, q0 = hist[-1]
-            hold = np.zeros((self.frameskip, 5), np.float32)
-            hold[:, 4] = 1.0  # arm still, gripper open
-            a = torch.from_numpy(np.tile(hold.reshape(1, -1), (self.context - 1, 1)))  # (Tc-1, Δ·A)
-            return PlanningContext(z0.expand(self.context, *z0.shape).clone(), q0.expand(self.context, -1).clone(), a)
-        return None
+        missing = [s for s in steps if s >= 0 and s not in self._frames]
+        if missing:
+            raise PlanningError(f"history frames at steps {missing} are missing for the chunk at step {t}; the "
+                                f"policy must see every step from the episode start (reset it before each episode)")
+        # Before step 0 the robot rested: the first frame again, with hold-still actions (arm still, gripper open).
+        hold = np.zeros(5, np.float32)
+        hold[4] = 1.0
+        z = torch.stack([self._frames[max(s, 0)][0] for s in steps])  # (Tc, V, N, D)
+        q = torch.stack([self._frames[max(s, 0)][1] for s in steps])  # (Tc, P)
+        acts = np.stack([self._executed[s] if s >= 0 else hold for s in range(steps[0], t)])  # ((Tc-1)Δ, A)
+        a = torch.from_numpy(acts.reshape(self.context - 1, -1).astype(np.float32)).to(self.device)  # (Tc-1, Δ·A)
+        return PlanningContext(z, q, a)
 
     def _plan_chunk(self, obs: Observation) -> np.ndarray:
         t0 = time.perf_counter()
         seed_out: WAMOutput = self.wam.predict(obs, self.instruction)
-        target_out = seed_out if self.target_wam is self.wam else self.target_wam.predict(obs, self.instruction)
-        t1 = time.perf_counter()
-        rec = dict(step=obs.step, planned=False, wam_s=t1 - t0, target_encode_s=0.0, search_s=0.0)
+        rec: dict[str, Any] = dict(step=obs.step, planned=False, wam_s=time.perf_counter() - t0,
+                                   target_encode_s=0.0, search_s=0.0)
         self.chunks.append(rec)
-        context = self._context(obs.step)
-        if self.dynamics.needs_history and context is None:
-            return seed_out.actions  # first chunk open loop (paper default): no history yet
-        target = self._encode(target_out.images)  # (V, N, D)
+        context = None
+        if obs.step == 0 and self.config.first_chunk == "open-loop":
+            rec["open_loop"] = "first-chunk"  # the paper's rule, for every dynamics backend
+            return seed_out.actions
+        if self.dynamics.needs_history:
+            context = self._context(obs.step)
+            if context is None:
+                rec["open_loop"] = "warm-up"  # the history reaches before step 0
+                return seed_out.actions
+        t1 = time.perf_counter()
+        target_out = seed_out if self.target_wam is self.wam else self.target_wam.predict(obs, self.instruction)
         t2 = time.perf_counter()
+        target = self._encode(target_out.images)  # (V, N, D) on the search's device
+        t3 = time.perf_counter()
         self.dynamics.prepare(context)
         covered = self.dynamics.covered(self.chunk)
-        seed = torch.as_tensor(seed_out.actions)  # (H, A)
+        seed = torch.as_tensor(seed_out.actions, device=self.device)  # (H, A)
         result = self.planner.plan(seed[:covered], lambda cands: self.cost(self.dynamics.terminal(cands), target),
                                    seed=self.config.plan_seed + self._episode_seed * 1000 + obs.step)
         plan = np.concatenate([result.actions.cpu().numpy(), seed_out.actions[covered:]]).astype(np.float32)  # (H, A)
-        rec.update(planned=True, target_encode_s=t2 - t1, search_s=time.perf_counter() - t2,
+        rec.update(planned=True, wam_s=rec["wam_s"] + t2 - t1, target_encode_s=t3 - t2,
+                   search_s=time.perf_counter() - t3,
                    seed_cost=float(result.seed_cost) if result.seed_cost is not None else float("nan"),
                    best_cost=float(result.best_cost))
         self.last_plan = result

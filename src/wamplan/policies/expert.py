@@ -13,6 +13,12 @@ The expert is a state machine over the true cube, TCP and hole poses:
    when the descent stalls (or the cube touches down), open the gripper;
 7. ``retreat``: open and move up.
 
+The phase is memory, but :meth:`ExpertPolicy.phase_for` reads the phase that fits a state from the state
+alone (the grasp flag, the gripper width and the poses), using the same thresholds as the transitions
+above; :meth:`ExpertPolicy.sync_to` puts the expert in that phase. The expert oracle re-synchronises at
+every query, so its chunk is what the expert would do *from the current state*, whoever drove the robot
+there (paper conditions 2-4).
+
 Gains map metre/radian errors to normalised actions of the 5-D controller (pos 0.02 m, yaw 0.1 rad
 per unit; see ``wamplan.envs.controller``).
 """
@@ -78,6 +84,38 @@ class ExpertPolicy(Policy):
         if n > max_step:
             d = d * (max_step / n)
         return d / POS_BOUND
+
+    def phase_for(self, obs: Observation) -> str:
+        """The phase that fits ``obs`` (privileged state + proprio), whatever happened before."""
+        c, s = self.config, obs.state
+        tcp, cube = s["tcp_pose"][:3], s["cube_pose"][:3]
+        hole, h = s["hole_pos"], float(s["cube_half_size"])
+        grasped, lifted, descended = (bool(s["stages"][i]) for i in (0, 1, 3))
+        xy_hole = float(np.linalg.norm(hole[:2] - cube[:2]))
+        if descended:  # the cube is in the hole: push it home while held, else let go and leave
+            return "insert" if grasped else "retreat"
+        grasp_point = np.array([cube[0], cube[1], cube[2] + c.grasp_height])
+        at_grasp = np.linalg.norm(grasp_point[:2] - tcp[:2]) < 0.004 and abs(tcp[2] - grasp_point[2]) < 0.004
+        open_width = 0.075  # the Panda's fingers open to 0.08 m; below this they are closing or closed
+        if at_grasp and not lifted and float(obs.proprio[0]) < open_width:
+            return "close"  # closing on the cube that still stands on the table
+        if grasped:
+            z_goal = hole[2] + c.carry_clearance + h + c.grasp_height  # carrying height of the TCP
+            if xy_hole < 2 * c.align_tol and tcp[2] < z_goal - 0.005:
+                return "insert"  # over the hole and already going down
+            if xy_hole < c.align_tol and abs(wrap_quarter(quat_yaw(s["cube_pose"][3:]))) < 0.02:
+                return "insert"
+            return "transport" if tcp[2] > z_goal - 0.01 else "lift"
+        above = tcp[2] < cube[2] + h + c.hover + 0.02  # at or below the hover height over the cube
+        if np.linalg.norm(cube[:2] - tcp[:2]) < 0.004 and above:
+            return "descend"
+        return "approach"
+
+    def sync_to(self, obs: Observation) -> None:
+        """Continue from the phase that fits ``obs`` (counters restart; a phase that already fits is kept)."""
+        phase = self.phase_for(obs)
+        if phase != self.phase:
+            self._set(phase)
 
     def _set(self, phase: str) -> None:
         self.phase, self.phase_steps = phase, 0

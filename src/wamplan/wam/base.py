@@ -134,7 +134,7 @@ class WAM(abc.ABC):
 WAMS = Registry("WAM", set_name=True)
 register_wam = WAMS.register  # class decorator: make a WAM constructible by name (``make_wam``)
 WAM_LOADERS = Registry("WAM checkpoint kind")
-# decorator: ``fn(path) -> WAM`` loads checkpoints whose ``config.json`` has ``"kind": kind``
+# decorator: ``fn(path, device) -> WAM`` loads checkpoints whose ``config.json`` has ``"kind": kind``
 register_wam_loader = WAM_LOADERS.register
 
 
@@ -151,8 +151,9 @@ def make_wam(name: str, **kwargs: Any) -> WAM:
     return WAMS[name](**kwargs)
 
 
-def load_wam(path: str | Path) -> WAM:
-    """Load a WAM checkpoint directory, dispatching on its kind (see ``register_wam_loader``)."""
+def load_wam(path: str | Path, device: str | Any = "auto") -> WAM:
+    """Load a WAM checkpoint directory onto ``device`` ('auto', 'cpu', 'cuda', a torch.device), dispatching
+    on its kind (see ``register_wam_loader``)."""
     from wamplan.checkpoint import CONFIG_FILE, MODEL_FILE, CheckpointError  # imports torch: only when needed
 
     _import_builtin_wams()
@@ -169,7 +170,7 @@ def load_wam(path: str | Path) -> WAM:
         known = sorted(WAM_LOADERS) or "none registered yet"
         raise CheckpointError(f"{p} holds a '{kind}' checkpoint, which is not a WAM (WAM kinds: {known}); "
                               f"pass a WAM checkpoint to --ckpt")
-    return WAM_LOADERS[kind](p)
+    return WAM_LOADERS[kind](p, device=device)
 
 
 class WAMPolicy(Policy):

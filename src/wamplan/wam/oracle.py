@@ -5,13 +5,15 @@ current state, records the H actions, renders the true views at t + H, and puts 
 the upper bound for a WAM (perfect actions, perfect predicted images) and a debugging aid for the
 planner: its image targets are exactly reachable.
 
-The expert is a state machine (approach, descend, close, ...), so the oracle keeps its own expert whose
-state follows the proposed chunks: each query simulates a deep copy of it and then keeps the copy, so
-the next query starts from the phase reached at the end of the chunk. Executed open loop
-(``WAMPolicy``), the executed trajectory is the simulated one: with the "restore before simulating,
-restore again before executing" rule the two are bit-identical (PhysX keeps hidden state, so a rollout
-from a restored state differs slightly from one that never was). When a planner executes a different
-chunk, the phase can lag or lead; ``sync(expert)`` puts a known expert state in place.
+The expert is a state machine (approach, descend, close, ...). Its phase must fit the state the query
+starts from, whoever drove the robot there: before simulating, the oracle re-synchronises its expert to
+the current state (``ExpertPolicy.sync_to``: the phase that fits the grasp flag, the gripper and the poses;
+a phase that already fits keeps its counters). So in conditions 2-4, where a planner or the WAM executes
+chunks other than the expert's, the target and the seed are what the expert would do from the current
+state, never a phase left over from a chunk that was not executed. Executed open loop (``WAMPolicy``),
+the executed trajectory is the simulated one: with the "restore before simulating, restore again before
+executing" rule the two are bit-identical (PhysX keeps hidden state, so a rollout from a restored state
+differs slightly from one that never was).
 
 It needs the live env, so it cannot be loaded from a checkpoint: ``make_wam("expert-oracle", env=env)``.
 """
@@ -56,7 +58,8 @@ class ExpertOracleWAM(WAM):
         self.expert.reset()
 
     def sync(self, expert: ExpertPolicy) -> None:
-        """Continue from a copy of ``expert``'s state (e.g. the live expert that has been driving the env)."""
+        """Continue from a copy of ``expert``'s phase and counters where they fit the state (e.g. the live
+        expert that has been driving the env); each query still re-synchronises to the state."""
         self.expert = copy.deepcopy(expert)
 
     def config_dict(self) -> dict[str, Any]:
@@ -73,6 +76,8 @@ class ExpertOracleWAM(WAM):
         env.restore(snap)  # simulate from a restored state, as the executed chunk will run
         sim = copy.deepcopy(self.expert)
         cur = env.observe(with_images=False)
+        sim.sync_to(cur)  # the phase that fits the state the chunk starts from
+        start_phase = sim.phase
         actions = np.zeros((self.chunk_length, self.action_dim), np.float32)  # (H, A)
         try:
             for h in range(self.chunk_length):
@@ -94,4 +99,4 @@ class ExpertOracleWAM(WAM):
         self.expert = sim
         return WAMOutput(actions=actions, images=images,
                          timing={"query_s": time.perf_counter() - t0, "simulate_s": t1 - t0, "render_s": t2 - t1},
-                         extras={"expert_phase": sim.phase})
+                         extras={"start_phase": start_phase, "expert_phase": sim.phase})

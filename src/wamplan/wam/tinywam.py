@@ -248,6 +248,6 @@ class TinyWAM(WAM):
 
 
 @register_wam_loader(KIND)
-def load_tinywam(path: Path) -> TinyWAM:
-    """A trained TinyWAM from a checkpoint directory (on the best device available)."""
-    return TinyWAM.from_checkpoint(path)
+def load_tinywam(path: Path, device: str | torch.device = "auto") -> TinyWAM:
+    """A trained TinyWAM from a checkpoint directory, on ``device`` ('auto': the best available)."""
+    return TinyWAM.from_checkpoint(path, device=device)
