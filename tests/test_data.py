@@ -188,14 +188,15 @@ def test_kill9_then_resume(tmp_path):
 
 
 def test_feature_cache_feeds_windows(store):
-    from wamplan.data.features import encode_store, feature_dir
+    from wamplan.data.features import encode_store, feature_dir, feature_key
     from wamplan.encoders import make_encoder
 
     enc = make_encoder("patch-pixels")
+    key = feature_key(enc.config_dict())
     done = list(encode_store(store, enc))
     assert len(done) == 4 and list(encode_store(store, enc)) == []  # cached: a second pass encodes nothing
-    assert len(list(feature_dir(store, enc.name).glob("*.h5"))) == 4
-    ds = WorldModelWindows([store], split="all", features=enc.name)
+    assert len(list(feature_dir(store, key).glob("*.h5"))) == 4
+    ds = WorldModelWindows([store], split="all", features=key)
     item = ds[7]
     assert item["z"].shape == (5, 3, enc.num_patches, enc.dim) and item["z"].dtype.is_floating_point
     # the cached features are the encoder's features of the stored frames
@@ -207,3 +208,31 @@ def test_feature_cache_feeds_windows(store):
 def test_windows_without_cache_say_how_to_make_it(store):
     with pytest.raises(StoreError, match="wamplan wm encode"):
         WorldModelWindows([store], split="all", features="dinov3-vitl16")
+
+
+def test_feature_cache_is_keyed_by_the_whole_encoder_config(store, tmp_path):
+    """Another input size (same encoder name) gets its own cache; a file of another encoder under a key is refused."""
+    import shutil
+
+    from wamplan.data.features import encode_store, feature_dir, feature_key
+    from wamplan.encoders import make_encoder
+
+    root = tmp_path / "store"
+    shutil.copytree(store, root)
+    a = make_encoder("patch-pixels", input_size=48, patch_size=16)
+    b = make_encoder("patch-pixels", input_size=32, patch_size=16)
+    ka, kb = feature_key(a.config_dict()), feature_key(b.config_dict())
+    assert ka != kb and ka.startswith("patch-pixels-")
+    assert len(list(encode_store(root, a))) == 4
+    assert len(list(encode_store(root, b))) == 4  # not a silent reuse of a's features
+    za = WorldModelWindows([root], split="all", features=ka)[0]["z"]
+    zb = WorldModelWindows([root], split="all", features=kb)[0]["z"]
+    assert za.shape[-2] == 9 and zb.shape[-2] == 4  # a 3 x 3 and a 2 x 2 grid per view
+    # a's file copied into b's cache: the readers and the encoder refuse it with one line
+    name = sorted(feature_dir(root, ka).glob("*.h5"))[0].name
+    shutil.copy(feature_dir(root, ka) / name, feature_dir(root, kb) / name)
+    with pytest.raises(StoreError, match=f"holds features of encoder .* not of '{kb}'; delete") as e:
+        WorldModelWindows([root], split="all", features=kb)
+    assert "\n" not in str(e.value)
+    with pytest.raises(StoreError, match="run `wamplan wm encode` again"):
+        list(encode_store(root, b))

@@ -1,7 +1,12 @@
 """Encode a store's images once with a frozen encoder and cache the features beside it.
 
-    DIR/features/<encoder>/<episode>.h5     dataset ``z`` (K, V, N, D) float16, one row per stored frame,
-                                            attrs: encoder config (JSON)
+    DIR/features/<key>/<episode>.h5     dataset ``z`` (K, V, N, D) float16, one row per stored frame,
+                                        attrs: encoder config (JSON)
+
+The key is the encoder's name and a hash of its whole configuration (input size, patch size,
+projection, dtype, ...; not the local path of its weights), ``feature_key(encoder.config_dict())``, e.g.
+``patch-pixels-1a2b3c4d``: an encoder with other settings gets a fresh cache, never another's features.
+Readers check every file's stored configuration against the key they were asked for.
 
 One file per episode, written under a temporary name and renamed, so an interrupted encoding resumes
 where it stopped and training never runs the encoder per batch.
@@ -9,19 +14,38 @@ where it stopped and training never runs the encoder per batch.
 
 from __future__ import annotations
 
+import hashlib
 import json
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Iterator
 
 import numpy as np
 import torch
 
-from wamplan.data.store import TMP_PREFIX, EpisodeStore, atomic_h5
+from wamplan.data.store import TMP_PREFIX, EpisodeStore, StoreError, atomic_h5
 from wamplan.policies.base import CAMERAS
 
 
-def feature_dir(root: str | Path, encoder_name: str) -> Path:
-    return Path(root) / "features" / encoder_name
+def feature_key(encoder_config: dict[str, Any]) -> str:
+    """'<name>-<hash of the config>': what a feature cache is keyed and checked by (the path is left out)."""
+    cfg = {k: v for k, v in encoder_config.items() if k != "path"}
+    digest = hashlib.sha1(json.dumps(cfg, sort_keys=True).encode()).hexdigest()[:8]
+    return f"{cfg['name']}-{digest}"
+
+
+def feature_dir(root: str | Path, key: str) -> Path:
+    return Path(root) / "features" / key
+
+
+def check_features(path: str | Path, key: str) -> None:
+    """Raise a one-line StoreError if the cached features in ``path`` were not made by the encoder of ``key``."""
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        made = json.loads(f.attrs["encoder"])
+    if feature_key(made) != key:
+        raise StoreError(f"{path} holds features of encoder {made}, not of '{key}'; delete {Path(path).parent} "
+                         f"and run `wamplan wm encode` again")
 
 
 @torch.inference_mode()
@@ -37,7 +61,8 @@ def encode_frames(encoder, images: np.ndarray, batch_size: int = 64) -> np.ndarr
 def encode_store(root: str | Path, encoder, batch_size: int = 64) -> Iterator[str]:
     """Encode every episode of ``root`` not yet cached; yields the episode names as they finish."""
     store = EpisodeStore(root)
-    out_dir = feature_dir(root, encoder.name)
+    key = feature_key(encoder.config_dict())
+    out_dir = feature_dir(root, key)
     out_dir.mkdir(parents=True, exist_ok=True)
     for p in out_dir.glob(TMP_PREFIX + "*"):
         p.unlink()
@@ -45,6 +70,7 @@ def encode_store(root: str | Path, encoder, batch_size: int = 64) -> Iterator[st
     for path in store.episode_paths():
         final = out_dir / f"{path.stem}.h5"
         if final.exists():
+            check_features(final, key)
             continue
         with store.open_episode(path) as f:
             views = [encode_frames(encoder, f["images"][c][:], batch_size) for c in CAMERAS]  # V x (K, N, D)

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from wamplan.data.features import feature_dir
+from wamplan.data.features import check_features, feature_dir
 from wamplan.data.store import EpisodeStore, StoreError
 from wamplan.policies.base import CAMERAS
 
@@ -61,7 +61,8 @@ def index_episodes(stores: Sequence[str | Path], split: str = "all", val_fractio
                 feat = str(fdir / f"{p.stem}.h5")
                 if not Path(feat).is_file():
                     raise StoreError(f"{root} has no '{features}' features for {p.name}; run `wamplan wm encode "
-                                     f"--data {root} --encoder {features}` first")
+                                     f"--data {root}` with the same encoder settings first")
+                check_features(feat, features)
             with store.open_episode(p) as f:
                 src, seed = str(f.attrs["source"]), int(f.attrs["seed"])
                 if sources is not None and src not in sources:

@@ -75,6 +75,12 @@ def _encoder(preset, path: str | None, device: str):
     return make_encoder(preset.encoder, **kw).to(resolve_device(device))
 
 
+def feature_key(enc) -> str:
+    from wamplan.data.features import feature_key as key
+
+    return key(enc.config_dict())
+
+
 def _encode_all(stores, enc) -> None:
     from tqdm import tqdm
 
@@ -92,7 +98,7 @@ def cmd_encode(args: argparse.Namespace) -> int:
 
     enc = _encoder(get_preset(args.preset), args.encoder_path, args.device)
     _encode_all(_stores(args.data), enc)
-    print(f"features cached under <store>/features/{enc.name}/")
+    print(f"features cached under <store>/features/{feature_key(enc)}/")
     return 0
 
 
@@ -117,7 +123,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 
     preset, train, enc, stores, info = _train_setup(args, decoder=False)
     cfg = preset.predictor
-    kw = dict(frameskip=cfg.frameskip, history=cfg.context, horizon=train.horizon, features=enc.name,
+    kw = dict(frameskip=cfg.frameskip, history=cfg.context, horizon=train.horizon, features=feature_key(enc),
               val_fraction=args.val_fraction)
     tr, va = WorldModelWindows(stores, split="train", **kw), WorldModelWindows(stores, split="val", **kw)
     print(f"windows: {len(tr)} train, {len(va)} val ({len(tr.episodes)} / {len(va.episodes)} episodes)")
@@ -152,7 +158,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
     stores = _stores(args.data)
     _encode_all(stores, enc)
     ds = WorldModelWindows(stores, frameskip=model.cfg.frameskip, history=model.cfg.context, horizon=args.horizon,
-                           split=args.split, val_fraction=args.val_fraction, features=enc.name)
+                           split=args.split, val_fraction=args.val_fraction,
+                           features=feature_key(enc))
     if len(ds) == 0:
         raise UserError(f"no {args.split} windows of {model.cfg.context}+{args.horizon} frames in {args.data}")
     m = evaluate_predictor(model, ds, args.horizon, 0.95)
