@@ -236,3 +236,24 @@ def test_feature_cache_is_keyed_by_the_whole_encoder_config(store, tmp_path):
     assert "\n" not in str(e.value)
     with pytest.raises(StoreError, match="run `wamplan wm encode` again"):
         list(encode_store(root, b))
+
+
+def test_windows_may_end_on_the_episodes_last_frame(store):
+    """window_end='frame': one more window per episode whose last frame is the last Δ-grid frame (the final,
+    e.g. seated, state becomes a prediction target); the unused last block is padded with the last action."""
+    kw = dict(split="all", frameskip=4, history=3, horizon=2)
+    block, frame = WorldModelWindows([store], **kw), WorldModelWindows([store], window_end="frame", **kw)
+    assert len(frame) == len(block) + len(block.episodes)
+    last = {}
+    for i, k in frame.items:
+        last[i] = max(last.get(i, -1), k)
+    for i, e in enumerate(frame.episodes):
+        item = frame[frame.items.index((i, last[i]))]
+        end = int(item["steps"][-1])
+        assert end == 4 * (e.length // 4) and end + 4 > e.length  # the last frame on the grid
+        ep = EpisodeStore(store).load(e.path)
+        np.testing.assert_array_equal(item["q"][-1].numpy(), ep.proprio[end])
+        acts = item["a"].numpy().reshape(-1, 5)  # (T·Δ, 5)
+        real = ep.actions[int(item["steps"][0]):]
+        np.testing.assert_array_equal(acts[:len(real)], real)
+        assert (acts[len(real):] == real[-1]).all()

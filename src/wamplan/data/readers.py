@@ -132,11 +132,16 @@ class WorldModelWindows(Dataset):
     """Items: ``q`` (T, 10), ``a`` (T, Δ·5), and ``z`` (T, V, N, D) cached features (with ``features``) or
     ``images`` (T, V, H, W, 3) uint8, where T = history + horizon frames at stride Δ (``frameskip``).
 
-    ``a[i]`` is the block of Δ actions executed from frame i's step, so frame i+1 = step(frame i, a[i])."""
+    ``a[i]`` is the block of Δ actions executed from frame i's step, so frame i+1 = step(frame i, a[i]).
+    With ``window_end="frame"`` the last frame may be the episode's last frame on the Δ grid, so the final
+    (e.g. seated) frames become prediction targets; the last frame's block, which no loss uses, is then
+    padded past the episode's end with its last action. ``"block"`` keeps whole blocks only."""
 
     def __init__(self, stores: Sequence[str | Path], frameskip: int = 4, history: int = 3, horizon: int = 2,
                  split: str = "train", val_fraction: float = 0.1, features: str | None = None,
-                 sources: Sequence[str] | None = None):
+                 sources: Sequence[str] | None = None, window_end: str = "block"):
+        if window_end not in ("block", "frame"):
+            raise ValueError(f"window_end must be block or frame, got {window_end!r}")
         self.frameskip, self.frames = frameskip, history + horizon
         self.features = features
         self.episodes = index_episodes(stores, split, val_fraction, features=features, sources=sources)
@@ -145,6 +150,8 @@ class WorldModelWindows(Dataset):
                 raise StoreError(f"frameskip {frameskip} is not a multiple of the store's image stride "
                                  f"{e.image_every}; collect with --image-every dividing it")
         span = self.frames * frameskip  # steps covered by the frames and the last action block
+        if window_end == "frame":
+            span -= frameskip  # the last frame itself must exist; its block is padded
         self.items = [(i, k) for i, e in enumerate(self.episodes) for k, s in enumerate(e.image_steps)
                       if s % e.image_every == 0 and s + span <= e.length]
         self._h5 = _H5Cache()
@@ -159,7 +166,9 @@ class WorldModelWindows(Dataset):
         stride = self.frameskip // e.image_every
         ks = [k + j * stride for j in range(self.frames)]  # image indices of the frames
         steps = [e.image_steps[j] for j in ks]
-        acts = f["actions"][steps[0]:steps[-1] + self.frameskip]  # (T·Δ, 5)
+        acts = f["actions"][steps[0]:steps[-1] + self.frameskip]  # (T·Δ, 5), shorter at the episode's end
+        if len(acts) < self.frames * self.frameskip:
+            acts = np.concatenate([acts, np.repeat(acts[-1:], self.frames * self.frameskip - len(acts), 0)])
         out = dict(q=torch.from_numpy(f["proprio"][steps]),  # (T, 10)
                    a=torch.from_numpy(acts.reshape(self.frames, -1).astype(np.float32)),  # (T, Δ·5)
                    steps=torch.tensor(steps))

@@ -124,6 +124,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     preset, train, enc, stores, info = _train_setup(args, decoder=False)
     cfg = preset.predictor
     kw = dict(frameskip=cfg.frameskip, history=cfg.context, horizon=train.horizon, features=feature_key(enc),
+              window_end=train.window_end,
               val_fraction=args.val_fraction)
     tr, va = WorldModelWindows(stores, split="train", **kw), WorldModelWindows(stores, split="val", **kw)
     print(f"windows: {len(tr)} train, {len(va)} val ({len(tr.episodes)} / {len(va.episodes)} episodes)")

@@ -108,8 +108,15 @@ class TrainConfig:
     seed: int = field(0, "seed of initialisation and data order")
     num_workers: int = field(0, "DataLoader worker processes")
     save_every_steps: int = field(0, "also checkpoint every this many steps (0 = at epoch ends only)")
+    loss_form: str = field("mean", "eq. 2's terms: 'mean' (per-element MSE of z plus that of q; our default) or "
+                                   "'sum' (the paper's squared norms, ||dz||^2 + ||dq||^2, divided by z's size)")
+    window_end: str = field("block", "last window of an episode: 'block' (the last frame's action block lies in "
+                                     "the episode) or 'frame' (the last frame may be the episode's last Δ-grid frame)")
 
     def __post_init__(self) -> None:
+        require(self.loss_form in ("mean", "sum"), f"TrainConfig.loss_form must be mean or sum, got {self.loss_form!r}")
+        require(self.window_end in ("block", "frame"),
+                f"TrainConfig.window_end must be block or frame, got {self.window_end!r}")
         require(self.horizon >= 1, f"TrainConfig.horizon (K) must be >= 1, got {self.horizon}")
         require(0.0 < self.gamma <= 1.0, f"TrainConfig.gamma must be in (0, 1], got {self.gamma}")
         require(self.lr > 0, f"TrainConfig.lr must be > 0, got {self.lr}; pass a positive --lr")

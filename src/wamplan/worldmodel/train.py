@@ -9,8 +9,10 @@ predictor unrolls K steps autoregressively with the ground-truth actions (its pr
 
     loss = sum_{h=1..K} gamma**(h-1) * (MSE(z_pred_h, z_h) + MSE(q_pred_h, q_h))
 
-with MSE the *mean* over elements (the paper writes squared norms; the mean keeps the two terms and
-the learning rate on a sane scale whatever V, N, D; it is the norm divided by the element count).
+with MSE the *mean* over elements (``loss_form="mean"``, our default). The paper writes squared norms,
+||dz||^2 + ||dq||^2, which weight proprio by P / (V·N·D) against the features (10 / 6144 in the mini
+preset, 10 / 602112 in the paper's), i.e. practically not at all; ``loss_form="sum"`` is that form divided
+by V·N·D (the same optimum, a comparable scale). README "Differences from the paper" gives the measurement.
 
 Normalisation: proprioception and actions are used as they are (roughly unit scale). Visual features
 are normalised per dimension at the predictor's *input* with a mean/std (D,) computed from the training
@@ -55,14 +57,15 @@ def per_horizon_mse(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 
 
 def window_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int,
-                gamma: float) -> tuple[torch.Tensor, dict[str, float]]:
+                gamma: float, loss_form: str = "mean") -> tuple[torch.Tensor, dict[str, float]]:
     """Eq. 2: the discounted K-step autoregressive loss of a batch of windows."""
     (zc, qc, ac), a_future, (zt, qt) = _split(model, batch, horizon)
     zp, qp = model.rollout(zc, qc, ac, a_future)  # (B, K, V, N, D), (B, K, P)
     ez = per_horizon_mse(zp, zt).mean(dim=0)  # (K,)
     eq = per_horizon_mse(qp, qt).mean(dim=0)  # (K,)
+    q_weight = 1.0 if loss_form == "mean" else qt[0, 0].numel() / zt[0, 0].numel()  # sum form: P / (V·N·D)
     w = gamma ** torch.arange(horizon, device=ez.device, dtype=ez.dtype)  # (K,)
-    loss = (w * (ez + eq)).sum()
+    loss = (w * (ez + q_weight * eq)).sum()
     return loss, {"z_mse_h1": float(ez[0].detach()), "q_mse_h1": float(eq[0].detach())}
 
 
@@ -133,7 +136,7 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
                                   2 * train.batch_size, dev)
 
     metrics = fit(model, train_set, train, kind=KIND, config=config, out_dir=out_dir, device=dev,
-                  loss_fn=lambda m, b: window_loss(m, b, train.horizon, train.gamma),
+                  loss_fn=lambda m, b: window_loss(m, b, train.horizon, train.gamma, train.loss_form),
                   evaluate=evaluate if val_set is not None else None, on_fresh_start=fresh_stats,
                   resume=resume, max_steps=max_steps, progress=progress, desc="predictor")
     return model.eval(), metrics
