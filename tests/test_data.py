@@ -2,6 +2,7 @@
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -19,9 +20,10 @@ SMALL = ["--camera-size", "64"]
 
 
 @pytest.fixture(scope="module")
-def store(tmp_path_factory):
+def store(tmp_path_factory, expert_store):
+    """The session's two expert episodes (copied: these tests add to the store) plus two short pink ones."""
     root = tmp_path_factory.mktemp("store") / "expert"
-    assert main(["collect", "--source", "expert", "--episodes", "2", "--out", str(root), *SMALL]) == 0
+    shutil.copytree(expert_store, root)
     assert main(["collect", "--source", "pink", "--episodes", "2", "--seed-start", "10", "--max-steps", "30",
                  "--out", str(root), *SMALL]) == 0
     return root
@@ -46,13 +48,11 @@ def test_store_contents(store):
     assert all(m["length"] == 30 and not m["success"] for m in metas if m["source"] == "pink")
 
 
-def test_stored_images_match_rerender(store, env):
+def test_stored_images_match_rerender(store, small_env):
     """The stored sim state restores the scene: re-rendering it gives the stored picture."""
-    from wamplan.envs.core import EnvConfig, InsertionEnv
-
     s = EpisodeStore(store)
     ep = s.load(s.episode_path("expert", 1))
-    e = InsertionEnv(EnvConfig(camera_size=64))
+    e = small_env  # 64 px, as the store
     e.reset(1)
     k = 5
     t = ep.image_steps[k]
@@ -63,7 +63,6 @@ def test_stored_images_match_rerender(store, env):
     for c in ("front", "side"):
         diff = np.abs(views[c].astype(int) - ep.images[c][k].astype(int))
         assert diff.mean() < 2.0, (c, diff.mean())
-    e.close()
 
 
 def test_resume_skips_finished(store, capsys):
@@ -135,8 +134,6 @@ def test_foreign_and_damaged_dirs(tmp_path, capsys, store):
     assert "not a wamplan episode store" in capsys.readouterr().err
     assert (foreign / "notes.txt").read_text() == "hello"  # nothing lost
     # a damaged episode file
-    import shutil
-
     broken = tmp_path / "broken"
     shutil.copytree(store, broken)
     victim = sorted((broken / "episodes").glob("*.h5"))[0]

@@ -2,6 +2,7 @@
 conditions 1 and 6 (one planned chunk) -> resume -> report. Catches wiring breaks, not quality."""
 
 import json
+import shutil
 
 import pytest
 
@@ -10,10 +11,9 @@ from wamplan.evaluation.records import read_records
 
 
 @pytest.fixture(scope="module")
-def run(tmp_path_factory):
+def run(tmp_path_factory, expert_store):
     root = tmp_path_factory.mktemp("e2e")
-    store = root / "expert"
-    assert main(["collect", "--source", "expert", "--episodes", "2", "--out", str(store), "--camera-size", "64"]) == 0
+    store = shutil.copytree(expert_store, root / "expert")  # a copy: `wm train` caches features in the store
     assert main(["wam", "train", "--data", str(store), "--out", str(root / "wam"), "--epochs", "1", "--max-steps", "3",
                  "--batch-size", "8", "--channels", "8", "16", "--latent-dim", "32", "--trunk-dim", "64",
                  "--no-progress"]) == 0

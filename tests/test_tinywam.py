@@ -29,10 +29,8 @@ def one_thread():
 
 
 @pytest.fixture(scope="module")
-def store(tmp_path_factory):
-    root = tmp_path_factory.mktemp("tinywam") / "expert"
-    assert main(["collect", "--source", "expert", "--episodes", "2", "--out", str(root), "--camera-size", "64"]) == 0
-    return root
+def store(expert_store):
+    return expert_store  # the session's store, read-only here: `wam train` writes only under --out
 
 
 def _obs(size: int = 48, step: int = 0) -> Observation:
@@ -139,11 +137,11 @@ def test_cli_train_resume_and_errors(store, tmp_path, capsys):
     one_line_error([*args, "--lr", "0.5"], "different lr")
 
 
-def test_tinywam_runs_as_a_policy_and_queries_every_16_steps(env):
+def test_tinywam_runs_as_a_policy_and_queries_every_16_steps(small_env):
     from wamplan.envs.rollout import run_episode
 
     policy = WAMPolicy(make_wam("tinywam", config=TINY, device="cpu"))
-    result = run_episode(env, policy, seed=0, max_steps=32, stop_on_success=False)
+    result = run_episode(small_env, policy, seed=0, max_steps=32, stop_on_success=False)
     assert result.length == 32
     assert result.policy_info["query_steps"] == [0, 16] and result.policy_info["chunks"] == 2
     assert policy.last_output is not None and policy.last_output.images["front"].shape == (32, 32, 3)
