@@ -70,8 +70,10 @@ def test_wm_eval_reports_copy_baseline(run, tmp_path):
     assert m["z_mse_h1"] != m["copy_z_mse_h1"] and all(map(math.isfinite, (m["z_mse_h1"], m["z_mse_h2"])))
 
 
+@pytest.mark.slow
 def test_eval_kill9_then_resume_loses_and_repeats_nothing(run):
-    """kill -9 an evaluation (one process) after its first record; resuming in-process loses and repeats nothing."""
+    """kill -9 an evaluation (one process) after its first record; resuming in-process loses and repeats nothing.
+    Slow (~40 s: a fresh interpreter, env and WAM); the default suite's kill -9 test is test_data's."""
     import os
     import signal
     import subprocess
