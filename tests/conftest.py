@@ -1,4 +1,18 @@
+from pathlib import Path
+
 import pytest
+
+
+def pytest_collection_modifyitems(config, items):
+    """Tests marked `gpu` need an accelerator: without one they are reported as skipped, not silently absent."""
+    import torch
+
+    if torch.accelerator.is_available():
+        return
+    skip = pytest.mark.skip(reason="needs a GPU (torch.accelerator finds none); run on a machine with one")
+    for item in items:
+        if item.get_closest_marker("gpu") is not None:
+            item.add_marker(skip)
 
 
 @pytest.fixture(scope="session")
@@ -9,3 +23,28 @@ def env():
     e = InsertionEnv()
     yield e
     e.close()
+
+
+@pytest.fixture(scope="session")
+def small_env():
+    """The same task rendered at 64 px, for tests where the resolution does not matter (renders cost less)."""
+    from wamplan.envs.core import EnvConfig, InsertionEnv
+
+    e = InsertionEnv(EnvConfig(camera_size=64))
+    yield e
+    e.close()
+
+
+@pytest.fixture(scope="session")
+def expert_store(tmp_path_factory) -> Path:
+    """Expert seeds 0 and 1 at 64 px, collected once for the whole session (about 20 s).
+
+    Shared: treat it as read-only. A test that writes into a store (collects more episodes, caches features,
+    trains a world model on it) works on a copy: ``shutil.copytree(expert_store, tmp_path / "expert")``.
+    """
+    from wamplan.cli import main
+
+    root = tmp_path_factory.mktemp("session_store") / "expert"
+    assert main(["collect", "--source", "expert", "--episodes", "2", "--out", str(root), "--camera-size", "64"]) == 0
+    return root
+

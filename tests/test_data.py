@@ -2,6 +2,7 @@
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -19,9 +20,10 @@ SMALL = ["--camera-size", "64"]
 
 
 @pytest.fixture(scope="module")
-def store(tmp_path_factory):
+def store(tmp_path_factory, expert_store):
+    """The session's two expert episodes (copied: these tests add to the store) plus two short pink ones."""
     root = tmp_path_factory.mktemp("store") / "expert"
-    assert main(["collect", "--source", "expert", "--episodes", "2", "--out", str(root), *SMALL]) == 0
+    shutil.copytree(expert_store, root)
     assert main(["collect", "--source", "pink", "--episodes", "2", "--seed-start", "10", "--max-steps", "30",
                  "--out", str(root), *SMALL]) == 0
     return root
@@ -46,13 +48,11 @@ def test_store_contents(store):
     assert all(m["length"] == 30 and not m["success"] for m in metas if m["source"] == "pink")
 
 
-def test_stored_images_match_rerender(store, env):
+def test_stored_images_match_rerender(store, small_env):
     """The stored sim state restores the scene: re-rendering it gives the stored picture."""
-    from wamplan.envs.core import EnvConfig, InsertionEnv
-
     s = EpisodeStore(store)
     ep = s.load(s.episode_path("expert", 1))
-    e = InsertionEnv(EnvConfig(camera_size=64))
+    e = small_env  # 64 px, as the store
     e.reset(1)
     k = 5
     t = ep.image_steps[k]
@@ -63,7 +63,6 @@ def test_stored_images_match_rerender(store, env):
     for c in ("front", "side"):
         diff = np.abs(views[c].astype(int) - ep.images[c][k].astype(int))
         assert diff.mean() < 2.0, (c, diff.mean())
-    e.close()
 
 
 def test_resume_skips_finished(store, capsys):
@@ -135,8 +134,6 @@ def test_foreign_and_damaged_dirs(tmp_path, capsys, store):
     assert "not a wamplan episode store" in capsys.readouterr().err
     assert (foreign / "notes.txt").read_text() == "hello"  # nothing lost
     # a damaged episode file
-    import shutil
-
     broken = tmp_path / "broken"
     shutil.copytree(store, broken)
     victim = sorted((broken / "episodes").glob("*.h5"))[0]
@@ -162,21 +159,24 @@ def test_info_and_view(store, tmp_path, capsys):
     assert "out of range" in capsys.readouterr().err
 
 
-def test_kill9_then_resume(tmp_path):
-    """kill -9 the whole collection (parent and workers) mid-run; resuming completes it exactly."""
+@pytest.mark.parametrize("workers", [1, pytest.param(2, marks=pytest.mark.slow)])
+def test_kill9_then_resume(tmp_path, capsys, workers):
+    """kill -9 the whole collection (parent and any workers) mid-run; resuming completes it exactly.
+    One process by default; the two-worker run (three interpreters to start) is in the slow suite."""
     out = tmp_path / "pink"
-    cmd = [sys.executable, "-m", "wamplan.cli", "collect", "--source", "pink", "--episodes", "6", "--max-steps", "12",
-           "--workers", "2", "--out", str(out), *SMALL]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    args = ["collect", "--source", "pink", "--episodes", "6", "--max-steps", "12", "--workers", str(workers),
+            "--out", str(out), *SMALL]
+    proc = subprocess.Popen([sys.executable, "-m", "wamplan.cli", *args], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, start_new_session=True)
     deadline = time.time() + 240
     while time.time() < deadline and len(list((out / "episodes").glob("[!.]*.h5"))) < 2:
-        time.sleep(0.2)
+        time.sleep(0.05)
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
     before = {p.name: p.read_bytes() for p in (out / "episodes").glob("[!.]*.h5")}
     assert 2 <= len(before) < 6, "the kill should land mid-collection"
-    r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0, r.stderr
+    capsys.readouterr()
+    assert main(args) == 0  # resume in-process
     s = EpisodeStore(out)
     assert s.finished_seeds("pink") == set(range(6))
     assert len(s.episode_paths()) == 6 and not list((out / "episodes").glob(".tmp-*"))
@@ -184,7 +184,7 @@ def test_kill9_then_resume(tmp_path):
         assert (out / "episodes" / name).read_bytes() == data
     for p in s.episode_paths():
         assert s.load(p).length == 12
-    assert json.loads(r.stdout.strip().splitlines()[-1])["collected"] == 6 - len(before)
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["collected"] == 6 - len(before)
 
 
 def test_feature_cache_feeds_windows(store):

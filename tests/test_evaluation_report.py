@@ -8,7 +8,7 @@ from wamplan.cli import main
 from wamplan.errors import UserError
 from wamplan.evaluation.conditions import CONDITIONS, parse_conditions
 from wamplan.evaluation.records import RECORDS, append_record, read_records
-from wamplan.evaluation.report import markdown_paired, table1, wilson
+from wamplan.evaluation.report import markdown_paired, sign_test, table1, wilson
 
 
 def test_conditions_match_the_paper():
@@ -58,10 +58,32 @@ def test_records_survive_a_torn_last_line(tmp_path):
     assert [r["seed"] for r in read_records(tmp_path)] == [0, 1, 2, 3, 4]
 
 
+def test_sign_test_exact_values():
+    # exact two-sided binomial test, p = 2 * P(X <= min) under Bin(n, 1/2), worked by hand:
+    assert sign_test(6, 0) == pytest.approx(2 / 2 ** 6)  # 0.03125
+    assert sign_test(0, 6) == pytest.approx(0.03125)  # symmetric in gained / lost
+    assert sign_test(8, 2) == pytest.approx(2 * (1 + 10 + 45) / 2 ** 10)  # 0.109375
+    assert sign_test(2, 8) == pytest.approx(0.109375)
+    assert sign_test(10, 0) == pytest.approx(2 / 1024)
+    assert sign_test(3, 1) == pytest.approx(2 * (1 + 4) / 16)  # 0.625
+    assert sign_test(2, 2) == 1.0 and sign_test(0, 0) == 1.0  # clamped, and no discordant pairs
+    # and the paired table prints it: 6 seeds gained, none lost
+    recs = [_rec(1, s, "never_lifted") for s in range(8)] + [_rec(7, s, "success" if s < 6 else "never_lifted")
+                                                              for s in range(8)]
+    assert markdown_paired(recs).splitlines()[-1].startswith("| 7 | 8 | 6 | 0 | 0.03 |")
+
+
 def test_wilson_interval():
+    # 95% Wilson score interval (z = 1.959964); reference values computed independently
+    # (scipy.stats.binomtest(k, n).proportion_ci(method="wilson")).
+    lo, hi = wilson(10, 30)
+    assert lo == pytest.approx(0.192305, abs=1e-3) and hi == pytest.approx(0.512199, abs=1e-3)
+    lo, hi = wilson(0, 10)
+    assert lo == 0.0 and hi == pytest.approx(0.277533, abs=1e-3)
     lo, hi = wilson(17, 50)
-    assert 0.21 < lo < 0.23 and 0.47 < hi < 0.49  # 34% of 50
-    assert wilson(0, 10)[0] == 0.0 and wilson(10, 10)[1] == 1.0
+    assert lo == pytest.approx(0.224369, abs=1e-3) and hi == pytest.approx(0.478462, abs=1e-3)
+    lo, hi = wilson(10, 10)
+    assert lo == pytest.approx(1 - 0.277533, abs=1e-3) and hi == 1.0
 
 
 def test_report_tables_and_figure(tmp_path):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import statistics
 
 import pytest
@@ -14,9 +15,8 @@ from wamplan.errors import UserError
 from wamplan.planning import CEMConfig, MPPIConfig, MPPIPlanner, PlanResult, make_planner
 
 H, A = 16, 5  # chunk length, action dim
-DEVICES = ["cpu"]
-if torch.accelerator.is_available():
-    DEVICES.append(str(torch.accelerator.current_accelerator()))
+# the accelerator case is marked `gpu`: on a CPU-only machine it shows as skipped, not silently absent
+DEVICES = ["cpu", pytest.param("accelerator", marks=pytest.mark.gpu)]
 
 
 class Recorder:
@@ -76,7 +76,10 @@ def test_cem_scores_mean_and_refits_to_exact_elites():
     assert res.best_cost == pytest.approx(all_costs.min().item())
     assert res.seed_cost == pytest.approx(rec.calls[0][1][0].item())
     assert res.num_evaluations == 128
-    json.dumps(res.stats())  # plain data
+    stats = json.loads(json.dumps(res.stats()))  # plain data, and the same numbers
+    assert (stats["best_cost"], stats["seed_cost"], stats["num_evaluations"]) == (
+        res.best_cost, res.seed_cost, 128)
+    assert [h["mean_cost"] for h in stats["history"]] == [c[0].item() for _, c in rec.calls]
 
 
 def test_cem_sample_ddof_option():
@@ -200,6 +203,8 @@ def test_all_sixteen_optimised_and_nan_costs():
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("name", ["cem", "mppi"])
 def test_device_follows_seed_actions(name, device):
+    if device == "accelerator":
+        device = str(torch.accelerator.current_accelerator())
     seed, cost, _ = sum_problem(torch.Generator().manual_seed(8), 0.2)
     seed = seed.to(device)
     res = make_planner(name, {"num_optimized": 15}).plan(seed, cost, seed=0)
@@ -272,7 +277,12 @@ def test_config_round_trips_json_and_cli():
 def test_without_mean_candidate():
     seed, cost, _ = sum_problem(torch.Generator().manual_seed(9), 0.2)
     rec = Recorder(cost)
-    res = make_planner("cem", {"include_mean": False}).plan(seed, rec, seed=0)
-    assert not torch.equal(rec.calls[0][0][0], seed)
-    assert res.history[0].mean_cost != res.history[0].mean_cost  # NaN: the mean was not scored
-    assert isinstance(res, PlanResult)
+    cfg = CEMConfig(include_mean=False)
+    res = make_planner("cem", cfg).plan(seed, rec, seed=0)
+    # all 32 candidates are samples around the seed: N(seed, init_std^2), clipped, replayed from the same draws
+    noise = torch.randn(32, H, A, generator=torch.Generator().manual_seed(0))  # (32, H, A): all 16 optimised
+    torch.testing.assert_close(rec.calls[0][0], (seed + cfg.init_std * noise).clamp(-1, 1))
+    assert not any(torch.equal(c, seed) for c in rec.calls[0][0])
+    assert math.isnan(res.seed_cost) and math.isnan(res.history[0].mean_cost)  # the mean was never scored
+    assert res.best_cost == pytest.approx(min(c.min().item() for _, c in rec.calls))
+    assert res.num_evaluations == 32 * cfg.iterations and isinstance(res, PlanResult)

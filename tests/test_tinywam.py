@@ -1,6 +1,7 @@
 """TinyWAM: shapes, learning, checkpoints (round trip, exact resume), the `wam train` CLI, and running as a policy."""
 
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -29,10 +30,8 @@ def one_thread():
 
 
 @pytest.fixture(scope="module")
-def store(tmp_path_factory):
-    root = tmp_path_factory.mktemp("tinywam") / "expert"
-    assert main(["collect", "--source", "expert", "--episodes", "2", "--out", str(root), "--camera-size", "64"]) == 0
-    return root
+def store(expert_store):
+    return expert_store  # the session's store, read-only here: `wam train` writes only under --out
 
 
 def _obs(size: int = 48, step: int = 0) -> Observation:
@@ -139,11 +138,36 @@ def test_cli_train_resume_and_errors(store, tmp_path, capsys):
     one_line_error([*args, "--lr", "0.5"], "different lr")
 
 
-def test_tinywam_runs_as_a_policy_and_queries_every_16_steps(env):
+def test_cli_resume_on_different_data_is_refused(store, tmp_path, capsys):
+    """A half-trained run continued on other data would mix two datasets in one model: refused, in one line.
+    The same store spelled through a link is the same data and resumes."""
+    out = tmp_path / "ckpt"
+    base = ["wam", "train", "--out", str(out), "--epochs", "1", "--batch-size", "8", "--no-progress", "--device", "cpu",
+            *TINY_ARGS]
+    assert main([*base, "--data", str(store), "--max-steps", "1"]) == 0
+    weights = (out / "model.safetensors").read_bytes()
+    other = shutil.copytree(store, tmp_path / "other")  # another store (a copy to start with) ...
+    for victim in sorted((other / "episodes").glob("*.h5"))[1:]:
+        victim.unlink()  # ... holding different data: one episode fewer
+    capsys.readouterr()
+    for data in ([str(other)], [str(store), str(other)]):
+        assert main([*base, "--data", ",".join(data), "--max-steps", "2"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert "trained with different data" in err and "pass a new --out" in err and "\n" not in err, err
+    assert main([*base, "--data", str(store), "--sources", "pink", "--max-steps", "2"]) == 2
+    assert "different data" in capsys.readouterr().err
+    assert (out / "model.safetensors").read_bytes() == weights  # the refused runs left the checkpoint alone
+    (tmp_path / "link").symlink_to(store)
+    assert main([*base, "--data", str(tmp_path / "link"), "--max-steps", "2"]) == 0
+    assert "resuming" in capsys.readouterr().out and json.loads(
+        (out / "training_state" / "state.json").read_text())["train_state"]["global_step"] == 2
+
+
+def test_tinywam_runs_as_a_policy_and_queries_every_16_steps(small_env):
     from wamplan.envs.rollout import run_episode
 
     policy = WAMPolicy(make_wam("tinywam", config=TINY, device="cpu"))
-    result = run_episode(env, policy, seed=0, max_steps=32, stop_on_success=False)
+    result = run_episode(small_env, policy, seed=0, max_steps=32, stop_on_success=False)
     assert result.length == 32
     assert result.policy_info["query_steps"] == [0, 16] and result.policy_info["chunks"] == 2
     assert policy.last_output is not None and policy.last_output.images["front"].shape == (32, 32, 3)

@@ -10,11 +10,12 @@ import json_numpy
 import numpy as np
 import pytest
 import requests
+import torch
 from fastapi import FastAPI, Request
 from fastapi.responses import Response
 
-from wamplan.checkpoint import CheckpointError
-from wamplan.config import ConfigError
+from wamplan.checkpoint import CheckpointError, save_checkpoint
+from wamplan.config import ConfigError, to_dict
 from wamplan.policies.base import CAMERAS, Observation
 from wamplan.wam import protocol
 from wamplan.wam.base import (
@@ -30,8 +31,10 @@ from wamplan.wam.base import (
     register_wam_loader,
     validate_wam_output,
 )
-from wamplan.wam.cosmos_client import CosmosClientConfig, CosmosPolicyClient
+from wamplan.wam.cosmos_client import CosmosClientConfig, CosmosPolicyClient, resize_image
 from wamplan.wam.server import BackgroundServer, create_app
+from wamplan.wam.tinywam import KIND as TINYWAM_KIND
+from wamplan.wam.tinywam import TinyWAMConfig, TinyWAMNet
 
 H, A = 16, 5
 CHUNK = np.linspace(-0.9, 0.9, H * A, dtype=np.float32).reshape(H, A)  # (16, 5)
@@ -85,6 +88,26 @@ def echo():
         yield srv, wam
 
 
+# residual=False: the untrained model's images are its own (sigmoid of a random decoder), not the input views
+TINY = TinyWAMConfig(image_size=32, channels=(8, 16), latent_dim=32, trunk_dim=64, residual=False)
+
+
+@pytest.fixture(scope="module")
+def tiny_ckpt(tmp_path_factory):
+    """An untrained, seeded TinyWAM saved as a checkpoint (what `wamplan wam serve --ckpt` loads)."""
+    torch.manual_seed(0)
+    net = TinyWAMNet(TINY)
+    return save_checkpoint(tmp_path_factory.mktemp("tinywam") / "ckpt", net, {"model": to_dict(TINY)},
+                           kind=TINYWAM_KIND)
+
+
+@pytest.fixture(scope="module")
+def tiny_server(tiny_ckpt):
+    """`wamplan wam serve`'s app (load_wam + create_app) on a free 127.0.0.1 port, in-process."""
+    with BackgroundServer(create_app(load_wam(tiny_ckpt))) as srv:
+        yield srv
+
+
 @pytest.fixture(scope="module")
 def failing():
     with BackgroundServer(create_app(EchoWAM(fail=True))) as srv:
@@ -108,6 +131,27 @@ def _preds(**over):
     p = good_answer()["future_image_predictions"]
     p.update(over)
     return p
+
+
+# Answers shaped like the released Cosmos Policy models' (cosmos_policy constants: ALOHA 50 x 14 actions and
+# 14-D proprio, RoboCasa 32 x 7 and 9-D proprio; images 224 px). ALOHA's deploy script sends each image with a
+# leading batch axis (1, 224, 224, 3); RoboCasa predicts two third-person views and one wrist view.
+ALOHA_ACTIONS = np.linspace(-0.95, 0.95, 50 * 14, dtype=np.float32).reshape(50, 14)  # (50, 14)
+ROBOCASA_ACTIONS = np.linspace(0.9, -0.9, 32 * 7, dtype=np.float32).reshape(32, 7)  # (32, 7)
+
+
+def _views(names, shape, seed):
+    rng = np.random.default_rng(seed)
+    return {k: rng.integers(0, 256, shape, dtype=np.uint8) for k in names}
+
+
+ALOHA_IMAGES = _views(("future_image", "future_wrist_image", "future_wrist_image2"), (1, 224, 224, 3), 1)
+ROBOCASA_IMAGES = _views(("future_image", "future_image2", "future_wrist_image"), (224, 224, 3), 2)
+SHAPED = {
+    "aloha": {"actions": list(ALOHA_ACTIONS), "future_image_predictions": ALOHA_IMAGES, "value_prediction": 0.8},
+    "robocasa": {"actions": list(ROBOCASA_ACTIONS), "value_prediction": np.float32(0.3),
+                 "future_image_predictions": {**ROBOCASA_IMAGES, "future_wrist_image2": None}},
+}
 
 
 BAD_ANSWERS = {  # route -> (answer body, substring the client's error must contain)
@@ -146,6 +190,8 @@ def fake():
             return Response(json.dumps("error"), media_type="application/json")
         if case in BAD_ANSWERS:
             return Response(BAD_ANSWERS[case][0], media_type="application/json")
+        if case in SHAPED:
+            return Response(json_numpy.dumps(SHAPED[case]), media_type="application/json")
         if case == "double":
             return Response(json.dumps(json_numpy.dumps(good_answer())), media_type="application/json")
         if case == "overshoot":
@@ -174,7 +220,86 @@ def test_round_trip_over_http(echo):
     assert out.actions.dtype == np.float32 and out.actions.shape == (H, A)
     np.testing.assert_array_equal(out.actions, expected)
     assert out.value == pytest.approx(0.25)
-    assert out.timing["query_s"] > 0 and out.extras["attempts"] == 1
+    assert out.timing["http_s"] <= out.timing["query_s"]  # the query = adapting + HTTP + decoding
+    assert out.extras == {"attempts": 1, "url": srv.act_url}
+
+
+def test_tinywam_round_trip_through_the_server_matches_calling_it_directly(tiny_server, tiny_ckpt):
+    direct = load_wam(tiny_ckpt)  # a second copy of the same checkpoint, called in-process
+    for step in (0, 5):
+        obs = make_obs(step)  # 24 x 32 renders: TinyWAM resizes them to its 32 px on both paths
+        want = direct.predict(obs, "insert the cube")
+        got = client(tiny_server.act_url).predict(obs, "insert the cube")
+        np.testing.assert_array_equal(got.actions, want.actions)  # float32 survives json_numpy exactly
+        assert got.actions.shape == (H, A) and np.abs(got.actions).max() > 0.01  # a real, non-zero chunk
+        assert got.value is None and want.value is None
+        for c in CAMERAS:
+            assert got.images[c].shape == (32, 32, 3)  # the WAM's resolution, not the renders'
+            np.testing.assert_array_equal(got.images[c], want.images[c])
+    # the predicted views are the model's, per camera: they differ from each other and between inputs
+    assert not np.array_equal(got.images["front"], got.images["side"])
+    other = client(tiny_server.act_url).predict(make_obs(0), "t")
+    assert not np.array_equal(got.images["front"], other.images["front"])
+
+
+def test_tinywam_server_with_a_custom_camera_mapping(tiny_server, tiny_ckpt):
+    """Our side view sent as the server's primary image (its 'front') and so on: the server's model sees the
+    permuted views, and the client maps its predictions back by response field."""
+    direct = load_wam(tiny_ckpt)
+    obs = make_obs(9)
+    c = client(tiny_server.act_url,
+               request_fields=("side=primary_image", "front=left_wrist_image", "wrist=right_wrist_image"),
+               response_fields=("front=future_wrist_image", "wrist=future_image"))
+    got = c.predict(obs, "t")
+    permuted = Observation(step=0, proprio=obs.proprio,
+                           images={"front": obs.images["side"], "side": obs.images["front"],
+                                   "wrist": obs.images["wrist"]})
+    want = direct.predict(permuted, "t")  # what the server's model computes
+    np.testing.assert_array_equal(got.actions, want.actions)
+    np.testing.assert_array_equal(got.images["front"], want.images["side"])  # future_wrist_image = its 'side'
+    np.testing.assert_array_equal(got.images["wrist"], want.images["front"])  # future_image = its 'front'
+    assert not np.array_equal(got.actions, direct.predict(obs, "t").actions)  # the permutation mattered
+
+
+def test_aloha_shaped_answer_mapped_by_the_client(fake):
+    srv, seen = fake
+    cols = (7, 8, 9, 12, 13)  # e.g. the right arm's x, y, z, a wrist joint and its gripper
+    c = client(srv.url + "/aloha/act", chunk_length=50, action_indices=cols, proprio_dim=14,
+               send_image_size=224, image_size=64)
+    out = c.predict(make_obs(2), "fold the towel")
+    assert out.actions.shape == (50, 5) and c.chunk_length == 50
+    np.testing.assert_array_equal(out.actions, ALOHA_ACTIONS[:, list(cols)])
+    for cam, name in (("front", "future_image"), ("side", "future_wrist_image"), ("wrist", "future_wrist_image2")):
+        assert out.images[cam].shape == (64, 64, 3)  # (1, 224, 224, 3) -> batch axis dropped -> resized
+        np.testing.assert_array_equal(out.images[cam], resize_image(ALOHA_IMAGES[name][0], 64))
+    assert out.value == pytest.approx(0.8)
+    req = protocol.decode_request(seen["aloha"])
+    assert req.proprio.shape == (14,) and req.images["primary_image"].shape == (224, 224, 3)
+    np.testing.assert_array_equal(req.proprio[:10], make_obs(2).proprio)
+    assert req.task_description == "fold the towel"
+    # run open loop, the policy queries the server once per 50-step chunk
+    policy = WAMPolicy(c, "fold the towel")
+    executed = [policy.act(make_obs(t, images=policy.wants_images(t))) for t in range(60)]
+    assert policy.info()["query_steps"] == [0, 50]
+    np.testing.assert_array_equal(np.stack(executed[:50]), ALOHA_ACTIONS[:, list(cols)])
+    # left at the default 16-step chunks, the client says what to pass
+    with pytest.raises(WAMServerError, match="returned 50-step chunks.*--wam-chunk-length 50"):
+        client(srv.url + "/aloha/act").predict(make_obs(), "t")
+
+
+def test_robocasa_shaped_answer_mapped_by_the_client(fake):
+    srv, seen = fake
+    c = client(srv.url + "/robocasa/act", chunk_length=32, proprio_dim=9,
+               response_fields=("front=future_image", "side=future_image2", "wrist=future_wrist_image"))
+    out = c.predict(make_obs(4), "t")
+    np.testing.assert_array_equal(out.actions, ROBOCASA_ACTIONS[:, :5])  # dx dy dz, then two more columns
+    for cam, name in (("front", "future_image"), ("side", "future_image2"), ("wrist", "future_wrist_image")):
+        np.testing.assert_array_equal(out.images[cam], ROBOCASA_IMAGES[name])  # 224 px kept: no image_size
+    assert out.value == pytest.approx(0.3)
+    np.testing.assert_array_equal(protocol.decode_request(seen["robocasa"]).proprio, make_obs(4).proprio[:9])
+    # the default mapping asks for future_wrist_image2, which a RoboCasa model does not predict
+    with pytest.raises(WAMServerError, match="no 'future_wrist_image2' image"):
+        client(srv.url + "/robocasa/act", chunk_length=32).predict(make_obs(), "t")
 
 
 def test_empty_instruction_uses_server_default(echo):

@@ -32,6 +32,14 @@ def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
     return max(0.0, centre - half), min(1.0, centre + half)
 
 
+def sign_test(gained: int, lost: int) -> float:
+    """Exact two-sided sign (McNemar) test p-value on ``gained`` vs ``lost`` discordant pairs (1.0 if none)."""
+    n = gained + lost
+    if n == 0:
+        return 1.0
+    return min(1.0, 2 * sum(math.comb(n, i) for i in range(min(gained, lost) + 1)) / 2 ** n)
+
+
 def table1(records: list[dict[str, Any]], variant: str = "open-loop") -> list[dict[str, Any]]:
     rows = []
     by_c = defaultdict(list)
@@ -120,8 +128,7 @@ def markdown_paired(records: list[dict[str, Any]], baseline: int = 1) -> str | N
             continue
         gained = sum(by[c][s]["success"] and not by[baseline][s]["success"] for s in seeds)
         lost = sum(by[baseline][s]["success"] and not by[c][s]["success"] for s in seeds)
-        n = gained + lost
-        p = min(1.0, 2 * sum(math.comb(n, i) for i in range(min(gained, lost) + 1)) / 2 ** n) if n else 1.0
+        p = sign_test(gained, lost)
 
         def inserted(cid: int) -> str:
             aligned = [by[cid][s] for s in seeds if by[cid][s].get("reached", {}).get("aligned")]
