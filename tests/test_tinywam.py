@@ -114,7 +114,7 @@ def test_checkpoint_round_trip_and_exact_resume(store, tmp_path):
     assert wam.trained_camera_size == 64
     with pytest.warns(UserWarning, match="--camera-size 64"):  # a 48-px render is not what it was trained on
         wam.predict(_obs(48), "")
-    saved = json.loads((tmp_path / "full" / "config.json").read_text())
+    saved = json.loads((tmp_path / "full" / "checkpoint" / "config.json").read_text())
     assert saved["kind"] == "tinywam" and saved["config"]["data"]["train_items"] == len(load_items([store], TINY, "train", 0.1))
 
 
@@ -123,7 +123,7 @@ def test_cli_train_resume_and_errors(store, tmp_path, capsys):
     args = ["wam", "train", "--data", str(store), "--out", str(out), "--epochs", "1", "--batch-size", "8",
             "--no-progress", "--device", "cpu", *TINY_ARGS]
     assert main(args) == 0
-    assert (out / "model.safetensors").is_file() and (out / "training_state").is_dir()
+    assert (out / "checkpoint" / "model.safetensors").is_file() and (out / "checkpoint" / "training_state").is_dir()
     capsys.readouterr()
     assert main(["wam", "train", "--data", str(store), "--out", str(out), "--epochs", "1"]) == 0  # saved options kept
     assert "already finished 1 epochs" in capsys.readouterr().out
