@@ -225,7 +225,7 @@ def describe_stores(stores: Sequence[str | Path], sources: Sequence[str] | None 
     the count and a hash of their episode files (a store that gained or lost episodes is other data)."""
     import hashlib
 
-    names = [f"{Path(s).resolve()}:{p.name}" for s in stores for p in EpisodeStore(s).episode_paths()]
+    names = [f"{i}:{p.name}" for i, s in enumerate(stores) for p in EpisodeStore(s).episode_paths()]
     digest = hashlib.sha1("\n".join(sorted(names)).encode()).hexdigest()[:12]
     return {"stores": [str(Path(s).resolve()) for s in stores], "sources": list(sources) if sources else None,
             "episodes": f"{len(names)} episode files, sha1 {digest}"}
