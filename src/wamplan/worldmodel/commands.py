@@ -106,11 +106,12 @@ def cmd_train_decoder(args: argparse.Namespace) -> int:
 
 def cmd_eval(args: argparse.Namespace) -> int:
     from wamplan.data.readers import WorldModelWindows
+    from wamplan.worldmodel.stores import encode_stores
     from wamplan.worldmodel.train import evaluate_predictor, load_world_model
 
     model, enc = load_world_model(args.ckpt)
     stores = _stores(args.data)
-    _encode_all(stores, enc)
+    encode_stores(stores, enc)
     ds = WorldModelWindows(stores, frameskip=model.cfg.frameskip, history=model.cfg.context, horizon=args.horizon,
                            split=args.split, val_fraction=args.val_fraction, features=enc.name)
     if len(ds) == 0:
