@@ -20,7 +20,7 @@ from wamplan.device import resolve_device
 from wamplan.planning import CEMConfig, make_cost, make_planner
 from wamplan.planning.dynamics import LearnedDynamics, PlanningContext
 from wamplan.worldmodel.predictor import WorldModelPredictor
-from wamplan.worldmodel.presets import get_preset
+from wamplan.presets import get_world_model_preset as get_preset
 
 CHUNK = 16
 

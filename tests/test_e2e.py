@@ -54,13 +54,14 @@ def test_wm_eval_reports_copy_baseline(run, tmp_path):
                  "--horizon", "2", "--json", str(out)]) == 0
     m = json.loads(out.read_text())
     # the copy-the-last-frame baseline, recomputed here from the cached features of the same windows
+    from wamplan.data.features import feature_key
     from wamplan.data.readers import WorldModelWindows
     from wamplan.worldmodel.train import load_world_model
 
     model, enc = load_world_model(run / "wm")
     h = model.cfg.context
     ds = WorldModelWindows([run / "expert"], frameskip=model.cfg.frameskip, history=h, horizon=2, split="all",
-                           features=enc.name)
+                           features=feature_key(enc.config_dict()))
     assert m["windows"] == len(ds) > 0 and m["horizon"] == 2 and m["frameskip"] == model.cfg.frameskip
     z = torch.stack([ds[i]["z"].float() for i in range(len(ds))])  # (W, h + 2, V, N, D)
     for k in (1, 2):

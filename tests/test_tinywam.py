@@ -113,7 +113,7 @@ def test_checkpoint_round_trip_and_exact_resume(store, tmp_path):
     assert wam.trained_camera_size == 64
     with pytest.warns(UserWarning, match="--camera-size 64"):  # a 48-px render is not what it was trained on
         wam.predict(_obs(48), "")
-    saved = json.loads((tmp_path / "full" / "config.json").read_text())
+    saved = json.loads((tmp_path / "full" / "checkpoint" / "config.json").read_text())
     assert saved["kind"] == "tinywam" and saved["config"]["data"]["train_items"] == len(load_items([store], TINY, "train", 0.1))
 
 
@@ -122,7 +122,7 @@ def test_cli_train_resume_and_errors(store, tmp_path, capsys):
     args = ["wam", "train", "--data", str(store), "--out", str(out), "--epochs", "1", "--batch-size", "8",
             "--no-progress", "--device", "cpu", *TINY_ARGS]
     assert main(args) == 0
-    assert (out / "model.safetensors").is_file() and (out / "training_state").is_dir()
+    assert (out / "checkpoint" / "model.safetensors").is_file() and (out / "checkpoint" / "training_state").is_dir()
     capsys.readouterr()
     assert main(["wam", "train", "--data", str(store), "--out", str(out), "--epochs", "1"]) == 0  # saved options kept
     assert "already finished 1 epochs" in capsys.readouterr().out
@@ -145,7 +145,7 @@ def test_cli_resume_on_different_data_is_refused(store, tmp_path, capsys):
     base = ["wam", "train", "--out", str(out), "--epochs", "1", "--batch-size", "8", "--no-progress", "--device", "cpu",
             *TINY_ARGS]
     assert main([*base, "--data", str(store), "--max-steps", "1"]) == 0
-    weights = (out / "model.safetensors").read_bytes()
+    weights = (out / "checkpoint" / "model.safetensors").read_bytes()
     other = shutil.copytree(store, tmp_path / "other")  # another store (a copy to start with) ...
     for victim in sorted((other / "episodes").glob("*.h5"))[1:]:
         victim.unlink()  # ... holding different data: one episode fewer
@@ -153,14 +153,14 @@ def test_cli_resume_on_different_data_is_refused(store, tmp_path, capsys):
     for data in ([str(other)], [str(store), str(other)]):
         assert main([*base, "--data", ",".join(data), "--max-steps", "2"]) == 2
         err = capsys.readouterr().err.strip()
-        assert "trained with different data" in err and "pass a new --out" in err and "\n" not in err, err
+        assert "trained on different data" in err and "use another --out" in err and "\n" not in err, err
     assert main([*base, "--data", str(store), "--sources", "pink", "--max-steps", "2"]) == 2
     assert "different data" in capsys.readouterr().err
-    assert (out / "model.safetensors").read_bytes() == weights  # the refused runs left the checkpoint alone
+    assert (out / "checkpoint" / "model.safetensors").read_bytes() == weights  # the refused runs left the checkpoint alone
     (tmp_path / "link").symlink_to(store)
     assert main([*base, "--data", str(tmp_path / "link"), "--max-steps", "2"]) == 0
     assert "resuming" in capsys.readouterr().out and json.loads(
-        (out / "training_state" / "state.json").read_text())["train_state"]["global_step"] == 2
+        (out / "checkpoint" / "training_state" / "state.json").read_text())["train_state"]["global_step"] == 2
 
 
 def test_tinywam_runs_as_a_policy_and_queries_every_16_steps(small_env):

@@ -10,12 +10,14 @@ import torch
 
 from wamplan.config import ConfigError, from_dict, to_dict
 from wamplan.errors import UserError
-from wamplan.worldmodel import (PRESETS, Decoder, DecoderConfig, PredictorConfig, TrainConfig, WorldModelPredictor,
-                                evaluate_predictor, get_preset, load_decoder, load_predictor, train_decoder,
-                                train_predictor)
-from wamplan.worldmodel.loop import CKPT_DIR, METRICS_FILE
+from wamplan.presets import PRESETS as ALL_PRESETS
+from wamplan.presets import get_world_model_preset as get_preset
+from wamplan.train_loop import CKPT_DIR, METRICS_FILE
+from wamplan.worldmodel import (Decoder, DecoderConfig, PredictorConfig, TrainConfig, WorldModelPredictor,
+                                evaluate_predictor, load_decoder, load_predictor, train_decoder, train_predictor)
 from wamplan.worldmodel.synthetic import SyntheticWindows
 
+PRESETS = {name: p.world_model for name, p in ALL_PRESETS.items()}
 TINY = PredictorConfig(num_views=2, num_patches=4, enc_dim=8, proprio_dim=10, action_dim=5, frameskip=2, context=3,
                        depth=2, heads=2, head_dim=8, mlp_dim=32, proprio_emb=16, action_emb=16)
 
@@ -86,7 +88,13 @@ def test_paper_preset_is_table_3_and_mini_divides_the_chunk():
 
 
 def test_preset_stats_counts_params_and_flops():
-    from wamplan.worldmodel.profile import preset_stats
+    import importlib.util
+    from pathlib import Path
+    path = Path(__file__).parents[1] / "benchmarks" / "profile_worldmodel.py"
+    spec = importlib.util.spec_from_file_location("profile_worldmodel", path)
+    profile = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(profile)
+    preset_stats = profile.preset_stats
     s = preset_stats("mini")
     m = WorldModelPredictor(PRESETS["mini"].predictor)
     assert s["predictor"]["params"] == m.num_params()

@@ -1,5 +1,9 @@
 """Checkpoints are directories: ``model.safetensors`` + ``config.json`` (+ ``training_state/`` to resume).
 
+A training run keeps its checkpoint in ``RUN/checkpoint/`` (``wamplan.train_loop``); every loader takes
+either the run directory or a checkpoint directory itself (:func:`checkpoint_dir`), so exported
+checkpoints such as ``checkpoints/mini/tinywam`` load the same way.
+
 Modules are never pickled; training state is saved as safetensors tensors plus a JSON of scalars, so
 loading never needs ``torch.load(weights_only=False)``.
 """
@@ -22,6 +26,7 @@ from wamplan.provenance import provenance
 MODEL_FILE = "model.safetensors"
 CONFIG_FILE = "config.json"
 STATE_DIR = "training_state"
+CKPT_DIR = "checkpoint"  # a training run's checkpoint: RUN/checkpoint/
 
 
 class CheckpointError(UserError):
@@ -86,6 +91,12 @@ def save_checkpoint(path: str | Path, model: torch.nn.Module, config: dict[str, 
         (sdir / "state.json").write_text(json.dumps(extra) + "\n")
     _swap_in(tmp, final)
     return final
+
+
+def checkpoint_dir(path: str | Path) -> Path:
+    """``path`` itself if it is a checkpoint directory, else the checkpoint of the run ``path``."""
+    p = Path(path)
+    return p if (p / CONFIG_FILE).is_file() or not (p / CKPT_DIR / CONFIG_FILE).is_file() else p / CKPT_DIR
 
 
 def read_config(path: str | Path, kind: str) -> dict[str, Any]:

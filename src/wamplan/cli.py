@@ -1,8 +1,8 @@
 """The one command-line entry point, ``wamplan``.
 
-Each concept registers its own sub-commands from ``wamplan/<concept>/commands.py`` through
-``register(subparsers)``; a handler is a function ``(args) -> int``. Imports are lazy so that
-``wamplan --help`` stays fast.
+Each concept registers its own sub-commands from ``wamplan/<concept>/commands.py`` (and
+``wamplan/plot_commands.py``) through ``register(subparsers)``; a handler is a function
+``(args) -> int``. Imports are lazy so that ``wamplan --help`` stays fast.
 """
 
 from __future__ import annotations
@@ -11,14 +11,14 @@ import argparse
 import importlib
 import sys
 
-# (module, help) for each command group; the module defines register(subparsers).
+# each command module defines register(subparsers)
 COMMAND_MODULES = [
     "wamplan.envs.commands",
     "wamplan.data.commands",
     "wamplan.worldmodel.commands",
     "wamplan.wam.commands",
-    "wamplan.planning.commands",
     "wamplan.evaluation.commands",
+    "wamplan.plot_commands",
 ]
 
 
@@ -26,13 +26,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="wamplan", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMAND_MODULES:
-        try:
-            mod = importlib.import_module(name)
-        except ModuleNotFoundError as e:
-            if e.name and e.name.startswith(name.rsplit(".", 1)[0]):
-                continue  # that concept is not built yet
-            raise
-        mod.register(sub)
+        importlib.import_module(name).register(sub)
     return parser
 
 

@@ -9,14 +9,17 @@ same command skips the seeds already in the store.
 from __future__ import annotations
 
 import time
+from collections import Counter
 from dataclasses import dataclass
 from functools import partial
+from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
 
 from wamplan.data.store import EpisodeData, EpisodeStore
 from wamplan.envs.core import EnvConfig, InsertionEnv
+from wamplan.errors import UserError
 from wamplan.envs.rollout import run_episode
 from wamplan.parallel import imap_workers
 from wamplan.policies.base import CAMERAS, Policy
@@ -100,3 +103,44 @@ def run_collection(job: CollectJob, seeds: list[int], workers: int = 1) -> Itera
 def throughput(start: float, n: int) -> float:
     """Episodes per minute since ``start``."""
     return 60.0 * n / max(time.perf_counter() - start, 1e-9)
+
+
+def collect(source: str, episodes: int, out: str | Path, *, seed_start: int = 0, workers: int = 1,
+            policy: str | None = None, image_every: int = 4, max_steps: int | None = None,
+            env: EnvConfig | None = None, progress: bool = True, log=print) -> dict[str, Any]:
+    """Collect seeds ``seed_start .. seed_start + episodes - 1`` of ``source`` (expert, noisy-expert, pink,
+    or policy with ``policy`` a WAM checkpoint) into the store ``out``, skipping the seeds it holds.
+    Returns a summary (collected, skipped, seconds, episodes_per_min, outcomes)."""
+    from tqdm import tqdm
+
+    if episodes <= 0 or workers <= 0 or image_every <= 0:
+        raise UserError("--episodes, --workers and --image-every must be positive")
+    if source == "policy":
+        if not policy:
+            raise UserError("--source policy needs --policy CKPT (a WAM checkpoint directory)")
+        spec, tag = policy, f"policy:{Path(policy).resolve().name}"
+    else:
+        if policy:
+            raise UserError(f"--policy is only for --source policy (got --source {source})")
+        spec, tag = source, source
+    env = env or EnvConfig()
+    store = EpisodeStore(out, create=True, env=env.task_kwargs(), image_every=image_every, provenance=provenance())
+    if (n := store.clean_partial()):
+        log(f"removed {n} partial episode file(s) left by an interrupted run")
+    seeds = list(range(seed_start, seed_start + episodes))
+    have = store.finished_seeds(tag) & set(seeds)
+    if have:
+        log(f"resuming: {len(have)} of {len(seeds)} episodes already in {out}")
+    job = CollectJob(store=str(out), source=tag, policy_spec=spec, env=env, image_every=image_every,
+                     max_steps=max_steps)
+    counts: Counter = Counter()
+    start, n = time.perf_counter(), 0
+    bar = tqdm(total=len(seeds), initial=len(have), desc=f"collect {tag}", unit="ep", disable=not progress)
+    for rec in run_collection(job, seeds, workers=workers):
+        n += 1
+        counts[rec["outcome"]] += 1
+        bar.update(1)
+        bar.set_postfix(ep_per_min=f"{throughput(start, n):.1f}", success=f"{counts['success']}/{n}")
+    bar.close()
+    return dict(source=tag, collected=n, skipped=len(have), seconds=round(time.perf_counter() - start, 1),
+                episodes_per_min=round(throughput(start, n), 2) if n else None, outcomes=dict(counts))

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import time
 from collections import Counter, defaultdict
 from pathlib import Path
 
@@ -44,45 +43,13 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_collect(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
-    from wamplan.data.collect import CollectJob, run_collection, throughput
-    from wamplan.data.store import EpisodeStore
+    from wamplan.data.collect import collect
     from wamplan.envs.core import EnvConfig
-    from wamplan.provenance import provenance
 
-    if args.episodes <= 0 or args.workers <= 0 or args.image_every <= 0:
-        raise UserError("--episodes, --workers and --image-every must be positive")
-    if args.source == "policy":
-        if not args.policy:
-            raise UserError("--source policy needs --policy CKPT (a WAM checkpoint directory)")
-        spec, source = args.policy, f"policy:{Path(args.policy).resolve().name}"
-    else:
-        if args.policy:
-            raise UserError(f"--policy is only for --source policy (got --source {args.source})")
-        spec, source = args.source, args.source
-    env_cfg = from_args(EnvConfig, args)
-    store = EpisodeStore(args.out, create=True, env=env_cfg.task_kwargs(), image_every=args.image_every,
-                         provenance=provenance())
-    if (n := store.clean_partial()):
-        print(f"removed {n} partial episode file(s) left by an interrupted run")
-    seeds = list(range(args.seed_start, args.seed_start + args.episodes))
-    have = store.finished_seeds(source) & set(seeds)
-    if have:
-        print(f"resuming: {len(have)} of {len(seeds)} episodes already in {args.out}")
-    job = CollectJob(store=str(args.out), source=source, policy_spec=spec, env=env_cfg,
-                     image_every=args.image_every, max_steps=args.max_steps)
-    counts, start, n = Counter(), time.perf_counter(), 0
-    bar = tqdm(total=len(seeds), initial=len(have), desc=f"collect {source}", unit="ep")
-    for rec in run_collection(job, seeds, workers=args.workers):
-        n += 1
-        counts[rec["outcome"]] += 1
-        bar.update(1)
-        bar.set_postfix(ep_per_min=f"{throughput(start, n):.1f}", success=f"{counts['success']}/{n}")
-    bar.close()
-    el = time.perf_counter() - start
-    print(json.dumps(dict(source=source, collected=n, skipped=len(have), seconds=round(el, 1),
-                          episodes_per_min=round(throughput(start, n), 2) if n else None, outcomes=dict(counts))))
+    summary = collect(args.source, args.episodes, args.out, seed_start=args.seed_start, workers=args.workers,
+                      policy=args.policy, image_every=args.image_every, max_steps=args.max_steps,
+                      env=from_args(EnvConfig, args))
+    print(json.dumps(summary))
     return 0
 
 

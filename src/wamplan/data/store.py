@@ -36,7 +36,7 @@ import re
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Iterator, Sequence
 
 import h5py
 import numpy as np
@@ -218,3 +218,14 @@ class EpisodeStore:
                                image_steps=f["image_steps"][:], images={c: f["images"][c][:] for c in f["images"]},
                                reached=json.loads(f.attrs["reached"]), policy=json.loads(f.attrs["policy"]),
                                provenance=json.loads(f.attrs["provenance"]))
+
+
+def describe_stores(stores: Sequence[str | Path], sources: Sequence[str] | None = None) -> dict[str, Any]:
+    """The identity of a training set drawn from ``stores``: their absolute paths, the sources used, and
+    the count and a hash of their episode files (a store that gained or lost episodes is other data)."""
+    import hashlib
+
+    names = [f"{i}:{p.name}" for i, s in enumerate(stores) for p in EpisodeStore(s).episode_paths()]
+    digest = hashlib.sha1("\n".join(sorted(names)).encode()).hexdigest()[:12]
+    return {"stores": [str(Path(s).resolve()) for s in stores], "sources": list(sources) if sources else None,
+            "episodes": f"{len(names)} episode files, sha1 {digest}"}

@@ -1,116 +1,162 @@
-"""``wamplan reproduce``: the paper's whole pipeline, stage by stage, each skipping what exists.
+"""``wamplan reproduce``: the paper's whole pipeline, stage by stage, as library calls.
 
 collect expert / noisy / pink -> train TinyWAM -> collect on-policy rollouts of it -> train the plain and
-the augmented world models -> evaluate the conditions -> report. Every stage is itself resumable (the
-stores, trainers and evaluation records are), so an interrupted run continues where it stopped.
+the augmented world models (and the picture decoder) -> evaluate the conditions -> report. The sizes
+come from ``wamplan.presets``. A finished stage is recorded with its duration in ``OUT/stage_times.json``
+and skipped when the command is run again; a stage cut short resumes inside itself (the stores,
+trainers and evaluation records are resumable). Each stage prints the ``wamplan`` command line that
+does the same, to re-run or inspect one stage by hand.
 """
 
 from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 from wamplan.errors import UserError
+from wamplan.presets import PRESETS, Preset, get_preset
+
+__all__ = ["PRESETS", "SEED_BASE", "Call", "Stage", "plan", "stages", "reproduce"]
+
+SEED_BASE = {"expert": 1000, "noisy": 2000, "pink": 3000, "on_policy": 4000}  # evaluation uses seeds 0..49
+TIMES_FILE = "stage_times.json"
 
 
 @dataclass(frozen=True)
-class ReproducePreset:
+class Call:
+    """One library call of a stage, with the ``wamplan`` command line that does the same."""
+
+    fn: Callable[..., Any]
+    kwargs: dict[str, Any] = field(default_factory=dict)
+    command: tuple[str, ...] = ()
+
+    def __call__(self) -> Any:
+        return self.fn(**self.kwargs)
+
+
+@dataclass(frozen=True)
+class Stage:
     name: str
-    expert: int
-    noisy: int
-    pink: int
-    on_policy: int
-    pink_max_steps: int
-    image_every: int
-    wam_epochs: int
-    wm_preset: str
-    wm_epochs: int  # world-model training epochs (the decoder keeps its preset's)
-    decoder_sources: tuple[str, ...]  # the stores the picture decoder learns from (never used for planning)
-    eval_episodes: int
-    sim_eval_episodes: int  # the simulator conditions (2-5) are costly on a CPU
+    calls: tuple[Call, ...]
 
 
-PRESETS = {
-    # paper §4: 100 expert, 500 noisy, 500 pink-noise (42k frames: ~84 steps each), 500 on-policy; 50 episodes
-    "paper": ReproducePreset("paper", expert=100, noisy=500, pink=500, on_policy=500, pink_max_steps=84, image_every=1,
-                             wam_epochs=30, wm_preset="paper", wm_epochs=24,
-                             decoder_sources=("expert", "noisy", "pink", "on_policy"), eval_episodes=50,
-                             sim_eval_episodes=50),
-    # this 2-core CPU machine: smaller datasets, the mini world model; the sizes the demo checkpoints were
-    # made with (README "Demo checkpoints"): about 3 h of collection and training on 2 cores
-    "mini": ReproducePreset("mini", expert=100, noisy=150, pink=150, on_policy=100, pink_max_steps=100, image_every=4,
-                            wam_epochs=12, wm_preset="mini", wm_epochs=4, decoder_sources=("expert",), eval_episodes=50,
-                            sim_eval_episodes=10),
-}
-SEED_BASE = {"expert": 1000, "noisy": 2000, "pink": 3000, "on_policy": 4000}  # evaluation uses seeds 0..49
+def _collect(source: str, p: Preset, store: Path, workers: int, seeds: int, policy: str | None = None,
+             max_steps: int | None = None) -> Call:
+    from wamplan.data.collect import collect
+
+    key = "on_policy" if source == "policy" else source.removesuffix("-expert")
+    cmd = ["collect", "--source", source, *(["--policy", policy] if policy else []), "--episodes", str(seeds),
+           "--seed-start", str(SEED_BASE[key]), *(["--max-steps", str(max_steps)] if max_steps else []),
+           "--out", str(store), "--image-every", str(p.image_every), "--workers", str(workers)]
+    return Call(collect, dict(source=source, episodes=seeds, out=store, seed_start=SEED_BASE[key], workers=workers,
+                              policy=policy, image_every=p.image_every, max_steps=max_steps), tuple(cmd))
 
 
-def stages(p: ReproducePreset, out: Path, wam: str | None, workers: int,
-           sim_episodes: int | None = None) -> list[tuple[str, list[list[str]]]]:
-    """The CLI commands of every stage; ``sim_episodes`` overrides the preset's count for conditions 2-5."""
-    d = out / "data"
+def evaluate_conditions(conditions: list[int], episodes: int, out: Path, workers: int, wam: str, wm_plain: str,
+                        wm_augmented: str) -> dict[int, dict[str, int]]:
+    """``wamplan eval`` for ``conditions`` on seeds 0 .. episodes-1 (resumable); outcome counts of new episodes."""
+    from collections import Counter
+
+    from wamplan.evaluation.runner import EvalConfig, run_evaluation
+
+    cfg = EvalConfig(wam=wam, wm_plain=wm_plain, wm_augmented=wm_augmented)
+    cfg.check_for(conditions)
+    counts: dict[int, Counter] = {c: Counter() for c in conditions}
+    for rec in run_evaluation(cfg, conditions, list(range(episodes)), out, workers=workers):
+        counts[rec["condition"]][rec["outcome"]] += 1
+        print(f"cond {rec['condition']} seed {rec['seed']:4d} {rec['outcome']:22s} len {rec['length']:3d} "
+              f"{rec['wall_time_s']:.0f}s", flush=True)
+    return {c: dict(v) for c, v in counts.items() if v}
+
+
+def plan(p: Preset, out: Path, wam: str | None, workers: int, sim_episodes: int | None = None) -> list[Stage]:
+    """Every stage of the pipeline; ``wam`` replaces TinyWAM training, ``sim_episodes`` the preset's count
+    for the simulator conditions 2-5 (0 skips them)."""
+    from wamplan.evaluation.report import write_report
+    from wamplan.wam.train import train_tinywam
+    from wamplan.worldmodel.stores import train_decoder_on_stores, train_predictor_on_stores
+
+    d, runs = out / "data", out / "runs"
     sim_episodes = p.sim_eval_episodes if sim_episodes is None else sim_episodes
-    w = ["--workers", str(workers)]
-    ie = ["--image-every", str(p.image_every)]
-    wam_ckpt = wam or str(out / "runs" / "tinywam")
-    plain = ",".join(str(d / s) for s in ("expert", "noisy", "pink"))
-    aug = plain + "," + str(d / "on_policy")
-    evals = [["eval", "--conditions", "1,6,7", "--episodes", str(p.eval_episodes), "--out", str(out / "eval"),
-              "--wam", wam_ckpt, "--wm-plain", str(out / "runs" / "wm_plain"),
-              "--wm-augmented", str(out / "runs" / "wm_augmented"), *w]]
-    if sim_episodes:
-        evals.append([*evals[0][:2], "2,3,4,5", "--episodes", str(sim_episodes), *evals[0][5:]])
+    wam_ckpt = wam or str(runs / "tinywam")
+    plain = [d / s for s in ("expert", "noisy", "pink")]
+    aug = [*plain, d / "on_policy"]
+    wm = p.world_model
+    enc = dict(encoder=wm.encoder, encoder_kwargs=wm.encoder_kwargs)
+    joined = lambda stores: ",".join(str(s) for s in stores)  # noqa: E731
+
+    def wm_train(stores: list[Path], run: Path) -> Call:
+        return Call(train_predictor_on_stores, dict(stores=stores, out=run, predictor=wm.predictor, train=wm.train, **enc),
+                    ("wm", "train", "--data", joined(stores), "--out", str(run), "--preset", p.name))
+
+    models = dict(wam=wam_ckpt, wm_plain=str(runs / "wm_plain"), wm_augmented=str(runs / "wm_augmented"))
+    model_flags = ["--wam", wam_ckpt, "--wm-plain", models["wm_plain"], "--wm-augmented", models["wm_augmented"]]
+
+    def evaluation(conds: list[int], episodes: int) -> Call:
+        return Call(evaluate_conditions, dict(conditions=conds, episodes=episodes, out=out / "eval", workers=workers,
+                                              **models),
+                    ("eval", "--conditions", ",".join(map(str, conds)), "--episodes", str(episodes), "--out",
+                     str(out / "eval"), *model_flags, "--workers", str(workers)))
+
     out_stages = [
-        ("collect expert", [["collect", "--source", "expert", "--episodes", str(p.expert), "--seed-start",
-                             str(SEED_BASE["expert"]), "--out", str(d / "expert"), *ie, *w]]),
-        ("collect noisy", [["collect", "--source", "noisy-expert", "--episodes", str(p.noisy), "--seed-start",
-                            str(SEED_BASE["noisy"]), "--out", str(d / "noisy"), *ie, *w]]),
-        ("collect pink", [["collect", "--source", "pink", "--episodes", str(p.pink), "--seed-start",
-                           str(SEED_BASE["pink"]), "--max-steps", str(p.pink_max_steps), "--out", str(d / "pink"), *ie,
-                           *w]]),
+        Stage("collect expert", (_collect("expert", p, d / "expert", workers, p.expert),)),
+        Stage("collect noisy", (_collect("noisy-expert", p, d / "noisy", workers, p.noisy),)),
+        Stage("collect pink", (_collect("pink", p, d / "pink", workers, p.pink, max_steps=p.pink_max_steps),)),
     ]
     if wam is None:
-        out_stages.append(("train TinyWAM", [["wam", "train", "--data", str(d / "expert"), "--out", wam_ckpt,
-                                              "--sources", "expert", "--epochs", str(p.wam_epochs)]]))
+        out_stages.append(Stage("train TinyWAM", (Call(
+            train_tinywam, dict(stores=[d / "expert"], out=wam_ckpt, model_cfg=p.tinywam, train_cfg=p.tinywam_train,
+                                sources=["expert"]),
+            ("wam", "train", "--data", str(d / "expert"), "--out", wam_ckpt, "--sources", "expert", "--epochs",
+             str(p.tinywam_train.epochs))),)))
+    dec_stores = [d / s for s in p.decoder_sources]
     out_stages += [
-        ("collect on-policy", [["collect", "--source", "policy", "--policy", wam_ckpt, "--episodes", str(p.on_policy),
-                                "--seed-start", str(SEED_BASE["on_policy"]), "--out", str(d / "on_policy"), *ie, *w]]),
-        ("train plain world model", [["wm", "train", "--data", plain, "--out", str(out / "runs" / "wm_plain"),
-                                      "--preset", p.wm_preset, "--epochs", str(p.wm_epochs)]]),
-        ("train augmented world model", [["wm", "train", "--data", aug, "--out", str(out / "runs" / "wm_augmented"),
-                                          "--preset", p.wm_preset, "--epochs", str(p.wm_epochs)]]),
-        ("train decoder", [["wm", "train-decoder", "--data", ",".join(str(d / s) for s in p.decoder_sources),
-                            "--out", str(out / "runs" / "decoder"),
-                            "--preset", p.wm_preset]]),
-        ("evaluate", evals),
-        ("report", [["report", str(out / "eval")]]),
+        Stage("collect on-policy", (_collect("policy", p, d / "on_policy", workers, p.on_policy, policy=wam_ckpt),)),
+        Stage("train plain world model", (wm_train(plain, runs / "wm_plain"),)),
+        Stage("train augmented world model", (wm_train(aug, runs / "wm_augmented"),)),
+        Stage("train decoder", (Call(train_decoder_on_stores, dict(stores=dec_stores, out=runs / "decoder",
+                                                                   decoder=wm.decoder, train=wm.decoder_train, **enc),
+                                     ("wm", "train-decoder", "--data", joined(dec_stores), "--out", str(runs / "decoder"),
+                                      "--preset", p.name)),)),
+        Stage("evaluate", (evaluation([1, 6, 7], p.eval_episodes),
+                           *((evaluation([2, 3, 4, 5], sim_episodes),) if sim_episodes else ()))),
+        Stage("report", (Call(write_report, dict(out_dir=out / "eval"), ("report", str(out / "eval"))),)),
     ]
     return out_stages
 
 
-def reproduce(preset: str, out: Path, wam: str | None = None, workers: int = 1, sim_episodes: int | None = None,
-              run: Callable[[list[str]], int] | None = None) -> dict[str, float]:
-    """Run every stage in order; returns seconds per stage (also written to ``out/stage_times.json``)."""
-    from wamplan.cli import main
+def stages(p: Preset, out: Path, wam: str | None, workers: int,
+           sim_episodes: int | None = None) -> list[tuple[str, list[list[str]]]]:
+    """The ``wamplan`` command lines equivalent to every stage of :func:`plan` (what reproduce prints)."""
+    return [(s.name, [list(c.command) for c in s.calls]) for s in plan(p, out, wam, workers, sim_episodes)]
 
-    if preset not in PRESETS:
-        raise UserError(f"unknown preset '{preset}'; choose one of {sorted(PRESETS)}")
-    run = run or main
+
+def reproduce(preset: str, out: Path, wam: str | None = None, workers: int = 1,
+              sim_episodes: int | None = None) -> dict[str, float]:
+    """Run every stage not yet finished, in order; returns seconds per stage (kept in ``out/stage_times.json``)."""
+    p = get_preset(preset)
     out.mkdir(parents=True, exist_ok=True)
-    times: dict[str, float] = {}
-    for name, commands in stages(PRESETS[preset], out, wam, workers, sim_episodes):
+    times_path = out / TIMES_FILE
+    times: dict[str, float] = json.loads(times_path.read_text()) if times_path.is_file() else {}
+    for stage in plan(p, out, wam, workers, sim_episodes):
+        if stage.name in times:
+            print(f"== {stage.name}: done ({times[stage.name] / 60:.1f} min; delete its entry in {times_path} to "
+                  f"run it again)", flush=True)
+            continue
         t0 = time.perf_counter()
-        print(f"== {name}", flush=True)
-        for argv in commands:
-            rc = run(argv)
-            if rc:
-                raise UserError(f"stage '{name}' failed (wamplan {' '.join(argv)} exited {rc}); fix it and re-run "
-                                f"`wamplan reproduce` to resume")
-        times[name] = round(time.perf_counter() - t0, 1)
-        (out / "stage_times.json").write_text(json.dumps(times, indent=1) + "\n")
+        print(f"== {stage.name}", flush=True)
+        for call in stage.calls:
+            print("   wamplan " + " ".join(call.command), flush=True)
+            try:
+                call()
+            except UserError as e:
+                raise UserError(f"stage '{stage.name}' failed ({e}); fix it and re-run `wamplan reproduce` to "
+                                f"resume") from e
+        times[stage.name] = round(time.perf_counter() - t0, 1)
+        times_path.write_text(json.dumps(times, indent=1) + "\n")
     for name, s in times.items():
         print(f"{name:30s} {s / 60:7.1f} min")
     return times

@@ -152,12 +152,12 @@ def make_wam(name: str, **kwargs: Any) -> WAM:
 
 
 def load_wam(path: str | Path, device: str | Any = "auto") -> WAM:
-    """Load a WAM checkpoint directory onto ``device`` ('auto', 'cpu', 'cuda', a torch.device), dispatching
-    on its kind (see ``register_wam_loader``)."""
-    from wamplan.checkpoint import CONFIG_FILE, MODEL_FILE, CheckpointError  # imports torch: only when needed
+    """Load a WAM checkpoint directory (or a training run holding one in ``checkpoint/``) onto ``device``
+    ('auto', 'cpu', 'cuda', a torch.device), dispatching on its kind (see ``register_wam_loader``)."""
+    from wamplan.checkpoint import CONFIG_FILE, MODEL_FILE, CheckpointError, checkpoint_dir  # imports torch
 
     _import_builtin_wams()
-    p = Path(path)
+    p = checkpoint_dir(path)
     if not (p / CONFIG_FILE).is_file() or not (p / MODEL_FILE).is_file():
         raise CheckpointError(f"{p} is not a wamplan checkpoint (needs {CONFIG_FILE} and {MODEL_FILE}); "
                               f"train a WAM first or pass the right --ckpt")

@@ -37,11 +37,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     from wamplan.wam.train import WAMTrainConfig
 
     train = sub.add_parser("train", help="train TinyWAM on episode stores (re-run the same command to resume)",
-                           description="Train TinyWAM (actions + t+H images) into the checkpoint directory --out. "
+                           description="Train TinyWAM (actions + t+H images) into the run directory --out. "
                                        "If --out holds an unfinished run, it is resumed; options left out keep "
                                        "the saved values.")
     train.add_argument("--data", required=True, help="episode store directory, or several separated by commas")
-    train.add_argument("--out", type=Path, required=True, help="checkpoint directory (created, or resumed)")
+    train.add_argument("--out", type=Path, required=True,
+                       help="run directory: checkpoint/ + metrics.jsonl (created, or resumed)")
     train.add_argument("--sources", default=None, help="train only on these sources, comma separated "
                                                        "(e.g. expert); default: every episode in the stores")
     train.add_argument("--max-steps", type=int, default=None,

@@ -205,8 +205,9 @@ class TinyWAM(WAM):
 
     @classmethod
     def from_checkpoint(cls, path: str | Path, device: str | torch.device = "auto") -> "TinyWAM":
-        from wamplan.checkpoint import load_weights, read_config
+        from wamplan.checkpoint import checkpoint_dir, load_weights, read_config
 
+        path = checkpoint_dir(path)
         saved = read_config(path, KIND)
         cfg = from_dict(TinyWAMConfig, saved["model"])
         net = TinyWAMNet(cfg)

@@ -7,38 +7,30 @@ that use them; ~37 kB a frame of three 64-px views), so an epoch costs only the 
 augmentation shifts each view by a random whole number of pixels (border replicated), the same shift
 for its current and its future picture, so the pair stays consistent.
 
-The checkpoint is the directory ``--out`` itself (``model.safetensors`` + ``config.json`` +
-``training_state/``), written at every epoch end, every ``save_every_steps``, on ``max_steps`` and on
-Ctrl-C. Re-running the same command resumes it exactly: the data order of epoch e is a permutation
-seeded by (seed, e), the augmentation of step s is seeded by (seed, s), and weights, optimizer,
-scheduler and counters are restored. Per-epoch validation metrics are kept in the training state
-(``history``) and printed.
+Training runs in the shared loop (``wamplan.train_loop``): ``--out`` is a run directory
+(``checkpoint/`` + ``metrics.jsonl``), re-running the same command resumes it exactly (the augmentation
+of step s is seeded by (seed, s)), and a resumed run must use the same stores, sources and options.
 """
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Iterator, Sequence
 
 import torch
 import torch.nn.functional as F
-from torch import nn
 from torch.utils.data import DataLoader
 
-from wamplan.checkpoint import (CONFIG_FILE, STATE_DIR, CheckpointError, has_training_state, load_training_state,
-                                load_weights, read_config, save_checkpoint)
+from wamplan.checkpoint import CONFIG_FILE, CheckpointError, has_training_state, load_weights, read_config
 from wamplan.config import field, from_dict, require, to_dict
 from wamplan.device import resolve_device
 from wamplan.errors import UserError
-from wamplan.optim import make_adamw, optimizer_step, warmup_cosine
 from wamplan.policies.base import CAMERAS
+from wamplan.train_loop import check_resume, check_run_dir, fit, read_metrics, run_paths, saved_progress
 from wamplan.wam.tinywam import KIND, TinyWAMConfig, TinyWAMNet, to_model_frames
 
-# WAMTrainConfig fields that may change when a run is resumed (everything else must match).
-RUN_ONLY_FIELDS = ("epochs", "num_workers", "device", "save_every_steps")
 IMAGE_LOSSES = ("l1", "mse")
 
 
@@ -61,6 +53,8 @@ class WAMTrainConfig:
     device: str = field("auto", "torch device: auto, cpu, cuda, cuda:1, mps, ...")
     num_workers: int = field(0, "worker processes that read the stores into memory at the start")
     save_every_steps: int = field(0, "also checkpoint every this many steps (0: at epoch ends only)")
+    log_every_steps: int = field(10, "also log the running training losses to metrics.jsonl every this many steps "
+                                     "(0: at epoch ends only)")
 
     def __post_init__(self) -> None:
         for name in ("epochs", "batch_size"):
@@ -79,6 +73,7 @@ class WAMTrainConfig:
         require(0 <= self.val_fraction < 1, f"WAMTrainConfig.val_fraction must be in [0, 1), got {self.val_fraction}")
         require(self.num_workers >= 0, f"WAMTrainConfig.num_workers must be >= 0, got {self.num_workers}")
         require(self.save_every_steps >= 0, f"WAMTrainConfig.save_every_steps must be >= 0, got {self.save_every_steps}")
+        require(self.log_every_steps >= 0, f"WAMTrainConfig.log_every_steps must be >= 0, got {self.log_every_steps}")
 
 
 # ----------------------------------------------------------------------------------------------- data
@@ -191,77 +186,66 @@ def evaluate(net: TinyWAMNet, items: WAMItems, batch_size: int = 64) -> dict[str
     return {k: v / max(1, len(items)) for k, v in sums.items()}
 
 
-# ----------------------------------------------------------------------------------------------- optimisation
-def make_optimizer(net: nn.Module, cfg: WAMTrainConfig) -> torch.optim.AdamW:
-    return make_adamw(net, cfg.lr, cfg.weight_decay)
+# ----------------------------------------------------------------------------------------------- training
+class ItemBatches:
+    """The :class:`~wamplan.train_loop.Batches` of in-memory items: the augmentation of global step s is
+    seeded by (seed, s), so a resumed run draws the same shifts."""
 
+    def __init__(self, items: WAMItems, device: torch.device, shift: int, seed: int) -> None:
+        self.items, self.device, self.shift, self.seed = items, device, shift, seed
 
-def _mismatch(saved: dict[str, Any], now: dict[str, Any], skip: Sequence[str] = ()) -> list[str]:
-    return sorted(k for k in set(saved) | set(now) if k not in skip and saved.get(k) != now.get(k))
+    def __len__(self) -> int:
+        return len(self.items)
 
-
-def _saved_epoch(out: Path) -> int:
-    return int(json.loads((out / STATE_DIR / "state.json").read_text())["train_state"]["epoch"])
-
-
-def _check_out_dir(out: Path) -> None:
-    if out.exists() and not out.is_dir():
-        raise UserError(f"--out {out} is a file; pass a directory for the checkpoint")
-    if out.is_dir() and not (out / CONFIG_FILE).is_file() and any(out.iterdir()):
-        raise UserError(f"--out {out} exists and is not a TinyWAM checkpoint (it would be replaced); pass a new "
-                        f"or empty directory")
+    def epoch(self, indices: list[int], batch_size: int, first_step: int) -> Iterator[dict[str, torch.Tensor]]:
+        order = torch.tensor(indices, dtype=torch.long)  # (steps * B,)
+        for j in range(len(indices) // batch_size):
+            aug = torch.Generator().manual_seed(self.seed * 7_919 + first_step + j + 1)
+            yield make_batch(self.items, order[j * batch_size:(j + 1) * batch_size], self.device, self.shift, aug)
 
 
 @dataclass
 class TrainResult:
     net: TinyWAMNet
-    state: dict[str, Any]  # epoch, global_step, history, ...
-    finished_before: bool  # the checkpoint had already done all its epochs: nothing was trained
+    state: dict[str, Any]  # epoch, global_step, history (the epoch records of metrics.jsonl), ...
+    finished_before: bool  # the run had already done all its epochs: nothing was trained
 
 
 def train_tinywam(stores: Sequence[str | Path], out: str | Path, model_cfg: TinyWAMConfig | None = None,
                   train_cfg: WAMTrainConfig | None = None, *, sources: Sequence[str] | None = None,
                   max_steps: int | None = None, progress: bool = True, log=print) -> TrainResult:
-    """Train TinyWAM on ``stores`` into the checkpoint directory ``out``, or resume it if it holds one.
+    """Train TinyWAM on ``stores`` into the run directory ``out``, or resume it if it holds a run.
 
     When resuming, the saved model config is used and the training config must match the saved one
-    except for :data:`RUN_ONLY_FIELDS`; ``model_cfg`` / ``train_cfg`` of None mean "as saved" (or the
-    defaults for a new run). ``max_steps`` stops after that many optimisation steps in all
-    (checkpointed; call again to continue)."""
-    from tqdm.auto import tqdm
+    except for ``train_loop.RUN_ONLY_FIELDS``, and the data must be the same; ``model_cfg`` /
+    ``train_cfg`` of None mean "as saved" (or the defaults for a new run). ``max_steps`` stops after
+    that many optimisation steps in all (checkpointed; call again to continue)."""
+    from wamplan.data.store import EpisodeStore, describe_stores
 
     out = Path(out)
-    _check_out_dir(out)
-    stores = [str(Path(s).resolve()) for s in stores]
-    data_info = {"stores": stores, "sources": list(sources) if sources else None}
-    resuming = has_training_state(out)
-    if (out / CONFIG_FILE).is_file() and not resuming:
-        raise CheckpointError(f"{out} holds a checkpoint without training state, so it cannot be resumed; pass a "
+    check_run_dir(out, "a TinyWAM checkpoint")
+    ckpt, _ = run_paths(out)
+    data = describe_stores(stores, sources)
+    progress_saved = saved_progress(out)
+    if (ckpt / CONFIG_FILE).is_file() and progress_saved is None:
+        raise CheckpointError(f"{ckpt} holds a checkpoint without training state, so it cannot be resumed; pass a "
                               f"new --out")
-    if resuming:
-        saved = read_config(out, KIND)
-        saved_model = from_dict(TinyWAMConfig, saved["model"])
-        saved_train = from_dict(WAMTrainConfig, saved["train"])
-        model_cfg = model_cfg or saved_model
-        train_cfg = train_cfg or saved_train
-        diff = _mismatch(to_dict(saved_model), to_dict(model_cfg))
-        diff += _mismatch(to_dict(saved_train), to_dict(train_cfg), RUN_ONLY_FIELDS)
-        if saved["data"]["stores"] != stores or saved["data"]["sources"] != data_info["sources"]:
-            diff.append("data")
-        if diff:
-            raise UserError(f"{out} was trained with different {', '.join(diff)}; re-run with the same options to "
-                            f"resume (only {', '.join(RUN_ONLY_FIELDS)} may change) or pass a new --out")
+    if progress_saved is not None:
+        saved = read_config(ckpt, KIND)
+        model_cfg = model_cfg or from_dict(TinyWAMConfig, saved["model"])
+        train_cfg = train_cfg or from_dict(WAMTrainConfig, saved["train"])
+        check_resume(out, KIND, {"model": to_dict(model_cfg), "train": to_dict(train_cfg)}, data)
     model_cfg = model_cfg or TinyWAMConfig()
     train_cfg = train_cfg or WAMTrainConfig()
-    if resuming and _saved_epoch(out) >= train_cfg.epochs:  # say so before reading any data
+    if progress_saved is not None and progress_saved["epoch"] >= train_cfg.epochs:  # say so before reading data
         net = TinyWAMNet(model_cfg)
-        load_weights(out, net)
-        state = json.loads((out / STATE_DIR / "state.json").read_text())["train_state"]
-        last = state["history"][-1] if state.get("history") else {}
-        log(f"{out} has already finished {state['epoch']} epochs ({state['global_step']} steps"
+        load_weights(ckpt, net)
+        history = read_metrics(out, "epoch")
+        last = history[-1] if history else {}
+        log(f"{out} has already finished {progress_saved['epoch']} epochs ({progress_saved['global_step']} steps"
             + (f", val action_mse {last['val/action_mse']:.4g}" if "val/action_mse" in last else "")
-            + f"); nothing to do. Pass --epochs > {state['epoch']} to train longer, or a new --out.")
-        return TrainResult(net.eval(), state, finished_before=True)
+            + f"); nothing to do. Pass --epochs > {progress_saved['epoch']} to train longer, or a new --out.")
+        return TrainResult(net.eval(), dict(progress_saved, history=history), finished_before=True)
     device = resolve_device(train_cfg.device)
 
     t0 = time.perf_counter()
@@ -278,86 +262,27 @@ def train_tinywam(stores: Sequence[str | Path], out: str | Path, model_cfg: Tiny
     if len(val_items) == 0:
         log(f"note: no validation episodes at val_fraction {train_cfg.val_fraction}; collect more episodes or raise "
             f"--val-fraction to get validation losses")
-    from wamplan.data.store import EpisodeStore
-
-    data_info.update(train_items=n, val_items=len(val_items),
-                     camera_size=EpisodeStore(stores[0]).env.get("camera_size"))
+    info = {"train_items": n, "val_items": len(val_items), "camera_size": EpisodeStore(stores[0]).env.get("camera_size")}
+    config = {"model": to_dict(model_cfg), "train": to_dict(train_cfg), "data": info}
 
     torch.manual_seed(train_cfg.seed)
     net = TinyWAMNet(model_cfg).to(device)
-    steps_per_epoch = n // bs
-    total = steps_per_epoch * train_cfg.epochs
-    opt = make_optimizer(net, train_cfg)
-    sched = warmup_cosine(opt, round(train_cfg.warmup_epochs * steps_per_epoch), total, train_cfg.min_lr_ratio)
-    state: dict[str, Any] = {"epoch": 0, "step_in_epoch": 0, "global_step": 0, "history": []}
-    if resuming:
-        load_weights(out, net, device)
-        saved_state = load_training_state(out, opt, sched)
-        state.update({k: saved_state[k] for k in state})
-        if saved_state.get("steps_per_epoch") != steps_per_epoch:
-            raise UserError(f"{out} was trained with {saved_state.get('steps_per_epoch')} steps per epoch but the data "
-                            f"now give {steps_per_epoch}; the stores changed: pass a new --out")
-        log(f"resuming {out} at epoch {state['epoch'] + 1}, step {state['global_step']}")
-    else:
+
+    def fresh_stats() -> None:
         net.set_stats(*[s.to(device) for s in compute_stats(train_items)])
-    config = {"model": to_dict(model_cfg), "train": to_dict(train_cfg), "data": data_info}
 
-    def save() -> None:
-        save_checkpoint(out, net, config, kind=KIND, optimizer=opt, scheduler=sched,
-                        train_state=dict(state, steps_per_epoch=steps_per_epoch))
-
-    net.train()
-    try:
-        while state["epoch"] < train_cfg.epochs:
-            epoch, start = state["epoch"], state["step_in_epoch"]
-            g = torch.Generator().manual_seed(train_cfg.seed * 1_000_003 + epoch)
-            order = torch.randperm(n, generator=g)[: steps_per_epoch * bs]  # (steps * B,)
-            bar = tqdm(total=steps_per_epoch, initial=start, desc=f"tinywam {epoch + 1}/{train_cfg.epochs}",
-                       disable=not progress, dynamic_ncols=True)
-            sums, count, t_epoch, seen = {"loss": 0.0, "act": 0.0, "img": 0.0}, 0, time.perf_counter(), 0
-            for step in range(start, steps_per_epoch):
-                aug = torch.Generator().manual_seed(train_cfg.seed * 7_919 + state["global_step"] + 1)
-                batch = make_batch(train_items, order[step * bs:(step + 1) * bs], device, train_cfg.shift_pixels, aug)
-                loss, logs = wam_loss(net, batch, train_cfg)
-                optimizer_step(net, opt, sched, loss, train_cfg.grad_clip)
-                state["global_step"] += 1
-                state["step_in_epoch"] += 1
-                count, seen = count + 1, seen + bs
-                for k, v in (("loss", loss.item()), *logs.items()):
-                    sums[k] += v
-                bar.update(1)
-                bar.set_postfix(loss=f"{sums['loss'] / count:.4g}", act=f"{sums['act'] / count:.4g}",
-                                img=f"{sums['img'] / count:.4g}",
-                                sps=f"{seen / (time.perf_counter() - t_epoch):.0f}")
-                if train_cfg.save_every_steps and state["global_step"] % train_cfg.save_every_steps == 0:
-                    save()
-                if max_steps is not None and state["global_step"] >= max_steps:
-                    bar.close()
-                    save()
-                    log(f"stopped at step {state['global_step']} (max_steps); re-run to continue")
-                    return TrainResult(net.eval(), state, finished_before=False)
-            bar.close()
-            state["epoch"], state["step_in_epoch"] = epoch + 1, 0
-            record: dict[str, Any] = {"epoch": epoch + 1, "global_step": state["global_step"],
-                                      "lr": sched.get_last_lr()[0],
-                                      "samples_per_s": seen / max(1e-9, time.perf_counter() - t_epoch)}
-            record.update({f"train/{k}": v / max(1, count) for k, v in sums.items()})
-            if len(val_items):
-                record.update({f"val/{k}": v for k, v in evaluate(net, val_items, 2 * bs).items()})
-            state["history"].append(record)
-            save()
-            log(f"epoch {epoch + 1}: " + " ".join(f"{k}={v:.4g}" for k, v in record.items()
-                                                   if isinstance(v, float) and k != "lr"))
-    except KeyboardInterrupt:
-        save()
-        log(f"interrupted: checkpoint saved at step {state['global_step']}; re-run the same command to resume")
-        raise
-    return TrainResult(net.eval(), state, finished_before=False)
+    result = fit(net, ItemBatches(train_items, device, train_cfg.shift_pixels, train_cfg.seed),
+                 lambda m, b: wam_loss(m, b, train_cfg), train_cfg, run_dir=out, kind=KIND, config=config, data=data,
+                 device=device, evaluate=(lambda m: evaluate(m, val_items, 2 * bs)) if len(val_items) else None,
+                 on_fresh_start=fresh_stats, resume=progress_saved is not None, max_steps=max_steps,
+                 progress=progress, desc="tinywam", log=log)
+    return TrainResult(net.eval(), dict(result.state, history=result.history), finished_before=False)
 
 
 def saved_configs(out: str | Path) -> tuple[TinyWAMConfig, WAMTrainConfig] | None:
-    """The model and training configs of a resumable TinyWAM checkpoint at ``out``, else None."""
-    if not has_training_state(out):
+    """The model and training configs of a resumable TinyWAM run at ``out``, else None."""
+    ckpt, _ = run_paths(out)
+    if not has_training_state(ckpt):
         return None
-    saved = read_config(out, KIND)
+    saved = read_config(ckpt, KIND)
     return from_dict(TinyWAMConfig, saved["model"]), from_dict(WAMTrainConfig, saved["train"])

@@ -1,5 +1,5 @@
 """The world model (paper §3.2): a block-causal ViT predictor over frozen patch features, a pixel
-decoder for inspection, their training, and the ``paper``/``mini`` presets.
+decoder for inspection and their training (the ``paper``/``mini`` sizes live in ``wamplan.presets``).
 
     from wamplan.worldmodel import load_predictor
     wm = load_predictor("runs/wm")                                  # eval mode
@@ -10,11 +10,10 @@ decoder for inspection, their training, and the ``paper``/``mini`` presets.
 from wamplan.worldmodel.config import DecoderConfig, PredictorConfig, TrainConfig
 from wamplan.worldmodel.decoder import Decoder, evaluate_decoder, load_decoder, train_decoder
 from wamplan.worldmodel.predictor import PrefixCache, WorldModelPredictor, action_blocks
-from wamplan.worldmodel.presets import PRESETS, WorldModelPreset, get_preset
 from wamplan.worldmodel.train import (compute_feature_stats, evaluate_predictor, load_predictor, train_predictor,
                                       window_loss)
 
 __all__ = ["action_blocks", "DecoderConfig", "PredictorConfig", "TrainConfig", "Decoder", "PrefixCache",
-           "WorldModelPredictor", "WorldModelPreset", "PRESETS", "get_preset", "compute_feature_stats",
+           "WorldModelPredictor", "compute_feature_stats",
            "evaluate_decoder", "evaluate_predictor", "load_decoder", "load_predictor", "train_decoder",
            "train_predictor", "window_loss"]

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from wamplan.config import add_arguments, from_args
 from wamplan.errors import UserError
+from wamplan.worldmodel.config import TrainConfig
 
 
 def _stores(spec: str) -> list[Path]:
@@ -18,14 +19,14 @@ def _stores(spec: str) -> list[Path]:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from wamplan.worldmodel.config import TrainConfig
+    from wamplan.presets import PRESETS
 
     wm = sub.add_parser("wm", help="the world model: encode features, train, evaluate, visualise")
     s = wm.add_subparsers(dest="wm_command", metavar="WM_COMMAND")
 
     p = s.add_parser("encode", help="encode the stores' images once with the preset's frozen encoder (cached)")
     p.add_argument("--data", required=True, help="episode stores, comma separated")
-    p.add_argument("--preset", default="mini", help="mini | paper (which encoder)")
+    p.add_argument("--preset", default="mini", choices=sorted(PRESETS), help="which encoder (wamplan/presets.py)")
     p.add_argument("--encoder-path", default=None, help="local weights directory for DINOv2/DINOv3 encoders")
     p.add_argument("--device", default="auto")
     p.set_defaults(func=cmd_encode)
@@ -35,7 +36,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         p = s.add_parser(name, help=f"train {what}; re-running resumes")
         p.add_argument("--data", required=True, help="episode stores, comma separated")
         p.add_argument("--out", type=Path, required=True, help="run directory (checkpoint/, metrics.jsonl)")
-        p.add_argument("--preset", default="mini")
+        p.add_argument("--preset", default="mini", choices=sorted(PRESETS),
+                       help="model and training sizes (wamplan/presets.py); options below override them")
         p.add_argument("--encoder-path", default=None)
         p.add_argument("--val-fraction", type=float, default=0.1)
         p.add_argument("--max-steps", type=int, default=None, help="stop after this many steps (resumable)")
@@ -65,102 +67,56 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_viz)
 
 
-def _encoder(preset, path: str | None, device: str):
-    from wamplan.device import resolve_device
-    from wamplan.encoders import make_encoder
-
-    kw = dict(preset.encoder_kwargs)
-    if path:
-        kw["path"] = path
-    return make_encoder(preset.encoder, **kw).to(resolve_device(device))
-
-
-def feature_key(enc) -> str:
-    from wamplan.data.features import feature_key as key
-
-    return key(enc.config_dict())
-
-
-def _encode_all(stores, enc) -> None:
-    from tqdm import tqdm
-
-    from wamplan.data.features import encode_store
-    from wamplan.data.store import EpisodeStore
-
-    for root in stores:
-        n = len(EpisodeStore(root).episode_paths())
-        for _ in tqdm(encode_store(root, enc), desc=f"encode {Path(root).name} ({enc.name})", total=n, leave=False):
-            pass
-
-
 def cmd_encode(args: argparse.Namespace) -> int:
-    from wamplan.worldmodel.presets import get_preset
+    from wamplan.data.features import feature_key
+    from wamplan.presets import get_world_model_preset
+    from wamplan.worldmodel.stores import encode_stores, frozen_encoder
 
-    enc = _encoder(get_preset(args.preset), args.encoder_path, args.device)
-    _encode_all(_stores(args.data), enc)
-    print(f"features cached under <store>/features/{feature_key(enc)}/")
+    preset = get_world_model_preset(args.preset)
+    enc = frozen_encoder(preset.encoder, preset.encoder_kwargs, args.encoder_path, args.device)
+    encode_stores(_stores(args.data), enc)
+    print(f"features cached under <store>/features/{feature_key(enc.config_dict())}/")
     return 0
 
 
-def _train_setup(args: argparse.Namespace, decoder: bool):
-    from wamplan.worldmodel.presets import get_preset
-
-    preset = get_preset(args.preset)
-    base = preset.decoder_train if decoder else preset.train
-    train = from_args(type(base), args, base=base)
-    enc = _encoder(preset, args.encoder_path, args.device)
-    stores = _stores(args.data)
-    _encode_all(stores, enc)
-    info = enc.config_dict()
-    info.pop("path", None)
-    return preset, train, enc, stores, info
-
-
 def cmd_train(args: argparse.Namespace) -> int:
-    from wamplan.data.readers import WorldModelWindows
-    from wamplan.worldmodel.loop import checkpoint_path
-    from wamplan.worldmodel.train import train_predictor
+    from wamplan.presets import get_world_model_preset
+    from wamplan.worldmodel.stores import train_predictor_on_stores
 
-    preset, train, enc, stores, info = _train_setup(args, decoder=False)
-    cfg = preset.predictor
-    kw = dict(frameskip=cfg.frameskip, history=cfg.context, horizon=train.horizon, features=feature_key(enc),
-              window_end=train.window_end,
-              val_fraction=args.val_fraction)
-    tr, va = WorldModelWindows(stores, split="train", **kw), WorldModelWindows(stores, split="val", **kw)
-    print(f"windows: {len(tr)} train, {len(va)} val ({len(tr.episodes)} / {len(va.episodes)} episodes)")
-    resume = checkpoint_path(args.out).exists()
-    _, metrics = train_predictor(tr, cfg, train, args.out, val_set=va if len(va) else None, device=args.device,
-                                 resume=resume, max_steps=args.max_steps, encoder_info=info)
+    p = get_world_model_preset(args.preset)
+    metrics = train_predictor_on_stores(_stores(args.data), args.out, p.predictor, from_args(TrainConfig, args, p.train),
+                                        encoder=p.encoder, encoder_kwargs=p.encoder_kwargs,
+                                        encoder_path=args.encoder_path, val_fraction=args.val_fraction,
+                                        device=args.device, max_steps=args.max_steps)
     print(json.dumps(metrics))
     return 0
 
 
 def cmd_train_decoder(args: argparse.Namespace) -> int:
-    from wamplan.data.readers import FeatureFrames
-    from wamplan.worldmodel.decoder import train_decoder
-    from wamplan.worldmodel.loop import checkpoint_path
+    from wamplan.presets import get_world_model_preset
+    from wamplan.worldmodel.stores import train_decoder_on_stores
 
-    preset, train, enc, stores, info = _train_setup(args, decoder=True)
-    tr = FeatureFrames(stores, enc.name, split="train", val_fraction=args.val_fraction)
-    va = FeatureFrames(stores, enc.name, split="val", val_fraction=args.val_fraction)
-    print(f"frames: {len(tr)} train, {len(va)} val")
-    _, metrics = train_decoder(tr, preset.decoder, train, args.out, val_set=va if len(va) else None,
-                               device=args.device, resume=checkpoint_path(args.out).exists(),
-                               max_steps=args.max_steps, encoder_info=info)
+    p = get_world_model_preset(args.preset)
+    metrics = train_decoder_on_stores(_stores(args.data), args.out, p.decoder,
+                                      from_args(TrainConfig, args, p.decoder_train), encoder=p.encoder,
+                                      encoder_kwargs=p.encoder_kwargs, encoder_path=args.encoder_path,
+                                      val_fraction=args.val_fraction, device=args.device, max_steps=args.max_steps)
     print(json.dumps(metrics))
     return 0
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
+    from wamplan.data.features import feature_key
     from wamplan.data.readers import WorldModelWindows
+    from wamplan.worldmodel.stores import encode_stores
     from wamplan.worldmodel.train import evaluate_predictor, load_world_model
 
     model, enc = load_world_model(args.ckpt)
     stores = _stores(args.data)
-    _encode_all(stores, enc)
+    encode_stores(stores, enc)
     ds = WorldModelWindows(stores, frameskip=model.cfg.frameskip, history=model.cfg.context, horizon=args.horizon,
                            split=args.split, val_fraction=args.val_fraction,
-                           features=feature_key(enc))
+                           features=feature_key(enc.config_dict()))
     if len(ds) == 0:
         raise UserError(f"no {args.split} windows of {model.cfg.context}+{args.horizon} frames in {args.data}")
     m = evaluate_predictor(model, ds, args.horizon, 0.95)

@@ -1,7 +1,7 @@
 """Configs of the world model: predictor, decoder, and one optimisation config used by both trainers.
 
 Frozen dataclasses validated in ``__post_init__``; field help strings are the ``--help`` text
-(``wamplan.config.add_arguments``). The ``paper`` and ``mini`` values live in ``presets.py``.
+(``wamplan.config.add_arguments``). The ``paper`` and ``mini`` values live in ``wamplan/presets.py``.
 """
 
 from __future__ import annotations
@@ -108,6 +108,8 @@ class TrainConfig:
     seed: int = field(0, "seed of initialisation and data order")
     num_workers: int = field(0, "DataLoader worker processes")
     save_every_steps: int = field(0, "also checkpoint every this many steps (0 = at epoch ends only)")
+    log_every_steps: int = field(0, "also log the running training loss to metrics.jsonl every this many steps "
+                                    "(0 = at epoch ends only)")
     loss_form: str = field("mean", "eq. 2's terms: 'mean' (per-element MSE of z plus that of q; our default) or "
                                    "'sum' (the paper's squared norms, ||dz||^2 + ||dq||^2, divided by z's size)")
     window_end: str = field("block", "last window of an episode: 'block' (the last frame's action block lies in "
@@ -131,3 +133,4 @@ class TrainConfig:
         require(self.grad_clip >= 0, f"TrainConfig.grad_clip must be >= 0, got {self.grad_clip}")
         require(self.num_workers >= 0, f"TrainConfig.num_workers must be >= 0, got {self.num_workers}")
         require(self.save_every_steps >= 0, f"TrainConfig.save_every_steps must be >= 0, got {self.save_every_steps}")
+        require(self.log_every_steps >= 0, f"TrainConfig.log_every_steps must be >= 0, got {self.log_every_steps}")

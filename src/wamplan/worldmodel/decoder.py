@@ -20,12 +20,12 @@ import torch.nn.functional as F
 from torch import nn
 from torch.utils.data import DataLoader, Dataset
 
-from wamplan.checkpoint import load_weights, read_config
+from wamplan.checkpoint import checkpoint_dir, load_weights, read_config
 from wamplan.config import from_dict, to_dict
 from wamplan.device import resolve_device
+from wamplan.train_loop import DatasetBatches, fit
 from wamplan.worldmodel.config import DecoderConfig, TrainConfig
 from wamplan.worldmodel.layers import Block, init_weights
-from wamplan.worldmodel.loop import checkpoint_path, fit
 
 KIND = "wm-decoder"
 
@@ -95,7 +95,8 @@ def evaluate_decoder(model: Decoder, dataset: Dataset, batch_size: int = 64,
 def train_decoder(train_set: Dataset, cfg: DecoderConfig, train: TrainConfig, out_dir: str | Path, *,
                   val_set: Dataset | None = None, device: str | torch.device = "auto", resume: bool = False,
                   max_steps: int | None = None, progress: bool = True,
-                  encoder_info: dict[str, Any] | None = None) -> tuple[Decoder, dict[str, Any]]:
+                  encoder_info: dict[str, Any] | None = None,
+                  data: dict[str, Any] | None = None) -> tuple[Decoder, dict[str, Any]]:
     """Train (or resume) a decoder on (features, image) pairs; same checkpoint layout as the predictor.
     ``train.horizon``/``train.gamma`` are not used."""
     dev = resolve_device(device) if isinstance(device, str) else device
@@ -105,15 +106,16 @@ def train_decoder(train_set: Dataset, cfg: DecoderConfig, train: TrainConfig, ou
     def evaluate(m: torch.nn.Module) -> dict[str, float]:
         return evaluate_decoder(m, val_set, 2 * train.batch_size, dev)  # type: ignore[arg-type]
 
-    metrics = fit(model, train_set, train, kind=KIND, config=config, out_dir=out_dir, device=dev,
-                  loss_fn=decoder_loss, evaluate=evaluate if val_set is not None else None,
-                  resume=resume, max_steps=max_steps, progress=progress, desc="decoder")
-    return model.eval(), metrics
+    result = fit(model, DatasetBatches(train_set, train.num_workers, dev.type != "cpu"), decoder_loss, train,
+                 run_dir=out_dir, kind=KIND, config=config, data=data, device=dev,
+                 evaluate=evaluate if val_set is not None else None, resume=resume, max_steps=max_steps,
+                 betas=train.betas, progress=progress, desc="decoder", log=print if progress else None)
+    return model.eval(), result.metrics
 
 
 def load_decoder(path: str | Path, device: str | torch.device = "cpu") -> Decoder:
     """A trained decoder (eval mode) from a checkpoint directory (or a training ``out_dir``)."""
-    ckpt = checkpoint_path(path)
+    ckpt = checkpoint_dir(path)
     cfg = from_dict(DecoderConfig, read_config(ckpt, KIND)["decoder"])
     model = Decoder(cfg)
     load_weights(ckpt, model)

@@ -28,12 +28,12 @@ from typing import Any
 import torch
 from torch.utils.data import DataLoader, Dataset
 
-from wamplan.checkpoint import load_weights, read_config
+from wamplan.checkpoint import checkpoint_dir, load_weights, read_config
 from wamplan.config import from_dict, to_dict
 from wamplan.device import resolve_device
 from wamplan.errors import UserError
+from wamplan.train_loop import DatasetBatches, fit
 from wamplan.worldmodel.config import PredictorConfig, TrainConfig
-from wamplan.worldmodel.loop import checkpoint_path, fit
 from wamplan.worldmodel.predictor import WorldModelPredictor
 
 KIND = "wm-predictor"
@@ -117,10 +117,11 @@ def compute_feature_stats(dataset: Dataset, max_items: int = 2000, seed: int = 0
 
 def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig, out_dir: str | Path, *,
                     val_set: Dataset | None = None, device: str | torch.device = "auto", resume: bool = False,
-                    max_steps: int | None = None, progress: bool = True,
-                    encoder_info: dict[str, Any] | None = None) -> tuple[WorldModelPredictor, dict[str, Any]]:
-    """Train (or resume) a predictor; checkpoints go to ``out_dir/checkpoint``, metrics to
-    ``out_dir/metrics.jsonl``. ``encoder_info`` (e.g. ``encoder.config_dict()``) is stored as provenance.
+                    max_steps: int | None = None, progress: bool = True, encoder_info: dict[str, Any] | None = None,
+                    data: dict[str, Any] | None = None) -> tuple[WorldModelPredictor, dict[str, Any]]:
+    """Train (or resume) a predictor into the run directory ``out_dir`` (``wamplan.train_loop``:
+    ``checkpoint/`` + ``metrics.jsonl``). ``encoder_info`` (e.g. ``encoder.config_dict()``) is stored as
+    provenance; ``data`` identifies the training data (``data.store.describe_stores``), checked on resume.
     Returns the trained model (eval mode) and the last metrics (with ``val/...`` entries if ``val_set``)."""
     dev = resolve_device(device) if isinstance(device, str) else device
     torch.manual_seed(train.seed)
@@ -135,16 +136,18 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
         return evaluate_predictor(m, val_set, train.horizon, train.gamma,  # type: ignore[arg-type]
                                   2 * train.batch_size, dev)
 
-    metrics = fit(model, train_set, train, kind=KIND, config=config, out_dir=out_dir, device=dev,
-                  loss_fn=lambda m, b: window_loss(m, b, train.horizon, train.gamma, train.loss_form),
-                  evaluate=evaluate if val_set is not None else None, on_fresh_start=fresh_stats,
-                  resume=resume, max_steps=max_steps, progress=progress, desc="predictor")
-    return model.eval(), metrics
+    result = fit(model, DatasetBatches(train_set, train.num_workers, dev.type != "cpu"),
+                 lambda m, b: window_loss(m, b, train.horizon, train.gamma,
+                                                   train.loss_form), train, run_dir=out_dir, kind=KIND,
+                 config=config, data=data, device=dev, evaluate=evaluate if val_set is not None else None,
+                 on_fresh_start=fresh_stats, resume=resume, max_steps=max_steps, betas=train.betas,
+                 progress=progress, desc="predictor", log=print if progress else None)
+    return model.eval(), result.metrics
 
 
 def load_predictor(path: str | Path, device: str | torch.device = "cpu") -> WorldModelPredictor:
     """A trained predictor (eval mode) from a checkpoint directory (or a training ``out_dir``)."""
-    ckpt = checkpoint_path(path)
+    ckpt = checkpoint_dir(path)
     cfg = from_dict(PredictorConfig, read_config(ckpt, KIND)["predictor"])
     dev = resolve_device(device) if isinstance(device, str) else device
     model = WorldModelPredictor(cfg)
@@ -156,7 +159,7 @@ def load_world_model(path: str | Path, device: str | torch.device = "cpu"):
     """(predictor, encoder) from a predictor checkpoint; the encoder is rebuilt from the stored config."""
     from wamplan.encoders import make_encoder
 
-    ckpt = checkpoint_path(path)
+    ckpt = checkpoint_dir(path)
     info = dict(read_config(ckpt, KIND).get("encoder") or {})
     model = load_predictor(path, device)
     name = info.pop("name", model.cfg.encoder)

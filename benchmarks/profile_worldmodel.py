@@ -3,7 +3,8 @@
 FLOPs are counted with ``torch.utils.flop_counter.FlopCounterMode`` on meta tensors (no memory, no
 weights needed; multiply-add = 2 FLOPs; matmuls and attention only, elementwise ops are not counted).
 
-    python -m wamplan.worldmodel.profile            # both presets' figures, mini timings
+    .venv/bin/python benchmarks/profile_worldmodel.py            # both presets' figures, mini timings
+    .venv/bin/python benchmarks/profile_worldmodel.py --threads 1
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from wamplan.worldmodel.decoder import Decoder
 from wamplan.worldmodel.predictor import WorldModelPredictor
-from wamplan.worldmodel.presets import PRESETS, get_preset
+from wamplan.presets import PRESETS, get_world_model_preset as get_preset
 
 CHUNK = 16  # actions per WAM chunk
 

@@ -1,0 +1,306 @@
+"""The one resumable training loop of wamplan (world-model predictor and decoder, TinyWAM).
+
+A training run is a directory::
+
+    RUN/checkpoint/     model.safetensors + config.json + training_state/   (``wamplan.checkpoint``)
+    RUN/metrics.jsonl   one JSON object per logged step ("event": "step", every ``log_every_steps``)
+                        and per epoch ("event": "epoch": epoch means, lr, samples/s, ``val/...``)
+
+Every trainer hands :func:`fit` its model, a :class:`Batches` source, a ``step_fn(model, batch) ->
+(loss, logs)``, an optimisation config (:class:`LoopConfig`), the config to store and the identity of
+its data. The loop owns AdamW (decay on matrices only), warm-up + cosine per step, gradient clipping,
+the progress bar, validation and logging at epoch ends, and saving (at every epoch end, every
+``save_every_steps``, on ``max_steps`` and on Ctrl-C).
+
+One resume rule: a run is resumed only with the same data (the ``data`` identity: stores, episodes,
+split) and the same config (except :data:`RUN_ONLY_FIELDS` of its ``train`` section); anything else is
+refused with one line naming the difference. Resuming is exact: the data order of epoch e is a
+permutation seeded by (seed, e), the loop skips the batches already done, and weights, optimizer,
+scheduler, counters and the torch CPU RNG are restored. (A CUDA RNG is not saved: with dropout on a
+GPU a resumed run differs from an uninterrupted one only in its dropout masks.)
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterable, Protocol, Sequence
+
+import torch
+from torch import nn
+from torch.utils.data import DataLoader, Dataset
+from tqdm.auto import tqdm
+
+from wamplan.checkpoint import (CKPT_DIR, CONFIG_FILE, STATE_DIR, has_training_state, load_training_state,
+                                load_weights, read_config, save_checkpoint)
+from wamplan.errors import UserError
+from wamplan.optim import make_adamw, optimizer_step, warmup_cosine
+
+METRICS_FILE = "metrics.jsonl"
+# fields of a config's "train" section that may change when a run is resumed (everything else must match)
+RUN_ONLY_FIELDS = ("epochs", "num_workers", "device", "save_every_steps", "log_every_steps")
+
+StepFn = Callable[[nn.Module, Any], tuple[torch.Tensor, dict[str, float]]]
+
+
+class LoopConfig(Protocol):
+    """The optimisation fields the loop reads (``worldmodel.TrainConfig`` and ``WAMTrainConfig`` have them)."""
+
+    epochs: int
+    batch_size: int
+    lr: float
+    weight_decay: float
+    warmup_epochs: float
+    min_lr_ratio: float
+    grad_clip: float
+    seed: int
+    save_every_steps: int
+    log_every_steps: int
+
+
+class Batches(Protocol):
+    """Where the batches come from: ``len`` items, and the batches of one epoch in a given item order."""
+
+    def __len__(self) -> int: ...
+
+    def epoch(self, indices: list[int], batch_size: int, first_step: int) -> Iterable[Any]:
+        """Batches of ``batch_size`` items in the order ``indices`` (whole batches only); ``first_step`` is
+        the global step of the first one (for per-step randomness such as augmentation)."""
+        ...
+
+
+class DatasetBatches:
+    """Batches of a torch ``Dataset`` through a ``DataLoader`` (worker processes, pinned memory)."""
+
+    def __init__(self, dataset: Dataset, num_workers: int = 0, pin_memory: bool = False) -> None:
+        self.dataset, self.num_workers, self.pin_memory = dataset, num_workers, pin_memory
+
+    def __len__(self) -> int:
+        return len(self.dataset)  # type: ignore[arg-type]
+
+    def epoch(self, indices: list[int], batch_size: int, first_step: int) -> Iterable[Any]:
+        g = torch.Generator().manual_seed(first_step)  # worker seeds; keeps the global RNG untouched
+        return DataLoader(self.dataset, batch_size=batch_size, sampler=indices, drop_last=True,
+                          num_workers=self.num_workers, generator=g, pin_memory=self.pin_memory)
+
+
+@dataclass
+class FitResult:
+    state: dict[str, Any]  # epoch, step_in_epoch, global_step
+    metrics: dict[str, Any]  # the last epoch record (or the counters, with "stopped", when stopped mid-epoch)
+    history: list[dict[str, Any]] = field(default_factory=list)  # every epoch record of the run, resumes included
+    finished_before: bool = False  # the run had already done all its epochs: nothing was trained
+
+
+# ------------------------------------------------------------------------------------------------ run directory
+def run_paths(run_dir: str | Path) -> tuple[Path, Path]:
+    """(checkpoint directory, metrics file) of a run directory."""
+    run = Path(run_dir)
+    return run / CKPT_DIR, run / METRICS_FILE
+
+
+def check_run_dir(run_dir: str | Path, what: str = "a training run") -> None:
+    """Refuse an ``--out`` that would mix a run with something else."""
+    run = Path(run_dir)
+    if run.exists() and not run.is_dir():
+        raise UserError(f"--out {run} is a file; pass a directory for the training run")
+    if (run / CONFIG_FILE).is_file():
+        raise UserError(f"--out {run} is a checkpoint directory itself (the layout before run directories); it "
+                        f"still loads for inference, but train into a new --out")
+    if run.is_dir() and any(run.iterdir()) and not (run / CKPT_DIR).exists() and not (run / METRICS_FILE).exists():
+        raise UserError(f"--out {run} exists and is not {what} (no {CKPT_DIR}/ inside, it would be mixed up); "
+                        f"pass a new or empty directory")
+
+
+def saved_progress(run_dir: str | Path) -> dict[str, Any] | None:
+    """The saved counters (epoch, step_in_epoch, global_step, ...) of a resumable run, else None."""
+    ckpt, _ = run_paths(run_dir)
+    if not has_training_state(ckpt):
+        return None
+    return json.loads((ckpt / STATE_DIR / "state.json").read_text())["train_state"]
+
+
+def read_metrics(run_dir: str | Path, event: str | None = None) -> list[dict[str, Any]]:
+    """The records of ``RUN/metrics.jsonl`` (only those of ``event`` if given)."""
+    path = Path(run_dir) / METRICS_FILE if Path(run_dir).is_dir() else Path(run_dir)
+    if not path.is_file():
+        return []
+    recs = [json.loads(x) for x in path.read_text().splitlines() if x.strip()]
+    return [r for r in recs if event is None or r.get("event", "epoch") == event]
+
+
+def _short(v: Any, limit: int = 120) -> str:
+    s = json.dumps(v)
+    return s if len(s) <= limit else s[:limit - 3] + "..."
+
+
+def _leaf_diff(saved: Any, now: Any, name: str, skip: Sequence[str] = ()) -> list[str]:
+    if isinstance(saved, dict) and isinstance(now, dict):
+        return [d for k in sorted(set(saved) | set(now)) if k not in skip
+                for d in _leaf_diff(saved.get(k), now.get(k), k)]
+    return [] if saved == now else [f"different {name}: saved {_short(saved)}, now {_short(now)}"]
+
+
+def check_data(run_dir: str | Path, kind: str, data: dict[str, Any]) -> None:
+    """Half of the resume rule, cheap enough to run before loading anything: the same data as saved."""
+    saved = json.loads(json.dumps(read_config(run_paths(run_dir)[0], kind).get("data") or {}))
+    now = json.loads(json.dumps(data))
+    diff = [d for k in sorted(now) for d in _leaf_diff(saved.get(k), now[k], k)]
+    if diff:
+        raise UserError(f"{run_dir} was trained on different data ({'; '.join(diff)}); resume it with the same "
+                        f"--data or use another --out")
+
+
+def check_resume(run_dir: str | Path, kind: str, config: dict[str, Any], data: dict[str, Any] | None) -> None:
+    """The resume rule: the same data and the same config (but :data:`RUN_ONLY_FIELDS`) as the saved run."""
+    if data is not None:
+        check_data(run_dir, kind, data)
+    saved = json.loads(json.dumps(read_config(run_paths(run_dir)[0], kind)))
+    now = json.loads(json.dumps(config))
+    diff = []
+    for section in sorted((set(saved) | set(now)) - {"data"}):
+        skip = RUN_ONLY_FIELDS if section == "train" else ()
+        diff += _leaf_diff(saved.get(section), now.get(section), section, skip)
+    if diff:
+        raise UserError(f"{run_dir} was trained with a different config ({'; '.join(diff)}); re-run with the same "
+                        f"options to resume it (only {', '.join(RUN_ONLY_FIELDS)} may change) or use another --out")
+
+
+def _trim_metrics(path: Path, epoch: int, global_step: int) -> None:
+    """Drop records logged after the checkpoint being resumed (a crash between a log line and a save)."""
+    keep = [r for r in read_metrics(path) if r["global_step"] <= global_step
+            and (r.get("event", "epoch") != "epoch" or r["epoch"] <= epoch)]
+    path.write_text("".join(json.dumps(r) + "\n" for r in keep))
+
+
+def _to_device(batch: Any, device: torch.device) -> Any:
+    if isinstance(batch, dict):
+        return {k: _to_device(v, device) for k, v in batch.items()}
+    return batch.to(device, non_blocking=True) if torch.is_tensor(batch) else batch
+
+
+# ------------------------------------------------------------------------------------------------ the loop
+def fit(model: nn.Module, batches: Batches, step_fn: StepFn, cfg: LoopConfig, *, run_dir: str | Path, kind: str,
+        config: dict[str, Any], data: dict[str, Any] | None = None, device: torch.device | None = None,
+        evaluate: Callable[[nn.Module], dict[str, float]] | None = None,
+        on_fresh_start: Callable[[], None] | None = None, resume: bool = False, max_steps: int | None = None,
+        betas: Sequence[float] = (0.9, 0.999), progress: bool = True, desc: str = "train",
+        log: Callable[[str], None] | None = print) -> FitResult:
+    """Train ``model`` (already on ``device``) into ``run_dir`` with ``step_fn(model, batch) -> (loss, logs)``.
+
+    ``config`` is stored in the checkpoint (``kind`` names the model family) with ``data`` (the identity
+    of the training data, checked on resume) as its ``data`` section. ``evaluate(model)`` runs under
+    no_grad in eval mode after every epoch; ``on_fresh_start`` runs only when not resuming (e.g. to
+    compute normalisation statistics). ``resume`` continues the run's checkpoint (an error without it if
+    one exists). ``max_steps`` stops after that many optimisation steps in all (saved; resumable).
+    """
+    run = Path(run_dir)
+    ckpt, metrics_path = run_paths(run)
+    device = device or next(model.parameters()).device
+    say = log or (lambda _: None)
+    check_run_dir(run)
+    bs, n = cfg.batch_size, len(batches)
+    steps_per_epoch = n // bs
+    if steps_per_epoch < 1:
+        raise UserError(f"the training set has {n} items, fewer than batch_size {bs}; collect more data or lower "
+                        f"--batch-size")
+    if data is not None:
+        config = dict(config, data={**(config.get("data") or {}), **data})
+    opt = make_adamw(model, cfg.lr, cfg.weight_decay, betas)
+    sched = warmup_cosine(opt, round(cfg.warmup_epochs * steps_per_epoch), steps_per_epoch * cfg.epochs,
+                          cfg.min_lr_ratio)
+    state = {"epoch": 0, "step_in_epoch": 0, "global_step": 0}
+    if (ckpt / CONFIG_FILE).is_file() and not has_training_state(ckpt):
+        raise UserError(f"{ckpt} holds a checkpoint without training state, so it cannot be resumed; pass a new --out")
+    if has_training_state(ckpt) and not resume:
+        raise UserError(f"{run} already holds a training checkpoint; pass --resume to continue it or a new --out")
+    if resume and has_training_state(ckpt):
+        check_resume(run, kind, config, data)
+        load_weights(ckpt, model, device)
+        saved = load_training_state(ckpt, opt, sched)
+        if saved.get("steps_per_epoch") != steps_per_epoch:
+            raise UserError(f"{ckpt} was trained with {saved.get('steps_per_epoch')} steps per epoch, the data now "
+                            f"give {steps_per_epoch}; resume with the same data and batch size or use another --out")
+        state.update({k: saved[k] for k in state})
+        torch.set_rng_state(torch.tensor(saved["rng_cpu"], dtype=torch.uint8))
+        _trim_metrics(metrics_path, state["epoch"], state["global_step"])
+        if state["epoch"] < cfg.epochs:
+            say(f"resuming {run} at epoch {state['epoch'] + 1}, step {state['global_step']}")
+    else:
+        if on_fresh_start is not None:
+            on_fresh_start()
+        run.mkdir(parents=True, exist_ok=True)
+        metrics_path.write_text("")
+
+    def save() -> None:
+        ts = dict(state, rng_cpu=torch.get_rng_state().tolist(), steps_per_epoch=steps_per_epoch)
+        save_checkpoint(ckpt, model, config, kind=kind, optimizer=opt, scheduler=sched, train_state=ts)
+
+    def write(record: dict[str, Any]) -> None:
+        with open(metrics_path, "a") as f:
+            f.write(json.dumps(record) + "\n")
+
+    if state["epoch"] >= cfg.epochs:
+        history = read_metrics(run, "epoch")
+        return FitResult(dict(state), history[-1] if history else dict(state), history, finished_before=True)
+    metrics: dict[str, Any] = {"epoch": state["epoch"], "global_step": state["global_step"]}
+    model.train()
+    try:
+        while state["epoch"] < cfg.epochs:
+            epoch, start = state["epoch"], state["step_in_epoch"]
+            g = torch.Generator().manual_seed(cfg.seed * 1_000_003 + epoch)
+            order = torch.randperm(n, generator=g)[: steps_per_epoch * bs][start * bs:].tolist()
+            bar = tqdm(total=steps_per_epoch, initial=start, desc=f"{desc} {epoch + 1}/{cfg.epochs}",
+                       disable=not progress, dynamic_ncols=True)
+            sums: dict[str, float] = {}
+            window: dict[str, float] = {}  # sums since the last step record
+            count, window_n, t0, seen = 0, 0, time.perf_counter(), 0
+            for batch in batches.epoch(order, bs, state["global_step"]):
+                loss, logs = step_fn(model, _to_device(batch, device))
+                optimizer_step(model, opt, sched, loss, cfg.grad_clip)
+                state["global_step"] += 1
+                state["step_in_epoch"] += 1
+                count, window_n, seen = count + 1, window_n + 1, seen + bs
+                for k, v in (("loss", float(loss.detach())), *logs.items()):
+                    sums[k] = sums.get(k, 0.0) + v
+                    window[k] = window.get(k, 0.0) + v
+                bar.update(1)
+                bar.set_postfix({k: f"{v / count:.4g}" for k, v in sums.items()}
+                                | {"sps": f"{seen / (time.perf_counter() - t0):.0f}",
+                                   "lr": f"{sched.get_last_lr()[0]:.2e}"})
+                if cfg.log_every_steps and state["global_step"] % cfg.log_every_steps == 0:
+                    write({"event": "step", "epoch": epoch + 1, "global_step": state["global_step"],
+                           "lr": sched.get_last_lr()[0], **{f"train/{k}": v / window_n for k, v in window.items()}})
+                    window, window_n = {}, 0
+                if cfg.save_every_steps and state["global_step"] % cfg.save_every_steps == 0:
+                    save()
+                if max_steps is not None and state["global_step"] >= max_steps:
+                    break
+            bar.close()
+            if state["step_in_epoch"] < steps_per_epoch:  # stopped by max_steps inside the epoch
+                save()
+                say(f"stopped at step {state['global_step']} (max_steps); re-run the same command to continue")
+                metrics = {"epoch": epoch, "global_step": state["global_step"], "stopped": "max_steps"}
+                return FitResult(dict(state), metrics, read_metrics(run, "epoch"))
+            state["epoch"], state["step_in_epoch"] = epoch + 1, 0
+            metrics = {"event": "epoch", "epoch": epoch + 1, "global_step": state["global_step"],
+                       "lr": sched.get_last_lr()[0], **{f"train/{k}": v / max(1, count) for k, v in sums.items()},
+                       "samples_per_s": seen / max(1e-9, time.perf_counter() - t0)}
+            if evaluate is not None:
+                model.eval()
+                with torch.no_grad():
+                    metrics.update({f"val/{k}": v for k, v in evaluate(model).items()})
+                model.train()
+            write(metrics)
+            save()
+            say(f"{desc} epoch {epoch + 1}: " + " ".join(f"{k}={v:.4g}" for k, v in metrics.items()
+                                                         if isinstance(v, float) and k != "lr"))
+            if max_steps is not None and state["global_step"] >= max_steps:
+                return FitResult(dict(state), dict(metrics, stopped="max_steps"), read_metrics(run, "epoch"))
+    except KeyboardInterrupt:
+        save()
+        say(f"interrupted: checkpoint saved at step {state['global_step']}; re-run the same command to resume")
+        raise
+    return FitResult(dict(state), metrics, read_metrics(run, "epoch"))

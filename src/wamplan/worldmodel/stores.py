@@ -1,0 +1,106 @@
+"""Training the world model from episode stores: encode the views once (cached beside each store), build
+the windows (predictor) or frames (decoder), and train into a run directory; re-running resumes.
+
+    train_predictor_on_stores(["data/expert"], "runs/wm", PredictorConfig(...), TrainConfig(...),
+                              encoder="patch-pixels", encoder_kwargs={"input_size": 64, ...})
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Sequence
+
+from wamplan.checkpoint import CKPT_DIR, has_training_state
+from wamplan.data.features import feature_key
+from wamplan.errors import UserError
+from wamplan.worldmodel.config import DecoderConfig, PredictorConfig, TrainConfig
+
+
+def frozen_encoder(name: str, kwargs: dict[str, Any], path: str | None = None, device: str = "auto"):
+    """The frozen encoder ``name`` (``path``: local weights for DINOv2/DINOv3) on ``device``."""
+    from wamplan.device import resolve_device
+    from wamplan.encoders import make_encoder
+
+    kw = dict(kwargs, **({"path": path} if path else {}))
+    return make_encoder(name, **kw).to(resolve_device(device))
+
+
+def encode_stores(stores: Sequence[str | Path], enc, progress: bool = True) -> None:
+    """Cache ``enc``'s features of every episode not yet encoded (``data.features.encode_store``)."""
+    from tqdm import tqdm
+
+    from wamplan.data.features import encode_store
+    from wamplan.data.store import EpisodeStore
+
+    for root in stores:
+        n = len(EpisodeStore(root).episode_paths())
+        for _ in tqdm(encode_store(root, enc), desc=f"encode {Path(root).name} ({enc.name})", total=n, leave=False,
+                      disable=not progress):
+            pass
+
+
+def _setup(stores: Sequence[str | Path], encoder: str, encoder_kwargs: dict[str, Any], encoder_path: str | None,
+           device: str, progress: bool):
+    if not stores:
+        raise UserError("--data needs at least one episode store directory")
+    enc = frozen_encoder(encoder, encoder_kwargs, encoder_path, device)
+    encode_stores(stores, enc, progress)
+    info = enc.config_dict()
+    info.pop("path", None)  # where the weights are is not what the model is
+    return enc, info
+
+
+def _resume(out: str | Path, kind: str, data: dict[str, Any]) -> bool:
+    """Whether ``out`` holds a run to resume; refuses one trained on other data before any encoding."""
+    from wamplan.train_loop import check_data
+
+    if not has_training_state(Path(out) / CKPT_DIR):
+        return False
+    check_data(out, kind, data)
+    return True
+
+
+def train_predictor_on_stores(stores: Sequence[str | Path], out: str | Path, predictor: PredictorConfig,
+                              train: TrainConfig, *, encoder: str, encoder_kwargs: dict[str, Any],
+                              encoder_path: str | None = None, val_fraction: float = 0.1, device: str = "auto",
+                              max_steps: int | None = None, progress: bool = True) -> dict[str, Any]:
+    """Train (or resume) the predictor on the windows of ``stores``; returns the last metrics."""
+    from wamplan.data.readers import WorldModelWindows
+    from wamplan.data.store import describe_stores
+    from wamplan.worldmodel.train import KIND, train_predictor
+
+    data = dict(describe_stores(stores), val_fraction=val_fraction)
+    resume = _resume(out, KIND, data)
+    enc, info = _setup(stores, encoder, encoder_kwargs, encoder_path, device, progress)
+    kw = dict(frameskip=predictor.frameskip, history=predictor.context, horizon=train.horizon,
+              features=feature_key(enc.config_dict()), val_fraction=val_fraction, window_end=train.window_end)
+    tr, va = WorldModelWindows(stores, split="train", **kw), WorldModelWindows(stores, split="val", **kw)
+    if progress:
+        print(f"windows: {len(tr)} train, {len(va)} val ({len(tr.episodes)} / {len(va.episodes)} episodes)")
+    _, metrics = train_predictor(tr, predictor, train, out, val_set=va if len(va) else None, device=device,
+                                 resume=resume, max_steps=max_steps, progress=progress, encoder_info=info,
+                                 data=data)
+    return metrics
+
+
+def train_decoder_on_stores(stores: Sequence[str | Path], out: str | Path, decoder: DecoderConfig,
+                            train: TrainConfig, *, encoder: str, encoder_kwargs: dict[str, Any],
+                            encoder_path: str | None = None, val_fraction: float = 0.1, device: str = "auto",
+                            max_steps: int | None = None, progress: bool = True) -> dict[str, Any]:
+    """Train (or resume) the picture decoder on the (features, image) frames of ``stores``."""
+    from wamplan.data.readers import FeatureFrames
+    from wamplan.data.store import describe_stores
+    from wamplan.worldmodel.decoder import KIND, train_decoder
+
+    data = dict(describe_stores(stores), val_fraction=val_fraction)
+    resume = _resume(out, KIND, data)
+    enc, info = _setup(stores, encoder, encoder_kwargs, encoder_path, device, progress)
+    key = feature_key(enc.config_dict())
+    tr = FeatureFrames(stores, key, split="train", val_fraction=val_fraction)
+    va = FeatureFrames(stores, key, split="val", val_fraction=val_fraction)
+    if progress:
+        print(f"frames: {len(tr)} train, {len(va)} val")
+    _, metrics = train_decoder(tr, decoder, train, out, val_set=va if len(va) else None, device=device,
+                               resume=resume, max_steps=max_steps, progress=progress, encoder_info=info,
+                               data=data)
+    return metrics

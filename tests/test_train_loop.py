@@ -1,0 +1,172 @@
+"""The shared training loop: one run layout, one resume rule (same data, same config) for `wm train` and
+`wam train`, metrics.jsonl from both, `wamplan plot`, and the presets and reproduce stages agreeing."""
+
+import json
+import shutil
+
+import pytest
+import torch
+
+from wamplan.cli import build_parser, main
+from wamplan.config import from_args
+
+TINY_WAM = ["--image-size", "32", "--channels", "8", "16", "--latent-dim", "32", "--trunk-dim", "64"]
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def stores(tmp_path_factory):
+    """An expert store of 2 episodes and a copy of it elsewhere with one episode less (other data)."""
+    root = tmp_path_factory.mktemp("loop")
+    store = root / "expert"
+    assert main(["collect", "--source", "expert", "--episodes", "2", "--out", str(store), "--camera-size", "64"]) == 0
+    other = root / "other"
+    shutil.copytree(store, other)
+    sorted((other / "episodes").glob("*.h5"))[-1].unlink()
+    return store, other
+
+
+def _one_line_error(capsys, argv: list[str]) -> str:
+    assert main(argv) == 2
+    lines = capsys.readouterr().err.strip().splitlines()  # progress bars (\r) may come before the error
+    err = lines[-1]
+    assert err.startswith("wamplan: error:") and sum("wamplan:" in x for x in lines) == 1, lines
+    return err
+
+
+def test_wm_train_resume_refuses_other_data_and_config(stores, tmp_path, capsys):
+    store, other = stores
+    run = tmp_path / "wm"
+    args = ["wm", "train", "--data", str(store), "--out", str(run), "--preset", "mini", "--batch-size", "4",
+            "--epochs", "2", "--max-steps", "3", "--log-every-steps", "1", "--device", "cpu"]
+    assert main(args) == 0
+    assert (run / "checkpoint" / "model.safetensors").is_file() and (run / "checkpoint" / "training_state").is_dir()
+    recs = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+    assert [r["global_step"] for r in recs] == [1, 2, 3] and all(r["event"] == "step" for r in recs)
+    assert all({"epoch", "lr", "train/loss", "train/z_mse_h1"} <= set(r) for r in recs)
+    capsys.readouterr()
+
+    err = _one_line_error(capsys, [*args[:3], f"{other}", *args[4:]])
+    assert "was trained on different data" in err and "different stores" in err and "different episodes" in err
+    assert "2 episode files" in err and "1 episode files" in err and "same --data or use another --out" in err
+    err = _one_line_error(capsys, [*args, "--lr", "0.5"])
+    assert "different config" in err and "different lr: saved 0.001, now 0.5" in err
+
+    # the same command resumes (the max-steps stop is re-logged nowhere: records continue at step 4)
+    assert main([*args[:-8], "--log-every-steps", "1", "--device", "cpu", "--epochs", "2"]) == 0
+    recs = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+    steps = [r["global_step"] for r in recs if r["event"] == "step"]
+    assert steps == list(range(1, steps[-1] + 1)) and [r["epoch"] for r in recs if r["event"] == "epoch"] == [1, 2]
+    assert "val/z_mse_h1" in recs[-1] and "train/loss" in recs[-1]  # seed 1 is a validation episode
+
+
+def test_wam_train_resume_refuses_other_data_and_logs_metrics(stores, tmp_path, capsys):
+    store, other = stores
+    run = tmp_path / "wam"
+    args = ["wam", "train", "--data", str(store), "--out", str(run), "--epochs", "2", "--batch-size", "8",
+            "--log-every-steps", "4", "--no-progress", "--device", "cpu", *TINY_WAM]
+    assert main([*args, "--max-steps", "5"]) == 0
+    capsys.readouterr()
+    err = _one_line_error(capsys, [*args[:3], str(other), *args[4:]])
+    assert "was trained on different data" in err and "different stores" in err and "--data" in err
+    err = _one_line_error(capsys, [*args, "--sources", "noisy-expert"])
+    assert "different data (different sources: saved null, now [\"noisy-expert\"])" in err
+
+    assert main(args) == 0  # resumes from step 5 to the end
+    recs = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+    epochs = [r for r in recs if r["event"] == "epoch"]
+    steps = [r for r in recs if r["event"] == "step"]
+    assert [r["epoch"] for r in epochs] == [1, 2] and steps and all(r["global_step"] % 4 == 0 for r in steps)
+    assert {"train/loss", "train/act", "train/img", "lr", "samples_per_s"} <= set(epochs[-1])
+    assert "val/action_mse" in epochs[-1]
+    assert len({r["global_step"] for r in steps}) == len(steps)  # nothing logged twice across the resume
+
+    # plot: a PNG of the curves
+    png = tmp_path / "curves.png"
+    assert main(["plot", str(run), "--out", str(png)]) == 0
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    import matplotlib.image
+    h, w = matplotlib.image.imread(png).shape[:2]
+    assert (w, h) == (1210, 440)
+    assert main(["plot", str(run)]) == 0 and (run / "curves.png").is_file()
+    err = _one_line_error(capsys, ["plot", str(tmp_path / "nothing")])
+    assert "no training metrics" in err
+
+
+def test_old_layout_checkpoints_load_and_are_not_trained_into(stores, tmp_path, capsys):
+    from pathlib import Path
+
+    from wamplan.wam import load_wam
+    from wamplan.worldmodel.train import load_world_model
+
+    ck = Path(__file__).parents[1] / "checkpoints" / "mini"
+    assert load_wam(ck / "tinywam").name == "tinywam"
+    model, enc = load_world_model(ck / "wm_augmented")
+    assert (model.cfg.num_patches, enc.name) == (16, "patch-pixels")
+    old = tmp_path / "old"
+    shutil.copytree(ck / "tinywam", old)
+    err = _one_line_error(capsys, ["wam", "train", "--data", str(stores[0]), "--out", str(old)])
+    assert "is a checkpoint directory itself" in err and "new --out" in err
+
+
+def test_preset_sizes_agree():
+    from wamplan.encoders import make_encoder
+    from wamplan.presets import PRESETS
+    from wamplan.wam.tinywam import TinyWAMConfig
+    from wamplan.wam.train import WAMTrainConfig
+
+    for p in PRESETS.values():
+        wm, tw = p.world_model, p.tinywam
+        side = wm.encoder_kwargs["input_size"] // wm.encoder_kwargs.get("patch_size", 16)
+        assert wm.predictor.num_patches == side * side == wm.decoder.num_patches, p.name
+        assert wm.predictor.enc_dim == wm.decoder.enc_dim and wm.predictor.encoder == wm.encoder
+        assert wm.decoder.image_size == wm.encoder_kwargs["input_size"]
+        assert (wm.predictor.action_dim, wm.predictor.proprio_dim, wm.predictor.num_views) == \
+            (tw.action_dim, tw.proprio_dim, len(tw.cameras))
+        assert wm.predictor.frameskip % p.image_every == 0 and tw.chunk_length % p.image_every == 0
+        assert p.wm_epochs == wm.train.epochs and p.wam_epochs == p.tinywam_train.epochs
+    mini = PRESETS["mini"].world_model
+    enc = make_encoder(mini.encoder, **mini.encoder_kwargs)
+    assert (enc.num_patches, enc.dim) == (mini.predictor.num_patches, mini.predictor.enc_dim)
+    assert (PRESETS["paper"].expert, PRESETS["paper"].noisy, PRESETS["paper"].eval_episodes) == (100, 500, 50)
+    assert (PRESETS["mini"].wm_epochs, PRESETS["mini"].wam_epochs) == (4, 12)  # the demo checkpoints' settings
+    assert PRESETS["mini"].tinywam == TinyWAMConfig() and PRESETS["paper"].tinywam_train == WAMTrainConfig(epochs=30)
+
+
+@pytest.mark.parametrize("preset", ["mini", "paper"])
+def test_reproduce_calls_match_their_printed_commands(tmp_path, preset):
+    """Every stage's printed command parses with the real CLI and means what the library call does."""
+    from wamplan.evaluation.reproduce import plan
+    from wamplan.presets import PRESETS
+    from wamplan.wam.tinywam import TinyWAMConfig
+    from wamplan.wam.train import WAMTrainConfig
+    from wamplan.worldmodel.config import TrainConfig
+
+    p = PRESETS[preset]
+    parser = build_parser()
+    stages = plan(p, tmp_path, None, 2)
+    for stage in stages:
+        for call in stage.calls:
+            args = parser.parse_args(list(call.command))
+            kw = call.kwargs
+            if "stores" in kw:
+                assert args.data == ",".join(str(s) for s in kw["stores"]), stage.name
+                assert str(args.out) == str(kw["out"])
+            if call.command[:2] == ("wam", "train"):
+                assert from_args(TinyWAMConfig, args) == kw["model_cfg"]
+                assert from_args(WAMTrainConfig, args) == kw["train_cfg"]
+            if call.command[:2] == ("wm", "train"):
+                assert from_args(TrainConfig, args, p.world_model.train) == kw["train"] == p.world_model.train
+            if call.command[0] == "collect":
+                assert (args.source, args.episodes, args.seed_start, args.image_every, args.workers) == \
+                    (kw["source"], kw["episodes"], kw["seed_start"], kw["image_every"], kw["workers"])
+                assert args.max_steps == kw["max_steps"] and args.policy == kw["policy"]
+    names = [s.name for s in stages]
+    assert names[-2:] == ["evaluate", "report"] and len(stages[names.index("evaluate")].calls) == 2
