@@ -90,8 +90,9 @@ def test_report_tables_and_figure(tmp_path):
     outcomes = ["success"] * 3 + ["never_lifted", "descended_not_seated"]
     for i, o in enumerate(outcomes):
         append_record(tmp_path, _rec(1, i, o, length=100 + 10 * i))
-        append_record(tmp_path, _rec(7, i, "success" if i < 4 else "never_lifted", length=130,
-                                     timing={"wam_s": 0.01, "target_encode_s": 0.002, "search_s": 0.5}))
+        append_record(tmp_path, dict(_rec(7, i, "success" if i < 4 else "never_lifted", length=130,
+                                          timing={"wam_s": 0.01, "target_encode_s": 0.002, "search_s": 0.5}),
+                                     planned_chunks=7, open_loop_chunks={"first-chunk": 1, "warm-up": i % 2}))
         append_record(tmp_path, _rec(7, i, "never_lifted", variant="rest-history"))
     rows = table1(read_records(tmp_path))
     assert [r["condition"] for r in rows] == [1, 7]
@@ -101,6 +102,8 @@ def test_report_tables_and_figure(tmp_path):
     md = (tmp_path / "report.md").read_text()
     assert "| 1 | None (open loop) | WAM | — | 5 | 60% (23–88) | 110 | 110 |" in md
     assert "Table 2" in md and "| 7 | planned | 5 | 0% | 100% | 0% |" in md
+    # every chunk is accounted for: 35 planned, 5 first chunks and 2 warm-up chunks open loop
+    assert "| 7 | 0.010 | 0.002 | 0.500 | 35 | 5 / 2 |" in md
     import imageio.v3 as iio
 
     assert iio.imread(tmp_path / "figure3.png").shape[2] in (3, 4)

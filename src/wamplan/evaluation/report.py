@@ -52,9 +52,11 @@ def table1(records: list[dict[str, Any]], variant: str = "open-loop") -> list[di
         lo, hi = wilson(k, n)
         lengths = [r["length"] for r in rs if r["success"]]
         timing = defaultdict(list)
+        open_loop: Counter = Counter()
         for r in rs:
             for key, v in r.get("chunk_timing_s", {}).items():
                 timing[key].append(v)
+            open_loop.update(r.get("open_loop_chunks", {}))
         rows.append(dict(condition=cid, dynamics=c.label, seed=c.seed.upper() if c.seed == "wam" else "Expert",
                          target="—" if c.target == "none" else ("WAM" if c.target == "wam" else "Expert"),
                          episodes=n, successes=k, success_rate=k / n, ci_low=lo, ci_high=hi,
@@ -62,6 +64,7 @@ def table1(records: list[dict[str, Any]], variant: str = "open-loop") -> list[di
                          median_length=float(np.median(lengths)) if lengths else None,
                          outcomes=dict(Counter(r["outcome"] for r in rs)),
                          seeds=f"{min(r['seed'] for r in rs)}-{max(r['seed'] for r in rs)}",
+                         planned_chunks=sum(r.get("planned_chunks", 0) for r in rs), open_loop_chunks=dict(open_loop),
                          **{f"mean_{k}": float(np.mean(v)) for k, v in timing.items()}))
     return rows
 
@@ -81,10 +84,14 @@ def markdown_table1(rows: list[dict[str, Any]]) -> str:
 
 
 def markdown_timing(rows: list[dict[str, Any]]) -> str:
-    out = ["| Condition | WAM query (s/chunk) | target encoding (s/chunk) | search (s/chunk) |", "|---|---|---|---|"]
+    """Per planned chunk: time per stage, and how many chunks were planned or ran open loop (and why)."""
+    out = ["| Condition | WAM query (s/chunk) | target encoding (s/chunk) | search (s/chunk) | chunks planned "
+           "| open loop: first / warm-up |", "|---|---|---|---|---|---|"]
     for r in rows:
+        ol = r.get("open_loop_chunks", {})
+        counts = f"{ol.get('first-chunk', 0)} / {ol.get('warm-up', 0)}" if r["condition"] != 1 else "—"
         out.append(f"| {r['condition']} | {_fmt(r.get('mean_wam_s'), 3)} | {_fmt(r.get('mean_target_encode_s'), 3)} "
-                   f"| {_fmt(r.get('mean_search_s'), 3)} |")
+                   f"| {_fmt(r.get('mean_search_s'), 3)} | {r.get('planned_chunks', 0)} | {counts} |")
     return "\n".join(out)
 
 
