@@ -39,6 +39,10 @@ def test_fidelity_of_a_world_model_and_of_the_simulator_against_itself(env):
         assert sim["spearman"] == pytest.approx(1.0, abs=1e-9) and sim["top_overlap"] == 1.0
         assert sim["pick_gain"] == pytest.approx(sim["best_gain"])
         assert len(set(learned["model_costs"])) == 4  # four distinct candidates
+        assert len(r["task"]["cand_xy_mm"]) == 4 and -1 <= learned["true_vs_xy"] <= 1
+    # candidate 0 is the WAM's chunk, which the episode then executed: stepping it from the boundary lands
+    # where the episode was at the next boundary (up to PhysX's restore drift, ~1 mm)
+    assert recs[0]["task"]["cand_xy_mm"][0] == pytest.approx(recs[1]["task"]["boundary_xy_mm"], abs=2.0)
     s = out["summary"]
     assert s["simulator"]["spearman_median"] == pytest.approx(1.0) and s["augmented"]["boundaries"] == 2
     assert "augmented" in format_fidelity(s, 2)

@@ -15,7 +15,10 @@ Then the WAM's own chunk is executed, so the episode stays open loop. Per model 
 Spearman rank correlation of the two cost vectors, overlap of the two top-k sets, whether the model's
 pick beats the WAM's chunk in the simulator (and how often a random sample does), the true-cost change
 of the model's pick and of the simulator's own best candidate, relative to the WAM's chunk, and the
-spread (std/mean) of the true costs.
+spread (std/mean) of the true costs. With ``task_metric``, every candidate is also stepped (state only) to
+record the cube's xy distance to the hole axis after it: whether the true cost itself prefers chunks that
+align the cube (Spearman of true cost against that distance, at boundaries where the cube is lifted), and
+how far the model's pick moves the cube relative to the WAM's chunk.
 
 One WAM query per boundary feeds every policy (:class:`_OnceWAM`), so a stochastic WAM cannot give the
 models different chunks or targets. Scoring in the simulator restores the boundary snapshot afterwards;
@@ -47,6 +50,8 @@ class FidelityConfig:
     top_k: int = field(8, "size of the top sets whose overlap is reported (chance = k/N)")
     max_boundaries: int = field(4, "chunk boundaries scored per episode (after the first chunk)")
     seed: int = field(0, "base seed of the candidate samples")
+    task_metric: bool = field(True, "also step every candidate without rendering (~2 s a boundary) and record the "
+                                    "cube's xy distance to the hole axis after it (mm): what alignment needs")
 
     def __post_init__(self):
         require(self.num_candidates >= 2, f"num_candidates must be >= 2, got {self.num_candidates}")
@@ -93,6 +98,14 @@ def boundary_stats(model: torch.Tensor, true: torch.Tensor, k: int) -> dict[str,
                 pick_gain=float((true[0] - true[pick]) / true[0]),  # > 0: the pick lowers the true cost
                 best_gain=float((true[0] - true.min()) / true[0]),  # the simulator's own best candidate
                 true_spread=float(true.std(correction=0) / true.mean()), pick=pick)
+
+
+def task_stats(model: torch.Tensor, true: torch.Tensor, xy: torch.Tensor) -> dict[str, float]:
+    """Costs (N,), (N,) against the cube's xy distance to the hole after each candidate, xy (N,) mm."""
+    pick, sim_pick = int(torch.argmin(model.double())), int(torch.argmin(true.double()))
+    return dict(true_vs_xy=spearman(true, xy), model_vs_xy=spearman(model, xy),
+                pick_xy_change_mm=float(xy[pick] - xy[0]), sim_pick_xy_change_mm=float(xy[sim_pick] - xy[0]),
+                best_xy_change_mm=float(xy.min() - xy[0]))
 
 
 class _OnceWAM(WAM):
@@ -158,7 +171,7 @@ class FidelityPolicy(Policy):
 
     def __init__(self, wam: WAM, models: Sequence[Scored], env, config: FidelityConfig,
                  cost: CostFn | None = None):
-        self.wam, self.cfg = _OnceWAM(wam), config
+        self.wam, self.cfg, self.env = _OnceWAM(wam), config, env
         self.chunk = wam.chunk_length
         cost = cost or make_cost("patch")
         self.labels = [m.label for m in models]
@@ -216,8 +229,32 @@ class FidelityPolicy(Policy):
                 true = self.scorers["sim:" + self.reference[label]].costs
                 rec["models"][label] = dict(boundary_stats(model, true, self.cfg.top_k),
                                             model_costs=model.tolist(), true_costs=true.tolist())
+            if self.cfg.task_metric:
+                rec["task"] = self._task(self.scorers[self.labels[0]].candidates)
+                for label in self.labels:
+                    rec["models"][label].update(task_stats(torch.tensor(rec["models"][label]["model_costs"]),
+                                                           torch.tensor(rec["models"][label]["true_costs"]),
+                                                           torch.tensor(rec["task"]["cand_xy_mm"])))
             self.records.append(rec)
         return self._queue.pop(0)
+
+    def _task(self, cands: torch.Tensor) -> dict[str, Any]:
+        """Step each candidate (N, H, A) from the boundary state, state only; the state is restored after."""
+        env = self.env
+        now = env.privileged_state()
+        snap = env.snapshot()
+        xy = []
+        for cand in cands.numpy():  # (H, A)
+            env.restore(snap)
+            env.restore(snap)
+            for a in cand:
+                env.step(np.asarray(a, np.float32))
+            s = env.privileged_state()
+            xy.append(1000.0 * float(np.linalg.norm(s["cube_pose"][:2] - s["hole_pos"][:2])))
+        env.restore(snap)
+        env.restore(snap)
+        return dict(boundary_xy_mm=1000.0 * float(np.linalg.norm(now["cube_pose"][:2] - now["hole_pos"][:2])),
+                    grasped=bool(now["stages"][0]), lifted=bool(now["stages"][1]), cand_xy_mm=xy)
 
     def info(self) -> dict[str, Any]:
         return dict(boundaries=len([r for r in self.records if r["seed"] == self._seed]))
@@ -255,6 +292,12 @@ def summarize(records: Sequence[dict[str, Any]], labels: Sequence[str], cfg: Fid
                           random_beats_wam=float(col["random_beats_wam"].mean()) if rows else float("nan"),
                           pick_gain_median=q(col["pick_gain"], 50), best_gain_median=q(col["best_gain"], 50),
                           true_spread_median=q(col["true_spread"], 50))
+        lifted = [row for r, row in zip(records, rows) if r.get("task", {}).get("lifted")]
+        if lifted:
+            t = {k: np.array([row[k] for row in lifted], float) for k in
+                 ("true_vs_xy", "model_vs_xy", "pick_xy_change_mm", "sim_pick_xy_change_mm", "best_xy_change_mm")}
+            out[label].update(lifted_boundaries=len(lifted), **{f"{k}_median": q(v[np.isfinite(v)], 50)
+                                                                for k, v in t.items()})
     return out
 
 
@@ -271,4 +314,11 @@ def format_fidelity(summary: dict[str, Any], top_k: int = 8) -> str:
                      + f"{s['pick_gain_median']:>10.1%} {s['best_gain_median']:>10.1%} {s['true_spread_median']:>14.1%}")
     lines.append("gains: the true (simulator) cost's relative drop from the WAM's chunk to the model's pick / to the "
                  "simulator's best candidate; medians over boundaries")
+    for label, s in summary.items():
+        if s.get("lifted_boundaries"):
+            lines.append(f"{label}: at {s['lifted_boundaries']} lifted boundaries, Spearman vs the cube's xy distance "
+                         f"to the hole after the chunk: true cost {s['true_vs_xy_median']:.2f}, model cost "
+                         f"{s['model_vs_xy_median']:.2f}; xy change from the WAM's chunk (mm, median): model's pick "
+                         f"{s['pick_xy_change_mm_median']:+.1f}, simulator's pick {s['sim_pick_xy_change_mm_median']:+.1f}, "
+                         f"best candidate {s['best_xy_change_mm_median']:+.1f}")
     return "\n".join(lines)
