@@ -48,7 +48,8 @@ class FidelityConfig:
     num_candidates: int = field(32, "candidates per boundary: the WAM's chunk + N-1 Gaussian samples")
     sigma: float = field(0.10, "std of the samples around the WAM's chunk (normalised action units)")
     top_k: int = field(8, "size of the top sets whose overlap is reported (chance = k/N)")
-    max_boundaries: int = field(4, "chunk boundaries scored per episode (after the first chunk)")
+    boundaries: tuple[int, ...] = field((1, 2, 3, 4), "chunk boundaries to score, as chunk indices (1 = step H; "
+                                        "0, the first chunk, always runs open loop); the episode stops after the last")
     seed: int = field(0, "base seed of the candidate samples")
     task_metric: bool = field(True, "also step every candidate without rendering (~2 s a boundary) and record the "
                                     "cube's xy distance to the hole axis after it (mm): what alignment needs")
@@ -58,7 +59,8 @@ class FidelityConfig:
         require(self.sigma > 0, f"sigma must be > 0, got {self.sigma}")
         require(1 <= self.top_k <= self.num_candidates,
                 f"top_k must be in [1, num_candidates={self.num_candidates}], got {self.top_k}")
-        require(self.max_boundaries >= 1, f"max_boundaries must be >= 1, got {self.max_boundaries}")
+        require(len(self.boundaries) > 0 and min(self.boundaries) >= 1,
+                f"boundaries must be chunk indices >= 1 (chunk 0 runs open loop), got {self.boundaries}")
 
 
 def ranks(x: torch.Tensor) -> torch.Tensor:
@@ -204,7 +206,7 @@ class FidelityPolicy(Policy):
         return step % self.chunk == 0 or any(p.wants_images(step) for p in self._all())
 
     def _scored(self, step: int) -> bool:
-        return step % self.chunk == 0 and step > 0
+        return step % self.chunk == 0 and step // self.chunk in self.cfg.boundaries
 
     def act(self, obs: Observation) -> np.ndarray:
         t = obs.step
@@ -213,13 +215,14 @@ class FidelityPolicy(Policy):
             out = self.wam.predict(obs, self.wam.default_instruction)
             chunk = np.clip(out.actions, -1, 1).astype(np.float32)  # (H, A)
             self._queue = list(chunk)
+            base = torch.from_numpy(chunk)  # (H, A)
+            cands = base[None]  # (1, H, A): an unscored boundary only keeps every policy's history going
             if scored:
                 g = torch.Generator().manual_seed(self.cfg.seed * 1_000_003 + self._seed * 1000 + t)
-                base = torch.from_numpy(chunk)  # (H, A)
                 noise = torch.randn((self.cfg.num_candidates - 1, *base.shape), generator=g)  # (N-1, H, A)
                 cands = torch.cat([base[None], (base + self.cfg.sigma * noise).clamp(-1, 1)])  # (N, H, A)
-                for s in self.scorers.values():
-                    s.candidates, s.costs = cands, None
+            for s in self.scorers.values():
+                s.candidates, s.costs = cands, None
         for p in self._all():  # every policy sees every step (its history frames); at a scored boundary it scores
             p.act(obs)
         if scored:
@@ -262,14 +265,14 @@ class FidelityPolicy(Policy):
 
 def run_fidelity(env, wam: WAM, models: Sequence[Scored], seeds: Sequence[int], config: FidelityConfig | None = None,
                  progress=None) -> dict[str, Any]:
-    """Score every model at up to ``max_boundaries`` boundaries of each seed's open-loop WAM episode (the
-    episode stops after the last scored boundary's first step). Returns {"records": [...], "summary": {...}}."""
+    """Score every model at the ``boundaries`` of each seed's open-loop WAM episode that it reaches (the episode
+    stops after the last boundary's first step or at success). Returns {"records": [...], "summary": {...}}."""
     from wamplan.envs.rollout import run_episode
 
     cfg = config or FidelityConfig()
     pol = FidelityPolicy(wam, models, env, cfg)
     for seed in seeds:
-        r = run_episode(env, pol, seed, max_steps=cfg.max_boundaries * pol.chunk + 1)
+        r = run_episode(env, pol, seed, max_steps=max(cfg.boundaries) * pol.chunk + 1)
         if progress is not None:
             progress(seed, r, pol.records)
     return dict(records=pol.records, summary=summarize(pol.records, pol.labels, cfg))

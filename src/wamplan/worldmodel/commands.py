@@ -85,7 +85,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--candidates", type=int, default=32, help="the WAM's chunk + N-1 samples")
     p.add_argument("--sigma", type=float, default=0.10)
     p.add_argument("--top-k", type=int, default=8)
-    p.add_argument("--max-boundaries", type=int, default=4, help="scored chunk boundaries per episode")
+    p.add_argument("--boundaries", default="1-4", help="chunk boundaries to score, as chunk indices (1 = step H), "
+                                                       "e.g. 1-4 or 1,3,5,7")
     p.add_argument("--sample-seed", type=int, default=0, help="seed of the candidate samples")
     p.add_argument("--camera-size", type=int, default=224, help="rendered image size (as in evaluation)")
     p.add_argument("--device", default="cpu")
@@ -247,16 +248,16 @@ def cmd_probe(args: argparse.Namespace) -> int:
     return 0
 
 
-def _seed_list(spec: str) -> list[int]:
+def _seed_list(spec: str, flag: str = "--seeds") -> list[int]:
     seeds: list[int] = []
     try:
         for part in (p.strip() for p in spec.split(",") if p.strip()):
             lo, _, hi = part.partition("-")
             seeds.extend(range(int(lo), int(hi or lo) + 1))
     except ValueError:
-        raise UserError(f"--seeds '{spec}' is not a list like 500-503 or 500,510") from None
+        raise UserError(f"{flag} '{spec}' is not a list like 500-503 or 500,510") from None
     if not seeds:
-        raise UserError("--seeds needs at least one seed, e.g. 500-503")
+        raise UserError(f"{flag} needs at least one number, e.g. 500-503")
     return seeds
 
 
@@ -268,7 +269,7 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
     from wamplan.worldmodel.train import load_world_model
 
     cfg = FidelityConfig(num_candidates=args.candidates, sigma=args.sigma, top_k=args.top_k,
-                         max_boundaries=args.max_boundaries, seed=args.sample_seed)
+                         boundaries=tuple(_seed_list(args.boundaries, "--boundaries")), seed=args.sample_seed)
     seeds = _seed_list(args.seeds)
     models = []
     for spec in (s for s in args.wm.split(",") if s):
