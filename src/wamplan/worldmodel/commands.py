@@ -221,14 +221,15 @@ def _probe_encoders(args: argparse.Namespace) -> list:
     name = args.encoder or preset.encoder
     settings = []
     for spec in args.encoder_kwargs or [None]:
-        kw = dict(preset.encoder_kwargs) if (spec is None and not args.encoder) else {}
+        kw = {} if args.encoder else dict(preset.encoder_kwargs)  # the preset's settings, overridden by the JSON
         if spec is not None:
             try:
-                kw.update(json.loads(spec))
+                extra = json.loads(spec)
             except json.JSONDecodeError as e:
                 raise UserError(f"--encoder-kwargs {spec!r} is not JSON ({e}); write e.g. '{{\"patch_size\": 8}}'")
-            if not isinstance(kw, dict):
-                raise UserError(f"--encoder-kwargs {spec!r} must be a JSON object")
+            if not isinstance(extra, dict):
+                raise UserError(f"--encoder-kwargs {spec!r} must be a JSON object, e.g. '{{\"patch_size\": 8}}'")
+            kw.update(extra)
         if args.encoder_path:
             kw["path"] = args.encoder_path
         settings.append(make_encoder(name, **kw).to(resolve_device(args.device)))
