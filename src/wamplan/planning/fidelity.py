@@ -96,7 +96,8 @@ def boundary_stats(model: torch.Tensor, true: torch.Tensor, k: int) -> dict[str,
     true = true.double()
     pick = int(torch.argmin(model.double()))
     return dict(spearman=spearman(model, true), top_overlap=top_overlap(model, true, k),
-                pick_beats_wam=float(true[pick] < true[0]), random_beats_wam=float((true[1:] < true[0]).double().mean()),
+                pick_beats_wam=float(true[pick] < true[0]),
+                random_beats_wam=float((true[1:] < true[0]).double().mean()),
                 pick_gain=float((true[0] - true[pick]) / true[0]),  # > 0: the pick lowers the true cost
                 best_gain=float((true[0] - true.min()) / true[0]),  # the simulator's own best candidate
                 true_spread=float(true.std(correction=0) / true.mean()), pick=pick)
@@ -314,7 +315,8 @@ def format_fidelity(summary: dict[str, Any], top_k: int = 8) -> str:
                      f"{s['spearman_median']:>5.2f} [{s['spearman_q25']:.2f}, {s['spearman_q75']:.2f}]".ljust(47)
                      + f"{s['top_overlap_mean']:>6.2f} ({s['top_overlap_chance']:.2f})".rjust(20)
                      + f"{s['pick_beats_wam']:>6.0%} ({s['random_beats_wam']:.0%})".rjust(19)
-                     + f"{s['pick_gain_median']:>10.1%} {s['best_gain_median']:>10.1%} {s['true_spread_median']:>14.1%}")
+                     + f"{s['pick_gain_median']:>10.1%} {s['best_gain_median']:>10.1%}"
+                     + f"{s['true_spread_median']:>15.1%}")
     lines.append("gains: the true (simulator) cost's relative drop from the WAM's chunk to the model's pick / to the "
                  "simulator's best candidate; medians over boundaries")
     for label, s in summary.items():
@@ -322,6 +324,7 @@ def format_fidelity(summary: dict[str, Any], top_k: int = 8) -> str:
             lines.append(f"{label}: at {s['lifted_boundaries']} lifted boundaries, Spearman vs the cube's xy distance "
                          f"to the hole after the chunk: true cost {s['true_vs_xy_median']:.2f}, model cost "
                          f"{s['model_vs_xy_median']:.2f}; xy change from the WAM's chunk (mm, median): model's pick "
-                         f"{s['pick_xy_change_mm_median']:+.1f}, simulator's pick {s['sim_pick_xy_change_mm_median']:+.1f}, "
+                         f"{s['pick_xy_change_mm_median']:+.1f}, simulator's pick "
+                         f"{s['sim_pick_xy_change_mm_median']:+.1f}, "
                          f"best candidate {s['best_xy_change_mm_median']:+.1f}")
     return "\n".join(lines)
