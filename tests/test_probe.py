@@ -32,6 +32,11 @@ def test_probe_recovers_a_linear_relation_only_where_it_exists():
         r = rows[view, target]  # unrelated features: no better than the mean
         assert r["error_mm"] > 0.95 * r["baseline_mm"]
     assert rep["episodes"] == {"fit": 9, "held_out": 3} and rep["frames"] == {"fit": 450, "held_out": 150}
+    data = _synthetic()
+    test = split_episodes(data.episodes, 0.25)[data.episode]
+    near = (np.linalg.norm(data.targets["cube-rel-hole"][test, :2], axis=1) < 0.02).sum()
+    assert 0 < near < 150 and all(r["near_frames"] == near for r in rep["rows"])
+    assert rows["wrist", "cube-rel-hole"]["near_error_mm"] < 0.01  # exact on the near frames too
 
 
 def test_episode_split_is_stable_and_never_empty():

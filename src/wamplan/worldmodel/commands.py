@@ -74,6 +74,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--encoder-path", default=None, help="local weights directory for DINOv2/DINOv3 encoders")
     p.add_argument("--val-fraction", type=float, default=0.25, help="fraction of episodes held out")
     p.add_argument("--folds", type=int, default=4, help="episode folds for choosing the ridge strength")
+    p.add_argument("--near-mm", type=float, default=20.0, help="also score frames with the cube this close to the hole")
     p.add_argument("--device", default="auto")
     p.add_argument("--json", type=Path, default=None)
     p.set_defaults(func=cmd_probe)
@@ -239,7 +240,7 @@ def _probe_encoders(args: argparse.Namespace) -> list:
 def cmd_probe(args: argparse.Namespace) -> int:
     from wamplan.encoders.probe import ProbeConfig, format_probe, probe_stores
 
-    cfg = ProbeConfig(val_fraction=args.val_fraction, folds=args.folds)
+    cfg = ProbeConfig(val_fraction=args.val_fraction, folds=args.folds, near_mm=args.near_mm)
     reports = probe_stores(_stores(args.data), _probe_encoders(args), cfg, progress=True)
     for rep in reports:
         print(format_probe(rep))
