@@ -279,30 +279,37 @@ def run_fidelity(env, wam: WAM, models: Sequence[Scored], seeds: Sequence[int], 
     return dict(records=pol.records, summary=summarize(pol.records, pol.labels, cfg))
 
 
-def summarize(records: Sequence[dict[str, Any]], labels: Sequence[str], cfg: FidelityConfig) -> dict[str, Any]:
-    """Per model: medians / IQR / means over boundaries of the per-boundary statistics."""
-    out = {}
-    for label in labels:
-        rows = [r["models"][label] for r in records]
-        col = {k: np.array([row[k] for row in rows], float) for k in
-               ("spearman", "top_overlap", "pick_beats_wam", "random_beats_wam", "pick_gain", "best_gain",
-                "true_spread")}
-        sp = col["spearman"][np.isfinite(col["spearman"])]
-        q = (lambda a, p: float(np.percentile(a, p)) if len(a) else float("nan"))
-        out[label] = dict(boundaries=len(rows), spearman_median=q(sp, 50), spearman_q25=q(sp, 25),
-                          spearman_q75=q(sp, 75), top_overlap_mean=float(col["top_overlap"].mean()) if rows else
-                          float("nan"), top_overlap_chance=cfg.top_k / cfg.num_candidates,
-                          pick_beats_wam=float(col["pick_beats_wam"].mean()) if rows else float("nan"),
-                          random_beats_wam=float(col["random_beats_wam"].mean()) if rows else float("nan"),
-                          pick_gain_median=q(col["pick_gain"], 50), best_gain_median=q(col["best_gain"], 50),
-                          true_spread_median=q(col["true_spread"], 50))
-        lifted = [row for r, row in zip(records, rows) if r.get("task", {}).get("lifted")]
-        if lifted:
-            t = {k: np.array([row[k] for row in lifted], float) for k in
-                 ("true_vs_xy", "model_vs_xy", "pick_xy_change_mm", "sim_pick_xy_change_mm", "best_xy_change_mm")}
-            out[label].update(lifted_boundaries=len(lifted), **{f"{k}_median": q(v[np.isfinite(v)], 50)
-                                                                for k, v in t.items()})
+def _median(a: np.ndarray, p: float = 50) -> float:
+    a = a[np.isfinite(a)]
+    return float(np.percentile(a, p)) if len(a) else float("nan")
+
+
+def _aggregate(records: Sequence[dict[str, Any]], label: str, cfg: FidelityConfig) -> dict[str, Any]:
+    """Medians / IQR / means over the given boundaries of one model's per-boundary statistics."""
+    rows = [r["models"][label] for r in records]
+    col = {k: np.array([row[k] for row in rows], float) for k in
+           ("spearman", "top_overlap", "pick_beats_wam", "random_beats_wam", "pick_gain", "best_gain", "true_spread")}
+    mean = (lambda a: float(a.mean()) if len(a) else float("nan"))
+    out = dict(boundaries=len(rows), spearman_median=_median(col["spearman"]),
+               spearman_q25=_median(col["spearman"], 25), spearman_q75=_median(col["spearman"], 75),
+               top_overlap_mean=mean(col["top_overlap"]), top_overlap_chance=cfg.top_k / cfg.num_candidates,
+               pick_beats_wam=mean(col["pick_beats_wam"]), random_beats_wam=mean(col["random_beats_wam"]),
+               pick_gain_median=_median(col["pick_gain"]), best_gain_median=_median(col["best_gain"]),
+               true_spread_median=_median(col["true_spread"]))
+    lifted = [row for r, row in zip(records, rows) if r.get("task", {}).get("lifted")]
+    if lifted:
+        out.update(lifted_boundaries=len(lifted), **{
+            f"{k}_median": _median(np.array([row[k] for row in lifted], float)) for k in
+            ("true_vs_xy", "model_vs_xy", "pick_xy_change_mm", "sim_pick_xy_change_mm", "best_xy_change_mm")})
     return out
+
+
+def summarize(records: Sequence[dict[str, Any]], labels: Sequence[str], cfg: FidelityConfig) -> dict[str, Any]:
+    """Per model: the aggregate over all boundaries, and ``by_step``: the same per boundary step."""
+    steps = sorted({r["step"] for r in records})
+    return {label: dict(_aggregate(records, label, cfg),
+                        by_step={s: _aggregate([r for r in records if r["step"] == s], label, cfg) for s in steps})
+            for label in labels}
 
 
 def format_fidelity(summary: dict[str, Any], top_k: int = 8) -> str:
@@ -310,8 +317,11 @@ def format_fidelity(summary: dict[str, Any], top_k: int = 8) -> str:
     head = (f"{'model':<16}{'bounds':>7}  {'Spearman med [IQR]':<22}{f'top-{top_k} ovl (chance)':>20}"
             f"{'pick>WAM (random)':>19}{'pick gain':>11}{'best gain':>11}{'true std/mean':>15}")
     lines = [head]
-    for label, s in summary.items():
-        lines.append(f"{label:<16}{s['boundaries']:>7}  "
+    rows = [(label, s) for label, agg in summary.items()
+            for s in [agg, *[dict(v, step=k) for k, v in agg.get("by_step", {}).items()]]]
+    for label, s in rows:
+        name = label if "step" not in s else f"  step {s['step']}"
+        lines.append(f"{name:<16}{s['boundaries']:>7}  "
                      f"{s['spearman_median']:>5.2f} [{s['spearman_q25']:.2f}, {s['spearman_q75']:.2f}]".ljust(47)
                      + f"{s['top_overlap_mean']:>6.2f} ({s['top_overlap_chance']:.2f})".rjust(20)
                      + f"{s['pick_beats_wam']:>6.0%} ({s['random_beats_wam']:.0%})".rjust(19)
@@ -319,11 +329,12 @@ def format_fidelity(summary: dict[str, Any], top_k: int = 8) -> str:
                      + f"{s['true_spread_median']:>15.1%}")
     lines.append("gains: the true (simulator) cost's relative drop from the WAM's chunk to the model's pick / to the "
                  "simulator's best candidate; medians over boundaries")
-    for label, s in summary.items():
+    for label, s in rows:
         if s.get("lifted_boundaries"):
-            lines.append(f"{label}: at {s['lifted_boundaries']} lifted boundaries, Spearman vs the cube's xy distance "
-                         f"to the hole after the chunk: true cost {s['true_vs_xy_median']:.2f}, model cost "
-                         f"{s['model_vs_xy_median']:.2f}; xy change from the WAM's chunk (mm, median): model's pick "
+            label = label if "step" not in s else f"{label} step {s['step']}"
+            lines.append(f"{label}: {s['lifted_boundaries']} lifted; Spearman vs cube-hole xy after the chunk: "
+                         f"true cost {s['true_vs_xy_median']:.2f}, model {s['model_vs_xy_median']:.2f}; "
+                         f"xy change vs the WAM's chunk (mm, median): model's pick "
                          f"{s['pick_xy_change_mm_median']:+.1f}, simulator's pick "
                          f"{s['sim_pick_xy_change_mm_median']:+.1f}, "
                          f"best candidate {s['best_xy_change_mm_median']:+.1f}")
