@@ -240,15 +240,15 @@ def format_probe(report: dict[str, Any]) -> str:
     head = (f"encoder {enc} ({n} tokens x {d} per view); fit {report['episodes']['fit']} episodes / "
             f"{report['frames']['fit']} frames, held out {report['episodes']['held_out']} / "
             f"{report['frames']['held_out']}; mean Euclidean error, mm")
-    lines = [head, f"{'target':<15}" + "".join(f"{v:>8}" for v in VIEWS) + f"{'mean':>8}"]
+    lines = [head, f"{'target':<19}" + "".join(f"{v:>8}" for v in VIEWS) + f"{'mean':>8}"]
     for t in TARGETS:
         rows = {r["view"]: r for r in report["rows"] if r["target"] == t}
-        lines.append(f"{t:<15}" + "".join(f"{rows[v]['error_mm']:>8.1f}" for v in VIEWS)
+        lines.append(f"{t:<19}" + "".join(f"{rows[v]['error_mm']:>8.1f}" for v in VIEWS)
                      + f"{rows['all']['baseline_mm']:>8.1f}")
     for t in TARGETS:
         rows = {r["view"]: r for r in report["rows"] if r["target"] == t}
         if "near_error_mm" in rows["all"]:
-            lines.append(f"{t + ' near':<15}" + "".join(f"{rows[v]['near_error_mm']:>8.1f}" for v in VIEWS)
+            lines.append(f"{t + ' near':<19}" + "".join(f"{rows[v]['near_error_mm']:>8.1f}" for v in VIEWS)
                          + f"{rows['all']['near_baseline_mm']:>8.1f}   ({rows['all']['near_frames']} held-out frames "
                          f"with the cube near the hole)")
     return "\n".join(lines)
