@@ -1,4 +1,4 @@
-"""``wamplan wm encode|train|train-decoder|eval|viz``."""
+"""``wamplan wm encode|train|train-decoder|eval|viz|probe|fidelity``."""
 
 from __future__ import annotations
 
@@ -65,6 +65,36 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--camera", default="front", choices=("front", "side", "wrist"))
     p.add_argument("--out", type=Path, default=Path("wm_viz.png"))
     p.set_defaults(func=cmd_viz)
+
+    p = s.add_parser("probe", help="ridge probe from an encoder's frozen tokens to the cube's position (held-out mm)")
+    p.add_argument("--data", required=True, help="episode stores, comma separated")
+    p.add_argument("--preset", default="mini", help="mini | paper: the preset's encoder (unless --encoder)")
+    p.add_argument("--encoder", default=None, help="a registered encoder name, e.g. patch-pixels")
+    p.add_argument("--encoder-kwargs", action="append", default=None, metavar="JSON",
+                   help='encoder settings as JSON, e.g. \'{"input_size": 64, "patch_size": 8}\'; repeat to '
+                        "probe several settings on the same frames")
+    p.add_argument("--encoder-path", default=None, help="local weights directory for DINOv2/DINOv3 encoders")
+    p.add_argument("--val-fraction", type=float, default=0.25, help="fraction of episodes held out")
+    p.add_argument("--folds", type=int, default=4, help="episode folds for choosing the ridge strength")
+    p.add_argument("--near-mm", type=float, default=20.0, help="also score frames with the cube this close to the hole")
+    p.add_argument("--device", default="auto")
+    p.add_argument("--json", type=Path, default=None)
+    p.set_defaults(func=cmd_probe)
+
+    p = s.add_parser("fidelity", help="rank agreement of world models with the simulator on the same candidates")
+    p.add_argument("--wam", required=True, help="WAM checkpoint (e.g. checkpoints/mini/tinywam)")
+    p.add_argument("--wm", required=True, help="world-model checkpoints, comma separated; LABEL=PATH to name one")
+    p.add_argument("--seeds", required=True, help="episode seeds, e.g. 500-503 or 500,510 (keep test seeds out)")
+    p.add_argument("--candidates", type=int, default=32, help="the WAM's chunk + N-1 samples")
+    p.add_argument("--sigma", type=float, default=0.10)
+    p.add_argument("--top-k", type=int, default=8)
+    p.add_argument("--boundaries", default="1-4", help="chunk boundaries to score, as chunk indices (1 = step H), "
+                                                       "e.g. 1-4 or 1,3,5,7")
+    p.add_argument("--sample-seed", type=int, default=0, help="seed of the candidate samples")
+    p.add_argument("--camera-size", type=int, default=224, help="rendered image size (as in evaluation)")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--json", type=Path, default=None)
+    p.set_defaults(func=cmd_fidelity)
 
 
 def cmd_encode(args: argparse.Namespace) -> int:
@@ -137,3 +167,93 @@ def cmd_viz(args: argparse.Namespace) -> int:
     return 0
 
 
+
+
+def _probe_encoders(args: argparse.Namespace) -> list:
+    from wamplan.device import resolve_device
+    from wamplan.encoders import make_encoder
+    from wamplan.worldmodel.presets import get_preset
+
+    preset = get_preset(args.preset)
+    name = args.encoder or preset.encoder
+    settings = []
+    for spec in args.encoder_kwargs or [None]:
+        kw = {} if args.encoder else dict(preset.encoder_kwargs)  # the preset's settings, overridden by the JSON
+        if spec is not None:
+            try:
+                extra = json.loads(spec)
+            except json.JSONDecodeError as e:
+                raise UserError(f"--encoder-kwargs {spec!r} is not JSON ({e}); write e.g. '{{\"patch_size\": 8}}'")
+            if not isinstance(extra, dict):
+                raise UserError(f"--encoder-kwargs {spec!r} must be a JSON object, e.g. '{{\"patch_size\": 8}}'")
+            kw.update(extra)
+        if args.encoder_path:
+            kw["path"] = args.encoder_path
+        settings.append(make_encoder(name, **kw).to(resolve_device(args.device)))
+    return settings
+
+
+def cmd_probe(args: argparse.Namespace) -> int:
+    from wamplan.encoders.probe import ProbeConfig, format_probe, probe_stores
+
+    cfg = ProbeConfig(val_fraction=args.val_fraction, folds=args.folds, near_mm=args.near_mm)
+    reports = probe_stores(_stores(args.data), _probe_encoders(args), cfg, progress=True)
+    for rep in reports:
+        print(format_probe(rep))
+    if args.json:
+        args.json.write_text(json.dumps(reports if len(reports) > 1 else reports[0], indent=1) + "\n")
+        print(f"wrote {args.json}")
+    return 0
+
+
+def _seed_list(spec: str, flag: str = "--seeds") -> list[int]:
+    seeds: list[int] = []
+    try:
+        for part in (p.strip() for p in spec.split(",") if p.strip()):
+            lo, _, hi = part.partition("-")
+            seeds.extend(range(int(lo), int(hi or lo) + 1))
+    except ValueError:
+        raise UserError(f"{flag} '{spec}' is not a list like 500-503 or 500,510") from None
+    if not seeds:
+        raise UserError(f"{flag} needs at least one number, e.g. 500-503")
+    return seeds
+
+
+def cmd_fidelity(args: argparse.Namespace) -> int:
+    from wamplan.envs.core import EnvConfig, InsertionEnv
+    from wamplan.planning.dynamics import LearnedDynamics
+    from wamplan.planning.fidelity import FidelityConfig, Scored, format_fidelity, run_fidelity
+    from wamplan.wam import load_wam
+    from wamplan.worldmodel.train import load_world_model
+
+    cfg = FidelityConfig(num_candidates=args.candidates, sigma=args.sigma, top_k=args.top_k,
+                         boundaries=tuple(_seed_list(args.boundaries, "--boundaries")), seed=args.sample_seed)
+    seeds = _seed_list(args.seeds)
+    models = []
+    for spec in (s for s in args.wm.split(",") if s):
+        label, _, path = spec.rpartition("=")
+        label = label or Path(path).name
+        if not Path(path).exists():
+            raise UserError(f"--wm {path} does not exist; pass a world-model checkpoint directory")
+        model, enc = load_world_model(path, device=args.device)
+        models.append(Scored(label, LearnedDynamics(model), enc))
+    wam = load_wam(args.wam, device=args.device)
+    env = InsertionEnv(EnvConfig(camera_size=args.camera_size))
+
+    def progress(seed, result, records):
+        mine = [r for r in records if r["seed"] == seed]
+        sp = {m.label: [round(r["models"][m.label]["spearman"], 2) for r in mine] for m in models}
+        print(f"seed {seed}: {len(mine)} boundaries, {result.length} steps, Spearman {sp}", flush=True)
+
+    try:
+        out = run_fidelity(env, wam, models, seeds, cfg, progress=progress)
+    finally:
+        env.close()
+    print(format_fidelity(out["summary"], cfg.top_k))
+    if args.json:
+        from wamplan.config import to_dict
+
+        out.update(wam=args.wam, wm=args.wm, seeds=seeds, config=to_dict(cfg), camera_size=args.camera_size)
+        args.json.write_text(json.dumps(out, indent=1) + "\n")
+        print(f"wrote {args.json}")
+    return 0

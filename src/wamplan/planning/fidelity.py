@@ -1,0 +1,341 @@
+"""Planning fidelity: does a learned world model rank candidate chunks the way the simulator does?
+
+At the real chunk boundaries (after the first, which every condition runs open loop) of a WAM episode run
+open loop in the live env, the SAME N candidates — the WAM's own chunk (candidate 0) and N-1 Gaussian
+samples around it at ``sigma``, clipped to [-1, 1], drawn from a generator seeded by (seed, episode, step) —
+are scored toward the WAM's own predicted views
+
+* in each learned world model, with the real history (exactly as :class:`PlannedPolicy` builds it: each
+  model drives its own ``PlannedPolicy`` whose planner only scores the fixed candidates and returns the
+  WAM's chunk), and
+* in the simulator (``SimulatorDynamics`` with that model's own encoder and the same target), the
+  "true" cost.
+
+Then the WAM's own chunk is executed, so the episode stays open loop. Per model and boundary:
+Spearman rank correlation of the two cost vectors, overlap of the two top-k sets, whether the model's
+pick beats the WAM's chunk in the simulator (and how often a random sample does), the true-cost change
+of the model's pick and of the simulator's own best candidate, relative to the WAM's chunk, and the
+spread (std/mean) of the true costs. With ``task_metric``, every candidate is also stepped (state only) to
+record the cube's xy distance to the hole axis after it: whether the true cost itself prefers chunks that
+align the cube (Spearman of true cost against that distance, at boundaries where the cube is lifted), and
+how far the model's pick moves the cube relative to the WAM's chunk.
+
+One WAM query per boundary feeds every policy (:class:`_OnceWAM`), so a stochastic WAM cannot give the
+models different chunks or targets. Scoring in the simulator restores the boundary snapshot afterwards;
+a restored state differs from a never-restored one by ~1e-3 m (PhysX hidden state), so the episode may
+drift slightly from a pure open-loop run of the same seed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+
+from wamplan.config import field, require
+from wamplan.planning.base import IterationStats, PlanResult
+from wamplan.planning.costs import CostFn, make_cost
+from wamplan.planning.dynamics import Dynamics, SimulatorDynamics
+from wamplan.planning.policy import PlannedPolicy
+from wamplan.policies.base import Observation, Policy
+from wamplan.wam.base import WAM, WAMOutput
+
+
+@dataclass(frozen=True)
+class FidelityConfig:
+    num_candidates: int = field(32, "candidates per boundary: the WAM's chunk + N-1 Gaussian samples")
+    sigma: float = field(0.10, "std of the samples around the WAM's chunk (normalised action units)")
+    top_k: int = field(8, "size of the top sets whose overlap is reported (chance = k/N)")
+    boundaries: tuple[int, ...] = field((1, 2, 3, 4), "chunk boundaries to score, as chunk indices (1 = step H; "
+                                        "0, the first chunk, always runs open loop); the episode stops after the last")
+    seed: int = field(0, "base seed of the candidate samples")
+    task_metric: bool = field(True, "also step every candidate without rendering (~2 s a boundary) and record the "
+                                    "cube's xy distance to the hole axis after it (mm): what alignment needs")
+
+    def __post_init__(self):
+        require(self.num_candidates >= 2, f"num_candidates must be >= 2, got {self.num_candidates}")
+        require(self.sigma > 0, f"sigma must be > 0, got {self.sigma}")
+        require(1 <= self.top_k <= self.num_candidates,
+                f"top_k must be in [1, num_candidates={self.num_candidates}], got {self.top_k}")
+        require(len(self.boundaries) > 0 and min(self.boundaries) >= 1,
+                f"boundaries must be chunk indices >= 1 (chunk 0 runs open loop), got {self.boundaries}")
+
+
+def ranks(x: torch.Tensor) -> torch.Tensor:
+    """(n,) values -> (n,) float64 ranks 1..n, ties given their average rank."""
+    x = x.double()
+    order = torch.argsort(x, stable=True)
+    r = torch.empty_like(x)
+    r[order] = torch.arange(1, len(x) + 1, dtype=torch.float64)
+    for v in torch.unique(x):  # average the ranks of ties (few values tie in practice)
+        same = x == v
+        if same.sum() > 1:
+            r[same] = r[same].mean()
+    return r
+
+
+def spearman(a: torch.Tensor, b: torch.Tensor) -> float:
+    """Spearman rank correlation of two (n,) vectors; NaN if either is constant."""
+    ra, rb = ranks(a), ranks(b)
+    ra, rb = ra - ra.mean(), rb - rb.mean()
+    den = float(ra.norm() * rb.norm())
+    return float((ra @ rb) / den) if den > 0 else float("nan")
+
+
+def top_overlap(a: torch.Tensor, b: torch.Tensor, k: int) -> float:
+    """|lowest-k of a ∩ lowest-k of b| / k."""
+    ia = set(torch.argsort(a.double(), stable=True)[:k].tolist())
+    ib = set(torch.argsort(b.double(), stable=True)[:k].tolist())
+    return len(ia & ib) / k
+
+
+def boundary_stats(model: torch.Tensor, true: torch.Tensor, k: int) -> dict[str, float]:
+    """Compare the model's costs (N,) with the simulator's (N,) for one boundary; candidate 0 = the WAM's chunk."""
+    true = true.double()
+    pick = int(torch.argmin(model.double()))
+    return dict(spearman=spearman(model, true), top_overlap=top_overlap(model, true, k),
+                pick_beats_wam=float(true[pick] < true[0]),
+                random_beats_wam=float((true[1:] < true[0]).double().mean()),
+                pick_gain=float((true[0] - true[pick]) / true[0]),  # > 0: the pick lowers the true cost
+                best_gain=float((true[0] - true.min()) / true[0]),  # the simulator's own best candidate
+                true_spread=float(true.std(correction=0) / true.mean()), pick=pick)
+
+
+def task_stats(model: torch.Tensor, true: torch.Tensor, xy: torch.Tensor) -> dict[str, float]:
+    """Costs (N,), (N,) against the cube's xy distance to the hole after each candidate, xy (N,) mm."""
+    pick, sim_pick = int(torch.argmin(model.double())), int(torch.argmin(true.double()))
+    return dict(true_vs_xy=spearman(true, xy), model_vs_xy=spearman(model, xy),
+                pick_xy_change_mm=float(xy[pick] - xy[0]), sim_pick_xy_change_mm=float(xy[sim_pick] - xy[0]),
+                best_xy_change_mm=float(xy.min() - xy[0]))
+
+
+class _OnceWAM(WAM):
+    """Queries ``inner`` once per step of an episode and hands every caller that same output."""
+
+    def __init__(self, inner: WAM):
+        self.inner = inner
+        self.name = inner.name
+        self.chunk_length, self.action_dim = inner.chunk_length, inner.action_dim
+        self.cameras, self.default_instruction = inner.cameras, inner.default_instruction
+        self._out: dict[int, WAMOutput] = {}
+
+    def predict(self, obs: Observation, instruction: str) -> WAMOutput:
+        if obs.step not in self._out:
+            self._out = {obs.step: self.inner.validate(self.inner.predict(obs, instruction))}
+        return self._out[obs.step]
+
+    def reset(self) -> None:
+        """A no-op: every PlannedPolicy resets its WAM, so the driver resets the inner WAM itself, once."""
+
+    def new_episode(self) -> None:
+        self.inner.reset()
+        self._out = {}
+
+    def config_dict(self) -> dict[str, Any]:
+        return self.inner.config_dict()
+
+
+class _Scorer:
+    """A 'planner' that scores the fixed candidates it is given (their first L actions) and returns the seed."""
+
+    config = None
+
+    def __init__(self):
+        self.candidates: torch.Tensor | None = None  # (N, H, A), set by the driver before each boundary
+        self.costs: torch.Tensor | None = None  # (N,) after plan()
+
+    def plan(self, seed_actions: torch.Tensor, objective, *, generator=None, seed=None) -> PlanResult:
+        cands = self.candidates[:, :seed_actions.shape[0]].to(seed_actions.device)  # (N, L, A)
+        costs = objective(cands).detach().double().cpu()  # (N,)
+        self.costs = costs
+        c0, cmin = float(costs[0]), float(costs.min())
+        stats = IterationStats(0, float(costs.mean()), cmin, cmin, c0, 0.0)
+        return PlanResult(actions=seed_actions.clone(), mean=seed_actions.clone(), std=torch.zeros_like(seed_actions),
+                          best_actions=cands[int(costs.argmin())], best_cost=cmin, history=[stats],
+                          num_evaluations=len(cands))
+
+
+@dataclass
+class Scored:
+    """One model: a label, its dynamics and the encoder its targets (and its simulator reference) use."""
+
+    label: str
+    dynamics: Dynamics
+    encoder: Any
+
+
+class FidelityPolicy(Policy):
+    """Executes the WAM's chunks open loop; at each scored boundary builds the candidates and lets every
+    model's PlannedPolicy and every simulator reference score them. ``records`` holds the costs."""
+
+    name = "fidelity"
+
+    def __init__(self, wam: WAM, models: Sequence[Scored], env, config: FidelityConfig,
+                 cost: CostFn | None = None):
+        self.wam, self.cfg, self.env = _OnceWAM(wam), config, env
+        self.chunk = wam.chunk_length
+        cost = cost or make_cost("patch")
+        self.labels = [m.label for m in models]
+        self.scorers = {m.label: _Scorer() for m in models}
+        self.policies = {m.label: PlannedPolicy(self.wam, self.scorers[m.label], m.dynamics, m.encoder, cost)
+                         for m in models}
+        self.reference: dict[str, str] = {}  # label -> simulator reference key (one per distinct encoder)
+        self.sim_policies: dict[str, PlannedPolicy] = {}
+        for m in models:
+            key = repr(sorted(m.encoder.config_dict().items()))
+            if key not in self.sim_policies:
+                self.scorers["sim:" + key] = _Scorer()
+                self.sim_policies[key] = PlannedPolicy(self.wam, self.scorers["sim:" + key],
+                                                       SimulatorDynamics(env, m.encoder), m.encoder, cost)
+            self.reference[m.label] = key
+        self.records: list[dict[str, Any]] = []
+        self.reset()
+
+    def _all(self) -> list[PlannedPolicy]:
+        return [*self.policies.values(), *self.sim_policies.values()]
+
+    def reset(self, seed: int | None = None) -> None:
+        self._seed = seed or 0
+        self.wam.new_episode()
+        for p in self._all():
+            p.reset(seed)
+        self._queue: list[np.ndarray] = []
+
+    def wants_images(self, step: int) -> bool:
+        return step % self.chunk == 0 or any(p.wants_images(step) for p in self._all())
+
+    def _scored(self, step: int) -> bool:
+        return step % self.chunk == 0 and step // self.chunk in self.cfg.boundaries
+
+    def act(self, obs: Observation) -> np.ndarray:
+        t = obs.step
+        scored = self._scored(t)
+        if t % self.chunk == 0:
+            out = self.wam.predict(obs, self.wam.default_instruction)
+            chunk = np.clip(out.actions, -1, 1).astype(np.float32)  # (H, A)
+            self._queue = list(chunk)
+            base = torch.from_numpy(chunk)  # (H, A)
+            cands = base[None]  # (1, H, A): an unscored boundary only keeps every policy's history going
+            if scored:
+                g = torch.Generator().manual_seed(self.cfg.seed * 1_000_003 + self._seed * 1000 + t)
+                noise = torch.randn((self.cfg.num_candidates - 1, *base.shape), generator=g)  # (N-1, H, A)
+                cands = torch.cat([base[None], (base + self.cfg.sigma * noise).clamp(-1, 1)])  # (N, H, A)
+            for s in self.scorers.values():
+                s.candidates, s.costs = cands, None
+        for p in self._all():  # every policy sees every step (its history frames); at a scored boundary it scores
+            p.act(obs)
+        if scored:
+            rec = dict(seed=self._seed, step=t, models={})
+            for label in self.labels:
+                model = self.scorers[label].costs
+                true = self.scorers["sim:" + self.reference[label]].costs
+                rec["models"][label] = dict(boundary_stats(model, true, self.cfg.top_k),
+                                            model_costs=model.tolist(), true_costs=true.tolist())
+            if self.cfg.task_metric:
+                rec["task"] = self._task(self.scorers[self.labels[0]].candidates)
+                for label in self.labels:
+                    rec["models"][label].update(task_stats(torch.tensor(rec["models"][label]["model_costs"]),
+                                                           torch.tensor(rec["models"][label]["true_costs"]),
+                                                           torch.tensor(rec["task"]["cand_xy_mm"])))
+            self.records.append(rec)
+        return self._queue.pop(0)
+
+    def _task(self, cands: torch.Tensor) -> dict[str, Any]:
+        """Step each candidate (N, H, A) from the boundary state, state only; the state is restored after."""
+        env = self.env
+        now = env.privileged_state()
+        snap = env.snapshot()
+        xy = []
+        for cand in cands.numpy():  # (H, A)
+            env.restore(snap)
+            env.restore(snap)
+            for a in cand:
+                env.step(np.asarray(a, np.float32))
+            s = env.privileged_state()
+            xy.append(1000.0 * float(np.linalg.norm(s["cube_pose"][:2] - s["hole_pos"][:2])))
+        env.restore(snap)
+        env.restore(snap)
+        return dict(boundary_xy_mm=1000.0 * float(np.linalg.norm(now["cube_pose"][:2] - now["hole_pos"][:2])),
+                    grasped=bool(now["stages"][0]), lifted=bool(now["stages"][1]), cand_xy_mm=xy)
+
+    def info(self) -> dict[str, Any]:
+        return dict(boundaries=len([r for r in self.records if r["seed"] == self._seed]))
+
+
+def run_fidelity(env, wam: WAM, models: Sequence[Scored], seeds: Sequence[int], config: FidelityConfig | None = None,
+                 progress=None) -> dict[str, Any]:
+    """Score every model at the ``boundaries`` of each seed's open-loop WAM episode that it reaches (the episode
+    stops after the last boundary's first step or at success). Returns {"records": [...], "summary": {...}}."""
+    from wamplan.envs.rollout import run_episode
+
+    cfg = config or FidelityConfig()
+    pol = FidelityPolicy(wam, models, env, cfg)
+    for seed in seeds:
+        r = run_episode(env, pol, seed, max_steps=max(cfg.boundaries) * pol.chunk + 1)
+        if progress is not None:
+            progress(seed, r, pol.records)
+    return dict(records=pol.records, summary=summarize(pol.records, pol.labels, cfg))
+
+
+def _median(a: np.ndarray, p: float = 50) -> float:
+    a = a[np.isfinite(a)]
+    return float(np.percentile(a, p)) if len(a) else float("nan")
+
+
+def _aggregate(records: Sequence[dict[str, Any]], label: str, cfg: FidelityConfig) -> dict[str, Any]:
+    """Medians / IQR / means over the given boundaries of one model's per-boundary statistics."""
+    rows = [r["models"][label] for r in records]
+    col = {k: np.array([row[k] for row in rows], float) for k in
+           ("spearman", "top_overlap", "pick_beats_wam", "random_beats_wam", "pick_gain", "best_gain", "true_spread")}
+    mean = (lambda a: float(a.mean()) if len(a) else float("nan"))
+    out = dict(boundaries=len(rows), spearman_median=_median(col["spearman"]),
+               spearman_q25=_median(col["spearman"], 25), spearman_q75=_median(col["spearman"], 75),
+               top_overlap_mean=mean(col["top_overlap"]), top_overlap_chance=cfg.top_k / cfg.num_candidates,
+               pick_beats_wam=mean(col["pick_beats_wam"]), random_beats_wam=mean(col["random_beats_wam"]),
+               pick_gain_median=_median(col["pick_gain"]), best_gain_median=_median(col["best_gain"]),
+               true_spread_median=_median(col["true_spread"]))
+    lifted = [row for r, row in zip(records, rows) if r.get("task", {}).get("lifted")]
+    if lifted:
+        out.update(lifted_boundaries=len(lifted), **{
+            f"{k}_median": _median(np.array([row[k] for row in lifted], float)) for k in
+            ("true_vs_xy", "model_vs_xy", "pick_xy_change_mm", "sim_pick_xy_change_mm", "best_xy_change_mm")})
+    return out
+
+
+def summarize(records: Sequence[dict[str, Any]], labels: Sequence[str], cfg: FidelityConfig) -> dict[str, Any]:
+    """Per model: the aggregate over all boundaries, and ``by_step``: the same per boundary step."""
+    steps = sorted({r["step"] for r in records})
+    return {label: dict(_aggregate(records, label, cfg),
+                        by_step={s: _aggregate([r for r in records if r["step"] == s], label, cfg) for s in steps})
+            for label in labels}
+
+
+def format_fidelity(summary: dict[str, Any], top_k: int = 8) -> str:
+    """One row per model."""
+    head = (f"{'model':<16}{'bounds':>7}  {'Spearman med [IQR]':<22}{f'top-{top_k} ovl (chance)':>20}"
+            f"{'pick>WAM (random)':>19}{'pick gain':>11}{'best gain':>11}{'true std/mean':>15}")
+    lines = [head]
+    rows = [(label, s) for label, agg in summary.items()
+            for s in [agg, *[dict(v, step=k) for k, v in agg.get("by_step", {}).items()]]]
+    for label, s in rows:
+        name = label if "step" not in s else f"  step {s['step']}"
+        lines.append(f"{name:<16}{s['boundaries']:>7}  "
+                     f"{s['spearman_median']:>5.2f} [{s['spearman_q25']:.2f}, {s['spearman_q75']:.2f}]".ljust(47)
+                     + f"{s['top_overlap_mean']:>6.2f} ({s['top_overlap_chance']:.2f})".rjust(20)
+                     + f"{s['pick_beats_wam']:>6.0%} ({s['random_beats_wam']:.0%})".rjust(19)
+                     + f"{s['pick_gain_median']:>10.1%} {s['best_gain_median']:>10.1%}"
+                     + f"{s['true_spread_median']:>15.1%}")
+    lines.append("gains: the true (simulator) cost's relative drop from the WAM's chunk to the model's pick / to the "
+                 "simulator's best candidate; medians over boundaries")
+    for label, s in rows:
+        if s.get("lifted_boundaries"):
+            label = label if "step" not in s else f"{label} step {s['step']}"
+            lines.append(f"{label}: {s['lifted_boundaries']} lifted; Spearman vs cube-hole xy after the chunk: "
+                         f"true cost {s['true_vs_xy_median']:.2f}, model {s['model_vs_xy_median']:.2f}; "
+                         f"xy change vs the WAM's chunk (mm, median): model's pick "
+                         f"{s['pick_xy_change_mm_median']:+.1f}, simulator's pick "
+                         f"{s['sim_pick_xy_change_mm_median']:+.1f}, "
+                         f"best candidate {s['best_xy_change_mm_median']:+.1f}")
+    return "\n".join(lines)

@@ -1,0 +1,48 @@
+"""Planning fidelity: rank statistics, and a run in the real env with the shipped mini models."""
+
+import numpy as np
+import pytest
+import torch
+
+from wamplan.planning.dynamics import LearnedDynamics, SimulatorDynamics
+from wamplan.planning.fidelity import (FidelityConfig, Scored, boundary_stats, format_fidelity, ranks, run_fidelity,
+                                       spearman, top_overlap)
+from wamplan.wam import load_wam
+from wamplan.worldmodel.train import load_world_model
+
+
+def test_rank_statistics():
+    a = torch.tensor([0.3, 0.1, 0.2, 0.5])
+    assert ranks(torch.tensor([2.0, 1.0, 2.0])).tolist() == [2.5, 1.0, 2.5]
+    assert spearman(a, a.exp()) == pytest.approx(1.0) and spearman(a, -a) == pytest.approx(-1.0)
+    assert spearman(a, torch.tensor([0.1, 0.3, 0.2, 0.4])) == pytest.approx(0.2)  # d = (2, -2, 0, 0): 1 - 6*8/60
+    assert np.isnan(spearman(a, torch.ones(4)))
+    assert top_overlap(a, torch.tensor([0.1, 0.3, 0.2, 0.4]), 2) == 0.5
+    s = boundary_stats(torch.tensor([0.5, 0.1, 0.2, 0.3]), torch.tensor([2.0, 1.0, 3.0, 4.0]), 2)
+    assert s["pick"] == 1 and s["pick_beats_wam"] == 1.0 and s["pick_gain"] == pytest.approx(0.5)
+    assert s["random_beats_wam"] == pytest.approx(1 / 3) and s["best_gain"] == pytest.approx(0.5)
+
+
+def test_fidelity_of_a_world_model_and_of_the_simulator_against_itself(env):
+    """The session env renders at 224 px, what TinyWAM was trained on; 4 candidates, 2 boundaries."""
+    wam = load_wam("checkpoints/mini/tinywam", device="cpu")
+    model, enc = load_world_model("checkpoints/mini/wm_augmented")
+    models = [Scored("augmented", LearnedDynamics(model), enc), Scored("simulator", SimulatorDynamics(env, enc), enc)]
+    cfg = FidelityConfig(num_candidates=4, top_k=2, boundaries=(1, 2))
+    out = run_fidelity(env, wam, models, [500], cfg)
+    recs = out["records"]
+    assert [r["step"] for r in recs] == [16, 32]
+    for r in recs:
+        learned, sim = r["models"]["augmented"], r["models"]["simulator"]
+        assert -1 <= learned["spearman"] <= 1 and 0 <= learned["top_overlap"] <= 1
+        assert learned["true_costs"] == sim["true_costs"]  # one simulator reference for one encoder
+        assert sim["spearman"] == pytest.approx(1.0, abs=1e-9) and sim["top_overlap"] == 1.0
+        assert sim["pick_gain"] == pytest.approx(sim["best_gain"])
+        assert len(set(learned["model_costs"])) == 4  # four distinct candidates
+        assert len(r["task"]["cand_xy_mm"]) == 4 and -1 <= learned["true_vs_xy"] <= 1
+    # candidate 0 is the WAM's chunk, which the episode then executed: stepping it from the boundary lands
+    # where the episode was at the next boundary (up to PhysX's restore drift, ~1 mm)
+    assert recs[0]["task"]["cand_xy_mm"][0] == pytest.approx(recs[1]["task"]["boundary_xy_mm"], abs=2.0)
+    s = out["summary"]
+    assert s["simulator"]["spearman_median"] == pytest.approx(1.0) and s["augmented"]["boundaries"] == 2
+    assert "augmented" in format_fidelity(s, 2)
