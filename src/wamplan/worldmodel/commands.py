@@ -170,11 +170,10 @@ def cmd_viz(args: argparse.Namespace) -> int:
 
 
 def _probe_encoders(args: argparse.Namespace) -> list:
-    from wamplan.device import resolve_device
-    from wamplan.encoders import make_encoder
-    from wamplan.worldmodel.presets import get_preset
+    from wamplan.presets import get_world_model_preset
+    from wamplan.worldmodel.stores import frozen_encoder
 
-    preset = get_preset(args.preset)
+    preset = get_world_model_preset(args.preset)
     name = args.encoder or preset.encoder
     settings = []
     for spec in args.encoder_kwargs or [None]:
@@ -187,9 +186,7 @@ def _probe_encoders(args: argparse.Namespace) -> list:
             if not isinstance(extra, dict):
                 raise UserError(f"--encoder-kwargs {spec!r} must be a JSON object, e.g. '{{\"patch_size\": 8}}'")
             kw.update(extra)
-        if args.encoder_path:
-            kw["path"] = args.encoder_path
-        settings.append(make_encoder(name, **kw).to(resolve_device(args.device)))
+        settings.append(frozen_encoder(name, kw, args.encoder_path, args.device))
     return settings
 
 
