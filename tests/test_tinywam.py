@@ -9,7 +9,7 @@ import torch
 
 from wamplan.cli import main
 from wamplan.config import ConfigError
-from wamplan.policies.base import CAMERAS, Observation
+from wamplan.envs.contract import CAMERAS, Observation
 from wamplan.wam import WAMPolicy, load_wam, make_wam
 from wamplan.wam.tinywam import TinyWAM, TinyWAMConfig, TinyWAMNet
 from wamplan.wam.train import WAMTrainConfig, load_items, make_batch, train_tinywam, wam_loss

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from wamplan.data.store import TMP_PREFIX, EpisodeStore, StoreError, atomic_h5
-from wamplan.policies.base import CAMERAS
+from wamplan.envs.contract import CAMERAS
 
 
 def feature_key(encoder_config: dict[str, Any]) -> str:

@@ -25,7 +25,7 @@ from torch.utils.data import Dataset
 
 from wamplan.data.features import check_features, feature_dir
 from wamplan.data.store import EpisodeStore, StoreError
-from wamplan.policies.base import CAMERAS
+from wamplan.envs.contract import CAMERAS
 
 
 def split_of(source: str, seed: int, val_fraction: float) -> str:

@@ -25,8 +25,9 @@ from typing import Any, Callable, ClassVar
 
 import numpy as np
 
+from wamplan.envs.contract import ACTION_DIM, CAMERAS, Observation
 from wamplan.errors import UserError
-from wamplan.policies.base import ACTION_DIM, CAMERAS, Observation, Policy
+from wamplan.policies.base import Policy
 from wamplan.registry import Registry
 
 # Modules that register WAMs or checkpoint loaders; imported on demand by make_wam / load_wam.

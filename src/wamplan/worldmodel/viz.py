@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from wamplan.envs.contract import CAMERAS
 from wamplan.errors import UserError
-from wamplan.policies.base import CAMERAS
 
 
 @torch.inference_mode()
