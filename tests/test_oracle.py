@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from wamplan.envs.contract import CAMERAS
-from wamplan.envs.rollout import run_episode
 from wamplan.policies.expert import ExpertPolicy
+from wamplan.policies.rollout import run_episode
 from wamplan.wam import WAMError, WAMPolicy, make_wam
 from wamplan.wam.oracle import ExpertOracleWAM
 

@@ -20,10 +20,10 @@ import numpy as np
 from wamplan.data.store import EpisodeData, EpisodeStore
 from wamplan.envs.contract import CAMERAS
 from wamplan.envs.core import EnvConfig, InsertionEnv
-from wamplan.envs.rollout import run_episode
 from wamplan.errors import UserError
 from wamplan.parallel import imap_workers
 from wamplan.policies.base import Policy, make_policy
+from wamplan.policies.rollout import run_episode
 from wamplan.provenance import provenance
 
 

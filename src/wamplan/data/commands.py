@@ -9,10 +9,12 @@ from pathlib import Path
 
 from wamplan.config import add_arguments, from_args
 from wamplan.errors import UserError
+from wamplan.registry import register_command
 
 SOURCES = ("expert", "noisy-expert", "pink", "policy")
 
 
+@register_command("data")
 def register(sub: argparse._SubParsersAction) -> None:
     from wamplan.envs.core import EnvConfig
 

@@ -11,8 +11,10 @@ from pathlib import Path
 
 from wamplan.config import add_arguments, from_args
 from wamplan.errors import UserError
+from wamplan.registry import register_command
 
 
+@register_command("env")
 def register(sub: argparse._SubParsersAction) -> None:
     from wamplan.envs.core import EnvConfig
 
@@ -97,7 +99,7 @@ def cmd_rollout(args: argparse.Namespace) -> int:
 
     from wamplan.envs.core import EnvConfig, InsertionEnv
     from wamplan.envs.media import write_video
-    from wamplan.envs.rollout import run_episode
+    from wamplan.policies.rollout import run_episode
     from wamplan.evaluation.policies import load_policy
     from wamplan.provenance import provenance
 

@@ -44,7 +44,7 @@ class Policy(abc.ABC):
         return {"name": self.name}
 
 
-POLICIES = Registry("policy", set_name=True)
+POLICIES = Registry("policy", set_name=True, modules=("wamplan.policies.expert", "wamplan.policies.noise"))
 register_policy = POLICIES.register  # class decorator: make a policy constructible by name
 
 

@@ -9,6 +9,7 @@ from pathlib import Path
 from wamplan.config import add_arguments, from_args
 from wamplan.envs.contract import CAMERAS
 from wamplan.errors import UserError
+from wamplan.registry import register_command
 from wamplan.worldmodel.config import TrainConfig
 
 
@@ -19,6 +20,7 @@ def _stores(spec: str) -> list[Path]:
     return stores
 
 
+@register_command("wm")
 def register(sub: argparse._SubParsersAction) -> None:
     from wamplan.presets import PRESETS
 
