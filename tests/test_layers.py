@@ -40,14 +40,15 @@ def module_name(path: Path) -> str:
 
 def imports() -> dict[str, set[str]]:
     """module -> the wamplan modules it imports (``from wamplan.x import y`` counts as wamplan.x)."""
-    out: dict[str, set[str]] = defaultdict(set)
-    for path in sorted(SRC.rglob("*.py")):
-        mod = module_name(path)
-        out[mod]  # a module importing nothing is still listed
-        for node in ast.walk(ast.parse(path.read_text(), str(path))):
-            names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
-                [node.module] if isinstance(node, ast.ImportFrom) and node.module and node.level == 0 else []
-            out[mod].update(n for n in names if n == "wamplan" or n.startswith("wamplan."))
+    return {module_name(path): _wamplan_imports(path) for path in sorted(SRC.rglob("*.py"))}
+
+
+def _wamplan_imports(path: Path) -> set[str]:
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
+            [node.module] if isinstance(node, ast.ImportFrom) and node.module and node.level == 0 else []
+        out.update(n for n in names if n == "wamplan" or n.startswith("wamplan."))
     return out
 
 
@@ -58,7 +59,8 @@ def test_no_import_points_up_the_layers():
 
 
 def test_nothing_imports_a_command_module():
-    users = [f"{m} imports {t}" for m, targets in imports().items() for t in targets
+    tests = {f"tests.{p.stem}": _wamplan_imports(p) for p in sorted(Path(__file__).parent.glob("*.py"))}
+    users = [f"{m} imports {t}" for m, targets in {**imports(), **tests}.items() for t in targets
              if layer(t) == CLI and t != "wamplan.cli"]
     assert not users, "command modules are entry points, not libraries:\n" + "\n".join(users)
 

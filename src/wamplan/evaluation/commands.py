@@ -7,17 +7,12 @@ import json
 from collections import Counter
 from pathlib import Path
 
-from wamplan.config import add_arguments, from_args
 from wamplan.registry import register_command
 
 
 @register_command("evaluation")
 def register(sub: argparse._SubParsersAction) -> None:
-    from wamplan.envs.core import EnvConfig
-    from wamplan.evaluation.runner import EvalConfig
-    from wamplan.planning import CostConfig
-    from wamplan.planning.options import add_planner_arguments
-    from wamplan.planning.policy import PlannedPolicyConfig
+    from wamplan.evaluation.options import add_eval_arguments
 
     p = sub.add_parser("eval", help="run the paper's evaluation conditions (resumable, parallel)")
     p.add_argument("--conditions", default="1,6,7", help="e.g. 1,6,7 or 1-7 (paper §4)")
@@ -25,14 +20,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed-start", type=int, default=0)
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--workers", type=int, default=1)
-    add_arguments(p, EvalConfig)  # checkpoints, device; --planner comes with the planner options
-    add_arguments(p.add_argument_group("planned policy"), PlannedPolicyConfig)
-    add_arguments(p.add_argument_group("cost"), CostConfig, prefix="cost_")
-    env = p.add_argument_group("task")
-    add_arguments(env, EnvConfig)
-    env.add_argument("--max-steps", dest="max_episode_steps", type=int, default=None,
-                     help="the same as --max-episode-steps")
-    add_planner_arguments(p, default=EvalConfig.planner)
+    add_eval_arguments(p)
     p.set_defaults(func=cmd_eval)
 
     p = sub.add_parser("reproduce", help="the whole pipeline: data, TinyWAM, world models, evaluation, report")
@@ -54,8 +42,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     from wamplan.errors import UserError
     from wamplan.evaluation.conditions import parse_conditions
+    from wamplan.evaluation.options import eval_config_from_args
     from wamplan.evaluation.records import read_records, record_key
-    from wamplan.evaluation.runner import EvalConfig, run_evaluation
+    from wamplan.evaluation.runner import run_evaluation
 
     conds = parse_conditions(args.conditions)
     if args.episodes <= 0 or args.workers <= 0:
@@ -79,22 +68,6 @@ def cmd_eval(args: argparse.Namespace) -> int:
     summary = {c: dict(v) for c, v in counts.items() if v}
     print(json.dumps({"new_episodes": summary}))
     return 0
-
-
-def eval_config_from_args(args: argparse.Namespace):
-    """The nested :class:`EvalConfig` from ``wamplan eval``'s options (unset options keep the defaults)."""
-    import dataclasses
-
-    from wamplan.envs.core import EnvConfig
-    from wamplan.evaluation.runner import EvalConfig
-    from wamplan.planning import CostConfig
-    from wamplan.planning.options import planner_config_from_args
-    from wamplan.planning.policy import PlannedPolicyConfig
-
-    planner, planner_config = planner_config_from_args(args)
-    return dataclasses.replace(from_args(EvalConfig, args), planner=planner, planner_config=planner_config,
-                               env=from_args(EnvConfig, args), policy=from_args(PlannedPolicyConfig, args),
-                               cost=from_args(CostConfig, args, prefix="cost_"))
 
 
 def cmd_report(args: argparse.Namespace) -> int:
