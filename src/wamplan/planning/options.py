@@ -72,7 +72,8 @@ def planner_config_from_args(args: argparse.Namespace) -> tuple[str, Any]:
         owner, fname = dest[len(_DEST):].split("__", 1)
         flag = "--" + (f"{owner}-{fname}" if owner else fname).replace("_", "-")
         if (owner and owner != name) or fname not in known:
-            takers = sorted(p for p in PLANNERS if fname in {f.name for f in dataclasses.fields(PLANNERS[p].config_cls)})
+            takers = sorted(p for p, c in PLANNERS.items()
+                            if fname in {g.name for g in dataclasses.fields(c.config_cls)})
             raise UserError(f"{flag} is an option of planner(s) {takers}, not of '{name}'; "
                             f"drop it or pass --planner {takers[0] if takers else '...'}")
         changes[fname] = tuple(v) if isinstance(v, list) else v
