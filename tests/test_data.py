@@ -14,7 +14,7 @@ import pytest
 from wamplan.cli import main
 from wamplan.data.readers import WAMSamples, WorldModelWindows, split_of
 from wamplan.data.store import EpisodeStore, StoreError
-from wamplan.policies.base import CAMERAS
+from wamplan.envs.contract import CAMERAS
 
 SMALL = ["--camera-size", "64"]
 

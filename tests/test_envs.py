@@ -7,9 +7,10 @@ import numpy as np
 import pytest
 
 from wamplan.config import ConfigError
+from wamplan.envs.contract import CAMERAS
 from wamplan.envs.core import EnvConfig
-from wamplan.envs.rollout import run_episode
-from wamplan.policies import CAMERAS, make_policy
+from wamplan.policies import make_policy
+from wamplan.policies.rollout import run_episode
 
 
 def test_spaces(env):

@@ -4,9 +4,9 @@ and a query leaves the environment as it found it."""
 import numpy as np
 import pytest
 
-from wamplan.envs.rollout import run_episode
-from wamplan.policies.base import CAMERAS
+from wamplan.envs.contract import CAMERAS
 from wamplan.policies.expert import ExpertPolicy
+from wamplan.policies.rollout import run_episode
 from wamplan.wam import WAMError, WAMPolicy, make_wam
 from wamplan.wam.oracle import ExpertOracleWAM
 

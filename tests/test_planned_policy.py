@@ -5,12 +5,12 @@ import pytest
 import torch
 
 from wamplan.encoders import make_encoder
+from wamplan.envs.contract import CAMERAS
 from wamplan.envs.core import EnvConfig, InsertionEnv
-from wamplan.envs.rollout import run_episode
 from wamplan.planning import CEMConfig, make_cost, make_planner
 from wamplan.planning.dynamics import LearnedDynamics, PlanningContext, SimulatorDynamics
 from wamplan.planning.policy import PlannedPolicy, PlannedPolicyConfig
-from wamplan.policies.base import CAMERAS
+from wamplan.policies.rollout import run_episode
 from wamplan.wam.base import WAM, WAMOutput
 from wamplan.worldmodel.config import PredictorConfig
 from wamplan.worldmodel.predictor import WorldModelPredictor

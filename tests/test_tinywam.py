@@ -9,7 +9,7 @@ import torch
 
 from wamplan.cli import main
 from wamplan.config import ConfigError
-from wamplan.policies.base import CAMERAS, Observation
+from wamplan.envs.contract import CAMERAS, Observation
 from wamplan.wam import WAMPolicy, load_wam, make_wam
 from wamplan.wam.tinywam import TinyWAM, TinyWAMConfig, TinyWAMNet
 from wamplan.wam.train import WAMTrainConfig, load_items, make_batch, train_tinywam, wam_loss
@@ -164,7 +164,7 @@ def test_cli_resume_on_different_data_is_refused(store, tmp_path, capsys):
 
 
 def test_tinywam_runs_as_a_policy_and_queries_every_16_steps(small_env):
-    from wamplan.envs.rollout import run_episode
+    from wamplan.policies.rollout import run_episode
 
     policy = WAMPolicy(make_wam("tinywam", config=TINY, device="cpu"))
     result = run_episode(small_env, policy, seed=0, max_steps=32, stop_on_success=False)

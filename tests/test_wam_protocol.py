@@ -16,7 +16,7 @@ from fastapi.responses import Response
 
 from wamplan.checkpoint import CheckpointError, save_checkpoint
 from wamplan.config import ConfigError, to_dict
-from wamplan.policies.base import CAMERAS, Observation
+from wamplan.envs.contract import CAMERAS, Observation
 from wamplan.wam import protocol
 from wamplan.wam.base import (
     DEFAULT_INSTRUCTION,

@@ -1,32 +1,24 @@
 """The one command-line entry point, ``wamplan``.
 
 Each concept registers its own sub-commands from ``wamplan/<concept>/commands.py`` (and
-``wamplan/plot_commands.py``) through ``register(subparsers)``; a handler is a function
-``(args) -> int``. Imports are lazy so that ``wamplan --help`` stays fast.
+``wamplan/plot_commands.py``): a function ``register(subparsers)`` decorated with
+``@register_command(name)`` (the ``COMMANDS`` registry in ``wamplan.registry``, which lists those modules);
+a handler is a function ``(args) -> int``. Imports are lazy so that ``wamplan --help`` stays fast.
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib
 import sys
 
-# each command module defines register(subparsers)
-COMMAND_MODULES = [
-    "wamplan.envs.commands",
-    "wamplan.data.commands",
-    "wamplan.worldmodel.commands",
-    "wamplan.wam.commands",
-    "wamplan.evaluation.commands",
-    "wamplan.plot_commands",
-]
+from wamplan.registry import COMMANDS
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="wamplan", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name in COMMAND_MODULES:
-        importlib.import_module(name).register(sub)
+    for register in COMMANDS.values():
+        register(sub)
     return parser
 
 

@@ -27,9 +27,10 @@ class ConfigError(UserError, ValueError):
     """A config value is wrong; the message says which and how to fix it."""
 
 
-def field(default: Any = dataclasses.MISSING, help: str = "", **kw: Any) -> Any:
-    """A dataclass field with a help string (used for ``--help``). Mutable defaults: pass a tuple."""
-    return dataclasses.field(default=default, metadata={"help": help}, **kw)
+def field(default: Any = dataclasses.MISSING, help: str = "", cli: bool = True, **kw: Any) -> Any:
+    """A dataclass field with a help string (used for ``--help``). Mutable defaults: pass a tuple, or
+    ``default_factory=``. ``cli=False`` keeps the field out of :func:`add_arguments` (set it otherwise)."""
+    return dataclasses.field(default=default, metadata={"help": help, "cli": cli}, **kw)
 
 
 def require(cond: bool, message: str) -> None:
@@ -91,26 +92,33 @@ def _scalar_type(t: Any) -> Any:
     return t
 
 
-def add_arguments(parser: argparse.ArgumentParser, cls: type, prefix: str = "") -> None:
-    """Add one ``--name`` option per scalar field of ``cls`` (default None = keep the config default)."""
-    hints = _hints(cls)
-    for f in dataclasses.fields(cls):
-        t = hints[f.name]
-        if dataclasses.is_dataclass(t):
-            continue
-        flag = "--" + (prefix + f.name).replace("_", "-")
+def add_field_argument(parser: Any, flag: str, dest: str, f: dataclasses.Field, t: Any, help_: str = "") -> None:
+    """Add ``flag`` for the dataclass field ``f`` (type hint ``t``) to ``parser`` (or an argument group):
+    its default is None, meaning "keep the config's default"."""
+    if not help_:
         help_ = f.metadata.get("help", "")
         default = f.default if f.default is not dataclasses.MISSING else None
         help_ = f"{help_} (default: {default})" if help_ else f"(default: {default})"
-        st = _scalar_type(t)
-        if st is bool:
-            parser.add_argument(flag, dest=prefix + f.name, default=None,
-                                action=argparse.BooleanOptionalAction, help=help_)
-        elif typing.get_origin(t) is tuple:
-            parser.add_argument(flag, dest=prefix + f.name, default=None, nargs="+", type=st, help=help_)
-        else:
-            parser.add_argument(flag, dest=prefix + f.name, default=None,
-                                type=st if st in (int, float, str) else str, help=help_)
+    st = _scalar_type(t)
+    metavar = flag.lstrip("-").replace("-", "_").upper()
+    if st is bool:
+        parser.add_argument(flag, dest=dest, default=None, action=argparse.BooleanOptionalAction, help=help_)
+    elif typing.get_origin(t) is tuple:
+        parser.add_argument(flag, dest=dest, default=None, nargs="+", type=st, metavar=metavar, help=help_)
+    else:
+        parser.add_argument(flag, dest=dest, default=None, type=st if st in (int, float, str) else str,
+                            metavar=metavar, help=help_)
+
+
+def add_arguments(parser: Any, cls: type, prefix: str = "") -> None:
+    """Add one ``--name`` option per scalar field of ``cls`` (default None = keep the config default);
+    nested configs and fields declared with ``cli=False`` are skipped."""
+    hints = _hints(cls)
+    for f in dataclasses.fields(cls):
+        t = hints[f.name]
+        if dataclasses.is_dataclass(t) or not f.metadata.get("cli", True):
+            continue
+        add_field_argument(parser, "--" + (prefix + f.name).replace("_", "-"), prefix + f.name, f, t)
 
 
 def from_args(cls: type[T], args: argparse.Namespace, base: T | None = None, prefix: str = "") -> T:
@@ -118,7 +126,7 @@ def from_args(cls: type[T], args: argparse.Namespace, base: T | None = None, pre
     base = base if base is not None else cls()
     changes = {}
     for f in dataclasses.fields(cls):
-        v = getattr(args, prefix + f.name, None)
+        v = getattr(args, prefix + f.name, None) if f.metadata.get("cli", True) else None
         if v is not None:
             changes[f.name] = tuple(v) if isinstance(v, list) else v
     return dataclasses.replace(base, **changes)

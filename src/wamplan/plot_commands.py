@@ -5,7 +5,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from wamplan.registry import register_command
 
+
+@register_command("plot")
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("plot", help="draw a training run's curves (losses, validation, lr) from its metrics.jsonl")
     p.add_argument("run", type=Path, help="run directory of `wamplan wm train` / `wamplan wam train` (or a metrics.jsonl)")

@@ -13,16 +13,17 @@ from collections import Counter
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
 from wamplan.data.store import EpisodeData, EpisodeStore
+from wamplan.envs.contract import CAMERAS
 from wamplan.envs.core import EnvConfig, InsertionEnv
 from wamplan.errors import UserError
-from wamplan.envs.rollout import run_episode
 from wamplan.parallel import imap_workers
-from wamplan.policies.base import CAMERAS, Policy
+from wamplan.policies.base import Policy, make_policy
+from wamplan.policies.rollout import run_episode
 from wamplan.provenance import provenance
 
 
@@ -36,6 +37,7 @@ class CollectJob:
     env: EnvConfig
     image_every: int
     max_steps: int | None = None
+    loader: Callable[[str], Policy] = make_policy  # policy_spec -> Policy; a module-level function (picklable)
 
 
 def collect_one(env: InsertionEnv, policy: Policy, seed: int, source: str, image_every: int,
@@ -80,11 +82,9 @@ class CollectWorker:
     """Holds one env and one policy; ``worker(seed)`` collects and stores that seed's episode."""
 
     def __init__(self, job: CollectJob):
-        from wamplan.envs.commands import load_policy
-
         self.job = job
         self.env = InsertionEnv(job.env)
-        self.policy = load_policy(job.policy_spec)
+        self.policy = job.loader(job.policy_spec)
         self.store = EpisodeStore(job.store)
 
     def __call__(self, seed: int) -> dict[str, Any]:
@@ -107,9 +107,12 @@ def throughput(start: float, n: int) -> float:
 
 def collect(source: str, episodes: int, out: str | Path, *, seed_start: int = 0, workers: int = 1,
             policy: str | None = None, image_every: int = 4, max_steps: int | None = None,
-            env: EnvConfig | None = None, progress: bool = True, log=print) -> dict[str, Any]:
+            env: EnvConfig | None = None, progress: bool = True, log=print,
+            loader: Callable[[str], Policy] = make_policy) -> dict[str, Any]:
     """Collect seeds ``seed_start .. seed_start + episodes - 1`` of ``source`` (expert, noisy-expert, pink,
     or policy with ``policy`` a WAM checkpoint) into the store ``out``, skipping the seeds it holds.
+    ``loader`` builds the policy from its name or checkpoint in each worker: the registered policies by
+    default; pass ``wamplan.evaluation.policies.load_policy`` to run WAM checkpoints (a layer above data).
     Returns a summary (collected, skipped, seconds, episodes_per_min, outcomes)."""
     from tqdm import tqdm
 
@@ -132,7 +135,7 @@ def collect(source: str, episodes: int, out: str | Path, *, seed_start: int = 0,
     if have:
         log(f"resuming: {len(have)} of {len(seeds)} episodes already in {out}")
     job = CollectJob(store=str(out), source=tag, policy_spec=spec, env=env, image_every=image_every,
-                     max_steps=max_steps)
+                     max_steps=max_steps, loader=loader)
     counts: Counter = Counter()
     start, n = time.perf_counter(), 0
     bar = tqdm(total=len(seeds), initial=len(have), desc=f"collect {tag}", unit="ep", disable=not progress)

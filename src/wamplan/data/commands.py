@@ -9,10 +9,12 @@ from pathlib import Path
 
 from wamplan.config import add_arguments, from_args
 from wamplan.errors import UserError
+from wamplan.registry import register_command
 
 SOURCES = ("expert", "noisy-expert", "pink", "policy")
 
 
+@register_command("data")
 def register(sub: argparse._SubParsersAction) -> None:
     from wamplan.envs.core import EnvConfig
 
@@ -45,10 +47,11 @@ def register(sub: argparse._SubParsersAction) -> None:
 def cmd_collect(args: argparse.Namespace) -> int:
     from wamplan.data.collect import collect
     from wamplan.envs.core import EnvConfig
+    from wamplan.evaluation.policies import load_policy
 
     summary = collect(args.source, args.episodes, args.out, seed_start=args.seed_start, workers=args.workers,
                       policy=args.policy, image_every=args.image_every, max_steps=args.max_steps,
-                      env=from_args(EnvConfig, args))
+                      env=from_args(EnvConfig, args), loader=load_policy)
     print(json.dumps(summary))
     return 0
 
@@ -95,7 +98,7 @@ def cmd_view(args: argparse.Namespace) -> int:
     import numpy as np
 
     from wamplan.data.store import EpisodeStore
-    from wamplan.policies.base import CAMERAS
+    from wamplan.envs.contract import CAMERAS
 
     store = EpisodeStore(args.dir)
     paths = store.episode_paths()

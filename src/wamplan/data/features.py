@@ -19,11 +19,10 @@ import json
 from pathlib import Path
 from typing import Any, Iterator
 
-import numpy as np
 import torch
 
 from wamplan.data.store import TMP_PREFIX, EpisodeStore, StoreError, atomic_h5
-from wamplan.policies.base import CAMERAS
+from wamplan.envs.contract import CAMERAS
 
 
 def feature_key(encoder_config: dict[str, Any]) -> str:
@@ -48,16 +47,6 @@ def check_features(path: str | Path, key: str) -> None:
                          f"and run `wamplan wm encode` again")
 
 
-@torch.inference_mode()
-def encode_frames(encoder, images: np.ndarray, batch_size: int = 64) -> np.ndarray:
-    """images (M, H, W, 3) uint8 -> features (M, N, D) float16."""
-    out = []
-    for i in range(0, len(images), batch_size):
-        x = torch.from_numpy(images[i:i + batch_size]).to(encoder.device)  # (b, H, W, 3)
-        out.append(encoder.encode(x).to(torch.float16).cpu().numpy())  # (b, N, D)
-    return np.concatenate(out)
-
-
 def encode_store(root: str | Path, encoder, batch_size: int = 64) -> Iterator[str]:
     """Encode every episode of ``root`` not yet cached; yields the episode names as they finish."""
     store = EpisodeStore(root)
@@ -73,8 +62,8 @@ def encode_store(root: str | Path, encoder, batch_size: int = 64) -> Iterator[st
             check_features(final, key)
             continue
         with store.open_episode(path) as f:
-            views = [encode_frames(encoder, f["images"][c][:], batch_size) for c in CAMERAS]  # V x (K, N, D)
-        z = np.stack(views, axis=1)  # (K, V, N, D)
+            views = [encoder.encode_batched(f["images"][c][:], batch_size) for c in CAMERAS]  # V x (K, N, D)
+        z = torch.stack(views, dim=1).to(torch.float16).numpy()  # (K, V, N, D)
         with atomic_h5(final) as g:
             g.create_dataset("z", data=z, chunks=(1, *z.shape[1:]))
             g.attrs["encoder"] = cfg

@@ -25,7 +25,7 @@ from torch.utils.data import Dataset
 
 from wamplan.data.features import check_features, feature_dir
 from wamplan.data.store import EpisodeStore, StoreError
-from wamplan.policies.base import CAMERAS
+from wamplan.envs.contract import CAMERAS
 
 
 def split_of(source: str, seed: int, val_fraction: float) -> str:
@@ -93,28 +93,46 @@ class _H5Cache:
         return {"_files": {}}
 
 
-class WAMSamples(Dataset):
+class _EpisodeDataset(Dataset):
+    """The body every reader shares: the indexed episodes of ``stores``, a flat list of items (each a tuple
+    whose first entry is the episode index), and HDF5 files opened lazily per process."""
+
+    def __init__(self, stores: Sequence[str | Path], split: str, val_fraction: float, features: str | None = None,
+                 sources: Sequence[str] | None = None):
+        self.episodes = index_episodes(stores, split, val_fraction, features=features, sources=sources)
+        self.items: list[tuple[int, ...]] = []
+        self._h5 = _H5Cache()
+
+    def _require_stride(self, every: int, what: str, fix: str = "") -> None:
+        """Every episode's image stride must divide ``every`` (a chunk length or a frameskip)."""
+        for e in self.episodes:
+            if every % e.image_every:
+                raise StoreError(f"{what} {every} is not a multiple of the store's image stride {e.image_every}{fix}")
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def _item(self, idx: int) -> tuple[EpisodeRef, h5py.File, tuple[int, ...]]:
+        """The episode of item ``idx``, its open episode file, and the rest of the item tuple."""
+        i, *rest = self.items[idx]
+        e = self.episodes[i]
+        return e, self._h5.get(e.path), tuple(rest)
+
+
+class WAMSamples(_EpisodeDataset):
     """Items: ``images`` (V, H, W, 3) uint8 at t, ``proprio`` (10,), ``actions`` (H, 5), ``future`` (V, H, W, 3)
     at t+H, plus ``step``. V follows ``CAMERAS`` (front, side, wrist)."""
 
     def __init__(self, stores: Sequence[str | Path], chunk: int = 16, split: str = "train", val_fraction: float = 0.1,
                  sources: Sequence[str] | None = None):
+        super().__init__(stores, split, val_fraction, sources=sources)
         self.chunk = chunk
-        self.episodes = index_episodes(stores, split, val_fraction, sources=sources)
-        for e in self.episodes:
-            if chunk % e.image_every:
-                raise StoreError(f"chunk length {chunk} is not a multiple of the store's image stride {e.image_every}")
+        self._require_stride(chunk, "chunk length")
         # every stored step before the end can start a chunk
         self.items = [(i, k) for i, e in enumerate(self.episodes) for k, t in enumerate(e.image_steps) if t < e.length]
-        self._h5 = _H5Cache()
-
-    def __len__(self) -> int:
-        return len(self.items)
 
     def __getitem__(self, idx: int) -> dict[str, torch.Tensor]:
-        i, k = self.items[idx]
-        e = self.episodes[i]
-        f = self._h5.get(e.path)
+        e, f, (k,) = self._item(idx)
         t = e.image_steps[k]
         t_end = min(t + self.chunk, e.length)
         k_end = e.image_steps.index(t_end)
@@ -128,7 +146,7 @@ class WAMSamples(Dataset):
                     step=torch.tensor(t))
 
 
-class WorldModelWindows(Dataset):
+class WorldModelWindows(_EpisodeDataset):
     """Items: ``q`` (T, 10), ``a`` (T, Δ·5), and ``z`` (T, V, N, D) cached features (with ``features``) or
     ``images`` (T, V, H, W, 3) uint8, where T = history + horizon frames at stride Δ (``frameskip``).
 
@@ -142,27 +160,18 @@ class WorldModelWindows(Dataset):
                  sources: Sequence[str] | None = None, window_end: str = "block"):
         if window_end not in ("block", "frame"):
             raise ValueError(f"window_end must be block or frame, got {window_end!r}")
+        super().__init__(stores, split, val_fraction, features=features, sources=sources)
         self.frameskip, self.frames = frameskip, history + horizon
         self.features = features
-        self.episodes = index_episodes(stores, split, val_fraction, features=features, sources=sources)
-        for e in self.episodes:
-            if frameskip % e.image_every:
-                raise StoreError(f"frameskip {frameskip} is not a multiple of the store's image stride "
-                                 f"{e.image_every}; collect with --image-every dividing it")
+        self._require_stride(frameskip, "frameskip", "; collect with --image-every dividing it")
         span = self.frames * frameskip  # steps covered by the frames and the last action block
         if window_end == "frame":
             span -= frameskip  # the last frame itself must exist; its block is padded
         self.items = [(i, k) for i, e in enumerate(self.episodes) for k, s in enumerate(e.image_steps)
                       if s % e.image_every == 0 and s + span <= e.length]
-        self._h5 = _H5Cache()
-
-    def __len__(self) -> int:
-        return len(self.items)
 
     def __getitem__(self, idx: int) -> dict[str, torch.Tensor]:
-        i, k = self.items[idx]
-        e = self.episodes[i]
-        f = self._h5.get(e.path)
+        e, f, (k,) = self._item(idx)
         stride = self.frameskip // e.image_every
         ks = [k + j * stride for j in range(self.frames)]  # image indices of the frames
         steps = [e.image_steps[j] for j in ks]
@@ -180,24 +189,19 @@ class WorldModelWindows(Dataset):
         return out
 
 
-class FeatureFrames(Dataset):
+class FeatureFrames(_EpisodeDataset):
     """Items: ``z`` (N, D) cached features of one view of one stored frame and its ``image`` (H, W, 3)
     uint8 (for training the decoder)."""
 
     def __init__(self, stores: Sequence[str | Path], features: str, split: str = "train", val_fraction: float = 0.1,
                  cameras: Sequence[str] = CAMERAS, sources: Sequence[str] | None = None):
-        self.episodes = index_episodes(stores, split, val_fraction, features=features, sources=sources)
+        super().__init__(stores, split, val_fraction, features=features, sources=sources)
         self.cameras = list(cameras)
         self.items = [(i, k, v) for i, e in enumerate(self.episodes) for k in range(len(e.image_steps))
                       for v, c in enumerate(CAMERAS) if c in self.cameras]
-        self._h5 = _H5Cache()
-
-    def __len__(self) -> int:
-        return len(self.items)
 
     def __getitem__(self, idx: int) -> dict[str, torch.Tensor]:
-        i, k, v = self.items[idx]
-        e = self.episodes[i]
+        e, f, (k, v) = self._item(idx)
         z = self._h5.get(e.features)["z"][k, v]  # (N, D)
-        img = self._h5.get(e.path)["images"][CAMERAS[v]][k]  # (H, W, 3)
+        img = f["images"][CAMERAS[v]][k]  # (H, W, 3)
         return dict(z=torch.from_numpy(z), image=torch.from_numpy(img))

@@ -41,8 +41,8 @@ from typing import Any, Iterator, Sequence
 import h5py
 import numpy as np
 
+from wamplan.envs.contract import CAMERAS
 from wamplan.errors import UserError
-from wamplan.policies.base import CAMERAS
 
 SCHEMA_VERSION = 1
 MANIFEST = "store.json"

@@ -6,7 +6,6 @@
     enc = make_encoder("patch-pixels")                                   # no weights, CPU
 """
 
-from wamplan.encoders import hf, patch_pixels  # noqa: F401  (registers the entries)
 from wamplan.encoders.base import (ENCODERS, IMAGENET_MEAN, IMAGENET_STD, FrozenEncoder, encoder_names,
                                    make_encoder, register_encoder)
 from wamplan.encoders.hf import DINOV2_ENV, DINOV3_ENV, HF_ENCODERS, HFViTEncoder, load_hf_model

@@ -120,7 +120,7 @@ class FrozenEncoder(nn.Module):
         return torch.cat(parts) if parts else torch.empty(0, self.num_patches, self.dim)
 
 
-ENCODERS = Registry("encoder")
+ENCODERS = Registry("encoder", modules=("wamplan.encoders.hf", "wamplan.encoders.patch_pixels"))
 register_encoder = ENCODERS.register  # a FrozenEncoder subclass or a factory function, by name
 
 
@@ -130,7 +130,4 @@ def encoder_names() -> list[str]:
 
 def make_encoder(name: str, **kwargs: Any) -> FrozenEncoder:
     """Build the registered encoder ``name`` (frozen, eval mode) with ``kwargs``."""
-    if name not in ENCODERS:
-        raise UserError(f"unknown encoder '{name}'; choose one of {encoder_names()}")
-    enc = ENCODERS[name](**kwargs)
-    return enc.freeze()
+    return ENCODERS.lookup(name)(**kwargs).freeze()

@@ -5,15 +5,16 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import time
 from collections import Counter
 from pathlib import Path
 
 from wamplan.config import add_arguments, from_args
 from wamplan.errors import UserError
+from wamplan.registry import register_command
 
 
+@register_command("env")
 def register(sub: argparse._SubParsersAction) -> None:
     from wamplan.envs.core import EnvConfig
 
@@ -42,40 +43,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 # ---------------------------------------------------------------------- check
-def _mesa_version() -> str | None:
-    try:
-        out = subprocess.run(["dpkg-query", "-W", "-f=${Version}", "mesa-vulkan-drivers"], capture_output=True,
-                             text=True, timeout=10)
-        return out.stdout.strip() or None
-    except (OSError, subprocess.SubprocessError):
-        return None
-
-
-def diagnose_renderer() -> list[str]:
-    """Human-readable reasons rendering may fail here (empty if nothing looks wrong)."""
-    import wamplan.envs.vulkan as vk
-
-    vk.configure_vulkan()
-    problems = []
-    icd = os.environ.get("VK_ICD_FILENAMES") or os.environ.get("VK_DRIVER_FILES")
-    gpu = any(p.exists() for p in vk.GPU_ICDS)
-    if not icd and not gpu:
-        problems.append("no Vulkan driver found: run `make setup` (installs Mesa lavapipe >= 24.3 from "
-                        "bookworm-backports) or set VK_ICD_FILENAMES to your driver's ICD json")
-    mesa = _mesa_version()
-    if not gpu and mesa is not None:
-        parts = mesa.split(".")
-        if len(parts) >= 2 and parts[0].isdigit() and parts[1].isdigit() and (int(parts[0]), int(parts[1])) < (24, 3):
-            problems.append(f"Mesa {mesa} is too old: SAPIEN needs VK_KHR_external_semaphore_fd, which lavapipe has "
-                            f"from Mesa 24.3; run `make setup` to install 25.x from bookworm-backports")
-    return problems
-
-
 def cmd_check(args: argparse.Namespace) -> int:
     import numpy as np
 
+    from wamplan.envs.contract import ACTION_DIM, CAMERAS
+    from wamplan.envs.diagnose import diagnose_renderer, mesa_version
+
     problems = diagnose_renderer()
-    print(f"VK_ICD_FILENAMES={os.environ.get('VK_ICD_FILENAMES', '(unset)')}  mesa-vulkan-drivers={_mesa_version()}")
+    print(f"VK_ICD_FILENAMES={os.environ.get('VK_ICD_FILENAMES', '(unset)')}  mesa-vulkan-drivers={mesa_version()}")
     try:
         from wamplan.envs.core import InsertionEnv
 
@@ -87,13 +62,13 @@ def cmd_check(args: argparse.Namespace) -> int:
         raise UserError(f"cannot render CubeInsertion-v1 here ({type(e).__name__}: {str(e).splitlines()[0]}): {hint}") from e
     for p in problems:
         print(f"warning: {p}")
-    zero = np.zeros(5, np.float32)
+    zero = np.zeros(ACTION_DIM, np.float32)
     t = time.perf_counter()
     for _ in range(args.steps):
         env.step(zero)
     step_ms = (time.perf_counter() - t) / args.steps * 1e3
     print(f"renderer ok; physics step {step_ms:.1f} ms")
-    for cam in ("front", "side", "wrist"):
+    for cam in CAMERAS:
         t = time.perf_counter()
         for _ in range(3):
             env.render((cam,))
@@ -107,16 +82,9 @@ def cmd_check(args: argparse.Namespace) -> int:
 
 
 # ---------------------------------------------------------------------- render
-def save_views(images: dict, path: Path) -> None:
-    import imageio.v3 as iio
-    import numpy as np
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    iio.imwrite(path, np.concatenate([images[c] for c in ("front", "side", "wrist")], axis=1))
-
-
 def cmd_render(args: argparse.Namespace) -> int:
     from wamplan.envs.core import EnvConfig, InsertionEnv
+    from wamplan.envs.media import save_views
 
     env = InsertionEnv(from_args(EnvConfig, args))
     obs = env.reset(args.seed, with_images=True)
@@ -126,24 +94,13 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 
 # ---------------------------------------------------------------------- rollout
-def load_policy(spec: str, instruction: str | None = None):
-    """A registered policy name, or a directory holding a WAM checkpoint (run open loop)."""
-    from wamplan.policies import POLICIES, make_policy
-
-    if spec in POLICIES:
-        return make_policy(spec)
-    if Path(spec).is_dir():
-        from wamplan.wam import WAMPolicy, load_wam
-
-        return WAMPolicy(load_wam(spec), instruction=instruction) if instruction else WAMPolicy(load_wam(spec))
-    raise UserError(f"unknown policy '{spec}': choose one of {sorted(POLICIES)} or pass a WAM checkpoint directory")
-
-
 def cmd_rollout(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from wamplan.envs.core import EnvConfig, InsertionEnv
-    from wamplan.envs.rollout import run_episode
+    from wamplan.envs.media import write_video
+    from wamplan.policies.rollout import run_episode
+    from wamplan.evaluation.policies import load_policy
     from wamplan.provenance import provenance
 
     if args.episodes <= 0:
@@ -159,7 +116,7 @@ def cmd_rollout(args: argparse.Namespace) -> int:
         r = run_episode(env, policy, seed, images_at=(lambda t: True) if record else None,
                         on_obs=(lambda _e, obs, _a: frames.append(obs.images)) if record else None)
         if args.video is not None:
-            _write_video(args.video / f"{args.policy.replace('/', '_')}_seed{seed}.mp4", frames)
+            write_video(args.video / f"{args.policy.replace('/', '_')}_seed{seed}.mp4", frames)
         records.append(r.summary())
         counts[r.outcome] += 1
         bar.set_postfix(success=f"{counts['success']}/{len(records)}")
@@ -175,12 +132,3 @@ def cmd_rollout(args: argparse.Namespace) -> int:
     env.close()
     return 0
 
-
-def _write_video(path: Path, frames: list) -> None:
-    import imageio.v2 as imageio
-    import numpy as np
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with imageio.get_writer(path, fps=20, macro_block_size=1) as w:
-        for views in frames:
-            w.append_data(np.concatenate([views[c] for c in ("front", "side", "wrist")], axis=1))

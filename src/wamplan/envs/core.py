@@ -18,10 +18,7 @@ import torch
 
 from wamplan.config import field, require
 from wamplan.envs.agent import CONTROL_MODE
-from wamplan.envs.task import ENV_ID, MAX_EPISODE_STEPS, STAGES
-from wamplan.policies.base import ACTION_DIM, CAMERAS, Observation
-
-OUTCOMES = ("success", "never_lifted", "lifted_not_aligned", "aligned_not_descended", "descended_not_seated")
+from wamplan.envs.contract import ACTION_DIM, CAMERAS, ENV_ID, MAX_EPISODE_STEPS, OUTCOMES, STAGES, Observation
 
 
 @dataclass(frozen=True)
@@ -76,7 +73,7 @@ class InsertionEnv:
     """
 
     def __init__(self, config: EnvConfig | None = None):
-        import wamplan.envs  # noqa: F401  (registers the task, configures Vulkan)
+        import wamplan.envs.task  # noqa: F401  (registers the task, configures Vulkan)
 
         self.config = config or EnvConfig()
         kw = self.config.task_kwargs()

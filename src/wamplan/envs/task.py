@@ -34,15 +34,13 @@ from mani_skill.utils.scene_builder.table import TableSceneBuilder
 from mani_skill.utils.structs.pose import Pose
 
 from wamplan.envs.agent import CONTROL_MODE, REST_QPOS, PandaInsertion
+from wamplan.envs.contract import ENV_ID, MAX_EPISODE_STEPS, STAGES
 
-ENV_ID = "CubeInsertion-v1"
-MAX_EPISODE_STEPS = 300
 HOLE_XY = (0.0, 0.12)
 CUBE_X_RANGE = (-0.10, 0.05)
 CUBE_Y_RANGE = (-0.20, -0.05)
 CUBE_YAW_RANGE = (-np.pi / 4, np.pi / 4)
 WALL = 0.025  # thickness of the mount's walls
-STAGES = ("grasped", "lifted", "aligned", "descended", "seated")
 
 
 def yaw_of_quat(q: torch.Tensor) -> torch.Tensor:

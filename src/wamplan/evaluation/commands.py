@@ -7,11 +7,12 @@ import json
 from collections import Counter
 from pathlib import Path
 
-from wamplan.config import add_arguments, from_args
+from wamplan.registry import register_command
 
 
+@register_command("evaluation")
 def register(sub: argparse._SubParsersAction) -> None:
-    from wamplan.evaluation.runner import EvalConfig
+    from wamplan.evaluation.options import add_eval_arguments
 
     p = sub.add_parser("eval", help="run the paper's evaluation conditions (resumable, parallel)")
     p.add_argument("--conditions", default="1,6,7", help="e.g. 1,6,7 or 1-7 (paper §4)")
@@ -19,7 +20,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed-start", type=int, default=0)
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--workers", type=int, default=1)
-    add_arguments(p, EvalConfig)
+    add_eval_arguments(p)
     p.set_defaults(func=cmd_eval)
 
     p = sub.add_parser("reproduce", help="the whole pipeline: data, TinyWAM, world models, evaluation, report")
@@ -41,18 +42,19 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     from wamplan.errors import UserError
     from wamplan.evaluation.conditions import parse_conditions
+    from wamplan.evaluation.options import eval_config_from_args
     from wamplan.evaluation.records import read_records, record_key
-    from wamplan.evaluation.runner import EvalConfig, run_evaluation
+    from wamplan.evaluation.runner import run_evaluation
 
     conds = parse_conditions(args.conditions)
     if args.episodes <= 0 or args.workers <= 0:
         raise UserError("--episodes and --workers must be positive")
-    cfg = from_args(EvalConfig, args)
+    cfg = eval_config_from_args(args)
     cfg.check_for(conds)
     seeds = list(range(args.seed_start, args.seed_start + args.episodes))
     done = {record_key(r) for r in read_records(args.out)}
     total = len(conds) * len(seeds)
-    have = sum((c, s, cfg.first_chunk) in done for c in conds for s in seeds)
+    have = sum((c, s, cfg.policy.first_chunk) in done for c in conds for s in seeds)
     if have:
         print(f"resuming: {have} of {total} episodes already recorded in {args.out}")
     counts: dict[int, Counter] = {c: Counter() for c in conds}

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from wamplan.envs.core import OUTCOMES
+from wamplan.envs.contract import OUTCOMES
 from wamplan.evaluation.conditions import CONDITIONS
 from wamplan.evaluation.records import read_records
 

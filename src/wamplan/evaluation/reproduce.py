@@ -46,13 +46,15 @@ class Stage:
 def _collect(source: str, p: Preset, store: Path, workers: int, seeds: int, policy: str | None = None,
              max_steps: int | None = None) -> Call:
     from wamplan.data.collect import collect
+    from wamplan.evaluation.policies import load_policy
 
     key = "on_policy" if source == "policy" else source.removesuffix("-expert")
     cmd = ["collect", "--source", source, *(["--policy", policy] if policy else []), "--episodes", str(seeds),
            "--seed-start", str(SEED_BASE[key]), *(["--max-steps", str(max_steps)] if max_steps else []),
            "--out", str(store), "--image-every", str(p.image_every), "--workers", str(workers)]
     return Call(collect, dict(source=source, episodes=seeds, out=store, seed_start=SEED_BASE[key], workers=workers,
-                              policy=policy, image_every=p.image_every, max_steps=max_steps), tuple(cmd))
+                              policy=policy, image_every=p.image_every, max_steps=max_steps, loader=load_policy),
+                tuple(cmd))
 
 
 def evaluate_conditions(conditions: list[int], episodes: int, out: Path, workers: int, wam: str, wm_plain: str,

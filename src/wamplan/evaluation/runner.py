@@ -17,32 +17,43 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from wamplan.config import field, require, to_dict
+from wamplan.config import field, from_dict, require, to_dict
+from wamplan.envs.core import EnvConfig
 from wamplan.evaluation.conditions import CONDITIONS
 from wamplan.evaluation.records import append_record, read_records, record_key
 from wamplan.parallel import imap_workers
+from wamplan.planning import PLANNERS, CostConfig
+from wamplan.planning.policy import PlannedPolicyConfig
+
+
+def _env_default() -> EnvConfig:
+    return EnvConfig()
 
 
 @dataclass(frozen=True)
 class EvalConfig:
+    """One evaluation: the checkpoints, and the configs of the env, the planner (by registry name with its
+    own config), the cost and the planned policy, nested as they are used."""
+
     wam: str = field("", "WAM checkpoint directory (e.g. a TinyWAM)")
     wm_plain: str = field("", "plain world model checkpoint (condition 6)")
     wm_augmented: str = field("", "augmented world model checkpoint (condition 7)")
-    planner: str = field("cem", "cem or mppi")
-    num_candidates: int = field(32, "candidates per iteration (the mean + samples)")
-    num_elites: int = field(8, "CEM elites")
-    iterations: int = field(4, "optimiser iterations per chunk")
-    init_std: float = field(0.10, "initial sampling std (normalised action units)")
-    first_chunk: str = field("open-loop", "open-loop (paper) or rest-history")
     sim_encoder: str = field("", "encoder for the simulator conditions (default: the plain world model's)")
-    camera_size: int = field(224, "rendered image size")
-    max_steps: int = field(300, "episode step limit")
     device: str = field("auto", "torch device for the models")
+    planner: str = field("cem", "planner by registry name (wamplan.planning.PLANNERS)", cli=False)
+    planner_config: Any = field(None, "the planner's config (its config_cls, or a dict of overrides); "
+                                "None = its defaults", cli=False)
+    cost: CostConfig = field(help="the planning cost", default_factory=CostConfig)
+    policy: PlannedPolicyConfig = field(help="the planned policy's chunk rules", default_factory=PlannedPolicyConfig)
+    env: EnvConfig = field(help="the task (camera size, episode length, ...)", default_factory=_env_default)
 
     def __post_init__(self):
-        require(self.first_chunk in ("open-loop", "rest-history"),
-                f"first_chunk must be open-loop or rest-history, got {self.first_chunk!r}")
-        require(self.planner in ("cem", "mppi"), f"planner must be cem or mppi, got {self.planner!r}")
+        cls = PLANNERS.lookup(self.planner).config_cls
+        pc = self.planner_config
+        pc = cls() if pc is None else from_dict(cls, pc) if isinstance(pc, dict) else pc
+        require(isinstance(pc, cls), f"planner '{self.planner}' needs a {cls.__name__} as planner_config, "
+                f"got {type(pc).__name__}; pass that planner's config or None")
+        object.__setattr__(self, "planner_config", pc)
 
     def check_for(self, conditions: list[int]) -> None:
         from wamplan.errors import UserError
@@ -65,11 +76,11 @@ class EvalWorker:
     """Holds the env, the WAM, the models; ``worker((condition, seed))`` runs one episode -> record."""
 
     def __init__(self, cfg: EvalConfig):
-        from wamplan.envs.core import EnvConfig, InsertionEnv
+        from wamplan.envs.core import InsertionEnv
         from wamplan.wam import load_wam
 
         self.cfg = cfg
-        self.env = InsertionEnv(EnvConfig(camera_size=cfg.camera_size, max_episode_steps=cfg.max_steps))
+        self.env = InsertionEnv(cfg.env)
         self.wam = load_wam(cfg.wam, device=cfg.device)
         self._models: dict[str, Any] = {}
         self._policies: dict[int, Any] = {}
@@ -94,9 +105,9 @@ class EvalWorker:
     def policy(self, cid: int):
         if cid in self._policies:
             return self._policies[cid]
-        from wamplan.planning import CEMConfig, MPPIConfig, make_cost, make_planner
+        from wamplan.planning import make_planner
         from wamplan.planning.dynamics import LearnedDynamics, SimulatorDynamics
-        from wamplan.planning.policy import PlannedPolicy, PlannedPolicyConfig
+        from wamplan.planning.policy import PlannedPolicy
         from wamplan.wam import WAMPolicy
         from wamplan.wam.oracle import ExpertOracleWAM
 
@@ -110,21 +121,19 @@ class EvalWorker:
             else:
                 model, enc = self._world_model(cfg.wm_plain if c.dynamics == "learned-plain" else cfg.wm_augmented)
                 dyn = LearnedDynamics(model)
-            common = dict(num_candidates=cfg.num_candidates, iterations=cfg.iterations, init_std=cfg.init_std)
-            pcfg = (CEMConfig(num_elites=cfg.num_elites, **common) if cfg.planner == "cem" else MPPIConfig(**common))
             oracle = ExpertOracleWAM(self.env) if "expert" in (c.seed, c.target) else None
             seed_wam = oracle if c.seed == "expert" else self.wam
             target_wam = oracle if c.target == "expert" else self.wam
-            pol = PlannedPolicy(seed_wam, make_planner(cfg.planner, pcfg), dyn, enc, make_cost("patch"),
-                                target_wam=target_wam, config=PlannedPolicyConfig(first_chunk=cfg.first_chunk))
+            pol = PlannedPolicy(seed_wam, make_planner(cfg.planner, cfg.planner_config), dyn, enc, cfg.cost.build(),
+                                target_wam=target_wam, config=cfg.policy)
         self._policies[cid] = pol
         return pol
 
     def __call__(self, job: tuple[int, int]) -> dict[str, Any]:
-        from wamplan.envs.rollout import run_episode
+        from wamplan.policies.rollout import run_episode
 
         cid, seed = job
-        r = run_episode(self.env, self.policy(cid), seed, max_steps=self.cfg.max_steps)
+        r = run_episode(self.env, self.policy(cid), seed, max_steps=self.cfg.env.max_episode_steps)
         chunks = r.policy_info.get("chunks")  # PlannedPolicy: per-chunk records; WAMPolicy: a count
         planned = [ch for ch in chunks if ch.get("planned")] if isinstance(chunks, list) else []
         timing = {k: float(np.mean([ch[k] for ch in planned])) for k in ("wam_s", "target_encode_s", "search_s")} \
@@ -132,7 +141,7 @@ class EvalWorker:
         wam_s = r.policy_info.get("wam_query_s")
         if wam_s is not None and not timing:
             timing = {"wam_s": float(np.mean(wam_s)) if isinstance(wam_s, list) else float(wam_s)}
-        return dict(condition=cid, seed=seed, variant=self.cfg.first_chunk, success=r.success, outcome=r.outcome,
+        return dict(condition=cid, seed=seed, variant=self.cfg.policy.first_chunk, success=r.success, outcome=r.outcome,
                     length=r.length, reached=r.reached, wall_time_s=round(r.wall_time, 2),
                     planned_chunks=len(planned), open_loop_chunks=r.policy_info.get("open_loop_chunks", {}),
                     chunk_timing_s=timing,
@@ -148,13 +157,26 @@ def _same(a: Any, b: Any) -> bool:
         os.path.realpath(a) == os.path.realpath(b)
 
 
+def settings(cfg: EvalConfig) -> dict[str, Any]:
+    """The settings records of one directory must share, flat (``"planner_config.temperature": 0.1``).
+    The first-chunk variant may differ (Table 2) and the device does not matter."""
+    return {k: v for k, v in _flat(to_dict(cfg)).items() if k not in ("policy.first_chunk", "device")}
+
+
+def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        out.update(_flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {prefix + k: v})
+    return out
+
+
 def _check_same_settings(out: Path, cfg: EvalConfig) -> None:
-    """Records of one directory must come from one configuration. The first-chunk variant may differ
-    (Table 2), the device does not matter, and a world model not given before may be added later."""
+    """Records of one directory must come from one configuration (see :func:`settings`); a world model
+    or simulator encoder not given before may be added later."""
     from wamplan.errors import UserError
 
     path = out / "eval_config.json"
-    now = {k: v for k, v in to_dict(cfg).items() if k not in ("first_chunk", "device")}
+    now = settings(cfg)
     if path.is_file():
         before = json.loads(path.read_text())
         addable = ("wm_plain", "wm_augmented", "sim_encoder")
@@ -175,7 +197,7 @@ def run_evaluation(cfg: EvalConfig, conditions: list[int], seeds: list[int], out
     done = {record_key(r) for r in read_records(out, repair=True)}
     # Seed-major order: a run stopped early (or fanned out and cut short) has every condition on the same
     # seeds, so its partial table still compares like with like.
-    jobs = [(c, s) for s in seeds for c in conditions if (c, s, cfg.first_chunk) not in done]
+    jobs = [(c, s) for s in seeds for c in conditions if (c, s, cfg.policy.first_chunk) not in done]
     _check_same_settings(out, cfg)
     for rec in imap_workers(partial(EvalWorker, cfg), jobs, workers):
         append_record(out, rec)

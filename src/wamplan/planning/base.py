@@ -213,7 +213,7 @@ def _score(objective: Objective, cand: Tensor) -> Tensor:
     return costs.to(device=cand.device, dtype=torch.float32)
 
 
-PLANNERS = Registry("planner", set_name=True)
+PLANNERS = Registry("planner", set_name=True, modules=("wamplan.planning.cem", "wamplan.planning.mppi"))
 register_planner = PLANNERS.register  # class decorator: make a planner constructible by name
 
 

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from wamplan.policies.base import CAMERAS
+from wamplan.envs.contract import CAMERAS
 
 
 @dataclass

@@ -29,11 +29,12 @@ import numpy as np
 import torch
 
 from wamplan.config import field, require, to_dict
+from wamplan.envs.contract import CAMERAS, Observation
 from wamplan.errors import UserError
 from wamplan.planning.base import Planner
 from wamplan.planning.costs import CostFn
 from wamplan.planning.dynamics import Dynamics, PlanningContext
-from wamplan.policies.base import CAMERAS, Observation, Policy
+from wamplan.policies.base import Policy
 from wamplan.wam.base import WAM, WAMOutput
 
 

@@ -1,8 +1,9 @@
 """The policy interface every actor in wamplan implements: scripted experts, noise explorers,
 WAMs run open loop, and planned WAMs.
 
-A policy sees an :class:`Observation` per control step and returns one 5-D action in [-1, 1]:
-``(dx, dy, dz, dyaw, gripper)``, gripper +1 = open, -1 = close (see ``wamplan.envs``).
+A policy sees an :class:`~wamplan.envs.contract.Observation` per control step and returns one 5-D
+action in [-1, 1]: ``(dx, dy, dz, dyaw, gripper)``, gripper +1 = open, -1 = close (the task's
+contract, ``wamplan.envs.contract``).
 Images are rendered only on the steps a policy asks for (``wants_images``): rendering three
 cameras costs ~150 ms on this CPU, stepping physics ~4 ms.
 """
@@ -10,26 +11,12 @@ cameras costs ~150 ms on this CPU, stepping physics ~4 ms.
 from __future__ import annotations
 
 import abc
-from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
 
+from wamplan.envs.contract import Observation
 from wamplan.registry import Registry
-
-CAMERAS = ("front", "side", "wrist")
-ACTION_DIM = 5
-PROPRIO_DIM = 10
-
-
-@dataclass
-class Observation:
-    """What a policy sees at control step ``step``."""
-
-    step: int
-    proprio: np.ndarray  # (10,) float32: gripper width, TCP xyz (3), TCP 6-D rotation (6)
-    images: dict[str, np.ndarray] | None = None  # camera -> (H, W, 3) uint8; None if not rendered
-    state: dict[str, np.ndarray] = field(default_factory=dict)  # privileged sim state (experts only)
 
 
 class Policy(abc.ABC):
@@ -57,7 +44,7 @@ class Policy(abc.ABC):
         return {"name": self.name}
 
 
-POLICIES = Registry("policy", set_name=True)
+POLICIES = Registry("policy", set_name=True, modules=("wamplan.policies.expert", "wamplan.policies.noise"))
 register_policy = POLICIES.register  # class decorator: make a policy constructible by name
 
 

@@ -31,7 +31,8 @@ from typing import Any
 import numpy as np
 
 from wamplan.config import field, require
-from wamplan.policies.base import Observation, Policy, register_policy
+from wamplan.envs.contract import Observation
+from wamplan.policies.base import Policy, register_policy
 
 POS_BOUND, YAW_BOUND = 0.02, 0.1  # controller units (see wamplan.envs.controller)
 

@@ -12,7 +12,8 @@ import colorednoise
 import numpy as np
 
 from wamplan.config import field, require, to_dict
-from wamplan.policies.base import ACTION_DIM, Observation, Policy, register_policy
+from wamplan.envs.contract import ACTION_DIM, Observation
+from wamplan.policies.base import Policy, register_policy
 from wamplan.policies.expert import ExpertConfig, ExpertPolicy
 
 

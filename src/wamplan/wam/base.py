@@ -16,7 +16,6 @@ loop and re-queries the WAM every H steps: the no-planning baseline.
 from __future__ import annotations
 
 import abc
-import importlib
 import json
 import time
 from dataclasses import dataclass, field
@@ -25,13 +24,14 @@ from typing import Any, Callable, ClassVar
 
 import numpy as np
 
+from wamplan.envs.contract import ACTION_DIM, CAMERAS, Observation
 from wamplan.errors import UserError
-from wamplan.policies.base import ACTION_DIM, CAMERAS, Observation, Policy
+from wamplan.policies.base import Policy
 from wamplan.registry import Registry
 
-# Modules that register WAMs or checkpoint loaders; imported on demand by make_wam / load_wam.
+# Modules that register WAMs or checkpoint loaders; the registries import them when first read.
 # Whoever adds a WAM module (TinyWAM, the expert oracle) adds it here.
-BUILTIN_WAM_MODULES = ["wamplan.wam.cosmos_client", "wamplan.wam.tinywam", "wamplan.wam.oracle"]
+BUILTIN_WAM_MODULES = ("wamplan.wam.cosmos_client", "wamplan.wam.tinywam", "wamplan.wam.oracle")
 
 # The cube-insertion task's language instruction, used when none is given (the paper does not quote one).
 DEFAULT_INSTRUCTION = "insert the cube into the square hole"
@@ -131,24 +131,16 @@ class WAM(abc.ABC):
         return {"name": self.name}
 
 
-WAMS = Registry("WAM", set_name=True)
+WAMS = Registry("WAM", set_name=True, modules=BUILTIN_WAM_MODULES, error=WAMError)
 register_wam = WAMS.register  # class decorator: make a WAM constructible by name (``make_wam``)
-WAM_LOADERS = Registry("WAM checkpoint kind")
+WAM_LOADERS = Registry("WAM checkpoint kind", modules=BUILTIN_WAM_MODULES)
 # decorator: ``fn(path, device) -> WAM`` loads checkpoints whose ``config.json`` has ``"kind": kind``
 register_wam_loader = WAM_LOADERS.register
 
 
-def _import_builtin_wams() -> None:
-    for module in BUILTIN_WAM_MODULES:
-        importlib.import_module(module)
-
-
 def make_wam(name: str, **kwargs: Any) -> WAM:
     """Build the WAM registered as ``name``."""
-    _import_builtin_wams()
-    if name not in WAMS:
-        raise WAMError(f"unknown WAM '{name}'; choose one of {sorted(WAMS)}")
-    return WAMS[name](**kwargs)
+    return WAMS.lookup(name)(**kwargs)
 
 
 def load_wam(path: str | Path, device: str | Any = "auto") -> WAM:
@@ -156,7 +148,6 @@ def load_wam(path: str | Path, device: str | Any = "auto") -> WAM:
     ('auto', 'cpu', 'cuda', a torch.device), dispatching on its kind (see ``register_wam_loader``)."""
     from wamplan.checkpoint import CONFIG_FILE, MODEL_FILE, CheckpointError, checkpoint_dir  # imports torch
 
-    _import_builtin_wams()
     p = checkpoint_dir(path)
     if not (p / CONFIG_FILE).is_file() or not (p / MODEL_FILE).is_file():
         raise CheckpointError(f"{p} is not a wamplan checkpoint (needs {CONFIG_FILE} and {MODEL_FILE}); "

@@ -6,8 +6,10 @@ import argparse
 from pathlib import Path
 
 from wamplan.errors import UserError
+from wamplan.registry import register_command
 
 
+@register_command("wam")
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser("wam", help="world action models: train TinyWAM, serve one over the /act protocol")
     sub = parser.add_subparsers(dest="wam_command", metavar="WAM_COMMAND")

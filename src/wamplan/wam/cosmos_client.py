@@ -24,7 +24,7 @@ import numpy as np
 import requests
 
 from wamplan.config import field, require, to_dict
-from wamplan.policies.base import CAMERAS, Observation
+from wamplan.envs.contract import CAMERAS, Observation
 from wamplan.wam import protocol
 from wamplan.wam.base import WAM, WAMError, WAMOutput, WAMOutputError, WAMServerError, register_wam
 

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from wamplan.policies.base import CAMERAS, Observation
+from wamplan.envs.contract import CAMERAS, Observation
 from wamplan.policies.expert import ExpertPolicy
 from wamplan.wam.base import WAM, WAMError, WAMOutput, register_wam
 

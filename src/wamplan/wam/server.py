@@ -22,8 +22,8 @@ from fastapi import FastAPI, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import Response
 
+from wamplan.envs.contract import Observation
 from wamplan.errors import UserError
-from wamplan.policies.base import Observation
 from wamplan.wam import protocol
 from wamplan.wam.base import WAM
 

@@ -34,7 +34,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from wamplan.config import field, from_dict, require, to_dict
-from wamplan.policies.base import ACTION_DIM, CAMERAS, PROPRIO_DIM, Observation
+from wamplan.envs.contract import ACTION_DIM, CAMERAS, PROPRIO_DIM, Observation
 from wamplan.wam.base import WAM, WAMError, WAMOutput, register_wam, register_wam_loader
 
 KIND = "tinywam"

@@ -26,8 +26,8 @@ from torch.utils.data import DataLoader
 from wamplan.checkpoint import CONFIG_FILE, CheckpointError, has_training_state, load_weights, read_config
 from wamplan.config import field, from_dict, require, to_dict
 from wamplan.device import resolve_device
+from wamplan.envs.contract import CAMERAS
 from wamplan.errors import UserError
-from wamplan.policies.base import CAMERAS
 from wamplan.train_loop import check_resume, check_run_dir, fit, read_metrics, run_paths, saved_progress
 from wamplan.wam.tinywam import KIND, TinyWAMConfig, TinyWAMNet, to_model_frames
 

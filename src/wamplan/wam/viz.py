@@ -6,8 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
+from wamplan.envs.contract import CAMERAS, Observation
 from wamplan.errors import UserError
-from wamplan.policies.base import CAMERAS, Observation
 
 
 def prediction_figure(wam, store_dir: str | Path, episode: int = 0, starts: tuple[int, ...] = (16, 48, 80),

@@ -7,7 +7,9 @@ import json
 from pathlib import Path
 
 from wamplan.config import add_arguments, from_args
+from wamplan.envs.contract import CAMERAS
 from wamplan.errors import UserError
+from wamplan.registry import register_command
 from wamplan.worldmodel.config import TrainConfig
 
 
@@ -18,6 +20,7 @@ def _stores(spec: str) -> list[Path]:
     return stores
 
 
+@register_command("wm")
 def register(sub: argparse._SubParsersAction) -> None:
     from wamplan.presets import PRESETS
 
@@ -62,7 +65,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--episode", type=int, default=0, help="index in the store's sorted episode list")
     p.add_argument("--start", type=int, default=0, help="step of the first context frame")
     p.add_argument("--steps", type=int, default=12, help="rollout steps h (columns at 0, steps/4, ..., steps)")
-    p.add_argument("--camera", default="front", choices=("front", "side", "wrist"))
+    p.add_argument("--camera", default="front", choices=CAMERAS)
     p.add_argument("--out", type=Path, default=Path("wm_viz.png"))
     p.set_defaults(func=cmd_viz)
 

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from wamplan.envs.contract import CAMERAS
 from wamplan.errors import UserError
-from wamplan.policies.base import CAMERAS
 
 
 @torch.inference_mode()
@@ -21,7 +21,6 @@ def rollout_figure(ckpt: str | Path, decoder: str | Path, store_dir: str | Path,
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from wamplan.data.features import encode_frames
     from wamplan.data.store import EpisodeStore
     from wamplan.worldmodel.decoder import load_decoder
     from wamplan.worldmodel.train import load_world_model
@@ -48,7 +47,7 @@ def rollout_figure(ckpt: str | Path, decoder: str | Path, store_dir: str | Path,
                         f"multiple of {store.image_every}")
     idx = [stored.index(t) for t in frame_steps]
     imgs = np.stack([ep.images[c][idx] for c in CAMERAS], 1)  # (F, V, H, W, 3)
-    z = torch.from_numpy(encode_frames(enc, imgs.reshape(-1, *imgs.shape[2:]))).float()
+    z = enc.encode_batched(imgs.reshape(-1, *imgs.shape[2:])).half().float()  # (F·V, N, D), as cached: float16
     z = z.reshape(len(idx), len(CAMERAS), *z.shape[1:])  # (F, V, N, D)
     q = torch.from_numpy(ep.proprio[frame_steps])  # (F, P)
     a = torch.from_numpy(np.stack([ep.actions[t:t + d].reshape(-1) for t in frame_steps]))  # (F, Δ·A)

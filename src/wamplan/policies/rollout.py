@@ -8,8 +8,9 @@ from typing import Any, Callable
 
 import numpy as np
 
+from wamplan.envs.contract import Observation
 from wamplan.envs.core import InsertionEnv
-from wamplan.policies.base import Observation, Policy
+from wamplan.policies.base import Policy
 
 # Called with (env, obs, action) after the reset (action None) and after every step (the action that led to obs).
 ObsHook = Callable[[InsertionEnv, Observation, "np.ndarray | None"], None]

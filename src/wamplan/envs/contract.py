@@ -1,0 +1,35 @@
+"""The task's contract: what ``CubeInsertion-v1`` shows a policy, what it accepts, and what it reports.
+
+Everything above the env layer (policies, data, models, planning, evaluation) speaks these names; this
+module imports neither ManiSkill nor torch, so importing it is cheap.
+
+* observation: :class:`Observation` per control step; ``proprio`` is ``PROPRIO_DIM`` = 10 floats
+  (gripper width, TCP xyz, TCP 6-D rotation), images come from the ``CAMERAS`` (front, side, wrist);
+* action: ``ACTION_DIM`` = 5 floats in [-1, 1], ``(dx, dy, dz, dyaw, gripper)``, gripper +1 = open,
+  -1 = close (see ``wamplan.envs.agent``);
+* report: the furthest of the ``STAGES`` an episode reached, summarised as one of the ``OUTCOMES``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+ENV_ID = "CubeInsertion-v1"
+MAX_EPISODE_STEPS = 300
+CAMERAS = ("front", "side", "wrist")
+ACTION_DIM = 5
+PROPRIO_DIM = 10
+STAGES = ("grasped", "lifted", "aligned", "descended", "seated")
+OUTCOMES = ("success", "never_lifted", "lifted_not_aligned", "aligned_not_descended", "descended_not_seated")
+
+
+@dataclass
+class Observation:
+    """What a policy sees at control step ``step``."""
+
+    step: int
+    proprio: np.ndarray  # (10,) float32: gripper width, TCP xyz (3), TCP 6-D rotation (6)
+    images: dict[str, np.ndarray] | None = None  # camera -> (H, W, 3) uint8; None if not rendered
+    state: dict[str, np.ndarray] = field(default_factory=dict)  # privileged sim state (experts only)

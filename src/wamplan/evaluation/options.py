@@ -1,0 +1,34 @@
+"""``wamplan eval``'s options, generated from the configs :class:`EvalConfig` nests: the checkpoints, the
+planned policy, the cost (``--cost-*``), the task, and every registered planner's config
+(``wamplan.planning.options``), and the nested config built back from them."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+
+from wamplan.config import add_arguments, from_args
+from wamplan.envs.core import EnvConfig
+from wamplan.evaluation.runner import EvalConfig
+from wamplan.planning import CostConfig
+from wamplan.planning.options import add_planner_arguments, planner_config_from_args
+from wamplan.planning.policy import PlannedPolicyConfig
+
+
+def add_eval_arguments(p: argparse.ArgumentParser) -> None:
+    add_arguments(p, EvalConfig)  # checkpoints, device; --planner comes with the planner options
+    add_arguments(p.add_argument_group("planned policy"), PlannedPolicyConfig)
+    add_arguments(p.add_argument_group("cost"), CostConfig, prefix="cost_")
+    env = p.add_argument_group("task")
+    add_arguments(env, EnvConfig)
+    env.add_argument("--max-steps", dest="max_episode_steps", type=int, default=None,
+                     help="the same as --max-episode-steps")
+    add_planner_arguments(p, default=EvalConfig.planner)
+
+
+def eval_config_from_args(args: argparse.Namespace) -> EvalConfig:
+    """The nested :class:`EvalConfig` from the options (unset options keep the defaults)."""
+    planner, planner_config = planner_config_from_args(args)
+    return dataclasses.replace(from_args(EvalConfig, args), planner=planner, planner_config=planner_config,
+                               env=from_args(EnvConfig, args), policy=from_args(PlannedPolicyConfig, args),
+                               cost=from_args(CostConfig, args, prefix="cost_"))

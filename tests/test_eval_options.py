@@ -1,0 +1,96 @@
+"""`wamplan eval` builds its nested EvalConfig from planner options generated from the planner registry:
+a planner registered in planning/ appears in `eval` with no edit to the evaluation code."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+
+import pytest
+import torch
+
+from wamplan.cli import build_parser, main
+from wamplan.config import ConfigError, field, require
+from wamplan.errors import UserError
+from wamplan.evaluation.options import eval_config_from_args
+from wamplan.evaluation.runner import EvalConfig, _check_same_settings
+from wamplan.planning import PLANNERS, CEMConfig, CostConfig, MPPIConfig, PlanResult, Planner, register_planner
+from wamplan.planning.policy import PlannedPolicyConfig
+
+
+@dataclass(frozen=True)
+class ToyConfig:
+    shift: float = field(0.5, "how far the toy planner moves every action")
+    temperature: int = field(3, "an int here, a float in MPPI: offered per planner as --toy-temperature")
+
+    def __post_init__(self):
+        require(self.shift >= 0, f"shift must be >= 0, got {self.shift}")
+
+
+@pytest.fixture
+def toy_planner():
+    @register_planner("toy")
+    class ToyPlanner(Planner):
+        config_cls = ToyConfig
+
+        def plan(self, seed_actions, objective, *, generator=None, seed=None) -> PlanResult:
+            a = seed_actions + self.config.shift  # (H, A)
+            return PlanResult(a, a, torch.zeros_like(a), a, float(objective(a[None])[0]), [], 1)
+
+    yield ToyPlanner
+    PLANNERS.pop("toy")
+
+
+def _cfg(*argv: str) -> EvalConfig:
+    return eval_config_from_args(build_parser().parse_args(["eval", "--out", "x", *argv]))
+
+
+def test_a_registered_planner_appears_in_eval_with_its_options(toy_planner, capsys):
+    cfg = _cfg("--planner", "toy", "--shift", "0.25", "--toy-temperature", "7")
+    assert cfg.planner == "toy" and cfg.planner_config == ToyConfig(shift=0.25, temperature=7)
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["eval", "--help"])
+    out = capsys.readouterr().out
+    assert "--planner {cem,mppi,toy}" in out and "--shift SHIFT" in out and "[toy]" in out
+    assert "--toy-temperature" in out and "--mppi-temperature" in out  # the clash is spelled per planner
+    with pytest.raises(ConfigError, match="shift must be >= 0"):
+        _cfg("--planner", "toy", "--shift", "-1")
+    assert EvalConfig(planner="toy", planner_config={"shift": 2.0}).planner_config == ToyConfig(shift=2.0)
+
+
+def test_every_planner_cost_and_policy_option_reaches_the_nested_config():
+    cfg = _cfg("--planner", "mppi", "--temperature", "0.3", "--momentum", "0.5", "--no-update-std",
+               "--min-std", "0.01", "--num-optimized", "15", "--init-std-per-dim", "0.1", "0.1", "0.1", "0.1", "0",
+               "--cost-name", "cls", "--cost-view-weights", "0", "0", "1", "--first-chunk", "rest-history",
+               "--plan-seed", "3", "--camera-size", "64", "--max-steps", "40")
+    assert cfg.planner_config == MPPIConfig(temperature=0.3, momentum=0.5, update_std=False, min_std=0.01,
+                                            num_optimized=15, init_std_per_dim=(0.1, 0.1, 0.1, 0.1, 0.0))
+    assert cfg.cost == CostConfig(name="cls", view_weights=(0.0, 0.0, 1.0))
+    assert cfg.policy == PlannedPolicyConfig(first_chunk="rest-history", plan_seed=3)
+    assert (cfg.env.camera_size, cfg.env.max_episode_steps) == (64, 40)
+    assert _cfg("--num-elites", "4", "--std-ddof", "1").planner_config == CEMConfig(num_elites=4, std_ddof=1)
+    assert _cfg().planner_config == CEMConfig() and _cfg().planner == "cem"
+
+
+def test_an_option_of_another_planner_is_refused_in_one_line(capsys):
+    with pytest.raises(UserError, match=r"--temperature is an option of planner\(s\) \['mppi'\], not of 'cem'"):
+        _cfg("--temperature", "0.3")
+    assert main(["eval", "--out", "x", "--planner", "mppi", "--num-elites", "4", "--wam", "w"]) == 2
+    assert "--num-elites is an option of planner(s) ['cem'], not of 'mppi'" in capsys.readouterr().err
+    with pytest.raises(UserError, match="unknown planner 'nope'"):
+        EvalConfig(planner="nope")
+    with pytest.raises(ConfigError, match="needs a MPPIConfig"):
+        EvalConfig(planner="mppi", planner_config=CEMConfig())
+
+
+def test_one_directory_holds_one_nested_configuration(tmp_path):
+    base = _cfg("--planner", "mppi", "--temperature", "0.3")
+    _check_same_settings(tmp_path, base)
+    stored = json.loads((tmp_path / "eval_config.json").read_text())
+    assert stored["planner"] == "mppi" and stored["planner_config.temperature"] == 0.3
+    assert "policy.first_chunk" not in stored and "device" not in stored
+    _check_same_settings(tmp_path, _cfg("--planner", "mppi", "--temperature", "0.3", "--first-chunk", "rest-history"))
+    for other in (("--planner", "mppi", "--temperature", "0.2"), ("--planner", "cem"),
+                  ("--planner", "mppi", "--temperature", "0.3", "--cost-name", "cls")):
+        with pytest.raises(UserError, match="other settings"):
+            _check_same_settings(tmp_path, _cfg(*other))
