@@ -41,7 +41,7 @@ import torch
 from wamplan.config import field, require
 from wamplan.data.store import EpisodeStore
 from wamplan.errors import UserError
-from wamplan.policies.base import CAMERAS
+from wamplan.envs.contract import CAMERAS
 
 TARGETS = ("cube-rel-tcp", "cube-rel-hole")
 VIEWS = (*CAMERAS, "all")

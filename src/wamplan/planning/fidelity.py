@@ -39,7 +39,8 @@ from wamplan.planning.base import IterationStats, PlanResult
 from wamplan.planning.costs import CostFn, make_cost
 from wamplan.planning.dynamics import Dynamics, SimulatorDynamics
 from wamplan.planning.policy import PlannedPolicy
-from wamplan.policies.base import Observation, Policy
+from wamplan.envs.contract import Observation
+from wamplan.policies.base import Policy
 from wamplan.wam.base import WAM, WAMOutput
 
 
@@ -268,7 +269,7 @@ def run_fidelity(env, wam: WAM, models: Sequence[Scored], seeds: Sequence[int], 
                  progress=None) -> dict[str, Any]:
     """Score every model at the ``boundaries`` of each seed's open-loop WAM episode that it reaches (the episode
     stops after the last boundary's first step or at success). Returns {"records": [...], "summary": {...}}."""
-    from wamplan.envs.rollout import run_episode
+    from wamplan.policies.rollout import run_episode
 
     cfg = config or FidelityConfig()
     pol = FidelityPolicy(wam, models, env, cfg)
