@@ -4,7 +4,8 @@ unculled render) against the shipped fast rollout (``InsertionEnv.simulate``), s
 The real cost path: TinyWAM (``checkpoints/mini/tinywam``) gives the seed chunk and the target views, the
 world model's patch-pixels encoder encodes them, CEM (32 candidates x 4 iterations, 16 actions) searches
 with ``SimulatorDynamics`` inside a ``PlannedPolicy``. Old and new alternate, and must choose the same plan.
-``--profile`` first prints per-call times of the pieces at 224 and 64 px.
+``--profile`` first prints per-call times of the pieces at 224 and 64 px. Wall time on a machine shared with
+other jobs swings by 2x between runs; the CPU time of this process (lavapipe's threads included) does not.
 
     .venv/bin/python benchmarks/oracle.py                        # 2 repeats per way, camera 224 px
     LP_NUM_THREADS=1 .venv/bin/python benchmarks/oracle.py --profile --repeats 1
@@ -50,35 +51,39 @@ class FullStepDynamics(SimulatorDynamics):
 
 
 def profile(sizes: tuple[int, ...], repeats: int) -> None:
-    """Median ms per call, the pieces interleaved so that load from other processes hits all alike."""
+    """ms per call (median and min over repeats), the pieces interleaved so that load from other processes hits
+    all alike. Steps are timed as 16 in a row after a restore (one candidate's worth) and divided by 16."""
     envs = {s: InsertionEnv(EnvConfig(camera_size=s)) for s in sizes}
+    a = np.array([0.1, 0, 0, 0, 1], np.float32)
     calls = {}
     for s, env in envs.items():
         env.reset(2)
         for _ in range(10):
             env.step(np.array([0.2, 0, -0.2, 0, 1], np.float32))
         snap = env.snapshot()
-        a = np.array([0.1, 0, 0, 0, 1], np.float32)
         if s == sizes[0]:
             calls.update({
-                "InsertionEnv.step": (env, snap, lambda e=env: e.step(a)),
-                "base.step": (env, snap, lambda e=env: e.base.step(torch.from_numpy(a[None]))),
-                "_step_action": (env, snap, lambda e=env: e.base._step_action(torch.from_numpy(a[None]))),
-                "restore": (env, snap, lambda e=env, sn=snap: e.restore(sn)),
-                "restore physics only (simulate)": (env, snap, lambda e=env, sn=snap: e._restore_sim(sn)),
+                "InsertionEnv.step": (env, snap, 16, lambda e=env: e.step(a)),
+                "base.step (ManiSkill: + observation, evaluation)": (
+                    env, snap, 16, lambda e=env: e.base.step(torch.from_numpy(a[None]))),
+                "_step_action (controller + physics)": (
+                    env, snap, 16, lambda e=env: e.base._step_action(torch.from_numpy(a[None]))),
+                "restore": (env, snap, 1, lambda e=env, sn=snap: e.restore(sn)),
+                "restore, physics only (simulate)": (env, snap, 1, lambda e=env, sn=snap: e._restore_sim(sn)),
             })
-        calls[f"render 3 cameras, {s} px"] = (env, snap, lambda e=env: e.render())
-        calls[f"render 3 cameras, {s} px, culled"] = (env, snap, lambda e=env: e.render(cull=True))
+        calls[f"render 3 cameras, {s} px"] = (env, snap, 1, lambda e=env: e.render())
+        calls[f"render 3 cameras, {s} px, culled"] = (env, snap, 1, lambda e=env: e.render(cull=True))
     times = {k: [] for k in calls}
     for _ in range(repeats):
-        for k, (env, snap, fn) in calls.items():
+        for k, (env, snap, n, fn) in calls.items():
             env.restore(snap)
             t0 = time.perf_counter()
-            fn()
-            times[k].append(time.perf_counter() - t0)
-    print("| per call | ms (median) |\n|---|---|")
+            for _ in range(n):
+                fn()
+            times[k].append((time.perf_counter() - t0) / n)
+    print("| per call | ms, median | ms, min |\n|---|---|---|")
     for k, v in times.items():
-        print(f"| {k} | {1e3 * statistics.median(v):.1f} |")
+        print(f"| {k} | {1e3 * statistics.median(v):.1f} | {1e3 * min(v):.1f} |")
     for env in envs.values():
         env.close()
 
@@ -107,25 +112,28 @@ def main() -> None:
     obs = env.reset(args.seed, with_images=True)
     for _ in range(args.warmup_chunks):  # reach a mid-episode boundary, the WAM open loop
         for a in wam.predict(obs, "").actions:
-            obs, _ = env.step(a, with_images=False)
-    obs = env.observe(with_images=True)
+            env.step(a)
+        obs = env.observe(with_images=True)
     snap = env.snapshot()
     ways = {"old (full step)": FullStepDynamics, "new (simulate)": SimulatorDynamics}
-    times, plans = {k: [] for k in ways}, {k: [] for k in ways}
+    times, cpu, plans = {k: [] for k in ways}, {k: [] for k in ways}, {k: [] for k in ways}
     for _ in range(args.repeats):
         for name, cls in ways.items():
             env.restore(snap)
             pol = PlannedPolicy(wam, planner, cls(env, enc), enc, make_cost("patch"))
             pol.reset(args.seed)
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             pol.act(obs)  # a chunk boundary: plans the chunk
             times[name].append(time.perf_counter() - t0)
+            cpu[name].append(time.process_time() - c0)  # all threads of this process, lavapipe's included
             plans[name].append(pol.last_plan.actions.numpy())  # (16, 5)
     for name, t in times.items():
-        print(f"{name}: {statistics.median(t):.2f} s per chunk (runs {', '.join(f'{x:.2f}' for x in t)})")
+        print(f"{name}: {statistics.median(t):.2f} s per chunk (runs {', '.join(f'{x:.2f}' for x in t)}), "
+              f"CPU {statistics.median(cpu[name]):.2f} s")
     same = all(np.array_equal(a, b) for a, b in zip(*plans.values()))
     print(f"the same plan both ways: {same}")
-    old, new = (statistics.median(t) for t in times.values())
+    (old, new), (old_cpu, new_cpu) = ([statistics.median(t) for t in d.values()] for d in (times, cpu))
+    print(f"CPU-time speed-up {old_cpu / new_cpu:.2f}x (the figure to trust on a shared machine)")
     print(f"speed-up {old / new:.2f}x")
 
 

@@ -1,6 +1,6 @@
 """The simulator oracle's fast candidate rollout (``InsertionEnv.simulate``) against the full step path.
 
-PhysX keeps hidden state (its contact cache) from the previous rollout, which no restore clears, so two
+PhysX keeps hidden state from the previous rollout, which no restore clears, so two
 rollouts are compared only after the same predecessor: each is preceded by a warm-up run of the same
 candidate.
 """

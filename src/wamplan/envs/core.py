@@ -7,11 +7,20 @@ saves/restores complete snapshots, including what ManiSkill's ``get_state_dict``
 
 ``simulate`` is a planner's fast path (the simulator oracle): it rolls candidate chunks out from a
 snapshot with the controller and physics only (ManiSkill's ``_step_action``: no per-step evaluation,
-observation or reward) and renders only the final frame, skipping for each camera the bodies that lie
-wholly outside its view frustum (the pictures are bit-identical; lavapipe spends most of a render
-shading the Panda's 150k triangles, whatever the resolution). Its terminal states are bit-identical to
-``step``'s. One restore is as exact as several: PhysX's hidden state (its contact cache) comes from the
-previous rollout and no number of ``set_state_dict`` calls clears it.
+observation or reward; ~2.5x cheaper than ``step``) and renders only the final frame, skipping for each
+camera the bodies that lie wholly outside its view frustum. Its terminal states and pictures are
+bit-identical to ``restore``, ``step`` and ``render``. One restore is as exact as several: PhysX's hidden
+state carries over from the previous rollout (cached contacts, we believe), and no number of
+``set_state_dict`` calls clears it.
+
+Rendering, measured here (``benchmarks/oracle.py --profile``): lavapipe spends most of a picture shading
+the Panda's 150k triangles on the calling thread, whatever the resolution (3 cameras: ~60 ms of CPU at
+224 px, ~40 ms at 64 px), so culling is what pays (~35 % less at 224 px; the wrist camera skips 8–9 of
+the 15 bodies). What did not: ``LP_NUM_THREADS`` (0, 1, 2 or the default) leaves the CPU per picture
+unchanged, and fewer threads were not faster in wall time (slower in most rounds), with one worker or
+with two workers on the two cores; capturing all cameras before reading any back, and one
+``update_render`` for several captures (it costs 0.06 ms), change nothing measurable. The ``minimal``
+shader already writes only colour and one position/segmentation target.
 """
 
 from __future__ import annotations
@@ -243,8 +252,8 @@ class InsertionEnv:
     @torch.inference_mode(False)
     def restore(self, snap: Snapshot) -> None:
         """Put the simulator back to ``snap``. Restore before re-executing what a restored rollout predicted:
-        PhysX keeps hidden state (its contact cache, from the previous rollout), so a restored rollout can
-        differ by ~1e-3 m from one that was never restored; restoring once or several times is the same."""
+        PhysX keeps hidden state from the previous rollout (cached contacts, we believe), so a restored
+        rollout can differ by ~1e-3 m from one that was never restored; restoring once or twice is the same."""
         self._restore_sim(snap)
         self._mid_rollout = False
         self.step_count = snap.step
@@ -290,7 +299,8 @@ class InsertionEnv:
 
     def _check_not_mid_rollout(self) -> None:
         if self._mid_rollout:
-            raise RuntimeError("the env is mid-rollout after simulate(); restore(snapshot) before stepping or observing")
+            raise RuntimeError("the env is mid-rollout after simulate(); restore(snapshot) before stepping or "
+                               "observing")
 
     def close(self) -> None:
         self._gym.close()

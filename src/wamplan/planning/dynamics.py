@@ -12,7 +12,7 @@ actions the backend's rollout covers (``covered``): Δ·⌊H/Δ⌋ for the learn
   chunk-boundary snapshot once, controller and physics only, render the terminal views with frustum
   culling), encodes the views, and restores the snapshot afterwards, so that the chosen plan executes
   from a restored state as each candidate did. One restore is exact: restoring twice gives bit-identical
-  rollouts (PhysX's hidden state is its contact cache from the previous rollout, which no restore clears).
+  rollouts (PhysX's hidden state carries over from the previous rollout, and no restore clears it).
 
   A GPU-batched oracle plugs in at ``env.simulate(snapshot, actions (B, L, A)) -> views (B, V, H, W, 3)``:
   an env with ``num_envs = B`` on physx_cuda broadcasts the snapshot to its B sub-scenes, steps (B, A)
