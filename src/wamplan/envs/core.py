@@ -1,14 +1,32 @@
 """``InsertionEnv``: wamplan's wrapper around one ``CubeInsertion-v1`` instance (CPU simulator).
 
-It speaks numpy and :class:`~wamplan.policies.base.Observation`, renders cameras only on demand
+It speaks numpy and :class:`~wamplan.envs.contract.Observation`, renders cameras only on demand
 (physics ≈ 4 ms a step, three cameras ≈ 150 ms), tracks the furthest stage an episode reached, and
 saves/restores complete snapshots, including what ManiSkill's ``get_state_dict`` leaves out
 (controller targets, joint drive targets, the step counter).
+
+``simulate`` is a planner's fast path (the simulator oracle): it rolls candidate chunks out from a
+snapshot with the controller and physics only (ManiSkill's ``_step_action``: no per-step evaluation,
+observation or reward; ~2.5x cheaper than ``step``) and renders only the final frame, skipping for each
+camera the bodies that lie wholly outside its view frustum. Its terminal states and pictures are
+bit-identical to ``restore``, ``step`` and ``render``. One restore is as exact as several: PhysX's hidden
+state carries over from the previous rollout (cached contacts, we believe), and no number of
+``set_state_dict`` calls clears it.
+
+Rendering, measured here (``benchmarks/oracle.py --profile``): lavapipe spends most of a picture shading
+the Panda's 150k triangles on the calling thread, whatever the resolution (3 cameras: ~60 ms of CPU at
+224 px, ~40 ms at 64 px), so culling is what pays (~35 % less at 224 px; the wrist camera skips 8–9 of
+the 15 bodies). What did not: ``LP_NUM_THREADS`` (0, 1, 2 or the default) leaves the CPU per picture
+unchanged, and fewer threads were not faster in wall time (slower in most rounds), with one worker or
+with two workers on the two cores; capturing all cameras before reading any back, and one
+``update_render`` for several captures (it costs 0.06 ms), change nothing measurable. The ``minimal``
+shader already writes only colour and one position/segmentation target.
 """
 
 from __future__ import annotations
 
 import copy
+import itertools
 from dataclasses import dataclass
 from typing import Any
 
@@ -19,6 +37,8 @@ import torch
 from wamplan.config import field, require
 from wamplan.envs.agent import CONTROL_MODE
 from wamplan.envs.contract import ACTION_DIM, CAMERAS, ENV_ID, MAX_EPISODE_STEPS, OUTCOMES, STAGES, Observation
+
+_CORNERS = np.array(list(itertools.product((0, 1), repeat=3)))  # (8, 3): min (0) or max (1) per axis
 
 
 @dataclass(frozen=True)
@@ -85,12 +105,15 @@ class InsertionEnv:
         self.seed: int | None = None
         self.reached = {s: False for s in STAGES}
         self._last: dict[str, Any] = {}
+        self._mid_rollout = False  # set by simulate(): physics moved on without stage tracking
+        self._bodies: list | None = None  # render bodies, for frustum culling (see render)
 
     # ------------------------------------------------------------------ episode
     @torch.inference_mode(False)
     def reset(self, seed: int, with_images: bool = False) -> Observation:
         self.seed = int(seed)
         self.base.reset(seed=self.seed)
+        self._mid_rollout = False
         self.step_count = 0
         self.reached = {s: False for s in STAGES}
         self._last = self._evaluate()
@@ -99,6 +122,7 @@ class InsertionEnv:
     @torch.inference_mode(False)
     def step(self, action: np.ndarray, with_images: bool = False) -> tuple[Observation, dict[str, Any]]:
         """Apply one 5-D action (clipped to [-1, 1]); returns the next observation and step info."""
+        self._check_not_mid_rollout()
         a = self.check_action(action)
         self.base.step(torch.as_tensor(a[None]))  # (1, 5)
         self.step_count += 1
@@ -166,19 +190,46 @@ class InsertionEnv:
     def drive_targets(self) -> np.ndarray:
         return self.base.agent.robot.get_drive_targets()[0].numpy().astype(np.float32)
 
-    def render(self, cameras: tuple[str, ...] = CAMERAS) -> dict[str, np.ndarray]:
-        """Render the current state: camera -> (H, W, 3) uint8."""
+    def render(self, cameras: tuple[str, ...] = CAMERAS, cull: bool = False) -> dict[str, np.ndarray]:
+        """Render the current state: camera -> (H, W, 3) uint8. ``cull`` hides, per camera, the bodies wholly
+        outside its view frustum while it draws (the same pixels, drawn faster; ``simulate`` uses it)."""
         b = self.base
         b.scene.update_render(update_sensors=True, update_human_render_cameras=False)
         out = {}
         for name in cameras:
             cam = b.scene.sensors[name]
-            cam.capture()
+            hidden = self._outside_frustum(cam.camera._render_cameras[0]) if cull else []
+            for body in hidden:
+                body.visibility = 0.0
+            try:
+                cam.capture()  # records and submits the draw now: visibility is read here
+            finally:
+                for body in hidden:
+                    body.visibility = 1.0
             rgb = cam.get_obs(rgb=True, depth=False, position=False, segmentation=False)["rgb"]  # (1, H, W, 3)
             out[name] = rgb[0].numpy().copy()
         return out
 
+    def _outside_frustum(self, cam) -> list:
+        """The visible render bodies whose world AABB lies wholly outside ``cam``'s frustum (conservative: a
+        body is hidden only if all 8 corners of its box fail one clip-space half-space)."""
+        import sapien
+
+        if self._bodies is None:
+            comps = (e.find_component_by_type(sapien.render.RenderBodyComponent)
+                     for e in self.base.scene.sub_scenes[0].entities)
+            self._bodies = [c for c in comps if c is not None]
+        pv = cam.get_projection_matrix() @ np.linalg.inv(cam.get_model_matrix())  # (4, 4) world -> clip
+        bodies = [c for c in self._bodies if c.visibility == 1.0]
+        boxes = np.array([c.get_global_aabb_fast() for c in bodies])  # (K, 2, 3) min, max
+        corners = boxes[:, _CORNERS, [0, 1, 2]]  # (K, 8, 3)
+        x, y, z, w = (np.concatenate([corners, np.ones_like(corners[..., :1])], -1) @ pv.T).transpose(2, 0, 1)
+        side = [np.all(x < -w, 1), np.all(x > w, 1), np.all(y < -w, 1), np.all(y > w, 1), np.all(w <= 0, 1),
+                np.all(z > w, 1)]  # (K,) each: every corner beyond one plane
+        return [c for c, o in zip(bodies, np.any(side, 0)) if o]
+
     def observe(self, with_images: bool = False) -> Observation:
+        self._check_not_mid_rollout()
         return Observation(step=self.step_count, proprio=self.proprio(),
                            images=self.render() if with_images else None, state=self.privileged_state())
 
@@ -198,8 +249,17 @@ class InsertionEnv:
 
     @torch.inference_mode(False)
     def restore(self, snap: Snapshot) -> None:
-        """Put the simulator back to ``snap``. Restore again before re-executing: PhysX keeps hidden
-        solver state, so a restored rollout can differ by ~1e-3 m from one that was never restored."""
+        """Put the simulator back to ``snap``. Restore before re-executing what a restored rollout predicted:
+        PhysX keeps hidden state from the previous rollout (cached contacts, we believe), so a restored
+        rollout can differ by ~1e-3 m from one that was never restored; restoring once or twice is the same."""
+        self._restore_sim(snap)
+        self._mid_rollout = False
+        self.step_count = snap.step
+        self.reached = dict(snap.reached)
+        self._last = self._evaluate()
+
+    def _restore_sim(self, snap: Snapshot) -> None:
+        """Physics, controllers, drive targets and ManiSkill's step counter; not wamplan's stage tracking."""
         self.base.set_state_dict(_clone(snap.sim))
         for name, c in self._controllers().items():
             for k, v in snap.controllers[name].items():
@@ -207,9 +267,38 @@ class InsertionEnv:
         robot = self.base.agent.robot
         robot.set_joint_drive_targets(snap.drive_targets.clone(), joints=robot.active_joints)
         self.base._elapsed_steps[:] = snap.step
-        self.step_count = snap.step
-        self.reached = dict(snap.reached)
-        self._last = self._evaluate()
+
+    # ------------------------------------------------------------------ planning
+    @torch.inference_mode(False)
+    def simulate(self, snap: Snapshot, actions: np.ndarray, cameras: tuple[str, ...] = CAMERAS) -> np.ndarray:
+        """Candidate rollouts for a planner: actions (B, L, 5) -> terminal views (B, V, H, W, 3) uint8.
+
+        Each candidate starts from ``snap`` (restored once) and runs the controller and physics only; its
+        terminal state is bit-identical to ``restore(snap)`` then ``step`` over the same actions. The env is
+        left at the last candidate's end without stage tracking: ``restore`` a snapshot before stepping or
+        observing again (``step``/``observe`` refuse until then). A GPU env (``num_envs = B``, physx_cuda)
+        would implement the same signature with one batched rollout.
+        """
+        acts = np.asarray(actions, dtype=np.float32)
+        if acts.ndim != 3 or acts.shape[-1] != ACTION_DIM:
+            raise ValueError(f"actions must have shape (B, L, {ACTION_DIM}), got {acts.shape}")
+        if not np.all(np.isfinite(acts)):
+            raise ValueError("candidate actions must be finite; check the planner's samples for NaN/inf")
+        acts = np.clip(acts, -1.0, 1.0)  # as step's check_action
+        views = []
+        for cand in torch.from_numpy(acts):  # (L, 5)
+            self._restore_sim(snap)
+            self._mid_rollout = True
+            for a in cand:
+                self.base._step_action(a[None])  # (1, 5): controller + physics, as in base.step
+            frames = self.render(cameras, cull=True)
+            views.append(np.stack([frames[c] for c in cameras]))  # (V, H, W, 3)
+        return np.stack(views)  # (B, V, H, W, 3)
+
+    def _check_not_mid_rollout(self) -> None:
+        if self._mid_rollout:
+            raise RuntimeError("the env is mid-rollout after simulate(); restore(snapshot) before stepping or "
+                               "observing")
 
     def close(self) -> None:
         self._gym.close()

@@ -8,9 +8,16 @@ actions the backend's rollout covers (``covered``): Δ·⌊H/Δ⌋ for the learn
 * :class:`LearnedDynamics` rolls all candidates of an iteration out in one batched, KV-cached forward
   of the predictor; the context frames before the current one are encoded once per chunk (batch 1) and
   shared by every candidate and every CEM iteration.
-* :class:`SimulatorDynamics` (the oracle) restores the chunk-boundary snapshot, steps each candidate,
-  renders its terminal views and encodes them; it restores the snapshot again afterwards (twice, since
-  PhysX keeps hidden solver state) so that the chosen plan executes from the same state.
+* :class:`SimulatorDynamics` (the oracle) hands all candidates to ``InsertionEnv.simulate`` (restore the
+  chunk-boundary snapshot once, controller and physics only, render the terminal views with frustum
+  culling), encodes the views, and restores the snapshot afterwards, so that the chosen plan executes
+  from a restored state as each candidate did. One restore is exact: restoring twice gives bit-identical
+  rollouts (PhysX's hidden state carries over from the previous rollout, and no restore clears it).
+
+  A GPU-batched oracle plugs in at ``env.simulate(snapshot, actions (B, L, A)) -> views (B, V, H, W, 3)``:
+  an env with ``num_envs = B`` on physx_cuda broadcasts the snapshot to its B sub-scenes, steps (B, A)
+  actions L times and renders the B terminal frames with ManiSkill's camera groups; ``terminal``'s contract
+  (B, L, A) -> (B, V, N, D) and this class stay as they are.
 """
 
 from __future__ import annotations
@@ -18,7 +25,6 @@ from __future__ import annotations
 import abc
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 
 from wamplan.envs.contract import CAMERAS
@@ -112,18 +118,14 @@ class SimulatorDynamics(Dynamics):
 
     def restore(self) -> None:
         self.env.restore(self._snap)
-        self.env.restore(self._snap)
 
     @torch.inference_mode()
     def terminal(self, actions: torch.Tensor) -> torch.Tensor:
-        views = []
-        for cand in actions.detach().cpu().numpy():  # (L, A)
-            self.restore()
-            for a in cand:
-                self.env.step(np.asarray(a, np.float32))
-            views.append(self.env.render(self.cameras))
-        self.restore()
-        imgs = torch.from_numpy(np.stack([[v[c] for c in self.cameras] for v in views]))  # (B, V, H, W, 3)
+        try:
+            views = self.env.simulate(self._snap, actions.detach().cpu().numpy(), self.cameras)  # (B, V, H, W, 3)
+        finally:
+            self.restore()  # the chosen plan executes from a restored state, as every candidate ran
+        imgs = torch.from_numpy(views)  # (B, V, H, W, 3) uint8
         b, nv = imgs.shape[:2]
         z = self.encoder.encode(imgs.flatten(0, 1).to(self.encoder.device))  # (B·V, N, D)
         return z.reshape(b, nv, *z.shape[1:])  # (B, V, N, D)
