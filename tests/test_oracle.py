@@ -90,22 +90,27 @@ def _phase_fits(obs, phase: str) -> bool:
 
 
 def test_oracle_resynchronises_after_chunks_it_did_not_execute(env):
-    """Condition 4's situation: the oracle proposes chunks, something else is executed (here: holding still).
-    The oracle's expert must restart from the phase that fits the state, not from the phase its own
-    (never executed) chunks reached: without re-synchronisation it would be descending or closing its
-    gripper in mid-air by the third query."""
-    chained = ExpertPolicy()  # what the oracle used to continue from: the phase its own chunks reached
-    obs = _advance(env, chained, seed=5, steps=48)
-    assert chained.phase != "approach"
+    """Condition 4's situation: the oracle proposes a chunk, something else is executed. Here the expert is about
+    to close on the cube, the oracle's own (never executed) chunk would grasp and start carrying it, and instead
+    the arm rises with the gripper open, leaving the cube on the table. The next query must start from the phase
+    that fits the state (reach for the cube again, gripper open), not carry an absent cube with a closed gripper,
+    as the oracle did when it continued from the phase its own chunk had reached."""
+    live = ExpertPolicy()
+    obs = env.reset(3)
+    while live.phase != "close":
+        obs, _ = env.step(live.act(obs))
     oracle = ExpertOracleWAM(env, image_size=16)
-    obs = env.reset(5)
-    hold = np.array([0, 0, 0, 0, 1], np.float32)
-    for k in range(4):
-        out = oracle.predict(obs, "")
-        assert out.extras["start_phase"] == "approach", (k, out.extras)
-        assert (out.actions[:4, 4] == 1.0).all()  # gripper open while reaching for the cube
-        for _ in range(16):
-            obs, _ = env.step(hold)
+    oracle.sync(live)
+    first = oracle.predict(obs, "")
+    assert first.extras["expert_phase"] in ("lift", "transport") and (first.actions[4:, 4] == -1).all()
+    up = np.array([0, 0, 1, 0, 1], np.float32)
+    for _ in range(16):
+        obs, _ = env.step(up)
+    assert not obs.state["stages"][0]  # the cube was not grasped
+    out = oracle.predict(obs, "")
+    assert out.extras["start_phase"] == "approach" and _phase_fits(env.observe(), out.extras["start_phase"])
+    assert (out.actions[:, 4] == 1.0).all()  # gripper open while reaching for the cube again
+    assert out.actions[0, 2] < 0  # back down towards it
 
 
 def test_oracle_target_phase_fits_the_state_in_a_wam_driven_episode(env):
