@@ -102,8 +102,8 @@ def test_a_served_wam_is_chosen_with_url_and_profile(tmp_path):
     cfg.check_for([1])
     for argv, match in ((("--wam-url", "http://h:1/act", "--wam-profile", "cosmos-libero"), "unknown profile"),
                         (("--wam-url", "h:1/act"), "http"),
-                        (("--wam", str(tmp_path), "--wam-url", "http://h:1/act"), "exactly one of"),
-                        ((), "exactly one of"),
+                        (("--wam", str(tmp_path), "--wam-url", "http://h:1/act"), "only one of"),
+                        ((), "--wam CKPT is required.*--wam-url"),
                         (("--wam", str(tmp_path), "--wam-profile", "cosmos-aloha"), "needs --wam-url")):
         with pytest.raises(UserError, match=match):
             _cfg(*argv).check_for([1])

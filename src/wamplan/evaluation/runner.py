@@ -62,9 +62,11 @@ class EvalConfig:
     def check_for(self, conditions: list[int]) -> None:
         from wamplan.errors import UserError
 
-        if bool(self.wam) == bool(self.wam_url):
-            raise UserError("pass exactly one of --wam CKPT (a WAM checkpoint, e.g. from `wamplan wam train`) "
-                            "and --wam-url URL (a served WAM)")
+        if not self.wam and not self.wam_url:
+            raise UserError("--wam CKPT is required (a WAM checkpoint, e.g. from `wamplan wam train`), or "
+                            "--wam-url URL for a served WAM")
+        if self.wam and self.wam_url:
+            raise UserError("pass only one of --wam CKPT and --wam-url URL (one WAM per evaluation)")
         if self.wam_profile and not self.wam_url:
             raise UserError("--wam-profile needs --wam-url (a profile describes a served WAM)")
         if self.wam_url:
