@@ -94,3 +94,59 @@ def test_one_directory_holds_one_nested_configuration(tmp_path):
                   ("--planner", "mppi", "--temperature", "0.3", "--cost-name", "cls")):
         with pytest.raises(UserError, match="other settings"):
             _check_same_settings(tmp_path, _cfg(*other))
+
+
+def test_a_served_wam_is_chosen_with_url_and_profile(tmp_path):
+    cfg = _cfg("--wam-url", "http://127.0.0.1:8777/act", "--wam-profile", "cosmos-robocasa")
+    assert (cfg.wam, cfg.wam_url, cfg.wam_profile) == ("", "http://127.0.0.1:8777/act", "cosmos-robocasa")
+    cfg.check_for([1])
+    for argv, match in ((("--wam-url", "http://h:1/act", "--wam-profile", "cosmos-libero"), "unknown profile"),
+                        (("--wam-url", "h:1/act"), "http"),
+                        (("--wam", str(tmp_path), "--wam-url", "http://h:1/act"), "only one of"),
+                        ((), "--wam CKPT is required.*--wam-url"),
+                        (("--wam", str(tmp_path), "--wam-profile", "cosmos-aloha"), "needs --wam-url")):
+        with pytest.raises(UserError, match=match):
+            _cfg(*argv).check_for([1])
+    # the served WAM is part of a directory's settings; a directory from before the option keeps its own
+    _check_same_settings(tmp_path, cfg)
+    stored = json.loads((tmp_path / "eval_config.json").read_text())
+    assert (stored["wam_url"], stored["wam_profile"], stored["wam"]) == (cfg.wam_url, "cosmos-robocasa", "")
+    with pytest.raises(UserError, match="other settings.*wam_profile"):
+        _check_same_settings(tmp_path, _cfg("--wam-url", cfg.wam_url, "--wam-profile", "cosmos-aloha"))
+    old = tmp_path / "old"
+    old.mkdir()
+    _check_same_settings(old, _cfg("--wam", "ckpt"))
+    assert "wam_url" not in json.loads((old / "eval_config.json").read_text())
+
+
+def test_eval_plans_with_a_served_wam_through_a_profile(tmp_path, capsys):
+    """Condition 1 (the WAM alone) for one short episode against a server with RoboCasa field names."""
+    import numpy as np
+
+    from wamplan.evaluation.records import read_records
+    from wamplan.wam import WAM, WAMOutput
+    from wamplan.wam.server import BackgroundServer, create_app
+
+    class HoldWAM(WAM):
+        name = "test-hold"
+
+        def __init__(self):
+            self.seen: list[tuple] = []
+
+        def predict(self, obs, instruction):
+            self.seen.append((obs.proprio.shape, {c: im.shape for c, im in obs.images.items()}, instruction))
+            actions = np.zeros((16, 5), np.float32)
+            actions[:, 4] = 1.0  # keep the gripper open, do not move
+            return WAMOutput(actions=actions, images=dict(obs.images))
+
+    wam = HoldWAM()
+    rmap = {"primary_image": "front", "secondary_image": "side", "wrist_image": "wrist"}
+    resp = {"front": "future_image", "side": "future_image2", "wrist": "future_wrist_image"}
+    with BackgroundServer(create_app(wam, request_map=rmap, response_map=resp)) as srv:
+        assert main(["eval", "--out", str(tmp_path), "--conditions", "1", "--episodes", "1", "--max-steps", "20",
+                     "--camera-size", "64", "--wam-url", srv.url + "/act", "--wam-profile", "cosmos-robocasa"]) == 0
+    (rec,) = read_records(tmp_path)
+    assert (rec["condition"], rec["seed"], rec["length"]) == (1, 0, 20)
+    assert wam.seen[0] == ((10,), {c: (224, 224, 3) for c in ("front", "side", "wrist")},
+                           "insert the cube into the square hole")
+    assert len(wam.seen) == 2  # steps 0 and 16: one query per 16-step chunk

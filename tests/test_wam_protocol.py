@@ -31,7 +31,7 @@ from wamplan.wam.base import (
     register_wam_loader,
     validate_wam_output,
 )
-from wamplan.wam.cosmos_client import CosmosClientConfig, CosmosPolicyClient, resize_image
+from wamplan.wam.cosmos_client import PROFILES, CosmosClientConfig, CosmosPolicyClient, profile_config, resize_image
 from wamplan.wam.server import BackgroundServer, create_app
 from wamplan.wam.tinywam import KIND as TINYWAM_KIND
 from wamplan.wam.tinywam import TinyWAMConfig, TinyWAMNet
@@ -151,6 +151,9 @@ SHAPED = {
     "aloha": {"actions": list(ALOHA_ACTIONS), "future_image_predictions": ALOHA_IMAGES, "value_prediction": 0.8},
     "robocasa": {"actions": list(ROBOCASA_ACTIONS), "value_prediction": np.float32(0.3),
                  "future_image_predictions": {**ROBOCASA_IMAGES, "future_wrist_image2": None}},
+    # a RoboCasa-style model fine-tuned on `wamplan data export`: 16 x 5 actions (the cosmos-robocasa profile)
+    "wamplan-robocasa": {"actions": list(ROBOCASA_ACTIONS[:16, :5]), "value_prediction": 0.6,
+                         "future_image_predictions": {**ROBOCASA_IMAGES, "future_wrist_image2": None}},
 }
 
 
@@ -300,6 +303,60 @@ def test_robocasa_shaped_answer_mapped_by_the_client(fake):
     # the default mapping asks for future_wrist_image2, which a RoboCasa model does not predict
     with pytest.raises(WAMServerError, match="no 'future_wrist_image2' image"):
         client(srv.url + "/robocasa/act", chunk_length=32).predict(make_obs(), "t")
+
+
+def test_cosmos_robocasa_profile_maps_a_robocasa_shaped_server(fake):
+    srv, seen = fake
+    c = CosmosPolicyClient(profile="cosmos-robocasa", url=srv.url + "/wamplan-robocasa/act")
+    out = c.predict(make_obs(5), "insert")
+    np.testing.assert_array_equal(out.actions, ROBOCASA_ACTIONS[:16, :5])
+    for cam, name in (("front", "future_image"), ("side", "future_image2"), ("wrist", "future_wrist_image")):
+        np.testing.assert_array_equal(out.images[cam], ROBOCASA_IMAGES[name])
+    assert out.value == pytest.approx(0.6) and c.chunk_length == 16
+    req = protocol.decode_request(seen["wamplan-robocasa"], protocol.ROBOCASA_REQUEST_IMAGE_FIELDS)
+    assert set(json_numpy.loads(seen["wamplan-robocasa"])) == {*protocol.ROBOCASA_REQUEST_IMAGE_FIELDS, "proprio",
+                                                               "task_description"}
+    for cam, name in (("front", "primary_image"), ("side", "secondary_image"), ("wrist", "wrist_image")):
+        np.testing.assert_array_equal(req.images[name], resize_image(make_obs(5).images[cam], 224))
+    np.testing.assert_array_equal(req.proprio, make_obs(5).proprio)  # 10-D, as exported
+    # an option given beside the profile wins over the profile's value
+    c = CosmosPolicyClient(profile="cosmos-robocasa", url=srv.url + "/robocasa/act", chunk_length=32)
+    np.testing.assert_array_equal(c.predict(make_obs(), "t").actions, ROBOCASA_ACTIONS[:, :5])
+
+
+def test_cosmos_aloha_profile_maps_an_aloha_shaped_server(fake):
+    srv, seen = fake
+    c = CosmosPolicyClient(profile="cosmos-aloha", url=srv.url + "/aloha/act")
+    out = c.predict(make_obs(3), "fold")
+    assert out.actions.shape == (50, 5) and out.value == pytest.approx(0.8)
+    np.testing.assert_array_equal(out.actions, ALOHA_ACTIONS[:, :5])
+    for cam, name in (("front", "future_image"), ("side", "future_wrist_image"), ("wrist", "future_wrist_image2")):
+        np.testing.assert_array_equal(out.images[cam], ALOHA_IMAGES[name][0])
+    req = protocol.decode_request(seen["aloha"])
+    assert req.proprio.shape == (14,) and req.images["left_wrist_image"].shape == (224, 224, 3)
+    np.testing.assert_array_equal(req.proprio, np.r_[make_obs(3).proprio, np.zeros(4, np.float32)])
+
+
+def test_our_server_with_robocasa_fields_serves_the_profile():
+    wam = EchoWAM()
+    rmap = {"primary_image": "front", "secondary_image": "side", "wrist_image": "wrist"}
+    resp = {"front": "future_image", "side": "future_image2", "wrist": "future_wrist_image"}
+    with BackgroundServer(create_app(wam, request_map=rmap, response_map=resp)) as srv:
+        c = CosmosPolicyClient(profile="cosmos-robocasa", url=srv.url + "/act")
+        obs = make_obs(7)
+        out = c.predict(obs, "t")
+    np.testing.assert_allclose(out.actions, CHUNK + 0.01, atol=1e-6)
+    for cam in CAMERAS:  # the echo inverts what it was sent: the 224 px view of each camera
+        np.testing.assert_array_equal(out.images[cam], 255 - resize_image(obs.images[cam], 224))
+
+
+def test_profiles_are_valid_and_unknown_ones_are_named():
+    for name in PROFILES:
+        assert profile_config(name, url="http://h:1/act").url == "http://h:1/act"
+    with pytest.raises(ConfigError, match="unknown profile 'cosmos-libero'.*cosmos-aloha"):
+        profile_config("cosmos-libero")
+    with pytest.raises(ConfigError, match="exactly once"):  # the two field sets cannot be mixed
+        CosmosClientConfig(request_fields=("front=primary_image", "side=secondary_image", "wrist=right_wrist_image"))
 
 
 def test_empty_instruction_uses_server_default(echo):

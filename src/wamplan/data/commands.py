@@ -42,6 +42,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, default=Path("sheet.png"))
     p.add_argument("--frames", type=int, default=8, help="frames across the episode")
     p.set_defaults(func=cmd_view)
+    from wamplan.data.export import FORMATS, CosmosExportConfig
+
+    p = dsub.add_parser("export", help="write a store in another project's training layout (Cosmos Policy HDF5)",
+                        description="Write the store DIR under OUT in the HDF5 layout Cosmos Policy's post-training "
+                                    "reads (OUT/demos/*.hdf5 RoboCasa-style demos, OUT/rollouts/*.hdf5 on-policy "
+                                    "episodes). The store must be collected with --image-every 1.")
+    p.add_argument("dir", type=Path)
+    p.add_argument("out", type=Path)
+    p.add_argument("--format", required=True, choices=FORMATS)
+    add_arguments(p, CosmosExportConfig)
+    p.set_defaults(func=cmd_export)
 
 
 def cmd_collect(args: argparse.Namespace) -> int:
@@ -87,6 +98,19 @@ def cmd_info(args: argparse.Namespace) -> int:
     for src, s in info["sources"].items():
         outs = ", ".join(f"{k} {v}" for k, v in sorted(s["outcomes"].items()))
         print(f"  {src:20s} {s['episodes']:5d} episodes  success {100 * s['success_rate']:5.1f}%  ({outs})")
+    return 0
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from wamplan.data.export import CosmosExportConfig, export_cosmos_policy
+    from wamplan.wam.base import DEFAULT_INSTRUCTION
+
+    base = CosmosExportConfig(instruction=DEFAULT_INSTRUCTION)  # what WAMPolicy sends when given no instruction
+    cfg = from_args(CosmosExportConfig, args, base=base)
+    cfg = dataclasses.replace(cfg, sources=tuple(s for x in cfg.sources for s in x.split(",") if s))
+    print(json.dumps(export_cosmos_policy(args.dir, args.out, cfg), indent=1))
     return 0
 
 

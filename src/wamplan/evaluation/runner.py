@@ -36,6 +36,10 @@ class EvalConfig:
     own config), the cost and the planned policy, nested as they are used."""
 
     wam: str = field("", "WAM checkpoint directory (e.g. a TinyWAM)")
+    wam_url: str = field("", "a served WAM's /act endpoint (Cosmos Policy protocol) instead of --wam, "
+                         "e.g. http://127.0.0.1:8777/act")
+    wam_profile: str = field("", "with --wam-url: the server's field mapping and sizes by name "
+                             "(cosmos-robocasa, cosmos-aloha); empty: the client's defaults")
     wm_plain: str = field("", "plain world model checkpoint (condition 6)")
     wm_augmented: str = field("", "augmented world model checkpoint (condition 7)")
     sim_encoder: str = field("", "encoder for the simulator conditions (default: the plain world model's)")
@@ -58,8 +62,17 @@ class EvalConfig:
     def check_for(self, conditions: list[int]) -> None:
         from wamplan.errors import UserError
 
-        if not self.wam:
-            raise UserError("--wam CKPT is required (a WAM checkpoint, e.g. from `wamplan wam train`)")
+        if not self.wam and not self.wam_url:
+            raise UserError("--wam CKPT is required (a WAM checkpoint, e.g. from `wamplan wam train`), or "
+                            "--wam-url URL for a served WAM")
+        if self.wam and self.wam_url:
+            raise UserError("pass only one of --wam CKPT and --wam-url URL (one WAM per evaluation)")
+        if self.wam_profile and not self.wam_url:
+            raise UserError("--wam-profile needs --wam-url (a profile describes a served WAM)")
+        if self.wam_url:
+            from wamplan.wam.cosmos_client import profile_config
+
+            profile_config(self.wam_profile, url=self.wam_url)  # a bad URL or profile fails now, in one line
         for c in conditions:
             need = {"learned-plain": ("wm_plain", "--wm-plain"), "learned-augmented": ("wm_augmented", "--wm-augmented")}
             if CONDITIONS[c].dynamics in need:
@@ -68,7 +81,7 @@ class EvalConfig:
                     raise UserError(f"condition {c} needs {flag} CKPT (a world model from `wamplan wm train`)")
                 if not Path(getattr(self, attr)).exists():
                     raise UserError(f"{flag} {getattr(self, attr)} does not exist; train it or fix the path")
-        if not Path(self.wam).exists():
+        if self.wam and not Path(self.wam).exists():
             raise UserError(f"--wam {self.wam} does not exist; train one with `wamplan wam train` or fix the path")
 
 
@@ -81,7 +94,12 @@ class EvalWorker:
 
         self.cfg = cfg
         self.env = InsertionEnv(cfg.env)
-        self.wam = load_wam(cfg.wam, device=cfg.device)
+        if cfg.wam_url:
+            from wamplan.wam.cosmos_client import CosmosPolicyClient
+
+            self.wam = CosmosPolicyClient(profile=cfg.wam_profile, url=cfg.wam_url)
+        else:
+            self.wam = load_wam(cfg.wam, device=cfg.device)
         self._models: dict[str, Any] = {}
         self._policies: dict[int, Any] = {}
 
@@ -159,8 +177,10 @@ def _same(a: Any, b: Any) -> bool:
 
 def settings(cfg: EvalConfig) -> dict[str, Any]:
     """The settings records of one directory must share, flat (``"planner_config.temperature": 0.1``).
-    The first-chunk variant may differ (Table 2) and the device does not matter."""
-    return {k: v for k, v in _flat(to_dict(cfg)).items() if k not in ("policy.first_chunk", "device")}
+    The first-chunk variant may differ (Table 2) and the device does not matter. The served-WAM keys
+    appear only when set, so directories written before they existed keep their settings."""
+    return {k: v for k, v in _flat(to_dict(cfg)).items() if k not in ("policy.first_chunk", "device")
+            and not (k in ("wam_url", "wam_profile") and not v)}
 
 
 def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:

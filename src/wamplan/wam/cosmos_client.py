@@ -10,6 +10,17 @@ a malformed or non-finite answer) raises :class:`WAMServerError` with one line n
 
 CLI flags: ``wamplan.config.add_arguments(parser, CosmosClientConfig, prefix="wam_")`` gives
 ``--wam-url``, ``--wam-timeout-s``, ...; error messages name those flags.
+
+Named profiles (``PROFILES``, ``--wam-profile NAME``) hold the field mapping and sizes of a kind of server,
+so that nobody has to spell field names:
+
+* ``cosmos-robocasa``: a Cosmos Policy fine-tuned on ``wamplan data export --format cosmos-policy`` with its
+  RoboCasa dataset class and served with RoboCasa observation names (``primary_image`` = front,
+  ``secondary_image`` = side, ``wrist_image`` = wrist; predictions ``future_image`` / ``future_image2`` /
+  ``future_wrist_image``), 16-step chunks of wamplan's 5-D actions, 10-D proprio, 224 px views sent.
+* ``cosmos-aloha``: a server speaking ALOHA's ``deploy.py`` fields (``primary_image``, ``left_wrist_image``,
+  ``right_wrist_image``; ``future_image``, ``future_wrist_image``, ``future_wrist_image2``), 50-step chunks,
+  proprio padded to 14-D, 224 px views sent, wamplan's action in columns 0-4.
 """
 
 from __future__ import annotations
@@ -23,7 +34,7 @@ from urllib.parse import urlparse
 import numpy as np
 import requests
 
-from wamplan.config import field, require, to_dict
+from wamplan.config import ConfigError, field, require, to_dict
 from wamplan.envs.contract import CAMERAS, Observation
 from wamplan.wam import protocol
 from wamplan.wam.base import WAM, WAMError, WAMOutput, WAMOutputError, WAMServerError, register_wam
@@ -79,9 +90,9 @@ class CosmosClientConfig:
                 f"{_flag('url')} must be an http(s) URL such as http://127.0.0.1:8777/act, got '{self.url}'")
         req = _pairs(self.request_fields, "request_fields")
         names = sorted(n for _, n in req)
-        require(names == sorted(protocol.REQUEST_IMAGE_FIELDS),
-                f"{_flag('request_fields')} must fill each of {list(protocol.REQUEST_IMAGE_FIELDS)} exactly once, "
-                f"got {list(self.request_fields)}")
+        require(any(names == sorted(fs) for fs in protocol.REQUEST_IMAGE_FIELD_SETS),
+                f"{_flag('request_fields')} must fill each field of one of {[list(fs) for fs in protocol.REQUEST_IMAGE_FIELD_SETS]} "
+                f"exactly once, got {list(self.request_fields)}")
         resp = _pairs(self.response_fields, "response_fields")
         require(len(resp) > 0, f"{_flag('response_fields')} must map at least one camera")
         cams = [c for c, _ in resp]
@@ -115,6 +126,26 @@ class CosmosClientConfig:
         return dict(_pairs(self.response_fields, "response_fields"))
 
 
+_ROBOCASA = dict(request_fields=("front=primary_image", "side=secondary_image", "wrist=wrist_image"),
+                 response_fields=("front=future_image", "side=future_image2", "wrist=future_wrist_image"),
+                 chunk_length=16, action_indices=(0, 1, 2, 3, 4), proprio_dim=None, send_image_size=224)
+_ALOHA = dict(request_fields=("front=primary_image", "side=left_wrist_image", "wrist=right_wrist_image"),
+              response_fields=("front=future_image", "side=future_wrist_image", "wrist=future_wrist_image2"),
+              chunk_length=50, action_indices=(0, 1, 2, 3, 4), proprio_dim=14, send_image_size=224)
+PROFILES: dict[str, dict[str, Any]] = {"cosmos-robocasa": _ROBOCASA, "cosmos-aloha": _ALOHA}
+
+
+def profile_config(profile: str = "", **overrides: Any) -> CosmosClientConfig:
+    """The client config of a named profile (``""``: the plain defaults), with ``overrides`` on top."""
+    if profile and profile not in PROFILES:
+        raise ConfigError(f"{_flag('profile')}: unknown profile '{profile}'; profiles are {sorted(PROFILES)}")
+    known = {f.name for f in dataclasses.fields(CosmosClientConfig)}
+    unknown = sorted(set(overrides) - known)
+    require(not unknown, f"CosmosPolicyClient: unknown option(s) {unknown}; known: {sorted(known)}")
+    kw = {**PROFILES.get(profile, {}), **{k: tuple(v) if isinstance(v, list) else v for k, v in overrides.items()}}
+    return CosmosClientConfig(**kw)
+
+
 def resize_image(img: np.ndarray, size: int) -> np.ndarray:
     """(h, w, 3) uint8 -> (size, size, 3) uint8, bilinear with antialiasing."""
     if img.shape[0] == size and img.shape[1] == size:
@@ -144,10 +175,13 @@ def _short_reason(e: requests.exceptions.ConnectionError, connect_timeout_s: flo
 
 @register_wam("cosmos")
 class CosmosPolicyClient(WAM):
-    """A WAM served over the Cosmos Policy /act protocol. ``overrides`` replace config fields."""
+    """A WAM served over the Cosmos Policy /act protocol. ``profile`` (a name in ``PROFILES``) gives the
+    config when none is passed; ``overrides`` replace config fields."""
 
-    def __init__(self, config: CosmosClientConfig | None = None, *, session: Any = None, **overrides: Any):
-        base = config if config is not None else CosmosClientConfig()
+    def __init__(self, config: CosmosClientConfig | None = None, *, profile: str = "", session: Any = None,
+                 **overrides: Any):
+        require(config is None or not profile, "CosmosPolicyClient: pass a config or a profile, not both")
+        base = config if config is not None else profile_config(profile)
         if overrides:
             known = {f.name for f in dataclasses.fields(CosmosClientConfig)}
             unknown = sorted(set(overrides) - known)

@@ -5,7 +5,8 @@ It follows NVlabs/cosmos-policy ``cosmos_policy/experiments/robot/aloha/deploy.p
 * ``POST /act`` with a JSON body whose numpy arrays are encoded by ``json_numpy``
   (``{"__numpy__": <base64>, "dtype": ..., "shape": [...]}``). Request fields: ``primary_image``,
   ``left_wrist_image``, ``right_wrist_image`` (uint8 (H, W, 3), all three required), ``proprio``
-  (float32 (P,)) and ``task_description`` (str). A body ``{"encoded": "<json_numpy string>"}`` (the
+  (float32 (P,)) and ``task_description`` (str); a RoboCasa-style server reads ``primary_image``,
+  ``secondary_image`` and ``wrist_image`` instead (the client's profiles pick the set). A body ``{"encoded": "<json_numpy string>"}`` (the
   "double-encoded" form for clients without json_numpy) is accepted too.
 * The answer is a dict with ``actions`` (a list of (A,) rows, or an (H, A) array),
   ``future_image_predictions`` (a dict ``future_image`` / ``future_wrist_image`` / ``future_wrist_image2``
@@ -29,7 +30,10 @@ import numpy as np
 
 ROUTE = "/act"
 DEFAULT_PORT = 8777
-REQUEST_IMAGE_FIELDS = ("primary_image", "left_wrist_image", "right_wrist_image")
+REQUEST_IMAGE_FIELDS = ("primary_image", "left_wrist_image", "right_wrist_image")  # ALOHA's deploy script
+# A RoboCasa/LIBERO-style model reads two third-person views and one wrist view under these names.
+ROBOCASA_REQUEST_IMAGE_FIELDS = ("primary_image", "secondary_image", "wrist_image")
+REQUEST_IMAGE_FIELD_SETS = (REQUEST_IMAGE_FIELDS, ROBOCASA_REQUEST_IMAGE_FIELDS)
 # The fields Cosmos Policy fills for a 3-camera (ALOHA-style) model; RoboCasa models add future_image2.
 RESPONSE_IMAGE_FIELDS = ("future_image", "future_wrist_image", "future_wrist_image2")
 KNOWN_RESPONSE_IMAGE_FIELDS = RESPONSE_IMAGE_FIELDS + ("future_image2",)
@@ -102,24 +106,24 @@ def _numbers(x: Any, what: str, ndim: int) -> np.ndarray:
 
 
 def encode_request(req: ActRequest) -> str:
-    """The JSON body of ``POST /act``."""
-    payload = {name: np.ascontiguousarray(req.images[name], dtype=np.uint8) for name in REQUEST_IMAGE_FIELDS}
+    """The JSON body of ``POST /act`` (the image fields are those of ``req.images``)."""
+    payload = {name: np.ascontiguousarray(img, dtype=np.uint8) for name, img in req.images.items()}
     payload["proprio"] = np.ascontiguousarray(req.proprio, dtype=np.float32)  # (P,)
     payload["task_description"] = str(req.task_description)
     return json_numpy.dumps(payload)
 
 
-def decode_request(body: bytes | str) -> ActRequest:
-    """Parse and check a request body (server side)."""
+def decode_request(body: bytes | str, image_fields: tuple[str, ...] = REQUEST_IMAGE_FIELDS) -> ActRequest:
+    """Parse and check a request body (server side) that must carry ``image_fields``."""
     payload = _loads(body, "request body")
     if isinstance(payload, Mapping) and "encoded" in payload:  # double-encoded form
         payload = _loads(payload["encoded"], "'encoded' request payload")
     if not isinstance(payload, Mapping):
         raise ProtocolError(f"the request body is a JSON {type(payload).__name__}, expected an object")
-    missing = [k for k in (*REQUEST_IMAGE_FIELDS, "proprio", "task_description") if k not in payload]
+    missing = [k for k in (*image_fields, "proprio", "task_description") if k not in payload]
     if missing:
         raise ProtocolError(f"the request lacks field(s) {missing}")
-    images = {k: _image(payload[k], f"request field '{k}'") for k in REQUEST_IMAGE_FIELDS}
+    images = {k: _image(payload[k], f"request field '{k}'") for k in image_fields}
     proprio = _numbers(payload["proprio"], "request field 'proprio'", ndim=1)  # (P,)
     task = payload["task_description"]
     if not isinstance(task, str):

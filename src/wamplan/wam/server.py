@@ -44,10 +44,10 @@ def create_app(wam: WAM, instruction_default: str | None = None, request_map: di
     """
     request_map = dict(request_map or DEFAULT_REQUEST_MAP)
     response_map = dict(response_map or DEFAULT_RESPONSE_MAP)
-    bad = sorted(set(request_map) - set(protocol.REQUEST_IMAGE_FIELDS))
+    bad = sorted(set(request_map) - {f for fs in protocol.REQUEST_IMAGE_FIELD_SETS for f in fs})
     bad += sorted(set(response_map.values()) - set(protocol.KNOWN_RESPONSE_IMAGE_FIELDS))
     if bad:
-        raise UserError(f"unknown /act field(s) {bad}; request fields are {list(protocol.REQUEST_IMAGE_FIELDS)}, "
+        raise UserError(f"unknown /act field(s) {bad}; request fields are {list(protocol.REQUEST_IMAGE_FIELD_SETS)}, "
                         f"response fields {list(protocol.KNOWN_RESPONSE_IMAGE_FIELDS)}")
     unfed = [c for c in wam.cameras if c not in request_map.values()]
     if unfed:
@@ -59,7 +59,7 @@ def create_app(wam: WAM, instruction_default: str | None = None, request_map: di
     app = FastAPI(title=f"wamplan WAM server ({wam.name})")
 
     def handle(body: bytes) -> str:
-        req = protocol.decode_request(body)
+        req = protocol.decode_request(body, tuple(request_map))
         images = {cam: req.images[name] for name, cam in request_map.items()}  # camera -> (H, W, 3)
         # The protocol carries no control step; a WAM must not depend on obs.step.
         obs = Observation(step=0, proprio=req.proprio, images=images)
