@@ -168,12 +168,7 @@ class InsertionEnv:
     # ------------------------------------------------------------------ observations
     def proprio(self) -> np.ndarray:
         """(10,) float32: gripper width, TCP xyz, first two columns of the TCP rotation matrix."""
-        agent = self.base.agent
-        qpos = agent.robot.get_qpos()[0]  # (9,)
-        pose = agent.tcp_pose
-        rot = pose.to_transformation_matrix()[0, :3, :3]  # (3, 3)
-        six = rot[:, :2].T.reshape(6)  # columns 0 and 1, each (3,)
-        return torch.cat([(qpos[-2] + qpos[-1]).reshape(1), pose.p[0], six]).numpy().astype(np.float32)
+        return self.base.proprio()[0].numpy().astype(np.float32)  # (10,): the task's obs["extra"]["proprio"]
 
     def privileged_state(self) -> dict[str, np.ndarray]:
         b = self.base

@@ -11,6 +11,11 @@ Scene (metres, world frame; the table top is z = 0, the robot base stands at x =
 * cameras: ``front`` (facing the robot across the table), ``side`` (from the robot's left) and ``wrist``
   (on the hand, looking down between the fingers), all ``camera_size`` px square (default 224).
 
+Observations (``gym.make("CubeInsertion-v1", obs_mode=...)``, any ManiSkill mode): ManiSkill's ``agent``
+(qpos, qvel) and, for camera modes, ``sensor_data`` / ``sensor_param``; ``extra`` holds ``proprio`` (the
+10-D proprio wamplan's policies see, :meth:`CubeInsertionEnv.proprio`), ``tcp_pose`` and ``hole_pos``,
+plus the privileged ``cube_pose`` only in the ``state`` / ``state_dict`` modes (ManiSkill's convention).
+
 Stages, per step (``evaluate``): ``grasped`` (both fingers press the cube), ``lifted`` (cube bottom
 > 1 cm above the table), ``aligned`` (cube bottom above the mount top, centre within 4 mm of the
 hole axis, yaw error < 0.1 rad), ``descended`` (cube bottom below the mount top, centre within
@@ -22,6 +27,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
 import sapien
 import torch
@@ -29,7 +35,7 @@ from mani_skill.envs.sapien_env import BaseEnv
 from mani_skill.sensors.camera import CameraConfig
 from mani_skill.utils import sapien_utils
 from mani_skill.utils.building import actors
-from mani_skill.utils.registration import register_env
+from mani_skill.utils.registration import make, register_env
 from mani_skill.utils.scene_builder.table import TableSceneBuilder
 from mani_skill.utils.structs.pose import Pose
 
@@ -52,6 +58,15 @@ def yaw_of_quat(q: torch.Tensor) -> torch.Tensor:
 def wrap_quarter(angle: torch.Tensor) -> torch.Tensor:
     """Wrap an angle to [-π/4, π/4): the yaw error of a square, which looks the same every 90°."""
     return torch.remainder(angle + np.pi / 4, np.pi / 2) - np.pi / 4
+
+
+def make_env(**kwargs: Any) -> BaseEnv:
+    """The entry point of the lazy gymnasium registration made by ``import wamplan.envs`` (by the time it
+    runs, importing this module has put ManiSkill's own registration in its place)."""
+    return make(ENV_ID, **kwargs)
+
+
+gym.registry.pop(ENV_ID, None)  # the lazy placeholder from wamplan.envs: ManiSkill's registration replaces it
 
 
 @register_env(ENV_ID, max_episode_steps=MAX_EPISODE_STEPS)
@@ -159,10 +174,21 @@ class CubeInsertionEnv(BaseEnv):
         return dict(success=seated, grasped=grasped, lifted=lifted, aligned=aligned, descended=descended,
                     seated=seated, cube_xy_error=xy_err, cube_yaw_error=yaw_err)
 
+    def proprio(self) -> torch.Tensor:
+        """(B, 10) float32: gripper width, TCP xyz, first two columns of the TCP rotation matrix."""
+        qpos = self.agent.robot.get_qpos()  # (B, 9)
+        pose = self.agent.tcp_pose
+        rot = pose.to_transformation_matrix()[:, :3, :3]  # (B, 3, 3)
+        six = rot[:, :, :2].transpose(1, 2).reshape(-1, 6)  # (B, 6): column 0, then column 1
+        return torch.cat([(qpos[:, -2] + qpos[:, -1])[:, None], pose.p, six], dim=1)  # (B, 10)
+
     def _get_obs_extra(self, info: dict):
-        return dict(tcp_pose=self.agent.tcp_pose.raw_pose, cube_pose=self.cube.pose.raw_pose,
-                    hole_pos=torch.cat([self.hole_xy, torch.tensor([self.mount_height], device=self.device)])[None]
-                    .expand(self.num_envs, 3))
+        hole = torch.cat([self.hole_xy, torch.tensor([self.mount_height], device=self.device)])  # (3,)
+        extra = dict(proprio=self.proprio(), tcp_pose=self.agent.tcp_pose.raw_pose,
+                     hole_pos=hole[None].expand(self.num_envs, 3))
+        if self.obs_mode_struct.use_state:  # privileged: only in the state modes, as in ManiSkill's tasks
+            extra["cube_pose"] = self.cube.pose.raw_pose
+        return extra
 
     def compute_dense_reward(self, obs: Any, action: torch.Tensor, info: dict):
         # Planning in wamplan uses no reward; a simple shaped one keeps ManiSkill's RL tooling usable.

@@ -17,8 +17,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     serve = sub.add_parser("serve", help="serve a WAM checkpoint at http://HOST:PORT/act (Cosmos Policy protocol)")
     serve.add_argument("--ckpt", required=True, help="WAM checkpoint directory (model.safetensors + config.json)")
-    serve.add_argument("--host", default="127.0.0.1", help="address to listen on (default: 127.0.0.1)")
+    serve.add_argument("--host", default="127.0.0.1",
+                       help="address to listen on (default: 127.0.0.1, this machine only; 0.0.0.0: every interface)")
     serve.add_argument("--port", type=int, default=8777, help="port to listen on (default: 8777)")
+    serve.add_argument("--secret", default=None,
+                       help="shared secret every /act request must carry in the X-WAMplan-Secret header (or "
+                            "Authorization: Bearer); default: $WAMPLAN_ACT_SECRET, none if unset. Prefer the "
+                            "variable: a command line is visible to other users of the machine")
+    serve.add_argument("--max-request-mb", type=float, default=16.0,
+                       help="refuse /act bodies larger than this with HTTP 413 (default: 16 MiB)")
     serve.add_argument("--instruction", default=None,
                        help="instruction used when a request's task_description is empty "
                             "(default: the WAM's own default instruction)")
@@ -56,16 +63,24 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _serve(args: argparse.Namespace) -> int:
+    import os
+
     if not 0 < args.port < 65536:
         raise UserError(f"--port must be in 1..65535, got {args.port}")
+    if not args.max_request_mb > 0:
+        raise UserError(f"--max-request-mb must be > 0, got {args.max_request_mb}")
+    from wamplan.wam import protocol
     from wamplan.wam.base import load_wam
 
+    secret = args.secret if args.secret is not None else os.environ.get(protocol.SECRET_ENV) or None
     wam = load_wam(args.ckpt)
     from wamplan.wam.server import serve
 
-    print(f"serving WAM '{wam.name}' from {args.ckpt} at http://{args.host}:{args.port}/act", flush=True)
+    print(f"serving WAM '{wam.name}' from {args.ckpt} at http://{args.host}:{args.port}/act "
+          f"({'shared secret required' if secret else 'no shared secret'}; health: /health)", flush=True)
     try:
-        serve(wam, host=args.host, port=args.port, instruction_default=args.instruction, log_level=args.log_level)
+        serve(wam, host=args.host, port=args.port, instruction_default=args.instruction, log_level=args.log_level,
+              secret=secret, max_request_bytes=int(args.max_request_mb * 2**20))
     finally:
         wam.close()
     return 0

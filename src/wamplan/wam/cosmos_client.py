@@ -9,7 +9,9 @@ views back to wamplan cameras. Every failure (server down, timeout, HTTP error, 
 a malformed or non-finite answer) raises :class:`WAMServerError` with one line naming the fix.
 
 CLI flags: ``wamplan.config.add_arguments(parser, CosmosClientConfig, prefix="wam_")`` gives
-``--wam-url``, ``--wam-timeout-s``, ...; error messages name those flags.
+``--wam-url``, ``--wam-timeout-s``, ...; error messages name those flags. A server's shared secret is not a
+config field (configs are recorded with results): pass ``secret=`` or set ``$WAMPLAN_ACT_SECRET``; it goes in
+the ``X-WAMplan-Secret`` header.
 
 Named profiles (``PROFILES``, ``--wam-profile NAME``) hold the field mapping and sizes of a kind of server,
 so that nobody has to spell field names:
@@ -26,6 +28,7 @@ so that nobody has to spell field names:
 from __future__ import annotations
 
 import dataclasses
+import os
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -176,10 +179,11 @@ def _short_reason(e: requests.exceptions.ConnectionError, connect_timeout_s: flo
 @register_wam("cosmos")
 class CosmosPolicyClient(WAM):
     """A WAM served over the Cosmos Policy /act protocol. ``profile`` (a name in ``PROFILES``) gives the
-    config when none is passed; ``overrides`` replace config fields."""
+    config when none is passed; ``overrides`` replace config fields; ``secret`` (default:
+    ``$WAMPLAN_ACT_SECRET``) is sent with every request when set."""
 
     def __init__(self, config: CosmosClientConfig | None = None, *, profile: str = "", session: Any = None,
-                 **overrides: Any):
+                 secret: str | None = None, **overrides: Any):
         require(config is None or not profile, "CosmosPolicyClient: pass a config or a profile, not both")
         base = config if config is not None else profile_config(profile)
         if overrides:
@@ -199,6 +203,8 @@ class CosmosPolicyClient(WAM):
             # A proxy from the environment must not capture a server on this machine.
             session.trust_env = urlparse(base.url).hostname not in ("127.0.0.1", "localhost", "::1")
         self._session = session
+        secret = secret if secret is not None else os.environ.get(protocol.SECRET_ENV)
+        self._headers = {**protocol.JSON_HEADERS, **({protocol.SECRET_HEADER: secret} if secret else {})}
         self.attempts_made = 0  # HTTP attempts of the last query (diagnostics, tests)
 
     @property
@@ -243,7 +249,7 @@ class CosmosPolicyClient(WAM):
         for attempt in range(attempts):
             self.attempts_made = attempt + 1
             try:
-                return self._session.post(cfg.url, data=body, headers=protocol.JSON_HEADERS,
+                return self._session.post(cfg.url, data=body, headers=self._headers,
                                           timeout=(cfg.connect_timeout_s, cfg.timeout_s))
             except requests.exceptions.ConnectionError as e:  # refused, reset, connect timeout: retry
                 reason = _short_reason(e, cfg.connect_timeout_s)
@@ -263,6 +269,12 @@ class CosmosPolicyClient(WAM):
         if resp.status_code == 404:
             raise WAMServerError(f"{self._where} has no such route (HTTP 404); Cosmos Policy serves POST "
                                  f"{protocol.ROUTE}: check {_flag('url')}")
+        if resp.status_code == 401:
+            raise WAMServerError(f"{self._where} refused the request (HTTP 401: wrong or missing shared secret); "
+                                 f"set ${protocol.SECRET_ENV} to the secret the server was started with")
+        if resp.status_code == 413:
+            raise WAMServerError(f"{self._where} refused the request as too large (HTTP 413); send smaller "
+                                 f"images with {_flag('send_image_size')} or raise the server's --max-request-mb")
         if resp.status_code != 200:
             raise WAMServerError(f"{self._where} answered HTTP {resp.status_code} ({resp.text[:120]!r}); "
                                  f"check the server's log and {_flag('url')}")

@@ -14,6 +14,10 @@ It follows NVlabs/cosmos-policy ``cosmos_policy/experiments/robot/aloha/deploy.p
   The answer may itself be double-encoded (a JSON string holding the json_numpy text).
 * On any failure the server answers the JSON string ``"error"`` with HTTP 200; there is no health route.
 
+wamplan's own server adds what a real deployment needs, outside the protocol: an optional shared secret
+(``SECRET_HEADER``, or ``Authorization: Bearer``; the client reads it from ``SECRET_ENV``), a request size
+limit (HTTP 413) and ``GET /health``; those refusals are HTTP 401 / 413 with a one-line ``{"error": ...}``.
+
 Decoders raise :class:`ProtocolError` (malformed message) or :class:`ErrorReply` (the ``"error"`` answer);
 callers turn those into errors for people, naming the server.
 """
@@ -39,6 +43,10 @@ RESPONSE_IMAGE_FIELDS = ("future_image", "future_wrist_image", "future_wrist_ima
 KNOWN_RESPONSE_IMAGE_FIELDS = RESPONSE_IMAGE_FIELDS + ("future_image2",)
 ERROR_REPLY = "error"
 JSON_HEADERS = {"Content-Type": "application/json"}
+HEALTH_ROUTE = "/health"
+SECRET_HEADER = "X-WAMplan-Secret"
+SECRET_ENV = "WAMPLAN_ACT_SECRET"  # the shared secret, for `wamplan wam serve` and the client alike
+DEFAULT_MAX_REQUEST_BYTES = 16 * 2**20  # three 224-px views in json_numpy take ~0.6 MB
 
 
 class ProtocolError(ValueError):

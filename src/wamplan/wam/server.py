@@ -1,10 +1,16 @@
 """Serve any WAM over the Cosmos Policy ``/act`` protocol (``wamplan wam serve``).
 
-The server behaves like Cosmos Policy's ``deploy.py``: ``POST /act`` only, json_numpy bodies, and on any
+The server behaves like Cosmos Policy's ``deploy.py``: ``POST /act``, json_numpy bodies, and on any
 failure the JSON string ``"error"`` with HTTP 200 (the traceback goes to the server's log). So
-:class:`~wamplan.wam.cosmos_client.CosmosPolicyClient` talks to either one unchanged.
+:class:`~wamplan.wam.cosmos_client.CosmosPolicyClient` talks to either one unchanged. For real use it adds:
 
-    app = create_app(wam)                      # a FastAPI app
+* it listens on 127.0.0.1 unless told otherwise;
+* an optional shared secret: with one, ``/act`` needs it in the ``X-WAMplan-Secret`` header (or
+  ``Authorization: Bearer <secret>``) and answers HTTP 401 with a one-line JSON error without it;
+* a request size limit: a larger body is refused with HTTP 413 before it is read;
+* ``GET /health`` (no secret needed): ``{"ok": true, "wam": ..., "chunk_length": ..., "cameras": [...]}``.
+
+    app = create_app(wam, secret="s3cret")     # a FastAPI app
     serve(wam, host="127.0.0.1", port=8777)    # blocking, uvicorn
     with BackgroundServer(create_app(wam)) as srv:   # in-process, on a free loopback port
         client = CosmosPolicyClient(url=srv.act_url)
@@ -12,6 +18,8 @@ failure the JSON string ``"error"`` with HTTP 200 (the traceback goes to the ser
 
 from __future__ import annotations
 
+import hmac
+import ipaddress
 import logging
 import socket
 import threading
@@ -20,7 +28,7 @@ import time
 import uvicorn
 from fastapi import FastAPI, Request
 from fastapi.concurrency import run_in_threadpool
-from fastapi.responses import Response
+from fastapi.responses import JSONResponse, Response
 
 from wamplan.envs.contract import Observation
 from wamplan.errors import UserError
@@ -29,19 +37,55 @@ from wamplan.wam.base import WAM
 
 log = logging.getLogger(__name__)
 
+DEFAULT_HOST = "127.0.0.1"  # loopback: other machines reach the server only when --host says so
+
 # request field -> wamplan camera, and wamplan camera -> response field (the client's defaults).
 DEFAULT_REQUEST_MAP = {"primary_image": "front", "left_wrist_image": "side", "right_wrist_image": "wrist"}
 DEFAULT_RESPONSE_MAP = {"front": "future_image", "side": "future_wrist_image", "wrist": "future_wrist_image2"}
 
 
+class _Refused(Exception):
+    def __init__(self, status: int, message: str):
+        super().__init__(message)
+        self.status, self.message = status, message
+
+
+def _presented_secret(request: Request) -> str | None:
+    given = request.headers.get(protocol.SECRET_HEADER)
+    if given is None:
+        scheme, _, token = request.headers.get("authorization", "").partition(" ")
+        given = token.strip() if scheme.lower() == "bearer" else None
+    return given
+
+
+async def _read_body(request: Request, limit: int) -> bytes:
+    """The request body, or _Refused(413) as soon as it is known to pass ``limit`` bytes."""
+    too_big = f"request body over the server's limit of {limit} bytes; send smaller images " \
+              f"(--wam-send-image-size) or restart the server with a larger --max-request-mb"
+    declared = request.headers.get("content-length")
+    if declared is not None and declared.isdigit() and int(declared) > limit:
+        raise _Refused(413, too_big.replace("request body", f"request body of {int(declared)} bytes", 1))
+    body = bytearray()
+    async for chunk in request.stream():  # also bounds bodies sent without a Content-Length
+        body += chunk
+        if len(body) > limit:
+            raise _Refused(413, too_big)
+    return bytes(body)
+
+
 def create_app(wam: WAM, instruction_default: str | None = None, request_map: dict[str, str] | None = None,
-               response_map: dict[str, str] | None = None) -> FastAPI:
-    """A FastAPI app answering ``POST /act`` with ``wam``'s predictions.
+               response_map: dict[str, str] | None = None, secret: str | None = None,
+               max_request_bytes: int = protocol.DEFAULT_MAX_REQUEST_BYTES) -> FastAPI:
+    """A FastAPI app answering ``POST /act`` with ``wam``'s predictions, and ``GET /health``.
 
     ``instruction_default`` (default: the WAM's ``default_instruction``) is used when a request's
-    ``task_description`` is empty. Queries are serialised
-    (one at a time), since a WAM may keep state and hold a single model.
+    ``task_description`` is empty. ``secret`` (None or empty: none) must come with every ``/act`` request;
+    bodies over ``max_request_bytes`` are refused (413). Queries are serialised (one at a time), since a WAM
+    may keep state and hold a single model.
     """
+    if max_request_bytes < 1:
+        raise UserError(f"the request size limit must be >= 1 byte, got {max_request_bytes}")
+    secret = secret or None
     request_map = dict(request_map or DEFAULT_REQUEST_MAP)
     response_map = dict(response_map or DEFAULT_RESPONSE_MAP)
     bad = sorted(set(request_map) - {f for fs in protocol.REQUEST_IMAGE_FIELD_SETS for f in fs})
@@ -70,10 +114,23 @@ def create_app(wam: WAM, instruction_default: str | None = None, request_map: di
         return protocol.encode_response(protocol.ActResponse(actions=out.actions, future_images=future,
                                                              value=out.value))
 
+    @app.get(protocol.HEALTH_ROUTE)
+    async def health() -> dict:
+        return {"ok": True, "wam": wam.name, "chunk_length": int(wam.chunk_length), "cameras": list(wam.cameras)}
+
     @app.post(protocol.ROUTE)
     async def act(request: Request) -> Response:
         try:
-            body = await request.body()
+            if secret is not None:
+                given = _presented_secret(request)
+                if given is None or not hmac.compare_digest(given.encode(), secret.encode()):
+                    raise _Refused(401, f"missing or wrong shared secret: send it in the {protocol.SECRET_HEADER} "
+                                        f"header (the wamplan client reads ${protocol.SECRET_ENV})")
+            body = await _read_body(request, max_request_bytes)
+        except _Refused as r:
+            log.warning("/act refused (HTTP %d): %s", r.status, r.message)
+            return JSONResponse({"error": r.message}, status_code=r.status)
+        try:
             content = await run_in_threadpool(handle, body)
         except Exception:  # any failure answers "error" (HTTP 200), exactly like Cosmos Policy
             log.exception("/act failed; answering \"error\"")
@@ -97,18 +154,32 @@ def bind_socket(host: str, port: int) -> socket.socket:
     return sock
 
 
-def serve(wam: WAM, host: str = "127.0.0.1", port: int = protocol.DEFAULT_PORT,
-          instruction_default: str | None = None, log_level: str = "info") -> None:
+def is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def serve(wam: WAM, host: str = DEFAULT_HOST, port: int = protocol.DEFAULT_PORT,
+          instruction_default: str | None = None, log_level: str = "info", secret: str | None = None,
+          max_request_bytes: int = protocol.DEFAULT_MAX_REQUEST_BYTES) -> None:
     """Serve ``wam`` until interrupted (blocking)."""
+    app = create_app(wam, instruction_default, secret=secret, max_request_bytes=max_request_bytes)
+    if not is_loopback(host) and not secret:
+        log.warning("listening on %s without a shared secret: anyone who reaches this port can query the WAM; "
+                    "set $%s (or --secret)", host, protocol.SECRET_ENV)
     sock = bind_socket(host, port)
-    config = uvicorn.Config(create_app(wam, instruction_default), log_level=log_level)
+    config = uvicorn.Config(app, log_level=log_level)
     uvicorn.Server(config).run(sockets=[sock])
 
 
 class BackgroundServer:
     """Run an app with uvicorn in a daemon thread on ``host:port`` (port 0: a free one); stop() ends it."""
 
-    def __init__(self, app: FastAPI, host: str = "127.0.0.1", port: int = 0, log_level: str = "warning"):
+    def __init__(self, app: FastAPI, host: str = DEFAULT_HOST, port: int = 0, log_level: str = "warning"):
         self.host = host
         self._sock = bind_socket(host, port)
         self.port = int(self._sock.getsockname()[1])
@@ -124,6 +195,10 @@ class BackgroundServer:
     @property
     def act_url(self) -> str:
         return self.url + protocol.ROUTE
+
+    @property
+    def health_url(self) -> str:
+        return self.url + protocol.HEALTH_ROUTE
 
     def start(self, timeout_s: float = 10.0) -> BackgroundServer:
         self._thread.start()
