@@ -277,3 +277,26 @@ def test_planned_policy_on_cuda(small_env, encoder):
     r = run_episode(small_env, pol, seed=0, max_steps=33)
     assert [c["planned"] for c in r.policy_info["chunks"]] == [False, True, True]
     assert {d.type for pair in cost.devices for d in pair} == {"cuda"}
+
+
+def test_search_tensors_follow_the_dynamics_device(small_env, encoder):
+    """The world model on another device than the encoder and the env (here torch's shape-only 'meta' device, which
+    exists on every machine): the target, the history and the candidates the cost compares all live on the
+    dynamics' device. Before, the target stayed on the CPU and the cost failed on a GPU."""
+    meta = torch.device("meta")
+    pol = PlannedPolicy(EchoWAM(), _cem(4, 1), LearnedDynamics(_predictor(encoder).to(meta)), encoder,
+                        make_cost("patch"))
+    assert pol.device == meta
+    obs = small_env.reset(0, with_images=True)
+    pol.reset(0)
+    for t in range(16):
+        obs, _ = small_env.step(pol.act(obs), with_images=pol.wants_images(t + 1))
+    target = pol._encode(obs.images)  # (V, N, D): the frame at 16 is also the chunk's current frame
+    assert target.device == meta and all(z.device == q.device == meta for z, q in pol._frames.values())
+    pol._frames[16] = (target, torch.as_tensor(obs.proprio, device=meta))  # what act(obs) stores before planning
+    ctx = pol._context(16)
+    assert {ctx.z.device, ctx.q.device, ctx.a.device} == {meta}
+    pol.dynamics.prepare(ctx)
+    cands = torch.zeros(4, 16, 5, device=meta)
+    cost = pol.cost(pol.dynamics.terminal(cands), target)  # would raise if the two sat on different devices
+    assert cost.shape == (4,) and cost.device == meta
