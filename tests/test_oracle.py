@@ -130,3 +130,21 @@ def test_oracle_target_phase_fits_the_state_in_a_wam_driven_episode(env):
     run_episode(env, WAMPolicy(wam), seed=7, on_obs=check, max_steps=160)
     assert len(seen) >= 8 and all(fits for _, _, fits in seen), seen
     assert len({p for _, p, _ in seen}) >= 2, seen  # the episode went through more than one phase
+
+
+def test_a_held_cube_is_lifted_not_closed_on_again(env):
+    """The fingers press the cube at the grasp point and a planner held the arm still instead of lifting: the
+    state says 'lift', so the oracle lifts at once. (Reading it as 'still closing' restarted the closing count at
+    every chunk boundary, and a planner that kept cutting the lift short never lifted the cube.)"""
+    live = ExpertPolicy()
+    obs = env.reset(3)
+    while live.phase != "lift":
+        obs, _ = env.step(live.act(obs))
+    hold = np.array([0, 0, 0, 0, -1], np.float32)  # still, gripper closed
+    for _ in range(16):
+        obs, _ = env.step(hold)
+    assert obs.state["stages"][0] and not obs.state["stages"][1]  # grasped, not lifted
+    assert live.phase_for(obs) == "lift"
+    out = ExpertOracleWAM(env, image_size=16).predict(obs, "")
+    assert out.extras["start_phase"] == "lift"
+    assert (out.actions[:, 4] == -1).all() and (out.actions[:4, 2] > 0).all()  # keeps holding, rises at once

@@ -98,8 +98,8 @@ class ExpertPolicy(Policy):
         grasp_point = np.array([cube[0], cube[1], cube[2] + c.grasp_height])
         at_grasp = np.linalg.norm(grasp_point[:2] - tcp[:2]) < 0.004 and abs(tcp[2] - grasp_point[2]) < 0.004
         open_width = 0.075  # the Panda's fingers open to 0.08 m; below this they are closing or closed
-        if at_grasp and not lifted and float(obs.proprio[0]) < open_width:
-            return "close"  # closing on the cube that still stands on the table
+        if at_grasp and not lifted and not grasped and float(obs.proprio[0]) < open_width:
+            return "close"  # closing on the cube that still stands on the table (held: lift it)
         if grasped:
             z_goal = hole[2] + c.carry_clearance + h + c.grasp_height  # carrying height of the TCP
             if xy_hole < 2 * c.align_tol and tcp[2] < z_goal - 0.005:
@@ -112,10 +112,14 @@ class ExpertPolicy(Policy):
             return "descend"
         return "approach"
 
+    # (current, read from the state) pairs where the current phase still fits: the fingers already press the
+    # cube while the expert finishes its closing count
+    _STILL_FITS = {("close", "lift")}
+
     def sync_to(self, obs: Observation) -> None:
         """Continue from the phase that fits ``obs`` (counters restart; a phase that already fits is kept)."""
         phase = self.phase_for(obs)
-        if phase != self.phase:
+        if phase != self.phase and (self.phase, phase) not in self._STILL_FITS:
             self._set(phase)
 
     def _set(self, phase: str) -> None:
