@@ -159,3 +159,15 @@ def test_disagreement_weight_needs_an_ensemble(encoder):
         _policy(encoder, disagreement_weight=1.0)
     with pytest.raises(ValueError, match="warm_start"):
         PlannedPolicyConfig(warm_start="shift")
+
+
+def test_gate_calibration_reads_seed_costs(tmp_path):
+    from wamplan.evaluation.gate import gate_table, planned_fraction
+    from wamplan.evaluation.records import append_record
+
+    for seed, costs in enumerate([[1.0, 2.0], [3.0, 4.0]]):
+        append_record(tmp_path, dict(condition=7, seed=seed, variant="open-loop", planned_chunks=len(costs),
+                                     open_loop_chunks={"first-chunk": 1, "gated": 1},
+                                     chunks=[dict(planned=True, seed_cost=c) for c in costs]))
+    table = gate_table(tmp_path, (0.5,))
+    assert table == {7: dict(chunks=4, planned_fraction=4 / 8, quantiles={0.5: 2.5})}
