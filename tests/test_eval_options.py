@@ -51,7 +51,7 @@ def test_a_registered_planner_appears_in_eval_with_its_options(toy_planner, caps
     with pytest.raises(SystemExit):
         build_parser().parse_args(["eval", "--help"])
     out = capsys.readouterr().out
-    assert "--planner {cem,mppi,toy}" in out and "--shift SHIFT" in out and "[toy]" in out
+    assert "--planner {cem,cem-gripper,mppi,toy}" in out and "--shift SHIFT" in out and "[toy]" in out
     assert "--toy-temperature" in out and "--mppi-temperature" in out  # the clash is spelled per planner
     with pytest.raises(ConfigError, match="shift must be >= 0"):
         _cfg("--planner", "toy", "--shift", "-1")
@@ -76,7 +76,7 @@ def test_an_option_of_another_planner_is_refused_in_one_line(capsys):
     with pytest.raises(UserError, match=r"--temperature is an option of planner\(s\) \['mppi'\], not of 'cem'"):
         _cfg("--temperature", "0.3")
     assert main(["eval", "--out", "x", "--planner", "mppi", "--num-elites", "4", "--wam", "w"]) == 2
-    assert "--num-elites is an option of planner(s) ['cem'], not of 'mppi'" in capsys.readouterr().err
+    assert "--num-elites is an option of planner(s) ['cem', 'cem-gripper'], not of 'mppi'" in capsys.readouterr().err
     with pytest.raises(UserError, match="unknown planner 'nope'"):
         EvalConfig(planner="nope")
     with pytest.raises(ConfigError, match="needs a MPPIConfig"):

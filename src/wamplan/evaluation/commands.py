@@ -32,6 +32,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="episodes for the simulator conditions 2-5 (default: the preset's; 0 skips them)")
     p.set_defaults(func=cmd_reproduce)
 
+    p = sub.add_parser("gate-calibrate", help="seed-cost quantiles of an always-planning evaluation, to choose "
+                       "--gate-threshold on held-out episodes")
+    p.add_argument("dir", type=Path)
+    p.add_argument("--quantiles", type=float, nargs="+", default=[0.1, 0.25, 0.4, 0.5, 0.6, 0.75, 0.9])
+    p.set_defaults(func=cmd_gate_calibrate)
+
     p = sub.add_parser("report", help="Table 1, Figure 3 (and Table 2, timings) from an evaluation directory")
     p.add_argument("dir", type=Path)
     p.set_defaults(func=cmd_report)
@@ -76,6 +82,20 @@ def cmd_report(args: argparse.Namespace) -> int:
     paths = write_report(args.dir)
     print((args.dir / "table1.md").read_text())
     print("wrote " + ", ".join(str(p) for p in paths.values()))
+    return 0
+
+
+def cmd_gate_calibrate(args: argparse.Namespace) -> int:
+    from wamplan.errors import UserError
+    from wamplan.evaluation.gate import gate_table
+
+    table = gate_table(args.dir, tuple(args.quantiles))
+    if not table:
+        raise UserError(f"{args.dir} holds no planned chunks with a seed_cost; run `wamplan eval` there first")
+    for c, row in table.items():
+        print(f"condition {c}: {row['chunks']} planned chunks, fraction planned {row['planned_fraction']:.2f}")
+        for q, v in row["quantiles"].items():
+            print(f"  --gate-threshold {v:.6g}  skips ~{q:.0%} of these chunks")
     return 0
 
 

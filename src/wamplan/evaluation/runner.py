@@ -41,7 +41,8 @@ class EvalConfig:
     wam_profile: str = field("", "with --wam-url: the server's field mapping and sizes by name "
                              "(cosmos-robocasa, cosmos-aloha); empty: the client's defaults")
     wm_plain: str = field("", "plain world model checkpoint (condition 6)")
-    wm_augmented: str = field("", "augmented world model checkpoint (condition 7)")
+    wm_augmented: str = field("", "augmented world model checkpoint (condition 7); several comma-separated "
+                              "checkpoints form an ensemble (see --disagreement-weight); the same for --wm-plain")
     sim_encoder: str = field("", "encoder for the simulator conditions (default: the plain world model's)")
     device: str = field("auto", "torch device for the models")
     planner: str = field("cem", "planner by registry name (wamplan.planning.PLANNERS)", cli=False)
@@ -79,8 +80,9 @@ class EvalConfig:
                 attr, flag = need[CONDITIONS[c].dynamics]
                 if not getattr(self, attr):
                     raise UserError(f"condition {c} needs {flag} CKPT (a world model from `wamplan wm train`)")
-                if not Path(getattr(self, attr)).exists():
-                    raise UserError(f"{flag} {getattr(self, attr)} does not exist; train it or fix the path")
+                for path in getattr(self, attr).split(","):
+                    if not Path(path).exists():
+                        raise UserError(f"{flag} {path} does not exist; train it or fix the path")
         if self.wam and not Path(self.wam).exists():
             raise UserError(f"--wam {self.wam} does not exist; train one with `wamplan wam train` or fix the path")
 
@@ -117,14 +119,14 @@ class EvalWorker:
         if self.cfg.sim_encoder:
             return make_encoder(self.cfg.sim_encoder).to(resolve_device(self.cfg.device))
         if self.cfg.wm_plain or self.cfg.wm_augmented:
-            return self._world_model(self.cfg.wm_plain or self.cfg.wm_augmented)[1]
+            return self._world_model((self.cfg.wm_plain or self.cfg.wm_augmented).split(",")[0])[1]
         return make_encoder("patch-pixels").to(resolve_device(self.cfg.device))
 
     def policy(self, cid: int):
         if cid in self._policies:
             return self._policies[cid]
         from wamplan.planning import make_planner
-        from wamplan.planning.dynamics import LearnedDynamics, SimulatorDynamics
+        from wamplan.planning.dynamics import SimulatorDynamics, learned_dynamics
         from wamplan.planning.policy import PlannedPolicy
         from wamplan.wam import WAMPolicy
         from wamplan.wam.oracle import ExpertOracleWAM
@@ -137,8 +139,8 @@ class EvalWorker:
                 enc = self._sim_encoder()
                 dyn = SimulatorDynamics(self.env, enc)
             else:
-                model, enc = self._world_model(cfg.wm_plain if c.dynamics == "learned-plain" else cfg.wm_augmented)
-                dyn = LearnedDynamics(model)
+                paths = (cfg.wm_plain if c.dynamics == "learned-plain" else cfg.wm_augmented).split(",")
+                dyn, enc = learned_dynamics([self._world_model(p) for p in paths])  # several: an ensemble
             oracle = ExpertOracleWAM(self.env) if "expert" in (c.seed, c.target) else None
             seed_wam = oracle if c.seed == "expert" else self.wam
             target_wam = oracle if c.target == "expert" else self.wam

@@ -213,7 +213,8 @@ def _score(objective: Objective, cand: Tensor) -> Tensor:
     return costs.to(device=cand.device, dtype=torch.float32)
 
 
-PLANNERS = Registry("planner", set_name=True, modules=("wamplan.planning.cem", "wamplan.planning.mppi"))
+PLANNERS = Registry("planner", set_name=True, modules=("wamplan.planning.cem", "wamplan.planning.mppi",
+                                                          "wamplan.planning.cem_gripper"))
 register_planner = PLANNERS.register  # class decorator: make a planner constructible by name
 
 

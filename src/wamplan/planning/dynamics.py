@@ -8,6 +8,10 @@ actions the backend's rollout covers (``covered``): Δ·⌊H/Δ⌋ for the learn
 * :class:`LearnedDynamics` rolls all candidates of an iteration out in one batched, KV-cached forward
   of the predictor; the context frames before the current one are encoded once per chunk (batch 1) and
   shared by every candidate and every CEM iteration.
+* :class:`EnsembleDynamics` holds several learned world models (checkpoints, or seeds of one recipe): it
+  predicts their mean and, through ``predict``, their disagreement, the variance across members averaged
+  over views, patches and dims (the units of the patch cost), which the planned policy adds to the cost
+  with a weight so the search avoids actions the members disagree about.
 * :class:`SimulatorDynamics` (the oracle) hands all candidates to ``InsertionEnv.simulate`` (restore the
   chunk-boundary snapshot once, controller and physics only, render the terminal views with frustum
   culling), encodes the views, and restores the snapshot afterwards, so that the chosen plan executes
@@ -61,6 +65,12 @@ class Dynamics(abc.ABC):
     @abc.abstractmethod
     def terminal(self, actions: torch.Tensor) -> torch.Tensor:
         """actions (B, L, A) -> predicted terminal embeddings (B, V, N, D)."""
+
+    def predict(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """actions (B, L, A) -> (terminal embeddings (B, V, N, D), disagreement (B,)). One model has no
+        members to disagree: its disagreement is 0 (:class:`EnsembleDynamics` overrides this)."""
+        z = self.terminal(actions)  # (B, V, N, D)
+        return z, torch.zeros(z.shape[0], device=z.device)
 
 
 class LearnedDynamics(Dynamics):
@@ -129,3 +139,58 @@ class SimulatorDynamics(Dynamics):
         b, nv = imgs.shape[:2]
         z = self.encoder.encode(imgs.flatten(0, 1).to(self.encoder.device))  # (B·V, N, D)
         return z.reshape(b, nv, *z.shape[1:])  # (B, V, N, D)
+
+
+class EnsembleDynamics(Dynamics):
+    """Several learned world models as one backend: the mean prediction, and the members' disagreement.
+
+    The members run one after another, each rolling out all B candidates in one batched forward (stacking
+    the members' weights into one vmapped forward is left for when members are many or large).
+    """
+
+    def __init__(self, members: list[Dynamics]):
+        if len(members) < 1:
+            raise ValueError("an ensemble needs at least one member; pass a list of LearnedDynamics")
+        for attr in ("frameskip", "context"):
+            vals = {getattr(m, attr, None) for m in members}
+            if len(vals) > 1:
+                raise ValueError(f"ensemble members differ in {attr} {sorted(vals, key=str)}; use world models "
+                                 f"trained with the same {attr}")
+        self.members = list(members)
+        self.needs_history = any(m.needs_history for m in members)
+        self.frameskip = getattr(members[0], "frameskip", None)
+        self.context = getattr(members[0], "context", 1)
+
+    @property
+    def device(self) -> torch.device:
+        return self.members[0].device
+
+    def covered(self, chunk: int) -> int:
+        return min(m.covered(chunk) for m in self.members)
+
+    def prepare(self, context: PlanningContext | None) -> None:
+        for m in self.members:
+            m.prepare(context)
+
+    def members_terminal(self, actions: torch.Tensor) -> torch.Tensor:
+        """actions (B, L, A) -> every member's terminal embeddings (M, B, V, N, D)."""
+        return torch.stack([m.terminal(actions).float().to(self.device) for m in self.members])
+
+    def terminal(self, actions: torch.Tensor) -> torch.Tensor:
+        return self.members_terminal(actions).mean(dim=0)  # (B, V, N, D)
+
+    def predict(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        z = self.members_terminal(actions)  # (M, B, V, N, D)
+        spread = z.var(dim=0, correction=0).flatten(1).mean(dim=1)  # (B,) population variance, pooled
+        return z.mean(dim=0), spread
+
+
+def learned_dynamics(models: list[tuple]) -> tuple[Dynamics, object]:
+    """(dynamics, encoder) for loaded world models [(predictor, encoder), ...]: one model's LearnedDynamics,
+    or an EnsembleDynamics of several. The members must share one encoder configuration (the target and
+    the history are encoded once, with the first member's encoder)."""
+    encs = [enc.config_dict() for _, enc in models]
+    if any(e != encs[0] for e in encs[1:]):
+        raise ValueError(f"ensemble members use different encoders {encs}; train them on one encoder")
+    dyns = [LearnedDynamics(model) for model, _ in models]
+    return (dyns[0] if len(dyns) == 1 else EnsembleDynamics(dyns)), models[0][1]

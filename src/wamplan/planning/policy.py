@@ -13,8 +13,15 @@ Chunk rules, the same for every dynamics backend:
   the frames at t-(H_ctx-1)Δ, ..., t-Δ, t with the actions executed between them, whether or not Δ divides
   the chunk (paper Δ=5, H=16: frames t-10, t-5, t). ``wants_images`` asks for exactly those frames;
 * a boundary whose history reaches before step 0 (only when (H_ctx-1)Δ exceeds the chunk) runs open loop
-  and is counted in ``info()["open_loop_chunks"]``; a history frame that should exist but was never
+  and is counted in ``info()["open_loop_chunks"]``; so is a chunk the gate skipped (``gate_threshold``: the
+  WAM's chunk, scored through the planning objective, is already close enough to its target), as "gated";
+  a history frame that should exist but was never
   shown to the policy is a :class:`PlanningError`, never a silent open-loop chunk.
+
+Warm start (``warm_start="residual"``): a plan covers at most the chunk it refines and the whole chunk is
+executed, so "the previous plan shifted by H" is always empty here; what can carry over is the previous
+chunk's correction (plan minus the WAM's chunk, step by step), added with ``warm_weight`` to the WAM's new
+chunk on the arm dimensions, on the bet that the WAM's error persists from one chunk to the next.
 
 Devices: the target embedding, the seed chunk and every candidate live on ``dynamics.device``.
 """
@@ -33,19 +40,36 @@ from wamplan.envs.contract import CAMERAS, Observation
 from wamplan.errors import UserError
 from wamplan.planning.base import Planner
 from wamplan.planning.costs import CostFn
-from wamplan.planning.dynamics import Dynamics, PlanningContext
+from wamplan.planning.dynamics import Dynamics, LearnedDynamics, PlanningContext
 from wamplan.policies.base import Policy
 from wamplan.wam.base import WAM, WAMOutput
+
+
+WARM_STARTS = ("none", "residual")
 
 
 @dataclass(frozen=True)
 class PlannedPolicyConfig:
     first_chunk: str = field("open-loop", "open-loop (paper) or rest-history: plan chunk 1 from a synthesised history")
     plan_seed: int = field(0, "base seed of the planner's sampling (plus the chunk index)")
+    gate_threshold: float | None = field(
+        None, "gated planning: execute the WAM's chunk without a search when its cost (the seed scored through "
+        "the planning objective) is at most this; None = plan every chunk. Calibrate it with "
+        "`wamplan gate-calibrate EVAL_DIR` on held-out episodes")
+    warm_start: str = field(
+        "none", "initial search mean: none (the WAM's chunk, the paper) or residual (the WAM's chunk plus "
+        "warm_weight times the previous planned chunk's correction, arm dimensions only)")
+    warm_weight: float = field(0.5, "with warm_start=residual: the share of the previous correction carried over")
+    disagreement_weight: float = field(
+        0.0, "uncertainty-aware cost: add this times the ensemble's disagreement (variance across members) to "
+        "the cost; needs an ensemble world model (several comma-separated checkpoints). 0 = off")
 
     def __post_init__(self):
         require(self.first_chunk in ("open-loop", "rest-history"),
                 f"first_chunk must be open-loop or rest-history, got {self.first_chunk!r}")
+        require(self.warm_start in WARM_STARTS, f"warm_start must be one of {WARM_STARTS}, got {self.warm_start!r}")
+        require(0.0 <= self.warm_weight <= 1.0, f"warm_weight must be in [0, 1], got {self.warm_weight}")
+        require(self.disagreement_weight >= 0, f"disagreement_weight must be >= 0, got {self.disagreement_weight}")
 
 
 class PlanningError(UserError):
@@ -65,6 +89,9 @@ class PlannedPolicy(Policy):
         self.chunk = wam.chunk_length
         self.frameskip = getattr(dynamics, "frameskip", self.chunk)
         self.context = getattr(dynamics, "context", 1)
+        if self.config.disagreement_weight > 0 and isinstance(dynamics, LearnedDynamics):
+            raise PlanningError("disagreement_weight needs an ensemble of world models, got one; pass several "
+                                "comma-separated checkpoints (e.g. --wm-augmented A,B,C) or set it to 0")
         self.reset()
 
     @property
@@ -82,6 +109,7 @@ class PlannedPolicy(Policy):
         self._executed: list[np.ndarray] = []
         self.chunks: list[dict[str, Any]] = []
         self.last_plan = None
+        self._correction: torch.Tensor | None = None  # (H_opt, A) last planned chunk minus its WAM seed
         self._episode_seed = seed or 0
 
     def _history_steps(self, t: int) -> list[int]:
@@ -167,6 +195,8 @@ class PlannedPolicy(Policy):
             if context is None:
                 rec["open_loop"] = "warm-up"  # the history reaches before step 0
                 return seed_out.actions
+        if self.config.warm_start != "none":
+            correction, self._correction = self._correction, None  # only a chunk planned just before carries over
         t1 = time.perf_counter()
         target_out = seed_out if self.target_wam is self.wam else self.target_wam.predict(obs, self.instruction)
         t2 = time.perf_counter()
@@ -174,13 +204,44 @@ class PlannedPolicy(Policy):
         t3 = time.perf_counter()
         self.dynamics.prepare(context)
         covered = self.dynamics.covered(self.chunk)
-        seed = torch.as_tensor(seed_out.actions, device=self.device)  # (H, A)
-        result = self.planner.plan(seed[:covered], lambda cands: self.cost(self.dynamics.terminal(cands), target),
-                                   seed=self.config.plan_seed + self._episode_seed * 1000 + obs.step)
+        seed = torch.as_tensor(seed_out.actions, device=self.device)[:covered]  # (H_opt, A)
+        objective = self.objective(target)
+        rec.update(wam_s=rec["wam_s"] + t2 - t1, target_encode_s=t3 - t2)
+        init, wam_cost = seed, None
+        if self.config.gate_threshold is not None or self.config.warm_start != "none":
+            wam_cost = float(objective(self._clip(seed)[None])[0])  # the WAM's own chunk, scored as the planner would
+        if self.config.gate_threshold is not None and wam_cost <= self.config.gate_threshold:
+            rec.update(open_loop="gated", seed_cost=wam_cost, search_s=time.perf_counter() - t3)
+            return seed_out.actions
+        if self.config.warm_start == "residual" and correction is not None:
+            init = seed.clone()  # (H_opt, A)
+            init[:, :-1] += self.config.warm_weight * correction[:, :-1]  # arm only: the gripper stays the WAM's
+        result = self.planner.plan(init, objective, seed=self.config.plan_seed + self._episode_seed * 1000 + obs.step)
+        if self.config.warm_start != "none":
+            self._correction = result.actions[:covered].float() - seed.float()  # (H_opt, A)
         plan = np.concatenate([result.actions.cpu().numpy(), seed_out.actions[covered:]]).astype(np.float32)  # (H, A)
-        rec.update(planned=True, wam_s=rec["wam_s"] + t2 - t1, target_encode_s=t3 - t2,
-                   search_s=time.perf_counter() - t3,
-                   seed_cost=float(result.seed_cost) if result.seed_cost is not None else float("nan"),
-                   best_cost=float(result.best_cost))
+        init_cost = float(result.seed_cost) if result.seed_cost is not None else float("nan")
+        rec.update(planned=True, search_s=time.perf_counter() - t3,
+                   seed_cost=init_cost if wam_cost is None else wam_cost, best_cost=float(result.best_cost))
+        if init is not seed:
+            rec["init_cost"] = init_cost  # the warm-started initial mean's cost
         self.last_plan = result
         return plan
+
+    def objective(self, target: torch.Tensor):
+        """candidates (B, H_opt, A) -> costs (B,): the cost of the dynamics' prediction against ``target``
+        (V, N, D), plus ``disagreement_weight`` times the ensemble's disagreement."""
+        w = self.config.disagreement_weight
+
+        def objective(cands: torch.Tensor) -> torch.Tensor:
+            if w == 0:
+                return self.cost(self.dynamics.terminal(cands), target)  # (B,)
+            z, spread = self.dynamics.predict(cands)  # (B, V, N, D), (B,)
+            return self.cost(z, target) + w * spread.to(self.device)  # (B,)
+
+        return objective
+
+    def _clip(self, actions: torch.Tensor) -> torch.Tensor:
+        """The seed as a planner scores it: clipped to the planner's action bounds."""
+        lo, hi = getattr(self.planner.config, "action_low", -1.0), getattr(self.planner.config, "action_high", 1.0)
+        return actions.float().clamp(lo, hi)
