@@ -179,8 +179,9 @@ def _imap_ray(make_worker: Callable[[], Callable[[T], R]], items: list[T], worke
             try:
                 result = ray.get(ref)
             except ray.exceptions.RayActorError as e:
-                raise RuntimeError(f"a Ray worker died more than {backend.retries} times ({type(e).__name__}); "
-                                   f"finished results are kept, re-run the same command to resume") from None
+                raise RuntimeError(f"a Ray worker died and its {backend.retries} restart(s) are used up "
+                                   f"({type(e).__name__}); finished results are kept, re-run the same command to "
+                                   f"resume") from None
             submit(actor)  # keep the actor busy while the caller records the result
             yield result
     finally:
