@@ -121,6 +121,20 @@ def test_restarts_used_up_fail_in_one_line(ray_cluster):
         list(imap_workers(AlwaysDies, [0], workers=1, backend=Backend("ray", retries=1)))
 
 
+def no_checkpoint():
+    from wamplan.errors import UserError
+
+    raise UserError("--wam /nowhere does not exist; train one with `wamplan wam train` or fix the path")
+
+
+def test_a_worker_that_cannot_start_fails_in_one_line(ray_cluster):
+    from wamplan.errors import UserError
+
+    with pytest.raises(UserError) as e:
+        list(imap_workers(no_checkpoint, [0, 1], workers=2, backend=Backend("ray")))
+    assert str(e.value) == "--wam /nowhere does not exist; train one with `wamplan wam train` or fix the path"
+
+
 def test_ray_missing_fails_in_one_line(monkeypatch, capsys, tmp_path):
     monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` raises ImportError, as where it is not installed
     assert main([*EVAL, "--out", str(tmp_path / "e"), "--ray"]) == 2

@@ -144,17 +144,22 @@ class _Hosted:
         import torch
 
         torch.set_num_threads(1)  # one CPU per actor (num_cpus=1)
-        self.work = make_worker()
-
-    def pid(self) -> int:
-        return os.getpid()
+        self.work, self.error = None, None
+        try:
+            self.work = make_worker()
+        except Exception as e:  # raised by run(): a task's error reaches the driver as itself, an actor's would not
+            self.error = e
 
     def run(self, item: Any) -> Any:
+        if self.error is not None:
+            raise self.error
         return self.work(item)
 
 
 def _imap_ray(make_worker: Callable[[], Callable[[T], R]], items: list[T], workers: int,
               backend: Backend) -> Iterator[R]:
+    from wamplan.errors import UserError
+
     ray = import_ray()
     started = not ray.is_initialized()
     if started:
@@ -178,6 +183,10 @@ def _imap_ray(make_worker: Callable[[], Callable[[T], R]], items: list[T], worke
             actor = pending.pop(ref)
             try:
                 result = ray.get(ref)
+            except ray.exceptions.RayTaskError as e:  # the worker raised: not retried, as with processes
+                if isinstance(e.cause, UserError):
+                    raise e.cause from None  # one line for people (e.g. a missing checkpoint on a node)
+                raise
             except ray.exceptions.RayActorError as e:
                 raise RuntimeError(f"a Ray worker died and its {backend.retries} restart(s) are used up "
                                    f"({type(e).__name__}); finished results are kept, re-run the same command to "
