@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import itertools
 import os
+import subprocess
 import sys
 
 import numpy as np
@@ -43,7 +44,13 @@ def test_eval_on_ray_equals_local_and_resumes(ray_cluster, tmp_path, capsys):
     from wamplan.evaluation.runner import run_evaluation
     from wamplan.cli import build_parser
 
-    assert main([*EVAL, "--out", str(tmp_path / "local")]) == 0
+    # An episode's record depends on what its worker's env ran before (pre-existing, with worker processes too),
+    # so every episode compared here is the first of a fresh worker: one local process per seed, one thread each
+    # like a Ray actor, and on Ray one job per actor (2 actors, 2 jobs; the resumed run starts fresh actors).
+    for seed in ("900", "901"):
+        run = [sys.executable, "-m", "wamplan.cli", *EVAL, "--seed-start", seed, "--episodes", "1",
+               "--out", str(tmp_path / "local")]
+        subprocess.run(run, check=True, capture_output=True, env=dict(os.environ, OMP_NUM_THREADS="1"))
     local = {record_key(r): untimed(r) for r in read_records(tmp_path / "local")}
     assert sorted(local) == [(1, 900, "open-loop"), (1, 901, "open-loop")]
 
