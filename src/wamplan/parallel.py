@@ -164,7 +164,12 @@ def _imap_ray(make_worker: Callable[[], Callable[[T], R]], items: list[T], worke
     started = not ray.is_initialized()
     if started:
         local = dict(num_cpus=max(workers, 1), include_dashboard=False) if not backend.address else {}
-        ray.init(address=backend.address or "local", log_to_driver=False, **local)
+        try:
+            ray.init(address=backend.address or "local", log_to_driver=False, **local)
+        except ConnectionError as e:
+            raise UserError(f"cannot join the Ray cluster at '{backend.address}' ({e}); check the address (`ray status` "
+                            f"on its head node), and as the cluster uses token authentication set RAY_AUTH_MODE=token "
+                            f"with its token (~/.ray/auth_token or RAY_AUTH_TOKEN)") from None
     actor_cls = ray.remote(num_cpus=1, max_restarts=backend.retries, max_task_retries=backend.retries)(_Hosted)
     actors = [actor_cls.remote(make_worker) for _ in range(min(max(workers, 1), len(items)))]
     todo, end = iter(items), object()
