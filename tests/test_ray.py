@@ -26,7 +26,7 @@ TIMING = {"wall_time_s", "finished", "chunk_timing_s", "created"}
 def ray_cluster():
     """One local Ray instance for the module (starting one costs seconds); the runs below join it."""
     ray = pytest.importorskip("ray")
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)  # not a running cluster
     ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the test workers below, not importable there
     yield ray
     ray.shutdown()

@@ -167,9 +167,10 @@ def _imap_ray(make_worker: Callable[[], Callable[[T], R]], items: list[T], worke
         try:
             ray.init(address=backend.address or "local", log_to_driver=False, **local)
         except ConnectionError as e:
-            raise UserError(f"cannot join the Ray cluster at '{backend.address}' ({e}); check the address (`ray status` "
-                            f"on its head node), and as the cluster uses token authentication set RAY_AUTH_MODE=token "
-                            f"with its token (~/.ray/auth_token or RAY_AUTH_TOKEN)") from None
+            raise UserError(f"cannot join the Ray cluster at '{backend.address}' ({e}); check the address "
+                            f"(`ray status` on its head node); where the cluster uses token authentication (Ray's "
+                            f"default) set RAY_AUTH_MODE=token with its token (~/.ray/auth_token or RAY_AUTH_TOKEN)"
+                            ) from None
     actor_cls = ray.remote(num_cpus=1, max_restarts=backend.retries, max_task_retries=backend.retries)(_Hosted)
     actors = [actor_cls.remote(make_worker) for _ in range(min(max(workers, 1), len(items)))]
     todo, end = iter(items), object()

@@ -24,7 +24,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--episodes", type=int, required=True, help="number of seeds, from --seed-start")
     p.add_argument("--out", type=Path, required=True, help="the store directory (created or resumed)")
     p.add_argument("--seed-start", type=int, default=0)
-    p.add_argument("--workers", type=int, default=1, help="worker processes (one simulator each), or Ray actors with --ray")
+    p.add_argument("--workers", type=int, default=1,
+                   help="worker processes (one simulator each), or Ray actors with --ray")
     add_backend_argument(p)
     p.add_argument("--policy", default=None, help="with --source policy: a WAM checkpoint directory")
     p.add_argument("--image-every", type=int, default=4, help="store the three views every N steps (and the last)")
