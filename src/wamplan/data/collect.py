@@ -1,9 +1,11 @@
-"""Collect episodes into an :class:`EpisodeStore` with parallel worker processes.
+"""Collect episodes into an :class:`EpisodeStore` with parallel worker processes or Ray actors.
 
 The CPU simulator allows one env per process, so each worker (``wamplan.parallel``) owns one
-``InsertionEnv`` and takes seeds from a queue. Every finished episode is written atomically by the
-worker itself; the parent only counts. Killing the run (Ctrl-C or ``kill -9``) loses at most the episodes in flight; re-running the
-same command skips the seeds already in the store.
+``InsertionEnv`` and takes seeds from a queue. Every finished episode is written atomically: by a
+worker process itself (the parent only counts), or, on Ray, by the driver from the episode the actor
+returns (the store need not be reachable from the cluster's nodes, and an item retried after its
+actor died still yields one episode). Killing the run (Ctrl-C or ``kill -9``) loses at most the
+episodes in flight; re-running the same command skips the seeds already in the store.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from wamplan.data.store import EpisodeData, EpisodeStore
 from wamplan.envs.contract import CAMERAS
 from wamplan.envs.core import EnvConfig, InsertionEnv
 from wamplan.errors import UserError
-from wamplan.parallel import imap_workers
+from wamplan.parallel import Backend, imap_workers
 from wamplan.policies.base import Policy, make_policy
 from wamplan.policies.rollout import run_episode
 from wamplan.provenance import provenance
@@ -79,25 +81,36 @@ def collect_one(env: InsertionEnv, policy: Policy, seed: int, source: str, image
 
 
 class CollectWorker:
-    """Holds one env and one policy; ``worker(seed)`` collects and stores that seed's episode."""
+    """Holds one env and one policy; ``worker(seed)`` collects and stores that seed's episode, or with
+    ``write=False`` returns it under ``"episode"`` for the caller to store."""
 
-    def __init__(self, job: CollectJob):
+    def __init__(self, job: CollectJob, write: bool = True):
         self.job = job
         self.env = InsertionEnv(job.env)
         self.policy = job.loader(job.policy_spec)
-        self.store = EpisodeStore(job.store)
+        self.store = EpisodeStore(job.store) if write else None
 
     def __call__(self, seed: int) -> dict[str, Any]:
         ep = collect_one(self.env, self.policy, seed, self.job.source, self.job.image_every, self.job.max_steps)
+        summary: dict[str, Any] = dict(seed=seed, success=ep.success, outcome=ep.outcome, length=ep.length)
+        if self.store is None:
+            return dict(summary, episode=ep)
         self.store.write(ep)
-        return dict(seed=seed, success=ep.success, outcome=ep.outcome, length=ep.length)
+        return summary
 
 
-def run_collection(job: CollectJob, seeds: list[int], workers: int = 1) -> Iterator[dict[str, Any]]:
+def run_collection(job: CollectJob, seeds: list[int], workers: int = 1,
+                   backend: Backend = Backend()) -> Iterator[dict[str, Any]]:
     """Collect ``seeds`` not yet in the store; yields one summary dict per finished episode."""
+    backend.check()
     store = EpisodeStore(job.store)
     todo = sorted(set(seeds) - store.finished_seeds(job.source))
-    yield from imap_workers(partial(CollectWorker, job), todo, workers)
+    if backend.kind == "processes":
+        yield from imap_workers(partial(CollectWorker, job), todo, workers)
+        return
+    for rec in imap_workers(partial(CollectWorker, job, False), todo, workers, backend):
+        store.write(rec.pop("episode"))  # here, once per seed, however often the actor was retried
+        yield rec
 
 
 def throughput(start: float, n: int) -> float:
@@ -108,14 +121,16 @@ def throughput(start: float, n: int) -> float:
 def collect(source: str, episodes: int, out: str | Path, *, seed_start: int = 0, workers: int = 1,
             policy: str | None = None, image_every: int = 4, max_steps: int | None = None,
             env: EnvConfig | None = None, progress: bool = True, log=print,
-            loader: Callable[[str], Policy] = make_policy) -> dict[str, Any]:
+            loader: Callable[[str], Policy] = make_policy, backend: Backend = Backend()) -> dict[str, Any]:
     """Collect seeds ``seed_start .. seed_start + episodes - 1`` of ``source`` (expert, noisy-expert, pink,
     or policy with ``policy`` a WAM checkpoint) into the store ``out``, skipping the seeds it holds.
     ``loader`` builds the policy from its name or checkpoint in each worker: the registered policies by
     default; pass ``wamplan.evaluation.policies.load_policy`` to run WAM checkpoints (a layer above data).
+    ``backend``: worker processes here, or Ray actors (see ``wamplan.parallel``).
     Returns a summary (collected, skipped, seconds, episodes_per_min, outcomes)."""
     from tqdm import tqdm
 
+    backend.check()
     if episodes <= 0 or workers <= 0 or image_every <= 0:
         raise UserError("--episodes, --workers and --image-every must be positive")
     if source == "policy":
@@ -139,7 +154,7 @@ def collect(source: str, episodes: int, out: str | Path, *, seed_start: int = 0,
     counts: Counter = Counter()
     start, n = time.perf_counter(), 0
     bar = tqdm(total=len(seeds), initial=len(have), desc=f"collect {tag}", unit="ep", disable=not progress)
-    for rec in run_collection(job, seeds, workers=workers):
+    for rec in run_collection(job, seeds, workers=workers, backend=backend):
         n += 1
         counts[rec["outcome"]] += 1
         bar.update(1)

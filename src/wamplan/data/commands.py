@@ -17,13 +17,16 @@ SOURCES = ("expert", "noisy-expert", "pink", "policy")
 @register_command("data")
 def register(sub: argparse._SubParsersAction) -> None:
     from wamplan.envs.core import EnvConfig
+    from wamplan.parallel import add_backend_argument
 
     p = sub.add_parser("collect", help="collect episodes into an episode store (parallel, resumable)")
     p.add_argument("--source", required=True, choices=SOURCES)
     p.add_argument("--episodes", type=int, required=True, help="number of seeds, from --seed-start")
     p.add_argument("--out", type=Path, required=True, help="the store directory (created or resumed)")
     p.add_argument("--seed-start", type=int, default=0)
-    p.add_argument("--workers", type=int, default=1, help="worker processes (one simulator each)")
+    p.add_argument("--workers", type=int, default=1,
+                   help="worker processes (one simulator each), or Ray actors with --ray")
+    add_backend_argument(p)
     p.add_argument("--policy", default=None, help="with --source policy: a WAM checkpoint directory")
     p.add_argument("--image-every", type=int, default=4, help="store the three views every N steps (and the last)")
     p.add_argument("--max-steps", type=int, default=None, help="truncate episodes earlier than the env's limit")
@@ -59,10 +62,11 @@ def cmd_collect(args: argparse.Namespace) -> int:
     from wamplan.data.collect import collect
     from wamplan.envs.core import EnvConfig
     from wamplan.evaluation.policies import load_policy
+    from wamplan.parallel import Backend
 
     summary = collect(args.source, args.episodes, args.out, seed_start=args.seed_start, workers=args.workers,
                       policy=args.policy, image_every=args.image_every, max_steps=args.max_steps,
-                      env=from_args(EnvConfig, args), loader=load_policy)
+                      env=from_args(EnvConfig, args), loader=load_policy, backend=Backend.from_option(args.ray))
     print(json.dumps(summary))
     return 0
 

@@ -13,13 +13,15 @@ from wamplan.registry import register_command
 @register_command("evaluation")
 def register(sub: argparse._SubParsersAction) -> None:
     from wamplan.evaluation.options import add_eval_arguments
+    from wamplan.parallel import add_backend_argument
 
     p = sub.add_parser("eval", help="run the paper's evaluation conditions (resumable, parallel)")
     p.add_argument("--conditions", default="1,6,7", help="e.g. 1,6,7 or 1-7 (paper §4)")
     p.add_argument("--episodes", type=int, default=50)
     p.add_argument("--seed-start", type=int, default=0)
     p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--workers", type=int, default=1)
+    p.add_argument("--workers", type=int, default=1, help="worker processes, or Ray actors with --ray")
+    add_backend_argument(p)
     add_eval_arguments(p)
     p.set_defaults(func=cmd_eval)
 
@@ -51,7 +53,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from wamplan.evaluation.options import eval_config_from_args
     from wamplan.evaluation.records import read_records, record_key
     from wamplan.evaluation.runner import run_evaluation
+    from wamplan.parallel import Backend
 
+    backend = Backend.from_option(args.ray)
+    backend.check()
     conds = parse_conditions(args.conditions)
     if args.episodes <= 0 or args.workers <= 0:
         raise UserError("--episodes and --workers must be positive")
@@ -65,7 +70,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         print(f"resuming: {have} of {total} episodes already recorded in {args.out}")
     counts: dict[int, Counter] = {c: Counter() for c in conds}
     bar = tqdm(total=total, initial=have, desc="eval", unit="ep")
-    for rec in run_evaluation(cfg, conds, seeds, args.out, workers=args.workers):
+    for rec in run_evaluation(cfg, conds, seeds, args.out, workers=args.workers, backend=backend):
         counts[rec["condition"]][rec["outcome"]] += 1
         bar.update(1)
         tqdm.write(f"cond {rec['condition']} seed {rec['seed']:4d} {rec['outcome']:22s} len {rec['length']:3d} "

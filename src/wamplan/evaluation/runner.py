@@ -1,4 +1,5 @@
-"""Run evaluation conditions over seeds: one worker per process, records appended as episodes finish.
+"""Run evaluation conditions over seeds: one worker per process (or Ray actor), records appended by this
+process as episodes finish.
 
 Every condition runs the same seeds. A job is one (condition, seed); a worker builds the env, the WAM
 and the world models once and a policy per condition on first use. Re-running the same command skips
@@ -21,7 +22,7 @@ from wamplan.config import field, from_dict, require, to_dict
 from wamplan.envs.core import EnvConfig
 from wamplan.evaluation.conditions import CONDITIONS
 from wamplan.evaluation.records import append_record, read_records, record_key
-from wamplan.parallel import imap_workers
+from wamplan.parallel import Backend, imap_workers
 from wamplan.planning import PLANNERS, CostConfig
 from wamplan.planning.policy import PlannedPolicyConfig
 
@@ -212,8 +213,10 @@ def _check_same_settings(out: Path, cfg: EvalConfig) -> None:
 
 
 def run_evaluation(cfg: EvalConfig, conditions: list[int], seeds: list[int], out_dir: str | Path,
-                   workers: int = 1) -> Iterator[dict[str, Any]]:
-    """Run the missing (condition, seed) jobs, appending each record as it finishes; yields the records."""
+                   workers: int = 1, backend: Backend = Backend()) -> Iterator[dict[str, Any]]:
+    """Run the missing (condition, seed) jobs on ``backend``, appending each record as it finishes (here, in the
+    driver, whatever runs the episodes); yields the records."""
+    backend.check()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     done = {record_key(r) for r in read_records(out, repair=True)}
@@ -221,6 +224,6 @@ def run_evaluation(cfg: EvalConfig, conditions: list[int], seeds: list[int], out
     # seeds, so its partial table still compares like with like.
     jobs = [(c, s) for s in seeds for c in conditions if (c, s, cfg.policy.first_chunk) not in done]
     _check_same_settings(out, cfg)
-    for rec in imap_workers(partial(EvalWorker, cfg), jobs, workers):
+    for rec in imap_workers(partial(EvalWorker, cfg), jobs, workers, backend):
         append_record(out, rec)
         yield rec
