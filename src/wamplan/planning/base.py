@@ -132,12 +132,26 @@ class SamplingPlanner(Planner):
         """From scored candidates (B, H_opt, A) and costs (B,): new mu, new sigma (H_opt, A) and the
         'elite' cost statistic (0-d tensor)."""
 
+    # Hooks for planners that search some dimensions differently (e.g. a discrete gripper); no-ops here.
+    def _begin(self, mu: Tensor, sigma: Tensor, frozen: Tensor) -> None:
+        """Once per plan, before sampling: may set up state and edit mu, sigma, frozen (H_opt, A) in place."""
+
+    def _shape_candidates(self, cand: Tensor, gen: torch.Generator | None) -> Tensor:
+        """Each iteration, the candidates (B, H_opt, A) before clipping and scoring (candidate 0 = the mean
+        when include_mean)."""
+        return cand
+
+    def _refit(self, cand: Tensor, costs: Tensor, mu: Tensor, sigma: Tensor) -> tuple[Tensor, Tensor]:
+        """Each iteration, after the update: the final say on mu and sigma (H_opt, A)."""
+        return mu, sigma
+
     def plan(self, seed_actions: Tensor, objective: Objective, *,
              generator: torch.Generator | None = None, seed: int | None = None) -> PlanResult:
         cfg = self.config
         lo, hi = cfg.action_low, cfg.action_high
         mu, sigma0 = self._initial_distribution(seed_actions)  # (H_opt, A) each, float32
         sigma, frozen = sigma0, sigma0 == 0  # (H_opt, A); frozen dims never get the min_std floor
+        self._begin(mu, sigma, frozen)
         gen = _make_generator(generator, seed, seed_actions.device)
         n_sampled = cfg.num_candidates - int(cfg.include_mean)
         best_cost = torch.full((), float("inf"), device=mu.device)
@@ -148,6 +162,7 @@ class SamplingPlanner(Planner):
             cand = mu + sigma * noise  # (B', H_opt, A)
             if cfg.include_mean:
                 cand = torch.cat([mu.unsqueeze(0), cand])  # (B, H_opt, A), candidate 0 = mean
+            cand = self._shape_candidates(cand, gen)  # (B, H_opt, A)
             cand = cand.clamp(lo, hi)  # clip BEFORE scoring: the refit sees what was scored
             costs = _score(objective, cand)  # (B,)
             i_min = torch.argmin(torch.nan_to_num(costs, nan=float("inf")))
@@ -156,6 +171,7 @@ class SamplingPlanner(Planner):
             best = torch.where(improved, cand[i_min], best)  # (H_opt, A)
             mu, sigma, elite_stat = self._update(cand, costs, mu, sigma)
             sigma = torch.where(frozen, sigma, sigma.clamp_min(cfg.min_std))  # (H_opt, A)
+            mu, sigma = self._refit(cand, costs, mu, sigma)
             mean_cost = costs[0] if cfg.include_mean else torch.tensor(float("nan"), device=mu.device)
             rows.append(torch.stack([costs.mean(), costs.min(), elite_stat, mean_cost, sigma.mean()]))
         mu = mu.clamp(lo, hi)  # a no-op for CEM (mean of clipped elites); kept for any update rule

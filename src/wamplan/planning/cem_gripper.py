@@ -38,8 +38,7 @@ import torch
 from torch import Tensor
 
 from wamplan.config import field, require
-from wamplan.planning.base import IterationStats, Objective, PlanResult, _make_generator, _randn, _score, \
-    register_planner
+from wamplan.planning.base import register_planner
 from wamplan.planning.cem import CEMConfig, CEMPlanner
 
 
@@ -105,52 +104,38 @@ class CEMGripperPlanner(CEMPlanner):
         dist = (is_open != is_open[0:1]).sum(dim=1).float()  # (C,), keep (row 0) at 0
         return torch.softmax(-dist / cfg.gripper_prior_steps, dim=0)  # (C,)
 
-    def plan(self, seed_actions: Tensor, objective: Objective, *,
-             generator: torch.Generator | None = None, seed: int | None = None) -> PlanResult:
+    # The shared sampling loop (SamplingPlanner.plan) with three hooks: the gripper column is taken out of the
+    # Gaussian search (sigma 0) and filled per candidate with a sequence drawn from the categorical ``probs``,
+    # which is refit to the elites; the mean's gripper is the most probable sequence.
+    def _begin(self, mu: Tensor, sigma: Tensor, frozen: Tensor) -> None:
         cfg = self.config
-        lo, hi = cfg.action_low, cfg.action_high
-        mu, sigma = self._initial_distribution(seed_actions)  # (H_opt, A) each
-        gd = cfg.gripper_dim % mu.shape[1]
-        frozen = sigma == 0  # (H_opt, A)
+        self._gd = gd = cfg.gripper_dim % mu.shape[1]
         frozen[:, gd] = True
         sigma[:, gd] = 0.0
-        cats, self.category_names = gripper_categories(mu[:, gd], cfg.gripper_open, cfg.gripper_closed)  # (C, H_opt)
-        cats = cats.clamp(lo, hi)
-        probs = self.prior(cats)  # (C,)
-        mode = torch.zeros((), dtype=torch.long, device=mu.device)  # keep
-        gen = _make_generator(generator, seed, seed_actions.device)
-        n_sampled = cfg.num_candidates - int(cfg.include_mean)
-        best_cost = torch.full((), float("inf"), device=mu.device)
-        best, rows = mu, []
-        for _ in range(cfg.iterations):
-            noise = _randn((n_sampled, *mu.shape), gen, mu.device)  # (B', H_opt, A)
-            cand = mu + sigma * noise  # (B', H_opt, A)
-            cat = systematic_sample(probs, n_sampled, gen)  # (B',)
-            if cfg.include_mean:
-                cand = torch.cat([mu.unsqueeze(0), cand])  # (B, H_opt, A)
-                cat = torch.cat([mode.view(1), cat])  # (B,), candidate 0 = the mode
-            cand[:, :, gd] = cats[cat]  # (B, H_opt) gripper sequences
-            cand = cand.clamp(lo, hi)
-            costs = _score(objective, cand)  # (B,)
-            i_min = torch.argmin(torch.nan_to_num(costs, nan=float("inf")))
-            improved = costs[i_min] < best_cost
-            best_cost = torch.where(improved, costs[i_min], best_cost)
-            best = torch.where(improved, cand[i_min], best)  # (H_opt, A)
-            mu, sigma, elite_stat = self._update(cand, costs, mu, sigma)
-            sigma = torch.where(frozen, torch.zeros_like(sigma), sigma.clamp_min(cfg.min_std))  # (H_opt, A)
-            elite_idx = torch.argsort(torch.nan_to_num(costs, nan=float("inf")), stable=True)[: cfg.num_elites]
-            freq = torch.bincount(cat[elite_idx], minlength=cats.shape[0]).float() / cfg.num_elites  # (C,)
-            probs = (1 - cfg.gripper_smoothing) * freq + cfg.gripper_smoothing * probs  # (C,)
-            first = torch.full_like(probs, float(len(elite_idx)))  # (C,) rank of each category's best elite
-            first[cat[elite_idx].flip(0)] = torch.arange(len(elite_idx), device=probs.device).flip(0).float()
-            mode = torch.argmax(probs - 1e-6 * first)  # most probable; ties: the one holding the better elite
-            mu[:, gd] = cats[mode]  # the mean's gripper: the most probable sequence
-            mean_cost = costs[0] if cfg.include_mean else torch.tensor(float("nan"), device=mu.device)
-            rows.append(torch.stack([costs.mean(), costs.min(), elite_stat, mean_cost, sigma.mean()]))
-        mu = mu.clamp(lo, hi)
-        self.last_probs = probs  # (C,) the final categorical, for inspection (names in category_names)
-        history = [IterationStats(i, *r) for i, r in enumerate(torch.stack(rows).tolist())]
-        actions = seed_actions.clone()  # (H, A)
-        actions[: mu.shape[0]] = mu.to(seed_actions.dtype)
-        return PlanResult(actions=actions, mean=mu, std=sigma, best_actions=best, best_cost=float(best_cost),
-                          history=history, num_evaluations=cfg.iterations * cfg.num_candidates)
+        cats, self.category_names = gripper_categories(mu[:, gd], cfg.gripper_open, cfg.gripper_closed)
+        self._cats = cats.clamp(cfg.action_low, cfg.action_high)  # (C, H_opt)
+        self.last_probs = self.prior(self._cats)  # (C,) the categorical, final after plan (names in category_names)
+        self._mode = torch.zeros((), dtype=torch.long, device=mu.device)  # keep
+
+    def _shape_candidates(self, cand: Tensor, gen: torch.Generator | None) -> Tensor:
+        cfg = self.config
+        cat = systematic_sample(self.last_probs, cfg.num_candidates - int(cfg.include_mean), gen)  # (B',)
+        if cfg.include_mean:
+            cat = torch.cat([self._mode.view(1), cat])  # (B,), candidate 0 = the mode
+        self._cat = cat
+        cand[:, :, self._gd] = self._cats[cat]  # (B, H_opt) gripper sequences
+        return cand
+
+    def _refit(self, cand: Tensor, costs: Tensor, mu: Tensor, sigma: Tensor) -> tuple[Tensor, Tensor]:
+        cfg, cat, probs = self.config, self._cat, self.last_probs
+        sigma = sigma.clone()
+        sigma[:, self._gd] = 0.0
+        elite_idx = torch.argsort(torch.nan_to_num(costs, nan=float("inf")), stable=True)[: cfg.num_elites]
+        freq = torch.bincount(cat[elite_idx], minlength=self._cats.shape[0]).float() / cfg.num_elites  # (C,)
+        probs = (1 - cfg.gripper_smoothing) * freq + cfg.gripper_smoothing * probs  # (C,)
+        first = torch.full_like(probs, float(len(elite_idx)))  # (C,) rank of each category's best elite
+        first[cat[elite_idx].flip(0)] = torch.arange(len(elite_idx), device=probs.device).flip(0).float()
+        self._mode = torch.argmax(probs - 1e-6 * first)  # most probable; ties: the one holding the better elite
+        mu[:, self._gd] = self._cats[self._mode]  # the mean's gripper: the most probable sequence
+        self.last_probs = probs
+        return mu, sigma
