@@ -6,7 +6,6 @@ import torch
 
 from wamplan.encoders import make_encoder
 from wamplan.envs.contract import CAMERAS
-from wamplan.envs.core import EnvConfig, InsertionEnv
 from wamplan.planning import CEMConfig, make_cost, make_planner
 from wamplan.planning.dynamics import LearnedDynamics, PlanningContext, SimulatorDynamics
 from wamplan.planning.policy import PlannedPolicy, PlannedPolicyConfig
@@ -25,13 +24,6 @@ class EchoWAM(WAM):
         acts = np.zeros((16, 5), np.float32)
         acts[:, 0], acts[:, 4] = 0.3, 1.0
         return WAMOutput(actions=acts, images={c: obs.images[c] for c in CAMERAS})
-
-
-@pytest.fixture(scope="module")
-def small_env():
-    e = InsertionEnv(EnvConfig(camera_size=64))
-    yield e
-    e.close()
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,7 @@ from wamplan.planning.dynamics import Dynamics, EnsembleDynamics, LearnedDynamic
 from wamplan.planning.policy import PlannedPolicy, PlannedPolicyConfig, PlanningError
 from wamplan.policies.rollout import run_episode
 from wamplan.worldmodel.predictor import WorldModelPredictor
-from test_planned_policy import EchoWAM, _predictor, encoder, small_env  # noqa: F401 (fixtures)
+from test_planned_policy import EchoWAM, _predictor, encoder  # noqa: F401 (fixture; small_env is in conftest)
 
 
 def _cem(n=8, iters=2):

@@ -50,6 +50,18 @@ def _setup(stores: Sequence[str | Path], encoder: str, encoder_kwargs: dict[str,
     return enc, info
 
 
+def _prepare(stores: Sequence[str | Path], out: str | Path, kind: str, encoder: str, encoder_kwargs: dict[str, Any],
+             encoder_path: str | None, val_fraction: float, device: str, progress: bool):
+    """What both trainers do first: the data's identity, the resume decision (checked before any encoding),
+    the encoded stores, and the encoder's provenance and feature key."""
+    from wamplan.data.store import describe_stores
+
+    data = dict(describe_stores(stores), val_fraction=val_fraction)
+    resume = _resume(out, kind, data)
+    enc, info = _setup(stores, encoder, encoder_kwargs, encoder_path, device, progress)
+    return data, resume, info, feature_key(enc.config_dict())
+
+
 def _resume(out: str | Path, kind: str, data: dict[str, Any]) -> bool:
     """Whether ``out`` holds a run to resume; refuses one trained on other data before any encoding."""
     from wamplan.train_loop import check_data
@@ -66,14 +78,12 @@ def train_predictor_on_stores(stores: Sequence[str | Path], out: str | Path, pre
                               max_steps: int | None = None, progress: bool = True) -> dict[str, Any]:
     """Train (or resume) the predictor on the windows of ``stores``; returns the last metrics."""
     from wamplan.data.readers import WorldModelWindows
-    from wamplan.data.store import describe_stores
     from wamplan.worldmodel.train import KIND, train_predictor
 
-    data = dict(describe_stores(stores), val_fraction=val_fraction)
-    resume = _resume(out, KIND, data)
-    enc, info = _setup(stores, encoder, encoder_kwargs, encoder_path, device, progress)
+    data, resume, info, key = _prepare(stores, out, KIND, encoder, encoder_kwargs, encoder_path, val_fraction,
+                                       device, progress)
     kw = dict(frameskip=predictor.frameskip, history=predictor.context, horizon=train.horizon,
-              features=feature_key(enc.config_dict()), val_fraction=val_fraction, window_end=train.window_end)
+              features=key, val_fraction=val_fraction, window_end=train.window_end)
     tr, va = WorldModelWindows(stores, split="train", **kw), WorldModelWindows(stores, split="val", **kw)
     if progress:
         print(f"windows: {len(tr)} train, {len(va)} val ({len(tr.episodes)} / {len(va.episodes)} episodes)")
@@ -89,13 +99,10 @@ def train_decoder_on_stores(stores: Sequence[str | Path], out: str | Path, decod
                             max_steps: int | None = None, progress: bool = True) -> dict[str, Any]:
     """Train (or resume) the picture decoder on the (features, image) frames of ``stores``."""
     from wamplan.data.readers import FeatureFrames
-    from wamplan.data.store import describe_stores
     from wamplan.worldmodel.decoder import KIND, train_decoder
 
-    data = dict(describe_stores(stores), val_fraction=val_fraction)
-    resume = _resume(out, KIND, data)
-    enc, info = _setup(stores, encoder, encoder_kwargs, encoder_path, device, progress)
-    key = feature_key(enc.config_dict())
+    data, resume, info, key = _prepare(stores, out, KIND, encoder, encoder_kwargs, encoder_path, val_fraction,
+                                       device, progress)
     tr = FeatureFrames(stores, key, split="train", val_fraction=val_fraction)
     va = FeatureFrames(stores, key, split="val", val_fraction=val_fraction)
     if progress:
