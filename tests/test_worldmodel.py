@@ -317,3 +317,21 @@ def test_action_blocks_are_time_major_and_models_run_in_bfloat16():
         zn, qn = m.rollout(z, q, a[:, :-1], a_future, naive=True)
     assert zc.dtype == torch.bfloat16 and zc.shape == (4, 2, 2, 4, 8)
     assert torch.allclose(zc.float(), zn.float(), atol=0.1, rtol=0.05)
+
+
+def test_init_fine_tunes_from_a_checkpoint_and_refuses_another_architecture(tmp_path):
+    base, _ = train_predictor(_windows(), TINY, TRAIN, tmp_path / "base", device="cpu", progress=False)
+    other = SyntheticWindows(14, TINY, TINY.context + TRAIN.horizon, seed=5)  # other data: other statistics
+    start, _ = train_predictor(other, TINY, TRAIN, tmp_path / "ft0", device="cpu", max_steps=1, progress=False,
+                               init=tmp_path / "base")
+    fresh, _ = train_predictor(other, TINY, TRAIN, tmp_path / "new", device="cpu", max_steps=1, progress=False)
+    assert torch.equal(start.z_mean, base.z_mean) and not torch.equal(fresh.z_mean, base.z_mean)
+    for (name, a), b in zip(base.state_dict().items(), start.state_dict().values()):  # one small step from the base
+        torch.testing.assert_close(a, b, atol=2e-3, rtol=0, msg=name)
+    tuned, _ = train_predictor(other, TINY, TRAIN, tmp_path / "ft", device="cpu", progress=False,
+                               init=tmp_path / "base")
+    assert any(not torch.equal(a, b) for a, b in zip(tuned.parameters(), base.parameters()))
+    assert torch.equal(tuned.z_mean, base.z_mean)
+    wider = dataclasses.replace(TINY, mlp_dim=64)
+    with pytest.raises(UserError, match="is another predictor .*mlp_dim"):
+        train_predictor(other, wider, TRAIN, tmp_path / "bad", device="cpu", progress=False, init=tmp_path / "base")

@@ -40,11 +40,13 @@ class CollectJob:
     image_every: int
     max_steps: int | None = None
     loader: Callable[[str], Policy] = make_policy  # policy_spec -> Policy; a module-level function (picklable)
+    branch: Any = None  # a wamplan.data.branch.BranchSpec: also store counterfactual branches of each episode
 
 
 def collect_one(env: InsertionEnv, policy: Policy, seed: int, source: str, image_every: int,
-                max_steps: int | None = None) -> EpisodeData:
-    """Run one episode, recording states every step and the three views every ``image_every`` steps and at the end."""
+                max_steps: int | None = None, on_step=None) -> EpisodeData:
+    """Run one episode, recording states every step and the three views every ``image_every`` steps and at the end.
+    ``on_step(env, obs, action)`` is called after each recorded observation (e.g. to take snapshots)."""
     rec: dict[str, list] = {k: [] for k in ("proprio", "stages", "cube_pose", "tcp_pose", "sim_state", "drive_targets",
                                             "actions", "image_steps")}
     frames: dict[str, list] = {c: [] for c in CAMERAS}
@@ -62,6 +64,8 @@ def collect_one(env: InsertionEnv, policy: Policy, seed: int, source: str, image
             rec["image_steps"].append(obs.step)
             for c in CAMERAS:
                 frames[c].append(obs.images[c])
+        if on_step is not None:
+            on_step(e, obs, action)
 
     r = run_episode(env, policy, seed, images_at=lambda t: t % image_every == 0, on_obs=on_obs, max_steps=max_steps)
     if not rec["image_steps"] or rec["image_steps"][-1] != r.length:  # always keep the final frame
@@ -91,10 +95,20 @@ class CollectWorker:
         self.store = EpisodeStore(job.store) if write else None
 
     def __call__(self, seed: int) -> dict[str, Any]:
-        ep = collect_one(self.env, self.policy, seed, self.job.source, self.job.image_every, self.job.max_steps)
-        summary: dict[str, Any] = dict(seed=seed, success=ep.success, outcome=ep.outcome, length=ep.length)
+        branches: list[EpisodeData] = []
+        if self.job.branch is not None:
+            from wamplan.data.branch import collect_branched
+
+            ep, branches = collect_branched(self.env, self.policy, seed, self.job.source, self.job.image_every,
+                                            self.job.branch, self.job.max_steps)
+        else:
+            ep = collect_one(self.env, self.policy, seed, self.job.source, self.job.image_every, self.job.max_steps)
+        summary: dict[str, Any] = dict(seed=seed, success=ep.success, outcome=ep.outcome, length=ep.length,
+                                       branches=len(branches))
         if self.store is None:
-            return dict(summary, episode=ep)
+            return dict(summary, episode=ep, branch_episodes=branches)
+        for b in branches:  # the parent last: its presence says its branches are complete
+            self.store.write(b)
         self.store.write(ep)
         return summary
 
@@ -105,11 +119,17 @@ def run_collection(job: CollectJob, seeds: list[int], workers: int = 1,
     backend.check()
     store = EpisodeStore(job.store)
     todo = sorted(set(seeds) - store.finished_seeds(job.source))
+    if job.branch is not None:
+        from wamplan.data.branch import drop_unfinished_branches
+
+        drop_unfinished_branches(store, job.source)
     if backend.kind == "processes":
         yield from imap_workers(partial(CollectWorker, job), todo, workers)
         return
     for rec in imap_workers(partial(CollectWorker, job, False), todo, workers, backend):
-        store.write(rec.pop("episode"))  # here, once per seed, however often the actor was retried
+        for b in rec.pop("branch_episodes"):  # here, once per seed, however often the actor was retried
+            store.write(b)
+        store.write(rec.pop("episode"))
         yield rec
 
 
@@ -121,12 +141,14 @@ def throughput(start: float, n: int) -> float:
 def collect(source: str, episodes: int, out: str | Path, *, seed_start: int = 0, workers: int = 1,
             policy: str | None = None, image_every: int = 4, max_steps: int | None = None,
             env: EnvConfig | None = None, progress: bool = True, log=print,
-            loader: Callable[[str], Policy] = make_policy, backend: Backend = Backend()) -> dict[str, Any]:
+            loader: Callable[[str], Policy] = make_policy, backend: Backend = Backend(),
+            branch: Any = None) -> dict[str, Any]:
     """Collect seeds ``seed_start .. seed_start + episodes - 1`` of ``source`` (expert, noisy-expert, pink,
     or policy with ``policy`` a WAM checkpoint) into the store ``out``, skipping the seeds it holds.
     ``loader`` builds the policy from its name or checkpoint in each worker: the registered policies by
     default; pass ``wamplan.evaluation.policies.load_policy`` to run WAM checkpoints (a layer above data).
-    ``backend``: worker processes here, or Ray actors (see ``wamplan.parallel``).
+    ``backend``: worker processes here, or Ray actors (see ``wamplan.parallel``). ``branch`` (a
+    ``wamplan.data.branch.BranchSpec``, policy sources only) also stores counterfactual branches per episode.
     Returns a summary (collected, skipped, seconds, episodes_per_min, outcomes)."""
     from tqdm import tqdm
 
@@ -141,6 +163,8 @@ def collect(source: str, episodes: int, out: str | Path, *, seed_start: int = 0,
         if policy:
             raise UserError(f"--policy is only for --source policy (got --source {source})")
         spec, tag = source, source
+    if branch is not None and source != "policy":
+        raise UserError(f"--branches needs --source policy (branches perturb a WAM's chunks), got --source {source}")
     env = env or EnvConfig()
     store = EpisodeStore(out, create=True, env=env.task_kwargs(), image_every=image_every, provenance=provenance())
     if (n := store.clean_partial()):
@@ -150,7 +174,7 @@ def collect(source: str, episodes: int, out: str | Path, *, seed_start: int = 0,
     if have:
         log(f"resuming: {len(have)} of {len(seeds)} episodes already in {out}")
     job = CollectJob(store=str(out), source=tag, policy_spec=spec, env=env, image_every=image_every,
-                     max_steps=max_steps, loader=loader)
+                     max_steps=max_steps, loader=loader, branch=branch)
     counts: Counter = Counter()
     start, n = time.perf_counter(), 0
     bar = tqdm(total=len(seeds), initial=len(have), desc=f"collect {tag}", unit="ep", disable=not progress)

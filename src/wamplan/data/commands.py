@@ -30,6 +30,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--policy", default=None, help="with --source policy: a WAM checkpoint directory")
     p.add_argument("--image-every", type=int, default=4, help="store the three views every N steps (and the last)")
     p.add_argument("--max-steps", type=int, default=None, help="truncate episodes earlier than the env's limit")
+    p.add_argument("--branches", type=int, default=0,
+                   help="with --source policy: also store this many counterfactual branches per chunk boundary "
+                        "(the policy's chunk plus Gaussian noise; wamplan/data/branch.py)")
+    p.add_argument("--branch-sigmas", type=float, nargs="+", default=[0.05, 0.1, 0.2],
+                   help="noise std of the branches, cycled (default: 0.05 0.1 0.2)")
+    p.add_argument("--branch-context", type=int, default=8,
+                   help="steps of the parent's history each branch episode keeps: (H_ctx - 1) x frameskip")
     add_arguments(p, EnvConfig)
     p.set_defaults(func=cmd_collect)
 
@@ -64,9 +71,18 @@ def cmd_collect(args: argparse.Namespace) -> int:
     from wamplan.evaluation.policies import load_policy
     from wamplan.parallel import Backend
 
+    branch = None
+    if args.branches:
+        from wamplan.data.branch import BranchSpec
+
+        if args.branches < 0 or min(args.branch_sigmas) <= 0 or args.branch_context < 0:
+            raise UserError("--branches, --branch-sigmas and --branch-context must be positive")
+        branch = BranchSpec(branches=args.branches, sigmas=tuple(args.branch_sigmas),
+                            context_steps=args.branch_context)
     summary = collect(args.source, args.episodes, args.out, seed_start=args.seed_start, workers=args.workers,
                       policy=args.policy, image_every=args.image_every, max_steps=args.max_steps,
-                      env=from_args(EnvConfig, args), loader=load_policy, backend=Backend.from_option(args.ray))
+                      env=from_args(EnvConfig, args), loader=load_policy, backend=Backend.from_option(args.ray),
+                      branch=branch)
     print(json.dumps(summary))
     return 0
 

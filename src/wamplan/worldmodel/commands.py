@@ -45,6 +45,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         p.add_argument("--val-fraction", type=float, default=0.1)
         p.add_argument("--max-steps", type=int, default=None, help="stop after this many steps (resumable)")
         p.add_argument("--device", default="auto")
+        if name == "train":
+            p.add_argument("--init", type=Path, default=None,
+                           help="fine-tune: start from this predictor checkpoint's weights and feature statistics "
+                                "(same preset and encoder)")
         add_arguments(p, TrainConfig)
         p.set_defaults(func=func)
 
@@ -120,7 +124,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     metrics = train_predictor_on_stores(_stores(args.data), args.out, p.predictor, from_args(TrainConfig, args, p.train),
                                         encoder=p.encoder, encoder_kwargs=p.encoder_kwargs,
                                         encoder_path=args.encoder_path, val_fraction=args.val_fraction,
-                                        device=args.device, max_steps=args.max_steps)
+                                        device=args.device, max_steps=args.max_steps, init=args.init)
     print(json.dumps(metrics))
     return 0
 

@@ -75,8 +75,10 @@ def _resume(out: str | Path, kind: str, data: dict[str, Any]) -> bool:
 def train_predictor_on_stores(stores: Sequence[str | Path], out: str | Path, predictor: PredictorConfig,
                               train: TrainConfig, *, encoder: str, encoder_kwargs: dict[str, Any],
                               encoder_path: str | None = None, val_fraction: float = 0.1, device: str = "auto",
-                              max_steps: int | None = None, progress: bool = True) -> dict[str, Any]:
-    """Train (or resume) the predictor on the windows of ``stores``; returns the last metrics."""
+                              max_steps: int | None = None, progress: bool = True,
+                              init: str | Path | None = None) -> dict[str, Any]:
+    """Train (or resume) the predictor on the windows of ``stores``; returns the last metrics. ``init``: a
+    predictor checkpoint to fine-tune from (``worldmodel.train.train_predictor``)."""
     from wamplan.data.readers import WorldModelWindows
     from wamplan.worldmodel.train import KIND, train_predictor
 
@@ -89,7 +91,7 @@ def train_predictor_on_stores(stores: Sequence[str | Path], out: str | Path, pre
         print(f"windows: {len(tr)} train, {len(va)} val ({len(tr.episodes)} / {len(va.episodes)} episodes)")
     _, metrics = train_predictor(tr, predictor, train, out, val_set=va if len(va) else None, device=device,
                                  resume=resume, max_steps=max_steps, progress=progress, encoder_info=info,
-                                 data=data)
+                                 data=data, init=init)
     return metrics
 
 

@@ -118,17 +118,27 @@ def compute_feature_stats(dataset: Dataset, max_items: int = 2000, seed: int = 0
 def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig, out_dir: str | Path, *,
                     val_set: Dataset | None = None, device: str | torch.device = "auto", resume: bool = False,
                     max_steps: int | None = None, progress: bool = True, encoder_info: dict[str, Any] | None = None,
-                    data: dict[str, Any] | None = None) -> tuple[WorldModelPredictor, dict[str, Any]]:
+                    data: dict[str, Any] | None = None, init: str | Path | None = None,
+                    ) -> tuple[WorldModelPredictor, dict[str, Any]]:
     """Train (or resume) a predictor into the run directory ``out_dir`` (``wamplan.train_loop``:
     ``checkpoint/`` + ``metrics.jsonl``). ``encoder_info`` (e.g. ``encoder.config_dict()``) is stored as
     provenance; ``data`` identifies the training data (``data.store.describe_stores``), checked on resume.
+    ``init`` (a predictor checkpoint with the same config and encoder) fine-tunes: a fresh run starts from its
+    weights and feature statistics instead of a random initialisation and new statistics.
     Returns the trained model (eval mode) and the last metrics (with ``val/...`` entries if ``val_set``)."""
     dev = resolve_device(device) if isinstance(device, str) else device
     torch.manual_seed(train.seed)
     model = WorldModelPredictor(cfg).to(dev)
     config = {"predictor": to_dict(cfg), "train": to_dict(train), "encoder": encoder_info}
+    if init is not None:
+        config["init"] = str(Path(init).resolve())
+        _check_init(init, cfg, encoder_info)
 
     def fresh_stats() -> None:
+        if init is not None:
+            load_weights(checkpoint_dir(init), model, dev)
+            model.float()
+            return
         mean, std = compute_feature_stats(train_set, seed=train.seed)
         model.set_feature_stats(mean, std)
 
@@ -143,6 +153,19 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
                  on_fresh_start=fresh_stats, resume=resume, max_steps=max_steps, betas=train.betas,
                  progress=progress, desc="predictor", log=print if progress else None)
     return model.eval(), result.metrics
+
+
+def _check_init(init: str | Path, cfg: PredictorConfig, encoder_info: dict[str, Any] | None) -> None:
+    """A fine-tuning start must be a predictor of the same architecture over the same encoder's tokens."""
+    saved = read_config(checkpoint_dir(init), KIND)
+    if saved["predictor"] != to_dict(cfg):
+        diff = {k: (saved["predictor"].get(k), v) for k, v in to_dict(cfg).items() if saved["predictor"].get(k) != v}
+        raise UserError(f"--init {init} is another predictor {diff} (its, this run's); fine-tune with the preset "
+                        f"it was trained with")
+    theirs = {k: v for k, v in (saved.get("encoder") or {}).items() if k != "path"}
+    if encoder_info is not None and theirs and theirs != encoder_info:
+        raise UserError(f"--init {init} was trained on encoder {theirs}, this run encodes with {encoder_info}; "
+                        f"use the encoder it was trained with")
 
 
 def load_predictor(path: str | Path, device: str | torch.device = "cpu") -> WorldModelPredictor:

@@ -1,0 +1,61 @@
+"""Counterfactual branches (wamplan/data/branch.py): the parent's history, the perturbed chunk, the windows."""
+
+import numpy as np
+import pytest
+
+from wamplan.data.branch import BranchSpec, collect_branched, drop_unfinished_branches, parent_seed
+from wamplan.data.collect import collect
+from wamplan.data.readers import WorldModelWindows
+from wamplan.data.store import EpisodeStore
+from wamplan.envs.core import EnvConfig
+from wamplan.envs.contract import CAMERAS
+from wamplan.policies.base import make_policy
+from wamplan.policies.rollout import run_episode
+
+SPEC = BranchSpec(branches=2, chunk=16, context_steps=8, sigmas=(0.1, 0.3))
+
+
+@pytest.fixture(scope="module")
+def branched(small_env):
+    return collect_branched(small_env, make_policy("expert"), 3, "policy:expert", 4, SPEC, max_steps=40)
+
+
+def test_branches_start_in_the_parents_past_and_run_their_own_chunk(branched, small_env):
+    parent, branches = branched
+    assert parent.length == 40 and len(branches) == 2  # boundary 16 only: 32 + 16 > 40
+    for j, b in enumerate(branches):
+        assert b.seed == 3000 + j and parent_seed(b.seed) == 3 and b.source == "branch:expert"
+        assert b.length == 24 and b.policy["branch_step"] == 16 and b.policy["sigma"] == SPEC.sigmas[j]
+        np.testing.assert_array_equal(b.actions[:8], parent.actions[8:16])  # the shared past
+        np.testing.assert_array_equal(b.proprio[:9], parent.proprio[8:17])
+        noise = b.actions[8:] - parent.actions[16:32]  # the branch's own chunk
+        assert 0.3 * SPEC.sigmas[j] < noise[np.abs(parent.actions[16:32]) < 0.5].std() < 2 * SPEC.sigmas[j]
+        assert list(b.image_steps) == [0, 4, 8, 12, 16, 20, 24]
+        for c in CAMERAS:
+            k = list(parent.image_steps).index(16)
+            np.testing.assert_array_equal(b.images[c][:3], parent.images[c][k - 2:k + 1])
+            assert not np.array_equal(b.images[c][-1], parent.images[c][list(parent.image_steps).index(32)])
+    # the branch's end state is where its actions lead from the parent's state at step 16
+    expert = make_policy("expert")
+    acts = iter(list(parent.actions[:16]) + list(branches[1].actions[8:]))
+    expert.act = lambda obs: next(acts)
+    run_episode(small_env, expert, 3, max_steps=32)
+    end = small_env.privileged_state()["cube_pose"][:3], small_env.privileged_state()["tcp_pose"][:3]
+    np.testing.assert_allclose(end[1], branches[1].tcp_pose[-1][:3], atol=3e-3)
+    np.testing.assert_allclose(end[0], branches[1].cube_pose[-1][:3], atol=3e-3)
+
+
+def test_collect_writes_branches_before_parents_and_windows_read_them(tmp_path):
+    out = tmp_path / "br"
+    s = collect("policy", 1, out, seed_start=3, policy="expert", max_steps=40, progress=False,
+                branch=SPEC, env=EnvConfig(camera_size=64))
+    assert s["collected"] == 1
+    store = EpisodeStore(out)
+    assert store.finished_seeds("policy:expert") == {3} and store.finished_seeds("branch:expert") == {3000, 3001}
+    ds = WorldModelWindows([out], frameskip=4, history=3, horizon=2, split="all", sources=["branch:expert"])
+    assert sorted(int(ds[i]["steps"][0]) for i in range(len(ds))) == [0, 0, 4, 4]  # two windows per branch
+    # an interrupted parent: its branches are on disk, the parent is not -> dropped, then re-collected
+    store.episode_path("policy:expert", 3).unlink()
+    assert drop_unfinished_branches(store, "policy:expert") == 2 and store.finished_seeds("branch:expert") == set()
+    with pytest.raises(Exception, match="--branches needs --source policy"):
+        collect("expert", 1, tmp_path / "x", branch=SPEC, progress=False)
