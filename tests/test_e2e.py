@@ -97,3 +97,21 @@ def test_eval_kill9_then_resume_loses_and_repeats_nothing(run):
     after = read_records(out)
     assert sorted(x["seed"] for x in after) == [0, 1, 2, 3, 4]  # nothing lost, nothing repeated
     assert after[:len(before)] == before  # finished records untouched
+
+
+def test_explain_draws_one_planned_chunk_in_the_model_and_in_the_simulator(run, capsys):
+    assert main(["wm", "train-decoder", "--data", str(run / "expert"), "--out", str(run / "dec"), "--epochs", "1",
+                 "--max-steps", "2", "--batch-size", "8"]) == 0
+    out = run / "mechanism.png"
+    capsys.readouterr()
+    assert main(["explain", "--wam", str(run / "wam"), "--wm-augmented", str(run / "wm"), "--decoder",
+                 str(run / "dec"), "--seed", "7", "--chunk", "1", "--out", str(out), "--camera-size", "64",
+                 "--num-candidates", "4", "--num-elites", "2", "--iterations", "1"]) == 0
+    m = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert out.is_file() and m["step"] == 16
+    assert set(m["model_cost"]) == set(m["true_cost"]) == {"wam", "plan"}
+    assert all(math.isfinite(v) and v > 0 for d in ("model_cost", "true_cost") for v in m[d].values())
+    assert m["model_cost"]["plan"] != m["model_cost"]["wam"]  # the plan (CEM's final mean) moved off the WAM's chunk
+    assert main(["explain", "--wam", str(run / "wam"), "--wm-augmented", str(run / "wm"), "--decoder",
+                 str(run / "nope"), "--out", str(out)]) == 2
+    assert "train-decoder" in capsys.readouterr().err

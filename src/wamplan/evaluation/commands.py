@@ -40,9 +40,36 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--quantiles", type=float, nargs="+", default=[0.1, 0.25, 0.4, 0.5, 0.6, 0.75, 0.9])
     p.set_defaults(func=cmd_gate_calibrate)
 
+    p = sub.add_parser("explain", help="one planned chunk in pictures: the WAM's target, the world model's "
+                       "prediction under the WAM's chunk and under the plan, and the real frames after each")
+    p.add_argument("--seed", type=int, default=0, help="episode seed (condition 7 runs up to the chunk)")
+    p.add_argument("--chunk", type=int, default=4, help="chunk index to explain (>= 1; chunk k starts at step 16k)")
+    p.add_argument("--decoder", required=True, help="picture decoder checkpoint (`wamplan wm train-decoder`)")
+    p.add_argument("--out", type=Path, default=Path("mechanism.png"))
+    add_eval_arguments(p)
+    p.set_defaults(func=cmd_explain)
+
     p = sub.add_parser("report", help="Table 1, Figure 3 (and Table 2, timings) from an evaluation directory")
     p.add_argument("dir", type=Path)
     p.set_defaults(func=cmd_report)
+
+
+def cmd_explain(args: argparse.Namespace) -> int:
+    from wamplan.errors import UserError
+    from wamplan.evaluation.mechanism import explain_chunk, mechanism_figure
+    from wamplan.evaluation.options import eval_config_from_args
+
+    cfg = eval_config_from_args(args)
+    cfg.check_for([7])
+    if not Path(args.decoder).exists():
+        raise UserError(f"--decoder {args.decoder} does not exist; train one with `wamplan wm train-decoder`")
+    m = explain_chunk(cfg, args.decoder, args.seed, args.chunk)
+    title = (f"seed {args.seed}, chunk {args.chunk}: WAM {Path(cfg.wam).name}, world model "
+             f"{Path(cfg.wm_augmented).name}, planner {cfg.planner}")
+    mechanism_figure(m, args.out, title)
+    print(json.dumps(dict(out=str(args.out), step=m.step, model_cost=m.model_cost, true_cost=m.true_cost,
+                          cube_xy_mm=m.cube_xy_mm)))
+    return 0
 
 
 def cmd_eval(args: argparse.Namespace) -> int:

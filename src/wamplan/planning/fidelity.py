@@ -20,7 +20,7 @@ record the cube's xy distance to the hole axis after it: whether the true cost i
 align the cube (Spearman of true cost against that distance, at boundaries where the cube is lifted), and
 how far the model's pick moves the cube relative to the WAM's chunk.
 
-One WAM query per boundary feeds every policy (:class:`_OnceWAM`), so a stochastic WAM cannot give the
+One WAM query per boundary feeds every policy (:class:`OnceWAM`), so a stochastic WAM cannot give the
 models different chunks or targets. Scoring in the simulator restores the boundary snapshot afterwards;
 a restored state differs from a never-restored one by ~1e-3 m (PhysX hidden state), so the episode may
 drift slightly from a pure open-loop run of the same seed.
@@ -112,7 +112,7 @@ def task_stats(model: torch.Tensor, true: torch.Tensor, xy: torch.Tensor) -> dic
                 best_xy_change_mm=float(xy.min() - xy[0]))
 
 
-class _OnceWAM(WAM):
+class OnceWAM(WAM):
     """Queries ``inner`` once per step of an episode and hands every caller that same output."""
 
     def __init__(self, inner: WAM):
@@ -126,6 +126,11 @@ class _OnceWAM(WAM):
         if obs.step not in self._out:
             self._out = {obs.step: self.inner.validate(self.inner.predict(obs, instruction))}
         return self._out[obs.step]
+
+    @property
+    def last(self) -> WAMOutput | None:
+        """The output of the latest step queried (None before the first query of an episode)."""
+        return next(iter(self._out.values()), None)
 
     def reset(self) -> None:
         """A no-op: every PlannedPolicy resets its WAM, so the driver resets the inner WAM itself, once."""
@@ -175,7 +180,7 @@ class FidelityPolicy(Policy):
 
     def __init__(self, wam: WAM, models: Sequence[Scored], env, config: FidelityConfig,
                  cost: CostFn | None = None):
-        self.wam, self.cfg, self.env = _OnceWAM(wam), config, env
+        self.wam, self.cfg, self.env = OnceWAM(wam), config, env
         self.chunk = wam.chunk_length
         cost = cost or make_cost("patch")
         self.labels = [m.label for m in models]

@@ -1,0 +1,124 @@
+"""The mechanism of feedback planning, for one chunk, in one picture (``wamplan explain``).
+
+At chunk boundary t of a condition-7 episode (the WAM with planning in the world model), per view:
+
+    now (t) | WAM's target (t+H) | model under the WAM's chunk | model under the plan | real after the WAM's
+    chunk | real after the plan
+
+The model's columns are its predicted terminal embeddings decoded to pixels (the decoder is only for
+looking; planning never uses it); the real columns are rendered after executing each chunk from the same
+snapshot. Costs are the planning cost (eq. 3) against the WAM's target: the model's (what CEM minimised)
+and the true one (the rendered frame encoded by the same encoder), so the picture says whether the plan
+the model preferred is also better in the simulator, and where the model's picture differs from reality.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from wamplan.envs.contract import CAMERAS
+from wamplan.errors import UserError
+
+
+@dataclass
+class Mechanism:
+    step: int
+    now: np.ndarray  # (V, H, W, 3) uint8
+    target: np.ndarray  # (V, h, w, 3) uint8, the WAM's predicted views at t+H
+    model: dict[str, np.ndarray]  # "wam" / "plan" -> (V, S, S, 3) float in [0, 1], decoded predictions
+    real: dict[str, np.ndarray]  # "wam" / "plan" -> (V, H, W, 3) uint8 after executing the chunk
+    model_cost: dict[str, float]
+    true_cost: dict[str, float]
+    cube_xy_mm: dict[str, float]  # the cube's xy distance to the hole axis after each chunk
+
+
+@torch.no_grad()  # not inference mode: the env built here must hold ordinary tensors
+def explain_chunk(cfg, decoder: str | Path, seed: int, chunk_index: int) -> Mechanism:
+    """Run condition 7 of ``cfg`` (an ``EvalConfig``) on ``seed`` up to chunk ``chunk_index`` (>= 1), plan that
+    chunk, and compare the WAM's chunk with the plan in the model and in the simulator."""
+    from wamplan.evaluation.runner import EvalWorker
+    from wamplan.planning.fidelity import OnceWAM
+    from wamplan.policies.rollout import run_episode
+    from wamplan.worldmodel.decoder import load_decoder
+
+    if chunk_index < 1:
+        raise UserError(f"--chunk {chunk_index}: chunk 0 always runs open loop; pick a chunk index >= 1")
+    worker = EvalWorker(cfg)
+    policy = worker.policy(7)
+    policy.wam = policy.target_wam = once = OnceWAM(policy.wam)  # one query per step, kept for the picture
+    once.new_episode()
+    env, t = worker.env, chunk_index * policy.chunk
+    r = run_episode(env, policy, seed, max_steps=t)
+    if r.length < t:
+        raise UserError(f"seed {seed} ended ({r.outcome}) at step {r.length}, before chunk {chunk_index}; pick an "
+                        f"earlier --chunk")
+    obs = env.observe(with_images=True)
+    plan = np.stack([policy.act(obs)] + [policy._queue.pop(0) for _ in range(policy.chunk - 1)])  # (H, A)
+    wam_chunk = once.last.actions  # (H, A)
+    target_views = once.last.images
+    target = policy._encode(target_views)  # (V, N, D)
+    dec = load_decoder(decoder)
+    chunks = {"wam": wam_chunk, "plan": plan}
+    cands = torch.as_tensor(np.stack(list(chunks.values())), device=policy.device)  # (2, H, A)
+    covered = policy.dynamics.covered(policy.chunk)
+    z = policy.dynamics.terminal(policy._clip(cands[:, :covered]))  # (2, V, N, D)
+    model_cost = policy.cost(z, target)  # (2,)
+    pics = dec(z.flatten(0, 1).float().to(next(dec.parameters()).device))  # (2V, 3, S, S)
+    pics = pics.permute(0, 2, 3, 1).reshape(2, len(CAMERAS), *pics.shape[2:], 3).cpu().numpy()
+    snap = env.snapshot()
+    real, true_cost, xy = {}, {}, {}
+    for k, acts in chunks.items():
+        env.restore(snap)
+        for a in acts:
+            env.step(a)
+        views = env.render()
+        real[k] = np.stack([views[c] for c in CAMERAS])
+        true_cost[k] = float(policy.cost(policy._encode(views)[None], target)[0])
+        s = env.privileged_state()
+        xy[k] = float(np.linalg.norm(s["cube_pose"][:2] - s["hole_pos"][:2]) * 1000)
+    env.restore(snap)
+    return Mechanism(step=t, now=np.stack([obs.images[c] for c in CAMERAS]),
+                     target=np.stack([target_views[c] for c in CAMERAS]),
+                     model={k: pics[i] for i, k in enumerate(chunks)}, real=real,
+                     model_cost={k: float(model_cost[i]) for i, k in enumerate(chunks)}, true_cost=true_cost,
+                     cube_xy_mm=xy)
+
+
+def mechanism_figure(m: Mechanism, out: str | Path, title: str = "") -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cols = [(f"now (step {m.step})", m.now), (f"WAM's target (step {m.step + 16})", m.target),
+            (f"model, WAM's chunk\ncost {m.model_cost['wam']:.3f}", m.model["wam"]),
+            (f"model, plan\ncost {m.model_cost['plan']:.3f}", m.model["plan"]),
+            (f"real, WAM's chunk\ncost {m.true_cost['wam']:.3f}, cube {m.cube_xy_mm['wam']:.1f} mm", m.real["wam"]),
+            (f"real, plan\ncost {m.true_cost['plan']:.3f}, cube {m.cube_xy_mm['plan']:.1f} mm", m.real["plan"])]
+    fig, axes = plt.subplots(len(CAMERAS), len(cols), figsize=(2.2 * len(cols), 2.3 * len(CAMERAS) + 0.6),
+                             squeeze=False)
+    for j, (label, views) in enumerate(cols):
+        for v, cam in enumerate(CAMERAS):
+            ax = axes[v][j]
+            img = views[v]
+            ax.imshow(img if img.dtype == np.uint8 else np.clip(img, 0, 1))
+            ax.set_xticks([]), ax.set_yticks([])
+            if v == 0:
+                ax.set_title(label, fontsize=8)
+            if j == 0:
+                ax.set_ylabel(cam, fontsize=9)
+    better = m.true_cost["plan"] < m.true_cost["wam"]
+    fig.suptitle((title + "\n" if title else "") + "costs: planning cost (eq. 3) against the WAM's target; model = "
+                 "decoded world-model prediction; cube = xy distance to the hole axis. The plan is "
+                 f"{'better' if better else 'worse'} than the WAM's chunk in the simulator.", fontsize=8)
+    fig.tight_layout()
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=90)
+    plt.close(fig)
+    return out
