@@ -22,7 +22,14 @@ if [ -f "$CK/tinywam/model.safetensors" ]; then
     $W eval --conditions 1 "${args[@]}"
   fi
   $W report "$OUT/eval"
+  # the episode-by-episode comparison of these seeds (the 100-seed table is in the README, "Measured")
+  sed -n '/^## Episode by episode/,/^## /p' "$OUT/eval/report.md" | sed '$d'
+  if [ -f "$CK/decoder/model.safetensors" ] && [ -f "$CK/wm_augmented/model.safetensors" ]; then
+    # the mechanism: one planned chunk, the WAM's target against the model's and the simulator's outcomes
+    $W explain --wam "$CK/tinywam" --wm-augmented "$CK/wm_augmented" --decoder "$CK/decoder" \
+      --seed "${DEMO_EXPLAIN_SEED:-1}" --chunk "${DEMO_EXPLAIN_CHUNK:-5}" --out "$OUT/mechanism.png"
+  fi
 else
   echo "no demo checkpoints in $CK: see README 'Demo checkpoints' for the command that makes them"
 fi
-echo "demo outputs in $OUT: views.png, expert_rollout.json, videos/, eval/report.md, eval/figure3.png"
+echo "demo outputs in $OUT: views.png, expert_rollout.json, videos/, eval/report.md, eval/figure3.png, mechanism.png"

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from wamplan.envs.media import save_figure
 from wamplan.errors import UserError
 from wamplan.train_loop import METRICS_FILE, read_metrics
 
@@ -70,8 +71,4 @@ def plot_training_curves(run: str | Path, out: str | Path | None = None) -> Path
     ax_lr.set_xlabel("step")
     ax_lr.set_title("learning rate")
     ax_lr.grid(alpha=0.3)
-    fig.tight_layout()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
-    return out
+    return save_figure(fig, out, dpi=110)

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from wamplan.data.collect import collect_one
+from wamplan.data.collect import STATE_KEYS, collect_one, record_state
 from wamplan.data.store import EpisodeData, EpisodeStore
 from wamplan.envs.contract import CAMERAS
 from wamplan.envs.core import InsertionEnv
@@ -92,8 +92,7 @@ def collect_branched(env: InsertionEnv, policy: Policy, seed: int, source: str, 
 def _branch_episode(env: InsertionEnv, snap, parent: EpisodeData, t: int, actions: np.ndarray, seed: int,
                     source: str, image_every: int, spec: BranchSpec, sigma: float) -> EpisodeData:
     s0 = t - spec.context_steps  # the branch episode's step 0 is the parent's step s0
-    rec = {k: [getattr(parent, k)[i] for i in range(s0, t + 1)]
-           for k in ("proprio", "stages", "cube_pose", "tcp_pose", "sim_state", "drive_targets")}
+    rec = {k: [getattr(parent, k)[i] for i in range(s0, t + 1)] for k in STATE_KEYS}
     keep = [k for k, st in enumerate(parent.image_steps) if s0 <= st <= t]  # the parent's frames in the history
     image_steps = [int(parent.image_steps[k]) - s0 for k in keep]
     frames = {c: [parent.images[c][k] for k in keep] for c in CAMERAS}
@@ -101,12 +100,7 @@ def _branch_episode(env: InsertionEnv, snap, parent: EpisodeData, t: int, action
     for i, a in enumerate(actions, start=1):
         want = (spec.context_steps + i) % image_every == 0
         obs, _ = env.step(a, with_images=want)
-        rec["proprio"].append(obs.proprio)
-        rec["stages"].append(obs.state["stages"])
-        rec["cube_pose"].append(obs.state["cube_pose"])
-        rec["tcp_pose"].append(obs.state["tcp_pose"])
-        rec["sim_state"].append(env.sim_state())
-        rec["drive_targets"].append(env.drive_targets())
+        record_state(rec, env, obs)
         if want:
             image_steps.append(spec.context_steps + i)
             for c in CAMERAS:

@@ -43,23 +43,30 @@ class CollectJob:
     branch: Any = None  # a wamplan.data.branch.BranchSpec: also store counterfactual branches of each episode
 
 
+STATE_KEYS = ("proprio", "stages", "cube_pose", "tcp_pose", "sim_state", "drive_targets")  # per step, (T+1, ...)
+
+
+def record_state(rec: dict[str, list], env: InsertionEnv, obs) -> None:
+    """Append the per-step state arrays of ``obs`` (and the env's physics state) to ``rec``'s lists."""
+    rec["proprio"].append(obs.proprio)
+    rec["stages"].append(obs.state["stages"])
+    rec["cube_pose"].append(obs.state["cube_pose"])
+    rec["tcp_pose"].append(obs.state["tcp_pose"])
+    rec["sim_state"].append(env.sim_state())
+    rec["drive_targets"].append(env.drive_targets())
+
+
 def collect_one(env: InsertionEnv, policy: Policy, seed: int, source: str, image_every: int,
                 max_steps: int | None = None, on_step=None) -> EpisodeData:
     """Run one episode, recording states every step and the three views every ``image_every`` steps and at the end.
     ``on_step(env, obs, action)`` is called after each recorded observation (e.g. to take snapshots)."""
-    rec: dict[str, list] = {k: [] for k in ("proprio", "stages", "cube_pose", "tcp_pose", "sim_state", "drive_targets",
-                                            "actions", "image_steps")}
+    rec: dict[str, list] = {k: [] for k in (*STATE_KEYS, "actions", "image_steps")}
     frames: dict[str, list] = {c: [] for c in CAMERAS}
 
     def on_obs(e: InsertionEnv, obs, action) -> None:
         if action is not None:
             rec["actions"].append(action)
-        rec["proprio"].append(obs.proprio)
-        rec["stages"].append(obs.state["stages"])
-        rec["cube_pose"].append(obs.state["cube_pose"])
-        rec["tcp_pose"].append(obs.state["tcp_pose"])
-        rec["sim_state"].append(e.sim_state())
-        rec["drive_targets"].append(e.drive_targets())
+        record_state(rec, e, obs)
         if obs.images is not None and obs.step % image_every == 0:
             rec["image_steps"].append(obs.step)
             for c in CAMERAS:

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
@@ -95,6 +94,8 @@ def mechanism_figure(m: Mechanism, out: str | Path, title: str = "") -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from wamplan.envs.media import save_figure
+
     cols = [(f"now (step {m.step})", m.now), (f"WAM's target (step {m.step + 16})", m.target),
             (f"model, WAM's chunk\ncost {m.model_cost['wam']:.3f}", m.model["wam"]),
             (f"model, plan\ncost {m.model_cost['plan']:.3f}", m.model["plan"]),
@@ -116,9 +117,4 @@ def mechanism_figure(m: Mechanism, out: str | Path, title: str = "") -> Path:
     fig.suptitle((title + "\n" if title else "") + "costs: planning cost (eq. 3) against the WAM's target; model = "
                  "decoded world-model prediction; cube = xy distance to the hole axis. The plan is "
                  f"{'better' if better else 'worse'} than the WAM's chunk in the simulator.", fontsize=8)
-    fig.tight_layout()
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=90)
-    plt.close(fig)
-    return out
+    return save_figure(fig, out)

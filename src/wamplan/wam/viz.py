@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from wamplan.envs.contract import CAMERAS, Observation
+from wamplan.envs.media import save_figure
 from wamplan.errors import UserError
 
 
@@ -52,8 +53,5 @@ def prediction_figure(wam, store_dir: str | Path, episode: int = 0, starts: tupl
                 ax.set_xticks([]), ax.set_yticks([])
                 ax.set_title(title, fontsize=7)
     fig.suptitle(f"{ep.source} seed {ep.seed}: WAM predictions of the views {h} steps ahead", fontsize=9)
-    fig.tight_layout()
-    Path(out).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=90)
-    plt.close(fig)
+    save_figure(fig, out)
     return {k: float(np.mean(v)) for k, v in err.items()}

@@ -22,6 +22,7 @@ def rollout_figure(ckpt: str | Path, decoder: str | Path, store_dir: str | Path,
     import matplotlib.pyplot as plt
 
     from wamplan.data.store import EpisodeStore
+    from wamplan.envs.media import save_figure
     from wamplan.worldmodel.decoder import load_decoder
     from wamplan.worldmodel.train import load_world_model
 
@@ -69,9 +70,4 @@ def rollout_figure(ckpt: str | Path, decoder: str | Path, store_dir: str | Path,
             if j == 0:
                 ax.set_ylabel(label, fontsize=8)
     fig.suptitle(f"{ep.source} seed {ep.seed} ({ep.outcome}), {camera} view, context from step {start}", fontsize=9)
-    fig.tight_layout()
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=90)
-    plt.close(fig)
-    return out
+    return save_figure(fig, out)
