@@ -1,4 +1,5 @@
-"""Training curves of a run (``RUN/metrics.jsonl``, ``wamplan.train_loop``) as a PNG.
+"""Training curves of a run (``RUN/metrics.jsonl``, ``wamplan.train_loop``) as a PNG, and the figure writer every
+picture of wamplan uses (``save_figure``).
 
 Left: the training losses (``train/*``: per-step records as lines, epoch means as dots) and the
 validation metrics (``val/*`` at epoch ends, dashed), on a log scale when all are positive.
@@ -9,12 +10,23 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from wamplan.envs.media import save_figure
 from wamplan.errors import UserError
 from wamplan.train_loop import METRICS_FILE, read_metrics
 
 # validation keys drawn by default: losses and MSEs, not the per-horizon breakdown or the baselines
 _VAL_SKIP = ("copy_",)
+
+
+def save_figure(fig, out: str | Path, dpi: int = 90) -> Path:
+    """Lay out a matplotlib figure, write it to ``out`` (parents created) and close it."""
+    import matplotlib.pyplot as plt
+
+    out = Path(out)
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=dpi)
+    plt.close(fig)
+    return out
 
 
 def _val_keys(records: list[dict]) -> list[str]:

@@ -23,18 +23,6 @@ def save_views(images: dict[str, np.ndarray], path: str | Path) -> None:
     iio.imwrite(path, side_by_side(images))
 
 
-def save_figure(fig, out: str | Path, dpi: int = 90) -> Path:
-    """Lay out a matplotlib figure, write it to ``out`` (parents created) and close it."""
-    import matplotlib.pyplot as plt
-
-    out = Path(out)
-    fig.tight_layout()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=dpi)
-    plt.close(fig)
-    return out
-
-
 def write_video(path: str | Path, frames: list[dict[str, np.ndarray]], fps: int = 20) -> None:
     """Write one MP4 of per-step views (each camera -> (H, W, 3) uint8), the cameras side by side."""
     import imageio.v2 as imageio

@@ -94,7 +94,7 @@ def mechanism_figure(m: Mechanism, out: str | Path, title: str = "") -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from wamplan.envs.media import save_figure
+    from wamplan.plot import save_figure
 
     cols = [(f"now (step {m.step})", m.now), (f"WAM's target (step {m.step + 16})", m.target),
             (f"model, WAM's chunk\ncost {m.model_cost['wam']:.3f}", m.model["wam"]),

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from wamplan.envs.contract import CAMERAS, Observation
-from wamplan.envs.media import save_figure
+from wamplan.plot import save_figure
 from wamplan.errors import UserError
 
 

@@ -22,7 +22,7 @@ def rollout_figure(ckpt: str | Path, decoder: str | Path, store_dir: str | Path,
     import matplotlib.pyplot as plt
 
     from wamplan.data.store import EpisodeStore
-    from wamplan.envs.media import save_figure
+    from wamplan.plot import save_figure
     from wamplan.worldmodel.decoder import load_decoder
     from wamplan.worldmodel.train import load_world_model
 
