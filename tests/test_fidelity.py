@@ -1,5 +1,7 @@
 """Planning fidelity: rank statistics, and a run in the real env with the shipped mini models."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -46,3 +48,11 @@ def test_fidelity_of_a_world_model_and_of_the_simulator_against_itself(env):
     s = out["summary"]
     assert s["simulator"]["spearman_median"] == pytest.approx(1.0) and s["augmented"]["boundaries"] == 2
     assert "augmented" in format_fidelity(s, 2)
+    # a wrist-only cost (`--cost-view-weights 0 0 1`) scores the same candidates otherwise, in the model and the simulator
+    from wamplan.planning.costs import make_cost
+
+    wrist = run_fidelity(env, wam, models, [500], dataclasses.replace(cfg, boundaries=(1,), task_metric=False),
+                         cost=make_cost("patch", (0.0, 0.0, 1.0)))["records"][0]["models"]
+    assert wrist["augmented"]["model_costs"] != recs[0]["models"]["augmented"]["model_costs"]
+    assert wrist["augmented"]["true_costs"] != recs[0]["models"]["augmented"]["true_costs"]
+    assert wrist["simulator"]["spearman"] == pytest.approx(1.0, abs=1e-9)

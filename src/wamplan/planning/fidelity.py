@@ -271,13 +271,13 @@ class FidelityPolicy(Policy):
 
 
 def run_fidelity(env, wam: WAM, models: Sequence[Scored], seeds: Sequence[int], config: FidelityConfig | None = None,
-                 progress=None) -> dict[str, Any]:
+                 progress=None, cost: CostFn | None = None) -> dict[str, Any]:
     """Score every model at the ``boundaries`` of each seed's open-loop WAM episode that it reaches (the episode
     stops after the last boundary's first step or at success). Returns {"records": [...], "summary": {...}}."""
     from wamplan.policies.rollout import run_episode
 
     cfg = config or FidelityConfig()
-    pol = FidelityPolicy(wam, models, env, cfg)
+    pol = FidelityPolicy(wam, models, env, cfg, cost=cost)
     for seed in seeds:
         r = run_episode(env, pol, seed, max_steps=max(cfg.boundaries) * pol.chunk + 1)
         if progress is not None:

@@ -99,6 +99,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                                                        "e.g. 1-4 or 1,3,5,7")
     p.add_argument("--sample-seed", type=int, default=0, help="seed of the candidate samples")
     p.add_argument("--camera-size", type=int, default=224, help="rendered image size (as in evaluation)")
+    p.add_argument("--cost-view-weights", type=float, nargs="+", default=None,
+                   help="per-view weights of the planning cost (front side wrist), as `eval --cost-view-weights`; "
+                        "both the model's and the simulator's costs use them")
     p.add_argument("--device", default="cpu")
     p.add_argument("--json", type=Path, default=None)
     p.set_defaults(func=cmd_fidelity)
@@ -250,7 +253,10 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
         print(f"seed {seed}: {len(mine)} boundaries, {result.length} steps, Spearman {sp}", flush=True)
 
     try:
-        out = run_fidelity(env, wam, models, seeds, cfg, progress=progress)
+        from wamplan.planning.costs import CostConfig
+
+        cost = CostConfig(view_weights=tuple(args.cost_view_weights or ())).build()
+        out = run_fidelity(env, wam, models, seeds, cfg, progress=progress, cost=cost)
     finally:
         env.close()
     print(format_fidelity(out["summary"], cfg.top_k))
