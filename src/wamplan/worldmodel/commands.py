@@ -90,7 +90,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     p = s.add_parser("fidelity", help="rank agreement of world models with the simulator on the same candidates")
     p.add_argument("--wam", required=True, help="WAM checkpoint (e.g. checkpoints/mini/tinywam)")
-    p.add_argument("--wm", required=True, help="world-model checkpoints, comma separated; LABEL=PATH to name one")
+    p.add_argument("--wm", required=True, help="world-model checkpoints, comma separated; LABEL=PATH to name one; "
+                                               "A+B+C: an ensemble (its members' mean cost)")
     p.add_argument("--seeds", required=True, help="episode seeds, e.g. 500-503 or 500,510 (keep test seeds out)")
     p.add_argument("--candidates", type=int, default=32, help="the WAM's chunk + N-1 samples")
     p.add_argument("--sigma", type=float, default=0.10)
@@ -228,7 +229,7 @@ def _seed_list(spec: str, flag: str = "--seeds") -> list[int]:
 
 def cmd_fidelity(args: argparse.Namespace) -> int:
     from wamplan.envs.core import EnvConfig, InsertionEnv
-    from wamplan.planning.dynamics import LearnedDynamics
+    from wamplan.planning.dynamics import learned_dynamics
     from wamplan.planning.fidelity import FidelityConfig, Scored, format_fidelity, run_fidelity
     from wamplan.wam import load_wam
     from wamplan.worldmodel.train import load_world_model
@@ -238,12 +239,14 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
     seeds = _seed_list(args.seeds)
     models = []
     for spec in (s for s in args.wm.split(",") if s):
-        label, _, path = spec.rpartition("=")
-        label = label or Path(path).name
-        if not Path(path).exists():
-            raise UserError(f"--wm {path} does not exist; pass a world-model checkpoint directory")
-        model, enc = load_world_model(path, device=args.device)
-        models.append(Scored(label, LearnedDynamics(model), enc))
+        label, _, paths = spec.rpartition("=")
+        label = label or Path(paths).name
+        loaded = []
+        for path in paths.split("+"):  # A+B+C: an ensemble scored by its mean cost (as --wm-augmented A,B,C)
+            if not Path(path).exists():
+                raise UserError(f"--wm {path} does not exist; pass a world-model checkpoint directory")
+            loaded.append(load_world_model(path, device=args.device))
+        models.append(Scored(label, *learned_dynamics(loaded)))
     wam = load_wam(args.wam, device=args.device)
     env = InsertionEnv(EnvConfig(camera_size=args.camera_size))
 
