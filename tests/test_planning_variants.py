@@ -52,6 +52,27 @@ def test_a_gated_chunk_executes_the_wams_chunk(small_env, encoder):
     np.testing.assert_array_equal(np.asarray(executed[16:32]), wam)
 
 
+# ------------------------------------------------------------------ trust test (accept margin)
+def test_accept_margin_keeps_the_wams_chunk_unless_the_plan_is_clearly_better(small_env, encoder):
+    wam = np.zeros((16, 5), np.float32)
+    wam[:, 0], wam[:, 4] = 0.3, 1.0  # EchoWAM's chunk
+    always = run_episode(small_env, _policy(encoder, accept_margin=0.0), seed=2, max_steps=17).policy_info
+    (c,) = [c for c in always["chunks"] if c["step"] == 16]
+    assert c["planned"] and c["plan_cost"] <= c["seed_cost"]  # margin 0: any improvement is executed
+    gain = 1 - c["plan_cost"] / c["seed_cost"]
+    for margin, planned in ((gain * 0.5, True), (min(gain * 1.5 + 1e-6, 0.99), False)):
+        executed = []
+        info = run_episode(small_env, _policy(encoder, accept_margin=margin), seed=2, max_steps=32,
+                           on_obs=lambda e, o, a: executed.append(a)).policy_info
+        (c2,) = [c for c in info["chunks"] if c["step"] == 16]
+        assert c2["planned"] == planned and c2["plan_cost"] == pytest.approx(c["plan_cost"], rel=1e-4)
+        if not planned:
+            assert c2["open_loop"] == "rejected" and info["open_loop_chunks"]["rejected"] == 1
+            np.testing.assert_array_equal(np.asarray(executed[16:32]), wam)  # the WAM's chunk, untouched
+    with pytest.raises(ValueError, match="accept_margin must be in"):
+        PlannedPolicyConfig(accept_margin=1.0)
+
+
 # ------------------------------------------------------------------ warm start
 def _spy_inits(pol):
     inits, plan = [], pol.planner.plan

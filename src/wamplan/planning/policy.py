@@ -63,6 +63,10 @@ class PlannedPolicyConfig:
     disagreement_weight: float = field(
         0.0, "uncertainty-aware cost: add this times the ensemble's disagreement (variance across members) to "
         "the cost; needs an ensemble world model (several comma-separated checkpoints). 0 = off")
+    accept_margin: float | None = field(
+        None, "trust test: execute the plan only if the model predicts it lowers the WAM chunk's cost by at least "
+        "this fraction (e.g. 0.1), else the WAM's chunk; a model that cannot tell close chunks apart then "
+        "leaves the WAM alone instead of adding its noise. None = always execute the plan (the paper)")
 
     def __post_init__(self):
         require(self.first_chunk in ("open-loop", "rest-history"),
@@ -70,6 +74,8 @@ class PlannedPolicyConfig:
         require(self.warm_start in WARM_STARTS, f"warm_start must be one of {WARM_STARTS}, got {self.warm_start!r}")
         require(0.0 <= self.warm_weight <= 1.0, f"warm_weight must be in [0, 1], got {self.warm_weight}")
         require(self.disagreement_weight >= 0, f"disagreement_weight must be >= 0, got {self.disagreement_weight}")
+        require(self.accept_margin is None or 0.0 <= self.accept_margin < 1.0,
+                f"accept_margin must be in [0, 1) or None, got {self.accept_margin}")
 
 
 class PlanningError(UserError):
@@ -208,7 +214,8 @@ class PlannedPolicy(Policy):
         objective = self.objective(target)
         rec.update(wam_s=rec["wam_s"] + t2 - t1, target_encode_s=t3 - t2)
         init, wam_cost = seed, None
-        if self.config.gate_threshold is not None or self.config.warm_start != "none":
+        if self.config.gate_threshold is not None or self.config.warm_start != "none" or \
+                self.config.accept_margin is not None:
             wam_cost = float(objective(self._clip(seed)[None])[0])  # the WAM's own chunk, scored as the planner would
         if self.config.gate_threshold is not None and wam_cost <= self.config.gate_threshold:
             rec.update(open_loop="gated", seed_cost=wam_cost, search_s=time.perf_counter() - t3)
@@ -221,11 +228,17 @@ class PlannedPolicy(Policy):
             self._correction = result.actions[:covered].float() - seed.float()  # (H_opt, A)
         plan = np.concatenate([result.actions.cpu().numpy(), seed_out.actions[covered:]]).astype(np.float32)  # (H, A)
         init_cost = float(result.seed_cost) if result.seed_cost is not None else float("nan")
-        rec.update(planned=True, search_s=time.perf_counter() - t3,
-                   seed_cost=init_cost if wam_cost is None else wam_cost, best_cost=float(result.best_cost))
+        rec.update(planned=True, seed_cost=init_cost if wam_cost is None else wam_cost, best_cost=float(result.best_cost))
         if init is not seed:
             rec["init_cost"] = init_cost  # the warm-started initial mean's cost
         self.last_plan = result
+        if self.config.accept_margin is not None:
+            plan_cost = float(objective(self._clip(result.actions[:covered])[None])[0])  # what would be executed
+            rec["plan_cost"] = plan_cost
+            if plan_cost > (1.0 - self.config.accept_margin) * wam_cost:  # not clearly better: keep the WAM's
+                rec.update(planned=False, open_loop="rejected", search_s=time.perf_counter() - t3)
+                return seed_out.actions
+        rec["search_s"] = time.perf_counter() - t3
         return plan
 
     def objective(self, target: torch.Tensor):
