@@ -23,7 +23,7 @@ if [ -f "$CK/tinywam/model.safetensors" ]; then
   fi
   $W report "$OUT/eval"
   # the episode-by-episode comparison of these seeds (the 100-seed table is in the README, "Measured")
-  sed -n '/^## Episode by episode/,/^## /p' "$OUT/eval/report.md" | sed '$d'
+  awk '/^## /{show = /^## Episode by episode/} show' "$OUT/eval/report.md"
   if [ -f "$CK/decoder/model.safetensors" ] && [ -f "$CK/wm_augmented/model.safetensors" ]; then
     # the mechanism: one planned chunk, the WAM's target against the model's and the simulator's outcomes
     $W explain --wam "$CK/tinywam" --wm-augmented "$CK/wm_augmented" --decoder "$CK/decoder" \
