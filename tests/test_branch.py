@@ -59,3 +59,14 @@ def test_collect_writes_branches_before_parents_and_windows_read_them(tmp_path):
     assert drop_unfinished_branches(store, "policy:expert") == 2 and store.finished_seeds("branch:expert") == set()
     with pytest.raises(Exception, match="--branches needs --source policy"):
         collect("expert", 1, tmp_path / "x", branch=SPEC, progress=False)
+
+
+def test_branches_share_their_parents_split_and_stay_in_their_seed_space(small_env):
+    from wamplan.data.readers import split_of
+
+    for parent in range(40):
+        side = split_of("policy:tinywam", parent, 0.3)
+        assert all(split_of("branch:tinywam", parent * 1000 + j, 0.3) == side for j in (0, 7, 99))
+    assert {split_of("policy:tinywam", p, 0.3) for p in range(40)} == {"train", "val"}
+    with pytest.raises(ValueError, match="fewer --branches"):
+        collect_branched(small_env, make_policy("expert"), 3, "policy:expert", 4, BranchSpec(branches=60))

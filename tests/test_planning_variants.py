@@ -69,6 +69,9 @@ def test_accept_margin_keeps_the_wams_chunk_unless_the_plan_is_clearly_better(sm
         if not planned:
             assert c2["open_loop"] == "rejected" and info["open_loop_chunks"]["rejected"] == 1
             np.testing.assert_array_equal(np.asarray(executed[16:32]), wam)  # the WAM's chunk, untouched
+    warm = _policy(encoder, accept_margin=0.99, warm_start="residual")
+    run_episode(small_env, warm, seed=2, max_steps=17)
+    assert warm.chunks[1]["open_loop"] == "rejected" and warm._correction is None  # a rejected plan never carries over
     with pytest.raises(ValueError, match="accept_margin must be in"):
         PlannedPolicyConfig(accept_margin=1.0)
 

@@ -21,7 +21,7 @@ branches of a parent that was interrupted).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -38,7 +38,7 @@ BRANCH_SEED_FACTOR = 1000  # branch j of parent seed s has seed s * 1000 + j
 @dataclass(frozen=True)
 class BranchSpec:
     branches: int = 8  # perturbed chunks per boundary
-    chunk: int = 16  # H: the policy's chunk length, and the boundaries' spacing
+    chunk: int = 16  # H: the boundaries' spacing when the policy has no chunk_length of its own
     context_steps: int = 8  # history kept before t: (H_ctx - 1) * Δ of the world model
     sigmas: tuple[float, ...] = (0.05, 0.1, 0.2)  # noise std per branch, cycled
     rng_seed: int = 0
@@ -60,11 +60,17 @@ def parent_seed(branch_seed: int) -> int:
 def collect_branched(env: InsertionEnv, policy: Policy, seed: int, source: str, image_every: int,
                      spec: BranchSpec, max_steps: int | None = None) -> tuple[EpisodeData, list[EpisodeData]]:
     """The parent episode (as ``collect_one``) and its branches (see the module docstring)."""
+    chunk = getattr(policy, "chunk_length", None) or spec.chunk  # a WAM's own chunk length sets the boundaries
+    spec = replace(spec, chunk=chunk)
+    snaps: dict[int, object] = {}
+    limit = min(max_steps or env.config.max_episode_steps, env.config.max_episode_steps)
+    if spec.branches * (limit // spec.chunk) >= BRANCH_SEED_FACTOR:
+        raise ValueError(f"{spec.branches} branches x {limit // spec.chunk} boundaries would number {BRANCH_SEED_FACTOR} "
+                         f"or more branches per episode, past the seed space s * {BRANCH_SEED_FACTOR} + j; use fewer "
+                         f"--branches")
     if spec.chunk % image_every or spec.context_steps % image_every:
         raise ValueError(f"image_every {image_every} must divide the chunk {spec.chunk} and the context "
                          f"{spec.context_steps}")
-    snaps: dict[int, object] = {}
-    limit = min(max_steps or env.config.max_episode_steps, env.config.max_episode_steps)
 
     def at_boundary(e: InsertionEnv, obs, action) -> None:
         t = obs.step

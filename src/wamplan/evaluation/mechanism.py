@@ -65,8 +65,8 @@ def explain_chunk(cfg, decoder: str | Path, seed: int, chunk_index: int) -> Mech
     chunks = {"wam": wam_chunk, "plan": plan}
     cands = torch.as_tensor(np.stack(list(chunks.values())), device=policy.device)  # (2, H, A)
     covered = policy.dynamics.covered(policy.chunk)
-    z = policy.dynamics.terminal(policy._clip(cands[:, :covered]))  # (2, V, N, D)
-    model_cost = policy.cost(z, target)  # (2,)
+    z = policy.dynamics.terminal(policy._clip(cands[:, :covered]))  # (2, V, N, D), for the pictures
+    model_cost = policy.objective(target)(policy._clip(cands[:, :covered]))  # (2,) what CEM minimised
     pics = dec(z.flatten(0, 1).float().to(next(dec.parameters()).device))  # (2V, 3, S, S)
     pics = pics.permute(0, 2, 3, 1).reshape(2, len(CAMERAS), *pics.shape[2:], 3).cpu().numpy()
     snap = env.snapshot()

@@ -157,8 +157,10 @@ class EvalWorker:
         r = run_episode(self.env, self.policy(cid), seed, max_steps=self.cfg.env.max_episode_steps)
         chunks = r.policy_info.get("chunks")  # PlannedPolicy: per-chunk records; WAMPolicy: a count
         planned = [ch for ch in chunks if ch.get("planned")] if isinstance(chunks, list) else []
-        timing = {k: float(np.mean([ch[k] for ch in planned])) for k in ("wam_s", "target_encode_s", "search_s")} \
-            if planned else {}
+        searched = [ch for ch in chunks if ch.get("planned") or ch.get("open_loop") == "rejected"] \
+            if isinstance(chunks, list) else []  # a rejected plan was searched too: its time and costs count
+        timing = {k: float(np.mean([ch[k] for ch in searched])) for k in ("wam_s", "target_encode_s", "search_s")} \
+            if searched else {}
         wam_s = r.policy_info.get("wam_query_s")
         if wam_s is not None and not timing:
             timing = {"wam_s": float(np.mean(wam_s)) if isinstance(wam_s, list) else float(wam_s)}
@@ -166,7 +168,7 @@ class EvalWorker:
                     length=r.length, reached=r.reached, wall_time_s=round(r.wall_time, 2),
                     planned_chunks=len(planned), open_loop_chunks=r.policy_info.get("open_loop_chunks", {}),
                     chunk_timing_s=timing,
-                    chunks=[{k: (round(v, 4) if isinstance(v, float) else v) for k, v in ch.items()} for ch in planned],
+                    chunks=[{k: (round(v, 4) if isinstance(v, float) else v) for k, v in ch.items()} for ch in searched],
                     finished=time.time())
 
 

@@ -237,6 +237,7 @@ class PlannedPolicy(Policy):
             rec["plan_cost"] = plan_cost
             if plan_cost > (1.0 - self.config.accept_margin) * wam_cost:  # not clearly better: keep the WAM's
                 rec.update(planned=False, open_loop="rejected", search_s=time.perf_counter() - t3)
+                self._correction = None  # the WAM's chunk ran: nothing of this plan carries over
                 return seed_out.actions
         rec["search_s"] = time.perf_counter() - t3
         return plan

@@ -91,7 +91,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = s.add_parser("fidelity", help="rank agreement of world models with the simulator on the same candidates")
     p.add_argument("--wam", required=True, help="WAM checkpoint (e.g. checkpoints/mini/tinywam)")
     p.add_argument("--wm", required=True, help="world-model checkpoints, comma separated; LABEL=PATH to name one; "
-                                               "A+B+C: an ensemble (its members' mean cost)")
+                                               "A+B+C: an ensemble (the cost of its members' mean prediction)")
     p.add_argument("--seeds", required=True, help="episode seeds, e.g. 500-503 or 500,510 (keep test seeds out)")
     p.add_argument("--candidates", type=int, default=32, help="the WAM's chunk + N-1 samples")
     p.add_argument("--sigma", type=float, default=0.10)
@@ -240,9 +240,9 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
     models = []
     for spec in (s for s in args.wm.split(",") if s):
         label, _, paths = spec.rpartition("=")
-        label = label or Path(paths).name
+        label = label or "+".join(Path(p).name for p in paths.split("+"))
         loaded = []
-        for path in paths.split("+"):  # A+B+C: an ensemble scored by its mean cost (as --wm-augmented A,B,C)
+        for path in paths.split("+"):  # A+B+C: an ensemble, its mean prediction scored (as --wm-augmented A,B,C)
             if not Path(path).exists():
                 raise UserError(f"--wm {path} does not exist; pass a world-model checkpoint directory")
             loaded.append(load_world_model(path, device=args.device))
