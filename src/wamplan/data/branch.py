@@ -26,13 +26,12 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from wamplan.data.collect import STATE_KEYS, collect_one, record_state
-from wamplan.data.store import EpisodeData, EpisodeStore
+from wamplan.data.store import BRANCH_SEED_FACTOR, EpisodeData, EpisodeStore, parent_episode
 from wamplan.envs.contract import CAMERAS
 from wamplan.envs.core import InsertionEnv
 from wamplan.policies.base import Policy
 from wamplan.provenance import provenance
 
-BRANCH_SEED_FACTOR = 1000  # branch j of parent seed s has seed s * 1000 + j
 
 
 @dataclass(frozen=True)
@@ -54,7 +53,7 @@ def branch_source(parent_source: str) -> str:
 
 
 def parent_seed(branch_seed: int) -> int:
-    return int(branch_seed) // BRANCH_SEED_FACTOR
+    return parent_episode("branch:", branch_seed)[1]
 
 
 def collect_branched(env: InsertionEnv, policy: Policy, seed: int, source: str, image_every: int,

@@ -24,7 +24,7 @@ import torch
 from torch.utils.data import Dataset
 
 from wamplan.data.features import check_features, feature_dir
-from wamplan.data.store import EpisodeStore, StoreError
+from wamplan.data.store import EpisodeStore, StoreError, parent_episode
 from wamplan.envs.contract import CAMERAS
 
 
@@ -32,8 +32,7 @@ def split_of(source: str, seed: int, val_fraction: float) -> str:
     """'val' for a stable ``val_fraction`` of episodes (by hash of source and seed), else 'train'. A
     counterfactual branch (``branch:<name>``, ``wamplan.data.branch``) goes where its parent episode goes:
     siblings share the parent's history frames, so they must not straddle the split."""
-    if source.startswith("branch:"):
-        source, seed = "policy:" + source[len("branch:"):], seed // 1000  # branch.BRANCH_SEED_FACTOR
+    source, seed = parent_episode(source, seed)
     h = int(hashlib.sha1(f"{source}:{seed}".encode()).hexdigest()[:8], 16) / 0xFFFFFFFF
     return "val" if h < val_fraction else "train"
 

@@ -53,6 +53,16 @@ class StoreError(UserError):
     """A directory is not a (compatible, intact) wamplan episode store."""
 
 
+BRANCH_SEED_FACTOR = 1000  # a counterfactual branch j of parent seed s has seed s * 1000 + j (wamplan.data.branch)
+
+
+def parent_episode(source: str, seed: int) -> tuple[str, int]:
+    """The episode a counterfactual branch (``branch:<name>``) was cut from; any other episode is its own."""
+    if source.startswith("branch:"):
+        return "policy:" + source[len("branch:"):], int(seed) // BRANCH_SEED_FACTOR
+    return source, int(seed)
+
+
 def source_tag(source: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", source)
 
