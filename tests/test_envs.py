@@ -154,3 +154,20 @@ def test_cli_render_and_rollout(tmp_path, capsys):
     assert main(["env", "rollout", "--policy", "nonsense", "--episodes", "1"]) == 2
     err = capsys.readouterr().err
     assert "unknown policy 'nonsense'" in err and err.count("\n") == 1
+
+
+@pytest.mark.gpu
+def test_gpu_render_backend_returns_numpy_frames():
+    """With ManiSkill's GPU renderer the camera buffers are CUDA tensors; ``render`` hands back host uint8 arrays
+    like the CPU renderer (before, it called ``.numpy()`` on the CUDA tensor and every evaluation worker died)."""
+    from wamplan.envs.core import InsertionEnv
+
+    env = InsertionEnv(EnvConfig(camera_size=64, render_backend="gpu"))
+    try:
+        obs = env.reset(0, with_images=True)
+        for name in CAMERAS:
+            img = obs.images[name]
+            assert isinstance(img, np.ndarray) and img.dtype == np.uint8 and img.shape == (64, 64, 3)
+            assert img.std() > 0  # a real picture, not an empty buffer
+    finally:
+        env.close()

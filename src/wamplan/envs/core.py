@@ -202,7 +202,7 @@ class InsertionEnv:
                 for body in hidden:
                     body.visibility = 1.0
             rgb = cam.get_obs(rgb=True, depth=False, position=False, segmentation=False)["rgb"]  # (1, H, W, 3)
-            out[name] = rgb[0].numpy().copy()
+            out[name] = rgb[0].cpu().numpy().copy()  # a GPU render backend returns CUDA tensors
         return out
 
     def _outside_frustum(self, cam) -> list:
