@@ -1,7 +1,10 @@
 """Counterfactual branches (wamplan/data/branch.py): the parent's history, the perturbed chunk, the windows."""
 
+import json
+
 import numpy as np
 import pytest
+import torch
 
 from wamplan.data.branch import BranchSpec, collect_branched, drop_unfinished_branches, parent_seed
 from wamplan.data.collect import collect
@@ -70,3 +73,40 @@ def test_branches_share_their_parents_split_and_stay_in_their_seed_space(small_e
     assert {split_of("policy:tinywam", p, 0.3) for p in range(40)} == {"train", "val"}
     with pytest.raises(ValueError, match="fewer --branches"):
         collect_branched(small_env, make_policy("expert"), 3, "policy:expert", 4, BranchSpec(branches=60))
+
+
+def test_branch_groups_stack_the_siblings_of_each_boundary(tmp_path, capsys):
+    """BranchGroups: one item per boundary, its siblings' windows stacked; they share the context (frames up to
+    the boundary and the actions before it) and differ in the chunk and the future."""
+    from wamplan.data.readers import BranchGroups
+
+    out = tmp_path / "br"
+    spec = BranchSpec(branches=3, chunk=16, context_steps=8, sigmas=(0.1, 0.2, 0.3))
+    collect("policy", 1, out, seed_start=4, policy="expert", max_steps=56, progress=False, branch=spec,
+            env=EnvConfig(camera_size=64))
+    groups = BranchGroups([out], frameskip=4, history=3, horizon=4, split="all")
+    assert groups.group == 3 and len(groups) == 2  # boundaries 16 and 32 (48 + 16 > 56)
+    for i in range(len(groups)):
+        item = groups[i]
+        assert item["images"].shape[:2] == (3, 7) and item["a"].shape == (3, 7, 20) and item["q"].shape == (3, 7, 10)
+        for j in (1, 2):
+            assert torch.equal(item["images"][j, :3], item["images"][0, :3])  # the shared past, boundary included
+            assert torch.equal(item["a"][j, :2], item["a"][0, :2]) and torch.equal(item["q"][j, :3], item["q"][0, :3])
+            assert not torch.equal(item["a"][j, 2:6], item["a"][0, 2:6])  # each its own chunk
+            assert not torch.equal(item["images"][j, -1], item["images"][0, -1])
+        assert item["steps"][0].tolist() == [0, 4, 8, 12, 16, 20, 24]
+    assert BranchGroups([out], frameskip=4, history=3, horizon=4, group=4, split="all").items == []
+    # `wm train --sibling-weight` trains on those groups and logs the sibling error; without branches it says so
+    from wamplan.cli import main
+
+    run = tmp_path / "wm"
+    assert main(["wm", "train", "--data", str(out), "--out", str(run), "--max-steps", "2", "--batch-size", "4",
+                 "--sibling-weight", "1", "--sibling-groups", "2", "--log-every-steps", "1"]) == 0
+    logged = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert any("train/sib_mse_h4" in m for m in logged)
+    store = EpisodeStore(out)
+    for s in store.finished_seeds("branch:expert"):
+        store.episode_path("branch:expert", s).unlink()
+    assert main(["wm", "train", "--data", str(out), "--out", str(tmp_path / "wm2"), "--max-steps", "1",
+                 "--sibling-weight", "1"]) == 2
+    assert "needs counterfactual branches" in capsys.readouterr().err

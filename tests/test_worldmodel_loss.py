@@ -22,3 +22,35 @@ def test_sum_form_weights_proprio_by_its_share_of_the_elements():
     torch.testing.assert_close(mean, (w * (ez + eq)).sum())
     # ||dz||^2 + ||dq||^2 over V·N·D = 96 feature elements: proprio weighted 10 / 96
     torch.testing.assert_close(paper, (w * (ez * 96 + eq * 10)).sum() / 96)
+
+
+def test_sibling_loss_sees_only_how_the_prediction_moves_with_the_chunk():
+    """Sibling windows share their context: an error common to the whole group cancels, an error in how one
+    chunk's outcome differs from its siblings' does not."""
+    from wamplan.worldmodel.train import sibling_loss
+
+    torch.manual_seed(0)
+    cfg = PredictorConfig(num_patches=4, enc_dim=8, frameskip=4, context=3, depth=1, heads=2, head_dim=8,
+                          mlp_dim=16, proprio_emb=8, action_emb=8)
+    model = WorldModelPredictor(cfg).eval()
+    b, g, k = 2, 3, 2
+    ctx_z, ctx_q = torch.randn(b, 1, 3, 3, 4, 8), torch.randn(b, 1, 3, 10)
+    z = torch.cat([ctx_z.expand(b, g, 3, 3, 4, 8), torch.zeros(b, g, k, 3, 4, 8)], 2)  # (B, G, T, V, N, D)
+    q = torch.cat([ctx_q.expand(b, g, 3, 10), torch.zeros(b, g, k, 10)], 2)
+    a = torch.rand(b, g, 3 + k, 20) * 2 - 1
+    batch = dict(z=z, q=q, a=a)
+    with torch.no_grad():
+        (zc, qc, ac), af, _ = _split(model, {n: v.flatten(0, 1) for n, v in batch.items()}, k)
+        zp, _ = model.rollout(zc, qc, ac, af)  # (B G, K, V, N, D)
+    truth = zp.unflatten(0, (b, g)) + torch.randn(b, 1, k, 3, 4, 8)  # the model's futures + one shift per group
+    batch["z"] = torch.cat([z[:, :, :3], truth], 2)
+    with torch.no_grad():
+        shared, logs = sibling_loss(model, batch, k, gamma=0.9)
+        assert float(shared) < 1e-10 and logs["sib_rel_h2"] < 1e-5
+        plain, _ = window_loss(model, {n: v.flatten(0, 1) for n, v in batch.items()}, k, gamma=0.9)
+        assert float(plain) > 0.5  # the ordinary loss does see the shared error
+        batch["z"][:, 0, 3:] += 0.5  # the first sibling's outcome moves away from the others'
+        moved, logs = sibling_loss(model, batch, k, gamma=0.9)
+    # deviation from the group mean: (1 - 1/G) * 0.5 for the moved one, 0.5 / G for the others
+    want = ((0.5 * (g - 1) / g) ** 2 + (g - 1) * (0.5 / g) ** 2) / g * (1 + 0.9)
+    torch.testing.assert_close(moved, torch.tensor(want), rtol=1e-4, atol=1e-6)

@@ -14,6 +14,8 @@ run and machine and no episode contributes to both sides.
 from __future__ import annotations
 
 import hashlib
+import json
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -175,6 +177,10 @@ class WorldModelWindows(_EpisodeDataset):
 
     def __getitem__(self, idx: int) -> dict[str, torch.Tensor]:
         e, f, (k,) = self._item(idx)
+        return self._window(e, f, k)
+
+    def _window(self, e: EpisodeRef, f: h5py.File, k: int) -> dict[str, torch.Tensor]:
+        """The window of episode ``e`` whose first frame is its stored image ``k``."""
         stride = self.frameskip // e.image_every
         ks = [k + j * stride for j in range(self.frames)]  # image indices of the frames
         steps = [e.image_steps[j] for j in ks]
@@ -208,3 +214,35 @@ class FeatureFrames(_EpisodeDataset):
         z = self._h5.get(e.features)["z"][k, v]  # (N, D)
         img = f["images"][CAMERAS[v]][k]  # (H, W, 3)
         return dict(z=torch.from_numpy(z), image=torch.from_numpy(img))
+
+
+
+class BranchGroups(WorldModelWindows):
+    """Items: the sibling branches of one chunk boundary (``wamplan.data.branch``), each as the window that
+    starts at the branch's first frame (``--branch-context`` steps before the boundary, i.e. H_ctx - 1 frames)
+    and runs ``horizon`` frames into the branch's own chunk: ``z`` (G, T, V, N, D), ``q`` (G, T, P), ``a``
+    (G, T, Δ·5) with T = history + horizon, :class:`WorldModelWindows` items stacked over G siblings.
+    The G windows share their context frames and differ only in the chunk executed from the boundary, so
+    comparing their futures teaches what CEM asks of the world model: which of two nearby chunks from one state
+    ends where. ``group`` (default: the most common group size, i.e. the collection's ``--branches``): groups
+    with fewer siblings are left out, larger ones keep their first ``group``."""
+
+    def __init__(self, stores: Sequence[str | Path], frameskip: int = 4, history: int = 3, horizon: int = 4,
+                 group: int | None = None, split: str = "train", val_fraction: float = 0.1,
+                 features: str | None = None):
+        super().__init__(stores, frameskip, history, horizon, split, val_fraction, features, window_end="frame")
+        span = (self.frames - 1) * frameskip  # steps from the first frame to the last
+        groups: dict[tuple[int, int], list[int]] = {}
+        for i, e in enumerate(self.episodes):
+            if not e.source.startswith("branch:") or e.length < span or not e.image_steps or e.image_steps[0] != 0:
+                continue
+            with h5py.File(e.path, "r") as f:
+                boundary = int(json.loads(f.attrs["policy"])["branch_step"])
+            groups.setdefault((parent_episode(e.source, e.seed)[1], boundary), []).append(i)
+        sizes = Counter(len(m) for m in groups.values())
+        self.group = group or (sizes.most_common(1)[0][0] if sizes else 0)  # default: the collection's --branches
+        self.items = [tuple(m[:self.group]) for _, m in sorted(groups.items()) if len(m) >= self.group]
+
+    def __getitem__(self, idx: int) -> dict[str, torch.Tensor]:
+        members = [self._window(self.episodes[i], self._h5.get(self.episodes[i].path), 0) for i in self.items[idx]]
+        return {k: torch.stack([m[k] for m in members]) for k in members[0]}  # each (G, T, ...)

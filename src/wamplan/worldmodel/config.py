@@ -114,6 +114,11 @@ class TrainConfig:
                                    "'sum' (the paper's squared norms, ||dz||^2 + ||dq||^2, divided by z's size)")
     window_end: str = field("block", "last window of an episode: 'block' (the last frame's action block lies in "
                                      "the episode) or 'frame' (the last frame may be the episode's last Δ-grid frame)")
+    sibling_weight: float = field(0.0, "weight of the sibling loss on counterfactual branch groups (0 = off): the "
+                                       "error of each branch's predicted future relative to its siblings' mean")
+    sibling_horizon: int = field(4, "frames the sibling windows predict into the branch's chunk (chunk / Δ: the "
+                                    "frames the planner's cost looks at)")
+    sibling_groups: int = field(8, "branch groups (of --branches siblings each) per optimisation step")
 
     def __post_init__(self) -> None:
         require(self.loss_form in ("mean", "sum"), f"TrainConfig.loss_form must be mean or sum, got {self.loss_form!r}")
@@ -133,4 +138,7 @@ class TrainConfig:
         require(self.grad_clip >= 0, f"TrainConfig.grad_clip must be >= 0, got {self.grad_clip}")
         require(self.num_workers >= 0, f"TrainConfig.num_workers must be >= 0, got {self.num_workers}")
         require(self.save_every_steps >= 0, f"TrainConfig.save_every_steps must be >= 0, got {self.save_every_steps}")
+        require(self.sibling_weight >= 0, f"TrainConfig.sibling_weight must be >= 0, got {self.sibling_weight}")
+        require(self.sibling_horizon >= 1, f"TrainConfig.sibling_horizon must be >= 1, got {self.sibling_horizon}")
+        require(self.sibling_groups >= 1, f"TrainConfig.sibling_groups must be >= 1, got {self.sibling_groups}")
         require(self.log_every_steps >= 0, f"TrainConfig.log_every_steps must be >= 0, got {self.log_every_steps}")

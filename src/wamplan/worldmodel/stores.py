@@ -79,7 +79,7 @@ def train_predictor_on_stores(stores: Sequence[str | Path], out: str | Path, pre
                               init: str | Path | None = None) -> dict[str, Any]:
     """Train (or resume) the predictor on the windows of ``stores``; returns the last metrics. ``init``: a
     predictor checkpoint to fine-tune from (``worldmodel.train.train_predictor``)."""
-    from wamplan.data.readers import WorldModelWindows
+    from wamplan.data.readers import BranchGroups, WorldModelWindows
     from wamplan.worldmodel.train import KIND, train_predictor
 
     data, resume, info, key = _prepare(stores, out, KIND, encoder, encoder_kwargs, encoder_path, val_fraction,
@@ -89,9 +89,19 @@ def train_predictor_on_stores(stores: Sequence[str | Path], out: str | Path, pre
     tr, va = WorldModelWindows(stores, split="train", **kw), WorldModelWindows(stores, split="val", **kw)
     if progress:
         print(f"windows: {len(tr)} train, {len(va)} val ({len(tr.episodes)} / {len(va.episodes)} episodes)")
+    groups = None
+    if train.sibling_weight > 0:
+        groups = BranchGroups(stores, predictor.frameskip, predictor.context, train.sibling_horizon, split="train",
+                              val_fraction=val_fraction, features=key)
+        if not len(groups):
+            raise UserError(f"--sibling-weight {train.sibling_weight} needs counterfactual branches in --data "
+                            f"(`wamplan collect --source policy --branches N`); these stores hold none with "
+                            f"{train.sibling_horizon} frames after the boundary")
+        if progress:
+            print(f"branch groups: {len(groups)} of {groups.group} siblings")
     _, metrics = train_predictor(tr, predictor, train, out, val_set=va if len(va) else None, device=device,
                                  resume=resume, max_steps=max_steps, progress=progress, encoder_info=info,
-                                 data=data, init=init)
+                                 data=data, init=init, group_set=groups)
     return metrics
 
 

@@ -69,6 +69,25 @@ def window_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], hori
     return loss, {"z_mse_h1": float(ez[0].detach()), "q_mse_h1": float(eq[0].detach())}
 
 
+def sibling_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int,
+                 gamma: float) -> tuple[torch.Tensor, dict[str, float]]:
+    """The sibling loss of a batch of branch groups (``data.readers.BranchGroups``): the G windows of a group share
+    their context, so each one's predicted future minus the group's mean prediction must equal its true future
+    minus the group's mean. The shared part of the error cancels: what is left is exactly how the prediction
+    moves with the chunk, which is all that ranking CEM's candidates uses."""
+    b, g = batch["z"].shape[:2]
+    flat = {k: v.flatten(0, 1) for k, v in batch.items()}  # (B G, T, ...)
+    (zc, qc, ac), a_future, (zt, _) = _split(model, flat, horizon)
+    zp, _ = model.rollout(zc, qc, ac, a_future)  # (B G, K, V, N, D)
+    zp, zt = zp.unflatten(0, (b, g)), zt.unflatten(0, (b, g))  # (B, G, K, V, N, D)
+    dp, dt = zp - zp.mean(dim=1, keepdim=True), zt - zt.mean(dim=1, keepdim=True)
+    err = (dp - dt).pow(2).flatten(3).mean(dim=-1).mean(dim=(0, 1))  # (K,)
+    spread = dt.pow(2).flatten(3).mean(dim=-1).mean(dim=(0, 1))  # (K,): the error of predicting no difference
+    w = gamma ** torch.arange(horizon, device=err.device, dtype=err.dtype)  # (K,)
+    return (w * err).sum(), {f"sib_mse_h{horizon}": float(err[-1].detach()),
+                             f"sib_rel_h{horizon}": float((err[-1] / spread[-1].clamp_min(1e-12)).detach())}
+
+
 @torch.no_grad()
 def evaluate_predictor(model: WorldModelPredictor, dataset: Dataset, horizon: int, gamma: float,
                        batch_size: int = 64, device: torch.device | None = None) -> dict[str, float]:
@@ -119,12 +138,14 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
                     val_set: Dataset | None = None, device: str | torch.device = "auto", resume: bool = False,
                     max_steps: int | None = None, progress: bool = True, encoder_info: dict[str, Any] | None = None,
                     data: dict[str, Any] | None = None, init: str | Path | None = None,
-                    ) -> tuple[WorldModelPredictor, dict[str, Any]]:
+                    group_set: Dataset | None = None) -> tuple[WorldModelPredictor, dict[str, Any]]:
     """Train (or resume) a predictor into the run directory ``out_dir`` (``wamplan.train_loop``:
     ``checkpoint/`` + ``metrics.jsonl``). ``encoder_info`` (e.g. ``encoder.config_dict()``) is stored as
     provenance; ``data`` identifies the training data (``data.store.describe_stores``), checked on resume.
     ``init`` (a predictor checkpoint with the same config and encoder) fine-tunes: a fresh run starts from its
     weights and feature statistics instead of a random initialisation and new statistics.
+    ``group_set`` (``data.readers.BranchGroups``) adds ``train.sibling_weight`` times :func:`sibling_loss` on
+    ``train.sibling_groups`` groups to every step's loss.
     Returns the trained model (eval mode) and the last metrics (with ``val/...`` entries if ``val_set``)."""
     dev = resolve_device(device) if isinstance(device, str) else device
     torch.manual_seed(train.seed)
@@ -146,13 +167,29 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
         return evaluate_predictor(m, val_set, train.horizon, train.gamma,  # type: ignore[arg-type]
                                   2 * train.batch_size, dev)
 
+    groups = _cycle(group_set, train) if group_set is not None and train.sibling_weight > 0 else None
+
+    def step(m: WorldModelPredictor, b: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, float]]:
+        loss, logs = window_loss(m, b, train.horizon, train.gamma, train.loss_form)
+        if groups is not None:
+            sib, sib_logs = sibling_loss(m, {k: v.to(dev) for k, v in next(groups).items()}, train.sibling_horizon,
+                                         train.gamma)
+            loss, logs = loss + train.sibling_weight * sib, {**logs, **sib_logs}
+        return loss, logs
+
     result = fit(model, DatasetBatches(train_set, train.num_workers, dev.type != "cpu"),
-                 lambda m, b: window_loss(m, b, train.horizon, train.gamma,
-                                                   train.loss_form), train, run_dir=out_dir, kind=KIND,
+                 step, train, run_dir=out_dir, kind=KIND,
                  config=config, data=data, device=dev, evaluate=evaluate if val_set is not None else None,
                  on_fresh_start=fresh_stats, resume=resume, max_steps=max_steps, betas=train.betas,
                  progress=progress, desc="predictor", log=print if progress else None)
     return model.eval(), result.metrics
+
+
+def _cycle(groups: Dataset, train: TrainConfig):
+    """Endless shuffled batches of ``train.sibling_groups`` branch groups (seeded by ``train.seed``)."""
+    gen = torch.Generator().manual_seed(train.seed)
+    while True:
+        yield from DataLoader(groups, batch_size=train.sibling_groups, shuffle=True, generator=gen, drop_last=True)
 
 
 def _check_init(init: str | Path, cfg: PredictorConfig, encoder_info: dict[str, Any] | None) -> None:
