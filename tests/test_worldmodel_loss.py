@@ -1,5 +1,6 @@
 """Eq. 2's two forms: per-element means (our default) and the paper's squared norms."""
 
+import pytest
 import torch
 
 from wamplan.worldmodel.config import PredictorConfig
@@ -27,7 +28,7 @@ def test_sum_form_weights_proprio_by_its_share_of_the_elements():
 def test_sibling_loss_sees_only_how_the_prediction_moves_with_the_chunk():
     """Sibling windows share their context: an error common to the whole group cancels, an error in how one
     chunk's outcome differs from its siblings' does not."""
-    from wamplan.worldmodel.train import sibling_loss
+    from wamplan.worldmodel.train import evaluate_siblings, sibling_loss
 
     torch.manual_seed(0)
     cfg = PredictorConfig(num_patches=4, enc_dim=8, frameskip=4, context=3, depth=1, heads=2, head_dim=8,
@@ -47,6 +48,8 @@ def test_sibling_loss_sees_only_how_the_prediction_moves_with_the_chunk():
     with torch.no_grad():
         shared, logs = sibling_loss(model, batch, k, gamma=0.9)
         assert float(shared) < 1e-10 and logs["sib_rel_h2"] < 1e-5
+        held_out = [{n: v[i] for n, v in batch.items()} for i in range(b)]  # a dataset of B groups
+        assert evaluate_siblings(model, held_out, k, 0.9, batch_size=1)["sib_rel_h2"] < 1e-5
         plain, _ = window_loss(model, {n: v.flatten(0, 1) for n, v in batch.items()}, k, gamma=0.9)
         assert float(plain) > 0.5  # the ordinary loss does see the shared error
         batch["z"][:, 0, 3:] += 0.5  # the first sibling's outcome moves away from the others'
@@ -54,3 +57,6 @@ def test_sibling_loss_sees_only_how_the_prediction_moves_with_the_chunk():
     # deviation from the group mean: (1 - 1/G) * 0.5 for the moved one, 0.5 / G for the others
     want = ((0.5 * (g - 1) / g) ** 2 + (g - 1) * (0.5 / g) ** 2) / g * (1 + 0.9)
     torch.testing.assert_close(moved, torch.tensor(want), rtol=1e-4, atol=1e-6)
+    held_out = [{n: v[i] for n, v in batch.items()} for i in range(b)]
+    assert evaluate_siblings(model, held_out, k, 0.9, batch_size=1)["sib_rel_h2"] == pytest.approx(
+        logs["sib_rel_h2"], rel=1e-4)

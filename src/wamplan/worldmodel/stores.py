@@ -89,19 +89,20 @@ def train_predictor_on_stores(stores: Sequence[str | Path], out: str | Path, pre
     tr, va = WorldModelWindows(stores, split="train", **kw), WorldModelWindows(stores, split="val", **kw)
     if progress:
         print(f"windows: {len(tr)} train, {len(va)} val ({len(tr.episodes)} / {len(va.episodes)} episodes)")
-    groups = None
+    groups = val_groups = None
     if train.sibling_weight > 0:
-        groups = BranchGroups(stores, predictor.frameskip, predictor.context, train.sibling_horizon, split="train",
-                              val_fraction=val_fraction, features=key)
+        groups, val_groups = (BranchGroups(stores, predictor.frameskip, predictor.context, train.sibling_horizon,
+                                           split=split, val_fraction=val_fraction, features=key)
+                              for split in ("train", "val"))
         if not len(groups):
             raise UserError(f"--sibling-weight {train.sibling_weight} needs counterfactual branches in --data "
                             f"(`wamplan collect --source policy --branches N`); these stores hold none with "
                             f"{train.sibling_horizon} frames after the boundary")
         if progress:
-            print(f"branch groups: {len(groups)} of {groups.group} siblings")
+            print(f"branch groups: {len(groups)} train, {len(val_groups)} val, of {groups.group} siblings")
     _, metrics = train_predictor(tr, predictor, train, out, val_set=va if len(va) else None, device=device,
                                  resume=resume, max_steps=max_steps, progress=progress, encoder_info=info,
-                                 data=data, init=init, group_set=groups)
+                                 data=data, init=init, group_set=groups, val_groups=val_groups)
     return metrics
 
 

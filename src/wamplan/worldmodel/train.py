@@ -118,6 +118,25 @@ def evaluate_predictor(model: WorldModelPredictor, dataset: Dataset, horizon: in
     return out
 
 
+@torch.no_grad()
+def evaluate_siblings(model: WorldModelPredictor, groups: Dataset, horizon: int, gamma: float, batch_size: int = 8,
+                      device: torch.device | None = None) -> dict[str, float]:
+    """:func:`sibling_loss`'s error on held-out branch groups, averaged over them: ``sib_rel_hK`` is the share of
+    how sibling chunks' outcomes differ (K frames on) that the model does not predict (1 = it predicts no
+    difference at all, 0 = exactly)."""
+    device = device or next(model.parameters()).device
+    was_training = model.training
+    model.eval()
+    err = spread = 0.0
+    for batch in DataLoader(groups, batch_size=batch_size, shuffle=False):
+        _, logs = sibling_loss(model, {k: v.to(device) for k, v in batch.items() if k != "steps"}, horizon, gamma)
+        n = batch["z"].shape[0]
+        err += logs[f"sib_mse_h{horizon}"] * n
+        spread += logs[f"sib_mse_h{horizon}"] / max(logs[f"sib_rel_h{horizon}"], 1e-12) * n
+    model.train(was_training)
+    return {f"sib_mse_h{horizon}": err / len(groups), f"sib_rel_h{horizon}": err / max(spread, 1e-12)}  # type: ignore[arg-type]
+
+
 def compute_feature_stats(dataset: Dataset, max_items: int = 2000, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-dimension mean and std (D,) of the visual features over up to ``max_items`` random windows."""
     n = len(dataset)  # type: ignore[arg-type]
@@ -138,14 +157,16 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
                     val_set: Dataset | None = None, device: str | torch.device = "auto", resume: bool = False,
                     max_steps: int | None = None, progress: bool = True, encoder_info: dict[str, Any] | None = None,
                     data: dict[str, Any] | None = None, init: str | Path | None = None,
-                    group_set: Dataset | None = None) -> tuple[WorldModelPredictor, dict[str, Any]]:
+                    group_set: Dataset | None = None, val_groups: Dataset | None = None,
+                    ) -> tuple[WorldModelPredictor, dict[str, Any]]:
     """Train (or resume) a predictor into the run directory ``out_dir`` (``wamplan.train_loop``:
     ``checkpoint/`` + ``metrics.jsonl``). ``encoder_info`` (e.g. ``encoder.config_dict()``) is stored as
     provenance; ``data`` identifies the training data (``data.store.describe_stores``), checked on resume.
     ``init`` (a predictor checkpoint with the same config and encoder) fine-tunes: a fresh run starts from its
     weights and feature statistics instead of a random initialisation and new statistics.
     ``group_set`` (``data.readers.BranchGroups``) adds ``train.sibling_weight`` times :func:`sibling_loss` on
-    ``train.sibling_groups`` groups to every step's loss.
+    ``train.sibling_groups`` groups to every step's loss; ``val_groups`` adds the held-out sibling error to the
+    validation metrics (:func:`evaluate_siblings`).
     Returns the trained model (eval mode) and the last metrics (with ``val/...`` entries if ``val_set``)."""
     dev = resolve_device(device) if isinstance(device, str) else device
     torch.manual_seed(train.seed)
@@ -164,8 +185,11 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
         model.set_feature_stats(mean, std)
 
     def evaluate(m: torch.nn.Module) -> dict[str, float]:
-        return evaluate_predictor(m, val_set, train.horizon, train.gamma,  # type: ignore[arg-type]
-                                  2 * train.batch_size, dev)
+        out = evaluate_predictor(m, val_set, train.horizon, train.gamma,  # type: ignore[arg-type]
+                                 2 * train.batch_size, dev)
+        if val_groups is not None and len(val_groups):  # type: ignore[arg-type]
+            out.update(evaluate_siblings(m, val_groups, train.sibling_horizon, train.gamma, train.sibling_groups, dev))
+        return out
 
     groups = _cycle(group_set, train) if group_set is not None and train.sibling_weight > 0 else None
 
