@@ -218,31 +218,39 @@ class FeatureFrames(_EpisodeDataset):
 
 
 class BranchGroups(WorldModelWindows):
-    """Items: the sibling branches of one chunk boundary (``wamplan.data.branch``), each as the window that
-    starts at the branch's first frame (``--branch-context`` steps before the boundary, i.e. H_ctx - 1 frames)
-    and runs ``horizon`` frames into the branch's own chunk: ``z`` (G, T, V, N, D), ``q`` (G, T, P), ``a``
-    (G, T, Δ·5) with T = history + horizon, :class:`WorldModelWindows` items stacked over G siblings.
-    The G windows share their context frames and differ only in the chunk executed from the boundary, so
-    comparing their futures teaches what CEM asks of the world model: which of two nearby chunks from one state
-    ends where. ``group`` (default: the most common group size, i.e. the collection's ``--branches``): groups
-    with fewer siblings are left out, larger ones keep their first ``group``."""
+    """Items: the sibling branches of one chunk boundary (``wamplan.data.branch``), each as the window whose
+    context ends at the boundary (its H_ctx - 1 earlier frames come from the parent's shared past) and which
+    runs ``horizon`` frames into the branch's own chunk: ``z`` (G, T, V, N, D) cached features (or ``images``
+    (G, T, V, H, W, 3) without ``features``), ``q`` (G, T, P), ``a`` (G, T, Δ·5) and ``steps`` (G, T), with
+    T = history + horizon: :class:`WorldModelWindows` items stacked over G siblings.
+    The G windows share their context and differ only in the chunk executed from the boundary, so comparing
+    their futures teaches what CEM asks of the world model: which of two nearby chunks from one state ends
+    where. Siblings are the branches of one parent episode (store, source, seed) at one boundary; branches
+    collected with too little ``--branch-context`` for H_ctx frames, or too short for the horizon, are left out.
+    ``group`` (default: the most common group size, i.e. the collection's ``--branches``): groups with fewer
+    siblings are left out, larger ones keep their first ``group``."""
 
     def __init__(self, stores: Sequence[str | Path], frameskip: int = 4, history: int = 3, horizon: int = 4,
                  group: int | None = None, split: str = "train", val_fraction: float = 0.1,
                  features: str | None = None):
         super().__init__(stores, frameskip, history, horizon, split, val_fraction, features, window_end="frame")
         span = (self.frames - 1) * frameskip  # steps from the first frame to the last
-        groups: dict[tuple[int, int], list[int]] = {}
+        groups: dict[tuple, list[tuple[int, int]]] = {}
         for i, e in enumerate(self.episodes):
-            if not e.source.startswith("branch:") or e.length < span or not e.image_steps or e.image_steps[0] != 0:
+            if not e.source.startswith("branch:"):
                 continue
             with h5py.File(e.path, "r") as f:
                 boundary = int(json.loads(f.attrs["policy"])["branch_step"])
-            groups.setdefault((parent_episode(e.source, e.seed)[1], boundary), []).append(i)
+                start = int(json.loads(f.attrs["provenance"])["start_step"])  # the parent's step at the branch's 0
+            first = boundary - start - (history - 1) * frameskip  # the window's first step in the branch episode
+            if first < 0 or first not in e.image_steps or first + span > e.length:
+                continue
+            key = (str(Path(e.path).parent), *parent_episode(e.source, e.seed), boundary)
+            groups.setdefault(key, []).append((i, e.image_steps.index(first)))
         sizes = Counter(len(m) for m in groups.values())
         self.group = group or (sizes.most_common(1)[0][0] if sizes else 0)  # default: the collection's --branches
         self.items = [tuple(m[:self.group]) for _, m in sorted(groups.items()) if len(m) >= self.group]
 
     def __getitem__(self, idx: int) -> dict[str, torch.Tensor]:
-        members = [self._window(self.episodes[i], self._h5.get(self.episodes[i].path), 0) for i in self.items[idx]]
+        members = [self._window(self.episodes[i], self._h5.get(self.episodes[i].path), k) for i, k in self.items[idx]]
         return {k: torch.stack([m[k] for m in members]) for k in members[0]}  # each (G, T, ...)

@@ -94,10 +94,12 @@ def train_predictor_on_stores(stores: Sequence[str | Path], out: str | Path, pre
         groups, val_groups = (BranchGroups(stores, predictor.frameskip, predictor.context, train.sibling_horizon,
                                            split=split, val_fraction=val_fraction, features=key)
                               for split in ("train", "val"))
-        if not len(groups):
-            raise UserError(f"--sibling-weight {train.sibling_weight} needs counterfactual branches in --data "
-                            f"(`wamplan collect --source policy --branches N`); these stores hold none with "
-                            f"{train.sibling_horizon} frames after the boundary")
+        if len(groups) < train.sibling_groups:
+            raise UserError(f"--sibling-weight {train.sibling_weight} needs at least --sibling-groups "
+                            f"{train.sibling_groups} groups of counterfactual branches in the training split of --data "
+                            f"(`wamplan collect --source policy --branches N --branch-context "
+                            f"{(predictor.context - 1) * predictor.frameskip}`); found {len(groups)}: collect more "
+                            f"parents or lower --sibling-groups")
         if progress:
             print(f"branch groups: {len(groups)} train, {len(val_groups)} val, of {groups.group} siblings")
     _, metrics = train_predictor(tr, predictor, train, out, val_set=va if len(va) else None, device=device,

@@ -32,7 +32,7 @@ from wamplan.checkpoint import checkpoint_dir, load_weights, read_config
 from wamplan.config import from_dict, to_dict
 from wamplan.device import resolve_device
 from wamplan.errors import UserError
-from wamplan.train_loop import DatasetBatches, fit
+from wamplan.train_loop import DatasetBatches, fit, saved_progress
 from wamplan.worldmodel.config import PredictorConfig, TrainConfig
 from wamplan.worldmodel.predictor import WorldModelPredictor
 
@@ -69,23 +69,49 @@ def window_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], hori
     return loss, {"z_mse_h1": float(ez[0].detach()), "q_mse_h1": float(eq[0].detach())}
 
 
+def _sibling_errors(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-step squared errors (K,) of the sibling-relative prediction, and of predicting no difference."""
+    b, g = batch["z"].shape[:2]
+    flat = {k: batch[k].flatten(0, 1) for k in ("z", "q", "a")}  # (B G, T, ...)
+    (zc, qc, ac), a_future, (zt, _) = _split(model, flat, horizon)
+    zp, _ = model.rollout(zc, qc, ac, a_future)  # (B G, K, V, N, D)
+    zp, zt = zp.unflatten(0, (b, g)), zt.unflatten(0, (b, g))  # (B, G, K, V, N, D)
+    dp, dt = zp - zp.mean(dim=1, keepdim=True), zt - zt.mean(dim=1, keepdim=True)  # relative to the group mean
+    err = (dp - dt).pow(2).flatten(3).mean(dim=-1).mean(dim=(0, 1))  # (K,)
+    spread = dt.pow(2).flatten(3).mean(dim=-1).mean(dim=(0, 1))  # (K,)
+    return err, spread
+
+
 def sibling_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int,
                  gamma: float) -> tuple[torch.Tensor, dict[str, float]]:
     """The sibling loss of a batch of branch groups (``data.readers.BranchGroups``): the G windows of a group share
     their context, so each one's predicted future minus the group's mean prediction must equal its true future
     minus the group's mean. The shared part of the error cancels: what is left is exactly how the prediction
-    moves with the chunk, which is all that ranking CEM's candidates uses."""
-    b, g = batch["z"].shape[:2]
-    flat = {k: v.flatten(0, 1) for k, v in batch.items()}  # (B G, T, ...)
-    (zc, qc, ac), a_future, (zt, _) = _split(model, flat, horizon)
-    zp, _ = model.rollout(zc, qc, ac, a_future)  # (B G, K, V, N, D)
-    zp, zt = zp.unflatten(0, (b, g)), zt.unflatten(0, (b, g))  # (B, G, K, V, N, D)
-    dp, dt = zp - zp.mean(dim=1, keepdim=True), zt - zt.mean(dim=1, keepdim=True)
-    err = (dp - dt).pow(2).flatten(3).mean(dim=-1).mean(dim=(0, 1))  # (K,)
-    spread = dt.pow(2).flatten(3).mean(dim=-1).mean(dim=(0, 1))  # (K,): the error of predicting no difference
+    moves with the chunk, which is all that ranking CEM's candidates uses. Visual features only, like the
+    planner's cost. Logs at step K: ``sib_mse`` and ``sib_rel`` (that error over the error of predicting no
+    difference: 0 exact, 1 no better than predicting none; in training, a mean of per-step ratios)."""
+    err, spread = _sibling_errors(model, batch, horizon)
     w = gamma ** torch.arange(horizon, device=err.device, dtype=err.dtype)  # (K,)
     return (w * err).sum(), {f"sib_mse_h{horizon}": float(err[-1].detach()),
                              f"sib_rel_h{horizon}": float((err[-1] / spread[-1].clamp_min(1e-12)).detach())}
+
+
+@torch.no_grad()
+def evaluate_siblings(model: WorldModelPredictor, groups: Dataset, horizon: int, batch_size: int = 8,
+                      device: torch.device | None = None) -> dict[str, float]:
+    """:func:`sibling_loss`'s error at step K on held-out branch groups, pooled over them: ``sib_rel_hK`` is the
+    share of how sibling chunks' outcomes differ that the model misses (1 = no better than predicting no
+    difference)."""
+    device = device or next(model.parameters()).device
+    was_training = model.training
+    model.eval()
+    err = spread = 0.0
+    for batch in DataLoader(groups, batch_size=batch_size, shuffle=False):
+        e, s = _sibling_errors(model, {k: v.to(device) for k, v in batch.items()}, horizon)
+        err, spread = err + float(e[-1]) * len(batch["z"]), spread + float(s[-1]) * len(batch["z"])
+    model.train(was_training)
+    return {f"sib_mse_h{horizon}": err / len(groups), f"sib_rel_h{horizon}": err / max(spread, 1e-12)}  # type: ignore[arg-type]
 
 
 @torch.no_grad()
@@ -116,25 +142,6 @@ def evaluate_predictor(model: WorldModelPredictor, dataset: Dataset, horizon: in
     out["loss"] = float((w * (sums["z_mse"] + sums["q_mse"]).cpu() / max(count, 1)).sum())
     out["copy_loss"] = float((w * (sums["copy_z_mse"] + sums["copy_q_mse"]).cpu() / max(count, 1)).sum())
     return out
-
-
-@torch.no_grad()
-def evaluate_siblings(model: WorldModelPredictor, groups: Dataset, horizon: int, gamma: float, batch_size: int = 8,
-                      device: torch.device | None = None) -> dict[str, float]:
-    """:func:`sibling_loss`'s error on held-out branch groups, averaged over them: ``sib_rel_hK`` is the share of
-    how sibling chunks' outcomes differ (K frames on) that the model does not predict (1 = it predicts no
-    difference at all, 0 = exactly)."""
-    device = device or next(model.parameters()).device
-    was_training = model.training
-    model.eval()
-    err = spread = 0.0
-    for batch in DataLoader(groups, batch_size=batch_size, shuffle=False):
-        _, logs = sibling_loss(model, {k: v.to(device) for k, v in batch.items() if k != "steps"}, horizon, gamma)
-        n = batch["z"].shape[0]
-        err += logs[f"sib_mse_h{horizon}"] * n
-        spread += logs[f"sib_mse_h{horizon}"] / max(logs[f"sib_rel_h{horizon}"], 1e-12) * n
-    model.train(was_training)
-    return {f"sib_mse_h{horizon}": err / len(groups), f"sib_rel_h{horizon}": err / max(spread, 1e-12)}  # type: ignore[arg-type]
 
 
 def compute_feature_stats(dataset: Dataset, max_items: int = 2000, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
@@ -188,10 +195,13 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
         out = evaluate_predictor(m, val_set, train.horizon, train.gamma,  # type: ignore[arg-type]
                                  2 * train.batch_size, dev)
         if val_groups is not None and len(val_groups):  # type: ignore[arg-type]
-            out.update(evaluate_siblings(m, val_groups, train.sibling_horizon, train.gamma, train.sibling_groups, dev))
+            out.update(evaluate_siblings(m, val_groups, train.sibling_horizon, train.sibling_groups, dev))
         return out
 
-    groups = _cycle(group_set, train) if group_set is not None and train.sibling_weight > 0 else None
+    groups = None
+    if group_set is not None and train.sibling_weight > 0:
+        done = (saved_progress(out_dir) or {}).get("global_step", 0) if resume else 0
+        groups = _group_batches(group_set, train, start=done)
 
     def step(m: WorldModelPredictor, b: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, float]]:
         loss, logs = window_loss(m, b, train.horizon, train.gamma, train.loss_form)
@@ -209,11 +219,18 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
     return model.eval(), result.metrics
 
 
-def _cycle(groups: Dataset, train: TrainConfig):
-    """Endless shuffled batches of ``train.sibling_groups`` branch groups (seeded by ``train.seed``)."""
-    gen = torch.Generator().manual_seed(train.seed)
+def _group_batches(groups: Dataset, train: TrainConfig, start: int = 0):
+    """Endless batches of ``train.sibling_groups`` branch groups, one per optimisation step from step ``start``:
+    batch s is a function of (``train.seed``, s) alone, so a resumed run sees the batches it would have seen."""
+    n, size = len(groups), train.sibling_groups  # type: ignore[arg-type]
+    per_pass = n // size
+    step = start
     while True:
-        yield from DataLoader(groups, batch_size=train.sibling_groups, shuffle=True, generator=gen, drop_last=True)
+        p, i = divmod(step, per_pass)
+        order = torch.randperm(n, generator=torch.Generator().manual_seed(train.seed * 100_003 + p))
+        items = [groups[j] for j in order[i * size:(i + 1) * size].tolist()]
+        yield {k: torch.stack([it[k] for it in items]) for k in items[0]}  # each (B, G, T, ...)
+        step += 1
 
 
 def _check_init(init: str | Path, cfg: PredictorConfig, encoder_info: dict[str, Any] | None) -> None:
