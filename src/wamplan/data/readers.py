@@ -216,7 +216,6 @@ class FeatureFrames(_EpisodeDataset):
         return dict(z=torch.from_numpy(z), image=torch.from_numpy(img))
 
 
-
 class BranchGroups(WorldModelWindows):
     """Items: the sibling branches of one chunk boundary (``wamplan.data.branch``), each as the window whose
     context ends at the boundary (its H_ctx - 1 earlier frames come from the parent's shared past) and which
