@@ -172,6 +172,40 @@ def test_sampling_statistics_and_per_dim_std():
     assert samples.mean(0).abs().max() < 0.03
 
 
+def _lag1(x: torch.Tensor) -> float:
+    """Lag-1 autocorrelation along H of samples x (B, H, A)."""
+    return float(torch.corrcoef(torch.stack([x[:, :-1].flatten(), x[:, 1:].flatten()]))[0, 1])
+
+
+@pytest.mark.parametrize("name", ["cem", "mppi"])
+def test_coloured_noise_keeps_sigma_and_moves_the_endpoint(name):
+    """noise_beta colours the samples along the chunk without changing their per-step sigma; beta 2 makes
+    each candidate a smooth drift (lag-1 correlation ~0.8) whose summed displacement is ~2x white noise's."""
+    seed = torch.zeros(H, A)
+    stats = {}
+    for beta in (0.0, 2.0):
+        cfg = make_planner(name).config_cls(num_candidates=4001, iterations=1, init_std=0.1, noise_beta=beta)
+        rec = Recorder(lambda c: torch.zeros(c.shape[0]))
+        make_planner(name, cfg).plan(seed, rec, seed=0)
+        samples = rec.calls[0][0][1:]  # (4000, H, A), the mean left out
+        torch.testing.assert_close(samples.std(0), torch.full((H, A), 0.1), atol=0.006, rtol=0)
+        stats[beta] = (_lag1(samples), float(samples.sum(1).std()))
+    assert abs(stats[0.0][0]) < 0.03 and stats[2.0][0] > 0.7
+    assert stats[0.0][1] == pytest.approx(0.1 * math.sqrt(H), rel=0.05)
+    assert stats[2.0][1] > 1.8 * stats[0.0][1]
+
+
+def test_white_noise_is_the_papers_sampling_bit_for_bit():
+    """noise_beta 0 draws exactly what the paper's CEM drew before the option existed: N(mu, sigma^2) from
+    torch.randn on the seeded generator, candidate 0 the mean."""
+    g = torch.Generator().manual_seed(3)
+    seed = torch.rand(H, A, generator=g) * 0.4 - 0.2
+    rec = Recorder(lambda c: c.square().sum((1, 2)))
+    make_planner("cem", CEMConfig(iterations=1)).plan(seed, rec, seed=11)
+    expected = seed + 0.1 * torch.randn((31, H, A), generator=torch.Generator().manual_seed(11))
+    torch.testing.assert_close(rec.calls[0][0][1:], expected.clamp(-1, 1), rtol=0, atol=0)
+
+
 def test_gripper_stays_with_the_wam_and_can_be_frozen():
     seed = torch.zeros(H, A)
     seed[:, 4] = 1.0  # WAM says: open
@@ -230,6 +264,7 @@ def test_device_follows_seed_actions(name, device):
     ({"iterations": 0}, "iterations"),
     ({"num_optimized": 0}, "num_optimized"),
     ({"action_low": 1.0, "action_high": -1.0}, "action_low"),
+    ({"noise_beta": -1.0}, "noise_beta"),
 ])
 def test_bad_cem_configs(kwargs, match):
     with pytest.raises(ConfigError, match=match):

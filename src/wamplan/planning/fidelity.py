@@ -35,7 +35,7 @@ import numpy as np
 import torch
 
 from wamplan.config import field, require
-from wamplan.planning.base import IterationStats, PlanResult
+from wamplan.planning.base import IterationStats, PlanResult, candidate_noise
 from wamplan.planning.costs import CostFn, make_cost
 from wamplan.planning.dynamics import Dynamics, SimulatorDynamics
 from wamplan.planning.policy import PlannedPolicy
@@ -48,6 +48,7 @@ from wamplan.wam.base import WAM, WAMOutput
 class FidelityConfig:
     num_candidates: int = field(32, "candidates per boundary: the WAM's chunk + N-1 Gaussian samples")
     sigma: float = field(0.10, "std of the samples around the WAM's chunk (normalised action units)")
+    noise_beta: float = field(0.0, "temporal colour of the samples' noise, as the planners' noise_beta (0 = white)")
     top_k: int = field(8, "size of the top sets whose overlap is reported (chance = k/N)")
     boundaries: tuple[int, ...] = field((1, 2, 3, 4), "chunk boundaries to score, as chunk indices (1 = step H; "
                                         "0, the first chunk, always runs open loop); the episode stops after the last")
@@ -58,6 +59,7 @@ class FidelityConfig:
     def __post_init__(self):
         require(self.num_candidates >= 2, f"num_candidates must be >= 2, got {self.num_candidates}")
         require(self.sigma > 0, f"sigma must be > 0, got {self.sigma}")
+        require(self.noise_beta >= 0, f"noise_beta must be >= 0 (0 = white noise), got {self.noise_beta}")
         require(1 <= self.top_k <= self.num_candidates,
                 f"top_k must be in [1, num_candidates={self.num_candidates}], got {self.top_k}")
         require(len(self.boundaries) > 0 and min(self.boundaries) >= 1,
@@ -226,7 +228,8 @@ class FidelityPolicy(Policy):
             cands = base[None]  # (1, H, A): an unscored boundary only keeps every policy's history going
             if scored:
                 g = torch.Generator().manual_seed(self.cfg.seed * 1_000_003 + self._seed * 1000 + t)
-                noise = torch.randn((self.cfg.num_candidates - 1, *base.shape), generator=g)  # (N-1, H, A)
+                noise = candidate_noise((self.cfg.num_candidates - 1, *base.shape), g, base.device,
+                                        self.cfg.noise_beta)  # (N-1, H, A)
                 cands = torch.cat([base[None], (base + self.cfg.sigma * noise).clamp(-1, 1)])  # (N, H, A)
             for s in self.scorers.values():
                 s.candidates, s.costs = cands, None

@@ -95,6 +95,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seeds", required=True, help="episode seeds, e.g. 500-503 or 500,510 (keep test seeds out)")
     p.add_argument("--candidates", type=int, default=32, help="the WAM's chunk + N-1 samples")
     p.add_argument("--sigma", type=float, default=0.10)
+    p.add_argument("--noise-beta", type=float, default=0.0,
+                   help="temporal colour of the samples' noise (0 = white; 2 = smooth drifts), as `eval --noise-beta`")
     p.add_argument("--top-k", type=int, default=8)
     p.add_argument("--boundaries", default="1-4", help="chunk boundaries to score, as chunk indices (1 = step H), "
                                                        "e.g. 1-4 or 1,3,5,7")
@@ -234,7 +236,8 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
     from wamplan.wam import load_wam
     from wamplan.worldmodel.train import load_world_model
 
-    cfg = FidelityConfig(num_candidates=args.candidates, sigma=args.sigma, top_k=args.top_k,
+    cfg = FidelityConfig(num_candidates=args.candidates, sigma=args.sigma, noise_beta=args.noise_beta,
+                         top_k=args.top_k,
                          boundaries=tuple(_seed_list(args.boundaries, "--boundaries")), seed=args.sample_seed)
     seeds = _seed_list(args.seeds)
     models = []
