@@ -48,6 +48,7 @@ class EpisodeRef:
     image_steps: tuple[int, ...]
     image_every: int
     features: str | None  # this episode's feature-cache file, if features are used
+    branch_at: tuple[int, int] | None = None  # a branch's (parent's boundary step, parent's step at its step 0)
 
 
 def index_episodes(stores: Sequence[str | Path], split: str = "all", val_fraction: float = 0.1,
@@ -74,8 +75,12 @@ def index_episodes(stores: Sequence[str | Path], split: str = "all", val_fractio
                     continue
                 if split != "all" and split_of(src, seed, val_fraction) != split:
                     continue
+                branch_at = None
+                if src.startswith("branch:"):  # kept here so sibling grouping never reopens the file
+                    branch_at = (int(json.loads(f.attrs["policy"])["branch_step"]),
+                                 int(json.loads(f.attrs["provenance"])["start_step"]))
                 refs.append(EpisodeRef(str(p), src, seed, int(f.attrs["length"]),
-                                       tuple(int(s) for s in f["image_steps"][:]), store.image_every, feat))
+                                       tuple(int(s) for s in f["image_steps"][:]), store.image_every, feat, branch_at))
     if len({tuple(sorted(e.items())) for e in envs.values()}) > 1:
         raise StoreError(f"the stores {list(envs)} were collected with different env settings; train on stores "
                          f"with the same settings")
@@ -236,11 +241,9 @@ class BranchGroups(WorldModelWindows):
         span = (self.frames - 1) * frameskip  # steps from the first frame to the last
         groups: dict[tuple, list[tuple[int, int]]] = {}
         for i, e in enumerate(self.episodes):
-            if not e.source.startswith("branch:"):
+            if e.branch_at is None:
                 continue
-            with h5py.File(e.path, "r") as f:
-                boundary = int(json.loads(f.attrs["policy"])["branch_step"])
-                start = int(json.loads(f.attrs["provenance"])["start_step"])  # the parent's step at the branch's 0
+            boundary, start = e.branch_at  # the parent's boundary step, and its step at the branch's step 0
             first = boundary - start - (history - 1) * frameskip  # the window's first step in the branch episode
             if first < 0 or first not in e.image_steps or first + span > e.length:
                 continue
