@@ -195,6 +195,22 @@ def test_coloured_noise_keeps_sigma_and_moves_the_endpoint(name):
     assert stats[2.0][1] > 1.8 * stats[0.0][1]
 
 
+@pytest.mark.parametrize("name", ["cem", "mppi", "cem-gripper"])
+def test_seed_rank_is_the_share_of_first_samples_scored_below_the_seed(name):
+    for seed, expect in ((torch.zeros(H, A), 0.0), (None, None)):
+        seed = torch.full((H, A), 0.9) if seed is None else seed
+        rec = Recorder(lambda c: c[..., :4].square().sum((1, 2)))  # optimum: zero arm actions
+        res = make_planner(name).plan(seed, rec, seed=1)
+        costs = rec.calls[0][1]  # (B,) of iteration 0, candidate 0 the seed
+        assert res.seed_rank == pytest.approx(float((costs[1:] < costs[0]).float().mean()))
+        assert res.stats()["seed_rank"] == res.seed_rank
+        if expect is not None:
+            assert res.seed_rank == expect  # at the optimum nothing beats the seed
+    assert res.seed_rank > 0.3  # far from the optimum (by the bound, clipping pulls samples inward) many beat it
+    no_mean = make_planner(name, make_planner(name).config_cls(include_mean=False)).plan(seed, rec, seed=1)
+    assert math.isnan(no_mean.seed_rank)
+
+
 def test_white_noise_is_the_papers_sampling_bit_for_bit():
     """noise_beta 0 draws exactly what the paper's CEM drew before the option existed: N(mu, sigma^2) from
     torch.randn on the seeded generator, candidate 0 the mean."""

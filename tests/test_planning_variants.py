@@ -76,6 +76,37 @@ def test_accept_margin_keeps_the_wams_chunk_unless_the_plan_is_clearly_better(sm
         PlannedPolicyConfig(accept_margin=1.0)
 
 
+# ------------------------------------------------------------------ rank gate
+def test_rank_gate_keeps_the_wams_chunk_when_the_model_prefers_it_to_its_neighbours(small_env, encoder):
+    wam = np.zeros((16, 5), np.float32)
+    wam[:, 0], wam[:, 4] = 0.3, 1.0  # EchoWAM's chunk
+    ranks = {}
+    for seed in range(4):  # boundaries where some, but not all, of the 7 samples beat the WAM's chunk
+        info = run_episode(small_env, _policy(encoder), seed=seed, max_steps=17).policy_info
+        (c,) = [c for c in info["chunks"] if c["step"] == 16]
+        ranks[seed] = c["seed_rank"]
+    seed, r = next((s, r) for s, r in ranks.items() if 0 < r < 1)
+    assert r * 7 == pytest.approx(round(r * 7))  # a share of the 7 samples
+    for gate, planned in ((r, True), (r + 0.5 / 7, False)):
+        executed = []
+        pol = _policy(encoder, rank_gate=gate, warm_start="residual")
+        info = run_episode(small_env, pol, seed=seed, max_steps=32, on_obs=lambda e, o, a: executed.append(a)).policy_info
+        (c,) = [c for c in info["chunks"] if c["step"] == 16]
+        assert c["seed_rank"] == r and c["planned"] == planned
+        if planned:
+            assert not np.array_equal(np.asarray(executed[16:32]), wam)
+        else:
+            assert c["open_loop"] == "rank-gated" and info["open_loop_chunks"]["rank-gated"] == 1
+            np.testing.assert_array_equal(np.asarray(executed[16:32]), wam)  # the WAM's chunk, untouched
+            assert pol._correction is None  # a discarded plan never carries over
+    with pytest.raises(ValueError, match="rank_gate must be in"):
+        PlannedPolicyConfig(rank_gate=0.0)
+    no_mean = make_planner("cem", CEMConfig(num_candidates=8, num_elites=2, iterations=2, include_mean=False))
+    with pytest.raises(PlanningError, match="include-mean"):
+        PlannedPolicy(EchoWAM(), no_mean, LearnedDynamics(_predictor(encoder)), encoder, make_cost("patch"),
+                      config=PlannedPolicyConfig(rank_gate=0.5))
+
+
 # ------------------------------------------------------------------ warm start
 def _spy_inits(pol):
     inits, plan = [], pol.planner.plan

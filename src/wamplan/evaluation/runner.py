@@ -24,7 +24,7 @@ from wamplan.evaluation.conditions import CONDITIONS
 from wamplan.evaluation.records import append_record, read_records, record_key
 from wamplan.parallel import Backend, imap_workers
 from wamplan.planning import PLANNERS, CostConfig
-from wamplan.planning.policy import PlannedPolicyConfig
+from wamplan.planning.policy import DISCARDED, PlannedPolicyConfig
 
 
 def _env_default() -> EnvConfig:
@@ -157,8 +157,8 @@ class EvalWorker:
         r = run_episode(self.env, self.policy(cid), seed, max_steps=self.cfg.env.max_episode_steps)
         chunks = r.policy_info.get("chunks")  # PlannedPolicy: per-chunk records; WAMPolicy: a count
         planned = [ch for ch in chunks if ch.get("planned")] if isinstance(chunks, list) else []
-        searched = [ch for ch in chunks if ch.get("planned") or ch.get("open_loop") == "rejected"] \
-            if isinstance(chunks, list) else []  # a rejected plan was searched too: its time and costs count
+        searched = [ch for ch in chunks if ch.get("planned") or ch.get("open_loop") in DISCARDED] \
+            if isinstance(chunks, list) else []  # a discarded plan was searched too: its time and costs count
         timing = {k: float(np.mean([ch[k] for ch in searched])) for k in ("wam_s", "target_encode_s", "search_s")} \
             if searched else {}
         wam_s = r.policy_info.get("wam_query_s")

@@ -53,6 +53,7 @@ class PlanResult:
     best_cost: float  # its cost; the final mean itself is never scored (it is refit after the last scoring)
     history: list[IterationStats]
     num_evaluations: int  # candidates scored in total = iterations * num_candidates
+    seed_rank: float = float("nan")  # share of iteration 0's samples scored below the seed; NaN without include_mean
 
     @property
     def seed_cost(self) -> float:
@@ -61,7 +62,7 @@ class PlanResult:
 
     def stats(self) -> dict[str, Any]:
         """Plain-data summary for logging (no tensors)."""
-        return {"best_cost": self.best_cost, "seed_cost": self.seed_cost,
+        return {"best_cost": self.best_cost, "seed_cost": self.seed_cost, "seed_rank": self.seed_rank,
                 "num_evaluations": self.num_evaluations,
                 "history": [dataclasses.asdict(h) for h in self.history]}
 
@@ -160,8 +161,8 @@ class SamplingPlanner(Planner):
         n_sampled = cfg.num_candidates - int(cfg.include_mean)
         best_cost = torch.full((), float("inf"), device=mu.device)
         best = mu
-        rows = []
-        for _ in range(cfg.iterations):
+        rows, seed_rank = [], torch.tensor(float("nan"))
+        for it in range(cfg.iterations):
             noise = candidate_noise((n_sampled, *mu.shape), gen, mu.device, cfg.noise_beta)  # (B', H_opt, A)
             cand = mu + sigma * noise  # (B', H_opt, A)
             if cfg.include_mean:
@@ -169,6 +170,8 @@ class SamplingPlanner(Planner):
             cand = self._shape_candidates(cand, gen)  # (B, H_opt, A)
             cand = cand.clamp(lo, hi)  # clip BEFORE scoring: the refit sees what was scored
             costs = _score(objective, cand)  # (B,)
+            if it == 0 and cfg.include_mean:  # how many random neighbours of the seed the objective prefers to it
+                seed_rank = (costs[1:] < costs[0]).float().mean()
             i_min = torch.argmin(torch.nan_to_num(costs, nan=float("inf")))
             improved = costs[i_min] < best_cost
             best_cost = torch.where(improved, costs[i_min], best_cost)
@@ -185,7 +188,7 @@ class SamplingPlanner(Planner):
         actions[:n_opt] = mu.to(seed_actions.dtype)
         return PlanResult(actions=actions, mean=mu, std=sigma, best_actions=best,
                           best_cost=float(best_cost), history=history,
-                          num_evaluations=cfg.iterations * cfg.num_candidates)
+                          num_evaluations=cfg.iterations * cfg.num_candidates, seed_rank=float(seed_rank))
 
     def _initial_distribution(self, seed_actions: Tensor) -> tuple[Tensor, Tensor]:
         """mu0 = the seed's first H_opt actions (clipped), sigma0 = init std: (H_opt, A) each."""

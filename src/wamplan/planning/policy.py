@@ -15,6 +15,9 @@ Chunk rules, the same for every dynamics backend:
 * a boundary whose history reaches before step 0 (only when (H_ctx-1)Δ exceeds the chunk) runs open loop
   and is counted in ``info()["open_loop_chunks"]``; so is a chunk the gate skipped (``gate_threshold``: the
   WAM's chunk, scored through the planning objective, is already close enough to its target), as "gated";
+  chunks searched whose plan was then not executed count as "rejected" (``accept_margin``: the plan's predicted
+  gain was too small) or "rank-gated" (``rank_gate``: too few of the search's first random neighbours of the
+  WAM's chunk scored below it, so the model sees the WAM's chunk as already among the best it can tell apart);
   a history frame that should exist but was never
   shown to the policy is a :class:`PlanningError`, never a silent open-loop chunk.
 
@@ -46,6 +49,7 @@ from wamplan.wam.base import WAM, WAMOutput
 
 
 WARM_STARTS = ("none", "residual")
+DISCARDED = ("rejected", "rank-gated")  # open-loop reasons of chunks that were searched, the plan then not executed
 
 
 @dataclass(frozen=True)
@@ -67,6 +71,10 @@ class PlannedPolicyConfig:
         None, "trust test: execute the plan only if the model predicts it lowers the WAM chunk's cost by at least "
         "this fraction (e.g. 0.1), else the WAM's chunk; a model that cannot tell close chunks apart then "
         "leaves the WAM alone instead of adding its noise. None = always execute the plan (the paper)")
+    rank_gate: float | None = field(
+        None, "rank test: execute the plan only if at least this share of the search's first random candidates "
+        "(samples around the WAM's chunk) score below the WAM's chunk, i.e. the model sees the WAM's chunk as "
+        "no better than its neighbours; else the WAM's chunk (e.g. 0.5). None = always execute the plan (the paper)")
 
     def __post_init__(self):
         require(self.first_chunk in ("open-loop", "rest-history"),
@@ -76,6 +84,8 @@ class PlannedPolicyConfig:
         require(self.disagreement_weight >= 0, f"disagreement_weight must be >= 0, got {self.disagreement_weight}")
         require(self.accept_margin is None or 0.0 <= self.accept_margin < 1.0,
                 f"accept_margin must be in [0, 1) or None, got {self.accept_margin}")
+        require(self.rank_gate is None or 0.0 < self.rank_gate <= 1.0,
+                f"rank_gate must be in (0, 1] or None, got {self.rank_gate}")
 
 
 class PlanningError(UserError):
@@ -95,6 +105,9 @@ class PlannedPolicy(Policy):
         self.chunk = wam.chunk_length
         self.frameskip = getattr(dynamics, "frameskip", self.chunk)
         self.context = getattr(dynamics, "context", 1)
+        if self.config.rank_gate is not None and not getattr(planner.config, "include_mean", False):
+            raise PlanningError("rank_gate compares the WAM's chunk with the search's first samples, so the planner "
+                                "must score it: drop --no-include-mean or the rank gate")
         if self.config.disagreement_weight > 0 and isinstance(dynamics, LearnedDynamics):
             raise PlanningError("disagreement_weight needs an ensemble of world models, got one; pass several "
                                 "comma-separated checkpoints (e.g. --wm-augmented A,B,C) or set it to 0")
@@ -228,10 +241,15 @@ class PlannedPolicy(Policy):
             self._correction = result.actions[:covered].float() - seed.float()  # (H_opt, A)
         plan = np.concatenate([result.actions.cpu().numpy(), seed_out.actions[covered:]]).astype(np.float32)  # (H, A)
         init_cost = float(result.seed_cost) if result.seed_cost is not None else float("nan")
-        rec.update(planned=True, seed_cost=init_cost if wam_cost is None else wam_cost, best_cost=float(result.best_cost))
+        rec.update(planned=True, seed_cost=init_cost if wam_cost is None else wam_cost, best_cost=float(result.best_cost),
+                   seed_rank=result.seed_rank)
         if init is not seed:
             rec["init_cost"] = init_cost  # the warm-started initial mean's cost
         self.last_plan = result
+        if self.config.rank_gate is not None and not result.seed_rank >= self.config.rank_gate:  # NaN: no rank, keep
+            rec.update(planned=False, open_loop="rank-gated", search_s=time.perf_counter() - t3)
+            self._correction = None  # the WAM's chunk ran: nothing of this plan carries over
+            return seed_out.actions
         if self.config.accept_margin is not None:
             plan_cost = float(objective(self._clip(result.actions[:covered])[None])[0])  # what would be executed
             rec["plan_cost"] = plan_cost
