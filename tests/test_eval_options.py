@@ -96,6 +96,20 @@ def test_one_directory_holds_one_nested_configuration(tmp_path):
             _check_same_settings(tmp_path, _cfg(*other))
 
 
+def test_a_directory_from_before_a_new_setting_resumes_at_its_default(tmp_path):
+    """A setting added after a directory was written (here the planner's noise_beta) does not block resuming
+    it when requested at its default, which is what the older version ran with; another value still does."""
+    _check_same_settings(tmp_path, _cfg())
+    path = tmp_path / "eval_config.json"
+    stored = json.loads(path.read_text())
+    del stored["planner_config.noise_beta"], stored["policy.rank_gate"]
+    path.write_text(json.dumps(stored))
+    _check_same_settings(tmp_path, _cfg())
+    for other in (("--noise-beta", "2"), ("--rank-gate", "0.5")):
+        with pytest.raises(UserError, match="other settings"):
+            _check_same_settings(tmp_path, _cfg(*other))
+
+
 def test_a_served_wam_is_chosen_with_url_and_profile(tmp_path):
     cfg = _cfg("--wam-url", "http://127.0.0.1:8777/act", "--wam-profile", "cosmos-robocasa")
     assert (cfg.wam, cfg.wam_url, cfg.wam_profile) == ("", "http://127.0.0.1:8777/act", "cosmos-robocasa")

@@ -205,8 +205,11 @@ def _check_same_settings(out: Path, cfg: EvalConfig) -> None:
     if path.is_file():
         before = json.loads(path.read_text())
         addable = ("wm_plain", "wm_augmented", "sim_encoder")
+        # a setting newer than the directory, requested at its default, is what the older version ran with
+        default = settings(EvalConfig(planner=cfg.planner))
         diff = {k: (before.get(k), now.get(k)) for k in set(before) | set(now)
-                if not _same(before.get(k), now.get(k)) and not (k in addable and not (before.get(k) and now.get(k)))}
+                if not _same(before.get(k), now.get(k)) and not (k in addable and not (before.get(k) and now.get(k)))
+                and not (k not in before and k in default and _same(now[k], default[k]))}
         if diff:
             raise UserError(f"{out} holds an evaluation with other settings {diff} (stored, requested); "
                             f"use another --out or the same settings")
