@@ -51,7 +51,7 @@ def test_a_registered_planner_appears_in_eval_with_its_options(toy_planner, caps
     with pytest.raises(SystemExit):
         build_parser().parse_args(["eval", "--help"])
     out = capsys.readouterr().out
-    assert "--planner {cem,cem-gripper,mppi,toy}" in out and "--shift SHIFT" in out and "[toy]" in out
+    assert "--planner {cem,cem-gripper,drift,mppi,toy}" in out and "--shift SHIFT" in out and "[toy]" in out
     assert "--toy-temperature" in out and "--mppi-temperature" in out  # the clash is spelled per planner
     with pytest.raises(ConfigError, match="shift must be >= 0"):
         _cfg("--planner", "toy", "--shift", "-1")

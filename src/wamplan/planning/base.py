@@ -138,6 +138,10 @@ class SamplingPlanner(Planner):
         'elite' cost statistic (0-d tensor)."""
 
     # Hooks for planners that search some dimensions differently (e.g. a discrete gripper); no-ops here.
+    def _noise(self, shape: tuple[int, int, int], gen: torch.Generator | None, device: torch.device) -> Tensor:
+        """Each iteration, the standard noise (B', H_opt, A) that sigma scales around mu."""
+        return candidate_noise(shape, gen, device, self.config.noise_beta)
+
     def _begin(self, mu: Tensor, sigma: Tensor, frozen: Tensor) -> None:
         """Once per plan, before sampling: may set up state and edit mu, sigma, frozen (H_opt, A) in place."""
 
@@ -163,7 +167,7 @@ class SamplingPlanner(Planner):
         best = mu
         rows, seed_rank = [], torch.tensor(float("nan"))
         for it in range(cfg.iterations):
-            noise = candidate_noise((n_sampled, *mu.shape), gen, mu.device, cfg.noise_beta)  # (B', H_opt, A)
+            noise = self._noise((n_sampled, *mu.shape), gen, mu.device)  # (B', H_opt, A)
             cand = mu + sigma * noise  # (B', H_opt, A)
             if cfg.include_mean:
                 cand = torch.cat([mu.unsqueeze(0), cand])  # (B, H_opt, A), candidate 0 = mean
@@ -264,7 +268,7 @@ def _score(objective: Objective, cand: Tensor) -> Tensor:
 
 
 PLANNERS = Registry("planner", set_name=True, modules=("wamplan.planning.cem", "wamplan.planning.mppi",
-                                                          "wamplan.planning.cem_gripper"))
+                                                          "wamplan.planning.cem_gripper", "wamplan.planning.drift"))
 register_planner = PLANNERS.register  # class decorator: make a planner constructible by name
 
 

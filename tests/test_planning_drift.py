@@ -1,0 +1,85 @@
+"""The drift planner: a response-surface step on one constant per-step offset of the chunk."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from wamplan.config import ConfigError
+from wamplan.planning import DriftConfig, make_planner
+from wamplan.planning.drift import quadratic_features, surface_step
+
+H, A = 16, 5
+
+
+def _endpoint_problem(seed: int, shift: torch.Tensor):
+    """Cost = squared distance of the chunk's summed arm actions (its end point under delta control) to the
+    seed's own sum plus ``shift`` (4,): the WAM's chunk misses its end point by ``shift``."""
+    g = torch.Generator().manual_seed(seed)
+    chunk = torch.rand(H, A, generator=g) * 0.6 - 0.3  # (H, A)
+    chunk[:, 4] = 1.0  # gripper open
+    target = chunk[:, :4].sum(0) + shift  # (4,)
+    return chunk, lambda c: (c[..., :4].sum(-2) - target).square().sum(-1), target
+
+
+def test_surface_step_recovers_a_quadratic_minimum_and_respects_the_radius():
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(40, 3, generator=g)  # (B, d)
+    opt, q = torch.tensor([0.3, -0.5, 0.2]), torch.tensor([[2.0, 0.3, 0.0], [0.3, 1.0, 0.1], [0.0, 0.1, 3.0]])
+    costs = 5.0 + ((x - opt) @ q * (x - opt)).sum(1) / 2  # (B,)
+    step, fitted = surface_step(x, costs, radius=10.0, ridge=0.0)
+    torch.testing.assert_close(step, opt, atol=1e-5, rtol=0)
+    assert float(fitted) == pytest.approx(5.0, abs=1e-5)
+    short, _ = surface_step(x, costs, radius=0.2, ridge=0.0)  # the same direction, cut to the trust region
+    assert float(short.norm()) == pytest.approx(0.2) and float(short @ opt / opt.norm() / 0.2) > 0.99
+    # a cost that is only linear (no curvature to trust): steepest descent to the radius
+    lin, _ = surface_step(x, 1.0 + x @ torch.tensor([1.0, 0.0, -1.0]), radius=0.5, ridge=0.0)
+    torch.testing.assert_close(lin, torch.tensor([-1.0, 0.0, 1.0]) * 0.5 / 2**0.5, atol=1e-5, rtol=0)
+    costs[3] = float("nan")  # a NaN cost is left out of the fit
+    torch.testing.assert_close(surface_step(x, costs, radius=10.0, ridge=0.0)[0], opt, atol=1e-5, rtol=0)
+    assert quadratic_features(x).shape == (40, 1 + 3 + 6)
+
+
+def test_drift_reaches_a_displaced_end_point_with_a_constant_correction():
+    shift = torch.tensor([0.3, -0.2, 0.1, 0.05])  # inside the trust region: |shift| / (16 * 0.025) < 1
+    chunk, cost, target = _endpoint_problem(1, shift)
+    res = make_planner("drift").plan(chunk, cost, seed=0)
+    torch.testing.assert_close(res.actions[:, :4].sum(0), target, atol=1e-4, rtol=0)
+    corr = res.actions - chunk  # (H, A)
+    torch.testing.assert_close(corr, corr[:1].expand(H, A), atol=1e-6, rtol=0)  # the same offset at every step
+    assert torch.equal(res.actions[:, 4], chunk[:, 4])  # the gripper is the WAM's
+    assert res.num_evaluations == 2 * 32 and res.history[-1].elite_cost_mean < 1e-4
+
+
+def test_drift_moves_no_farther_than_its_trust_region():
+    chunk, cost, _ = _endpoint_problem(2, torch.tensor([3.0, 0.0, 0.0, 0.0]))  # far outside the sampled region
+    cfg = DriftConfig(step_radius=1.0, std_shrink=0.5, iterations=2)
+    res = make_planner("drift", cfg).plan(chunk, cost, seed=0)
+    offset = (res.actions - chunk)[0, :4]  # (4,) per-step drift
+    assert float(offset.norm()) == pytest.approx(0.025 * (1.0 + 0.5), rel=1e-4)  # one full step per iteration
+    assert offset[0] > 0 and float(offset[1:].abs().max()) < 1e-3  # straight toward the end point
+
+
+def test_drift_lowers_a_noisy_cost():
+    """Every candidate's cost carries noise as large as the WAM chunk's whole cost; the surface, fitted on all
+    candidates, still finds the downhill drift."""
+    better = 0
+    for s in range(20):
+        g = torch.Generator().manual_seed(100 + s)
+        chunk, cost, _ = _endpoint_problem(s, torch.randn(4, generator=g) * 0.2)
+        scale = float(cost(chunk[None])[0])
+        noisy = lambda c: cost(c) + scale * torch.randn(c.shape[0], generator=g)  # noqa: E731
+        better += float(cost(make_planner("drift").plan(chunk, noisy, seed=s).actions[None])[0]) < scale
+    assert better >= 18
+
+
+def test_drift_config_errors():
+    with pytest.raises(ConfigError, match="noise_beta does not apply"):
+        DriftConfig(noise_beta=2.0)
+    with pytest.raises(ConfigError, match="step_radius"):
+        DriftConfig(step_radius=0.0)
+    with pytest.raises(ConfigError, match="std_shrink"):
+        DriftConfig(std_shrink=1.5)
+    chunk, cost, _ = _endpoint_problem(0, torch.zeros(4))
+    with pytest.raises(ConfigError, match="raise num_candidates above 15"):
+        make_planner("drift", DriftConfig(num_candidates=12)).plan(chunk, cost, seed=0)
