@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from wamplan.planning.dynamics import LearnedDynamics, SimulatorDynamics
-from wamplan.planning.fidelity import (FidelityConfig, Scored, boundary_stats, format_fidelity, ranks, run_fidelity,
-                                       spearman, top_overlap)
+from wamplan.planning.fidelity import (FidelityConfig, Scored, boundary_stats, cost_slope, format_fidelity, ranks,
+                                       run_fidelity, slope_cosine, spearman, top_overlap)
 from wamplan.wam import load_wam
 from wamplan.worldmodel.train import load_world_model
 
@@ -23,6 +23,22 @@ def test_rank_statistics():
     s = boundary_stats(torch.tensor([0.5, 0.1, 0.2, 0.3]), torch.tensor([2.0, 1.0, 3.0, 4.0]), 2)
     assert s["pick"] == 1 and s["pick_beats_wam"] == 1.0 and s["pick_gain"] == pytest.approx(0.5)
     assert s["random_beats_wam"] == pytest.approx(1 / 3) and s["best_gain"] == pytest.approx(0.5)
+    assert np.isnan(s["slope_cosine"])  # no shifts given
+
+
+def test_slope_agreement():
+    g = torch.Generator().manual_seed(0)
+    shift = torch.randn(32, 4, generator=g)  # (N, d) end-point shifts
+    slope = torch.tensor([1.0, -2.0, 0.5, 0.0])
+    true = 3.0 + shift @ slope  # (N,)
+    torch.testing.assert_close(cost_slope(true, shift), slope.double(), atol=1e-5, rtol=0)
+    noisy = 7.0 + 2.0 * (shift @ slope) + 0.3 * torch.randn(32, generator=g)  # another scale, plus noise: same way
+    assert slope_cosine(noisy, true, shift) > 0.95
+    assert slope_cosine(-true, true, shift) == pytest.approx(-1.0)
+    other = shift @ torch.tensor([0.0, 0.0, 0.0, 1.0])  # a slope along a direction the true cost ignores
+    assert abs(slope_cosine(other, true, shift)) < 0.1
+    s = boundary_stats(noisy, true, 8, shift)
+    assert s["slope_cosine"] == pytest.approx(slope_cosine(noisy, true, shift))
 
 
 def test_fidelity_of_a_world_model_and_of_the_simulator_against_itself(env):
@@ -40,6 +56,7 @@ def test_fidelity_of_a_world_model_and_of_the_simulator_against_itself(env):
         assert learned["true_costs"] == sim["true_costs"]  # one simulator reference for one encoder
         assert sim["spearman"] == pytest.approx(1.0, abs=1e-9) and sim["top_overlap"] == 1.0
         assert sim["pick_gain"] == pytest.approx(sim["best_gain"])
+        assert sim["slope_cosine"] == pytest.approx(1.0, abs=1e-4)  # 4 candidates, 4 shift dims: barely determined
         assert len(set(learned["model_costs"])) == 4  # four distinct candidates
         assert len(r["task"]["cand_xy_mm"]) == 4 and -1 <= learned["true_vs_xy"] <= 1
     # candidate 0 is the WAM's chunk, which the episode then executed: stepping it from the boundary lands

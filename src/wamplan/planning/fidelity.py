@@ -94,11 +94,29 @@ def top_overlap(a: torch.Tensor, b: torch.Tensor, k: int) -> float:
     return len(ia & ib) / k
 
 
-def boundary_stats(model: torch.Tensor, true: torch.Tensor, k: int) -> dict[str, float]:
-    """Compare the model's costs (N,) with the simulator's (N,) for one boundary; candidate 0 = the WAM's chunk."""
+def cost_slope(costs: torch.Tensor, shift: torch.Tensor) -> torch.Tensor:
+    """Least-squares slope (d,) of costs (N,) against the candidates' end-point shifts (N, d) (an intercept fitted)."""
+    x = torch.cat([torch.ones_like(shift[:, :1]), shift], dim=1).double()  # (N, 1 + d)
+    return torch.linalg.lstsq(x, costs.double()[:, None]).solution[1:, 0]  # (d,)
+
+
+def slope_cosine(model: torch.Tensor, true: torch.Tensor, shift: torch.Tensor) -> float:
+    """Cosine between the model's and the simulator's cost slopes over the end-point shifts (N, d): whether the
+    model knows which way moving the chunk's end lowers the cost, even where its argmin is noise."""
+    a, b = cost_slope(model, shift), cost_slope(true, shift)
+    den = float(a.norm() * b.norm())
+    return float(a @ b) / den if den > 0 else float("nan")
+
+
+def boundary_stats(model: torch.Tensor, true: torch.Tensor, k: int, shift: torch.Tensor | None = None
+                   ) -> dict[str, float]:
+    """Compare the model's costs (N,) with the simulator's (N,) for one boundary; candidate 0 = the WAM's chunk.
+    ``shift`` (N, d): each candidate's summed deviation from the WAM's chunk on the arm dimensions (its end
+    point under delta control), for the slope agreement."""
     true = true.double()
     pick = int(torch.argmin(model.double()))
     return dict(spearman=spearman(model, true), top_overlap=top_overlap(model, true, k),
+                slope_cosine=slope_cosine(model, true, shift) if shift is not None else float("nan"),
                 pick_beats_wam=float(true[pick] < true[0]),
                 random_beats_wam=float((true[1:] < true[0]).double().mean()),
                 pick_gain=float((true[0] - true[pick]) / true[0]),  # > 0: the pick lowers the true cost
@@ -237,10 +255,12 @@ class FidelityPolicy(Policy):
             p.act(obs)
         if scored:
             rec = dict(seed=self._seed, step=t, models={})
+            cands = self.scorers[self.labels[0]].candidates  # (N, H, A), the same for every scorer
+            shift = (cands - cands[:1]).sum(dim=1)[:, :-1]  # (N, A-1): end-point shift on the arm dims
             for label in self.labels:
                 model = self.scorers[label].costs
                 true = self.scorers["sim:" + self.reference[label]].costs
-                rec["models"][label] = dict(boundary_stats(model, true, self.cfg.top_k),
+                rec["models"][label] = dict(boundary_stats(model, true, self.cfg.top_k, shift),
                                             model_costs=model.tolist(), true_costs=true.tolist())
             if self.cfg.task_metric:
                 rec["task"] = self._task(self.scorers[self.labels[0]].candidates)
@@ -297,14 +317,16 @@ def _aggregate(records: Sequence[dict[str, Any]], label: str, cfg: FidelityConfi
     """Medians / IQR / means over the given boundaries of one model's per-boundary statistics."""
     rows = [r["models"][label] for r in records]
     col = {k: np.array([row[k] for row in rows], float) for k in
-           ("spearman", "top_overlap", "pick_beats_wam", "random_beats_wam", "pick_gain", "best_gain", "true_spread")}
+           ("spearman", "top_overlap", "pick_beats_wam", "random_beats_wam", "pick_gain", "best_gain", "true_spread",
+            "slope_cosine")}
     mean = (lambda a: float(a.mean()) if len(a) else float("nan"))
     out = dict(boundaries=len(rows), spearman_median=_median(col["spearman"]),
                spearman_q25=_median(col["spearman"], 25), spearman_q75=_median(col["spearman"], 75),
                top_overlap_mean=mean(col["top_overlap"]), top_overlap_chance=cfg.top_k / cfg.num_candidates,
                pick_beats_wam=mean(col["pick_beats_wam"]), random_beats_wam=mean(col["random_beats_wam"]),
                pick_gain_median=_median(col["pick_gain"]), best_gain_median=_median(col["best_gain"]),
-               true_spread_median=_median(col["true_spread"]))
+               true_spread_median=_median(col["true_spread"]), slope_cosine_median=_median(col["slope_cosine"]),
+               slope_agree=mean((col["slope_cosine"] > 0).astype(float)))
     lifted = [row for r, row in zip(records, rows) if r.get("task", {}).get("lifted")]
     if lifted:
         out.update(lifted_boundaries=len(lifted), **{
@@ -324,7 +346,8 @@ def summarize(records: Sequence[dict[str, Any]], labels: Sequence[str], cfg: Fid
 def format_fidelity(summary: dict[str, Any], top_k: int = 8) -> str:
     """One row per model."""
     head = (f"{'model':<16}{'bounds':>7}  {'Spearman med [IQR]':<22}{f'top-{top_k} ovl (chance)':>20}"
-            f"{'pick>WAM (random)':>19}{'pick gain':>11}{'best gain':>11}{'true std/mean':>15}")
+            f"{'pick>WAM (random)':>19}{'pick gain':>11}{'best gain':>11}{'true std/mean':>15}"
+            f"{'slope cos (>0)':>16}")
     lines = [head]
     rows = [(label, s) for label, agg in summary.items()
             for s in [agg, *[dict(v, step=k) for k, v in agg.get("by_step", {}).items()]]]
@@ -335,9 +358,11 @@ def format_fidelity(summary: dict[str, Any], top_k: int = 8) -> str:
                      + f"{s['top_overlap_mean']:>6.2f} ({s['top_overlap_chance']:.2f})".rjust(20)
                      + f"{s['pick_beats_wam']:>6.0%} ({s['random_beats_wam']:.0%})".rjust(19)
                      + f"{s['pick_gain_median']:>10.1%} {s['best_gain_median']:>10.1%}"
-                     + f"{s['true_spread_median']:>15.1%}")
+                     + f"{s['true_spread_median']:>15.1%}"
+                     + f"{s['slope_cosine_median']:>8.2f} ({s['slope_agree']:.0%})".rjust(16))
     lines.append("gains: the true (simulator) cost's relative drop from the WAM's chunk to the model's pick / to the "
-                 "simulator's best candidate; medians over boundaries")
+                 "simulator's best candidate; medians over boundaries. slope cos: cosine of the model's and the "
+                 "simulator's cost slopes over the candidates' end-point shifts (median; share of boundaries > 0)")
     for label, s in rows:
         if s.get("lifted_boundaries"):
             label = label if "step" not in s else f"{label} step {s['step']}"
