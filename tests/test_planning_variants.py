@@ -52,6 +52,26 @@ def test_a_gated_chunk_executes_the_wams_chunk(small_env, encoder):
     np.testing.assert_array_equal(np.asarray(executed[16:32]), wam)
 
 
+def test_gate_above_skips_the_search_where_the_cost_is_high(small_env, encoder):
+    wam = np.zeros((16, 5), np.float32)
+    wam[:, 0], wam[:, 4] = 0.3, 1.0  # EchoWAM's chunk
+    always = run_episode(small_env, _policy(encoder), seed=0, max_steps=17).policy_info
+    c16 = always["chunks"][1]["seed_cost"]
+    executed = []
+    above = run_episode(small_env, _policy(encoder, gate_above=c16 * 0.999), seed=0, max_steps=32,
+                        on_obs=lambda e, o, a: executed.append(a)).policy_info
+    assert above["chunks"][1]["open_loop"] == "gated-above" and above["open_loop_chunks"]["gated-above"] == 1
+    assert above["chunks"][1]["seed_cost"] == pytest.approx(c16, rel=1e-4)
+    np.testing.assert_array_equal(np.asarray(executed[16:32]), wam)  # the WAM's chunk, untouched
+    below = run_episode(small_env, _policy(encoder, gate_above=c16 * 1.001), seed=0, max_steps=17).policy_info
+    assert below["chunks"][1]["planned"] and "open_loop" not in below["chunks"][1]
+    band = run_episode(small_env, _policy(encoder, gate_threshold=c16 * 0.5, gate_above=c16 * 1.001), seed=0,
+                       max_steps=17).policy_info
+    assert band["chunks"][1]["planned"]  # inside the band: searched
+    with pytest.raises(ValueError, match="must be below gate_above"):
+        PlannedPolicyConfig(gate_threshold=0.2, gate_above=0.1)
+
+
 # ------------------------------------------------------------------ trust test (accept margin)
 def test_accept_margin_keeps_the_wams_chunk_unless_the_plan_is_clearly_better(small_env, encoder):
     wam = np.zeros((16, 5), np.float32)

@@ -14,7 +14,9 @@ Chunk rules, the same for every dynamics backend:
   the chunk (paper Δ=5, H=16: frames t-10, t-5, t). ``wants_images`` asks for exactly those frames;
 * a boundary whose history reaches before step 0 (only when (H_ctx-1)Δ exceeds the chunk) runs open loop
   and is counted in ``info()["open_loop_chunks"]``; so is a chunk the gate skipped (``gate_threshold``: the
-  WAM's chunk, scored through the planning objective, is already close enough to its target), as "gated";
+  WAM's chunk, scored through the planning objective, is already close enough to its target), as "gated"; a
+  chunk whose cost is above ``gate_above`` (the model's prediction far from the target, where its ranking is
+  least trustworthy) as "gated-above";
   chunks searched whose plan was then not executed count as "rejected" (``accept_margin``: the plan's predicted
   gain was too small) or "rank-gated" (``rank_gate``: too few of the search's first random neighbours of the
   WAM's chunk scored below it, so the model sees the WAM's chunk as already among the best it can tell apart);
@@ -60,6 +62,10 @@ class PlannedPolicyConfig:
         None, "gated planning: execute the WAM's chunk without a search when its cost (the seed scored through "
         "the planning objective) is at most this; None = plan every chunk. Calibrate it with "
         "`wamplan gate-calibrate EVAL_DIR` on held-out episodes")
+    gate_above: float | None = field(
+        None, "out-of-range gate: execute the WAM's chunk without a search when its cost is ABOVE this: where the "
+        "model's prediction is far from the WAM's target (e.g. in contact, at insertion) its ranking is least "
+        "trustworthy. None = no upper gate. Calibrate it, like gate_threshold, with `wamplan gate-calibrate`")
     warm_start: str = field(
         "none", "initial search mean: none (the WAM's chunk, the paper) or residual (the WAM's chunk plus "
         "warm_weight times the previous planned chunk's correction, arm dimensions only)")
@@ -84,6 +90,9 @@ class PlannedPolicyConfig:
         require(self.disagreement_weight >= 0, f"disagreement_weight must be >= 0, got {self.disagreement_weight}")
         require(self.accept_margin is None or 0.0 <= self.accept_margin < 1.0,
                 f"accept_margin must be in [0, 1) or None, got {self.accept_margin}")
+        require(self.gate_threshold is None or self.gate_above is None or self.gate_threshold < self.gate_above,
+                f"gate_threshold ({self.gate_threshold}) must be below gate_above ({self.gate_above}): "
+                "the search runs only for costs between the two")
         require(self.rank_gate is None or 0.0 < self.rank_gate <= 1.0,
                 f"rank_gate must be in (0, 1] or None, got {self.rank_gate}")
 
@@ -227,11 +236,14 @@ class PlannedPolicy(Policy):
         objective = self.objective(target)
         rec.update(wam_s=rec["wam_s"] + t2 - t1, target_encode_s=t3 - t2)
         init, wam_cost = seed, None
-        if self.config.gate_threshold is not None or self.config.warm_start != "none" or \
-                self.config.accept_margin is not None:
+        if self.config.gate_threshold is not None or self.config.gate_above is not None or \
+                self.config.warm_start != "none" or self.config.accept_margin is not None:
             wam_cost = float(objective(self._clip(seed)[None])[0])  # the WAM's own chunk, scored as the planner would
         if self.config.gate_threshold is not None and wam_cost <= self.config.gate_threshold:
             rec.update(open_loop="gated", seed_cost=wam_cost, search_s=time.perf_counter() - t3)
+            return seed_out.actions
+        if self.config.gate_above is not None and wam_cost > self.config.gate_above:
+            rec.update(open_loop="gated-above", seed_cost=wam_cost, search_s=time.perf_counter() - t3)
             return seed_out.actions
         if self.config.warm_start == "residual" and correction is not None:
             init = seed.clone()  # (H_opt, A)
