@@ -79,8 +79,9 @@ class PlannedPolicyConfig:
         "leaves the WAM alone instead of adding its noise. None = always execute the plan (the paper)")
     rank_gate: float | None = field(
         None, "rank test: execute the plan only if at least this share of the search's first random candidates "
-        "(samples around the WAM's chunk) score below the WAM's chunk, i.e. the model sees the WAM's chunk as "
-        "no better than its neighbours; else the WAM's chunk (e.g. 0.5). None = always execute the plan (the paper)")
+        "(samples around its initial mean: the WAM's chunk, unless warm-started) score below that mean, i.e. the "
+        "model sees it as no better than its neighbours; else the WAM's chunk (e.g. 0.5). None = always execute "
+        "the plan (the paper)")
 
     def __post_init__(self):
         require(self.first_chunk in ("open-loop", "rest-history"),
