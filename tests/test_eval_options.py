@@ -103,9 +103,11 @@ def test_a_directory_from_before_a_new_setting_resumes_at_its_default(tmp_path):
     path = tmp_path / "eval_config.json"
     stored = json.loads(path.read_text())
     del stored["planner_config.noise_beta"], stored["policy.rank_gate"]
-    path.write_text(json.dumps(stored))
-    _check_same_settings(tmp_path, _cfg())
-    for other in (("--noise-beta", "2"), ("--rank-gate", "0.5")):
+    for other in ((), ("--noise-beta", "2"), ("--rank-gate", "0.5")):
+        path.write_text(json.dumps(stored))  # the old directory, as written before the two settings existed
+        if not other:
+            _check_same_settings(tmp_path, _cfg())
+            continue
         with pytest.raises(UserError, match="other settings"):
             _check_same_settings(tmp_path, _cfg(*other))
 

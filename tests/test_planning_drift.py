@@ -8,6 +8,7 @@ import torch
 from wamplan.config import ConfigError
 from wamplan.planning import DriftConfig, make_planner
 from wamplan.planning.drift import quadratic_features, surface_step
+from test_planning_optimizers import Recorder
 
 H, A = 16, 5
 
@@ -73,6 +74,19 @@ def test_drift_lowers_a_noisy_cost():
     assert better >= 18
 
 
+def test_drift_samples_its_search_dims_at_init_std():
+    """init_std sets the drift's std on the searched dimensions; the others (the gripper by default) never move."""
+    rec = Recorder(lambda c: torch.zeros(c.shape[0]))
+    make_planner("drift", DriftConfig(num_candidates=4001, iterations=1, init_std=0.05)).plan(
+        torch.zeros(H, A), rec, seed=0)
+    samples = rec.calls[0][0][1:]  # (4000, H, A)
+    torch.testing.assert_close(samples.std(0)[0], torch.tensor([0.05, 0.05, 0.05, 0.05, 0.0]), atol=0.003, rtol=0)
+    assert torch.equal(samples, samples[:, :1].expand_as(samples))  # one offset per candidate, every step
+    rec = Recorder(lambda c: torch.zeros(c.shape[0]))
+    make_planner("drift", DriftConfig(iterations=1, search_dims=(0, 1))).plan(torch.zeros(H, A), rec, seed=0)
+    assert rec.calls[0][0][..., 2:].abs().max() == 0 and rec.calls[0][0][..., :2].abs().max() > 0
+
+
 def test_drift_config_errors():
     with pytest.raises(ConfigError, match="noise_beta does not apply"):
         DriftConfig(noise_beta=2.0)
@@ -83,3 +97,7 @@ def test_drift_config_errors():
     chunk, cost, _ = _endpoint_problem(0, torch.zeros(4))
     with pytest.raises(ConfigError, match="raise num_candidates above 15"):
         make_planner("drift", DriftConfig(num_candidates=12)).plan(chunk, cost, seed=0)
+    with pytest.raises(ConfigError, match="search_dims must be distinct"):
+        DriftConfig(search_dims=(0, 0))
+    with pytest.raises(ConfigError, match="pass indices below 5"):
+        make_planner("drift", DriftConfig(search_dims=(0, 5))).plan(chunk, cost, seed=0)

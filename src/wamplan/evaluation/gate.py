@@ -25,7 +25,8 @@ def seed_costs(records: list[dict[str, Any]], condition: int) -> np.ndarray:
 
 
 def planned_fraction(records: list[dict[str, Any]], condition: int) -> float:
-    """Chunks searched / all chunks of ``condition`` (open-loop first chunks, warm-up and gated ones included)."""
+    """Chunks whose plan was executed / all chunks of ``condition`` (open-loop first chunks, warm-up, gated and
+    discarded ones included in the total)."""
     recs = [r for r in records if r["condition"] == condition]
     planned = sum(r.get("planned_chunks", 0) for r in recs)
     total = planned + sum(sum(r.get("open_loop_chunks", {}).values()) for r in recs)

@@ -241,12 +241,14 @@ def candidate_noise(shape: tuple[int, int, int], gen: torch.Generator | None, de
     variance for any H (``colorednoise``'s own normalisation is off by 16 % at H = 16, beta 2). With beta 2
     the variance sits in the lowest frequencies: a candidate is mostly a smooth drift of the whole chunk,
     and sigma buys endpoint displacement instead of per-step jitter (for H = 16 the summed noise has
-    about twice the spread of white noise at the same sigma)."""
-    x = _randn(shape, gen, device)  # (B, H, A)
+    about twice the spread of white noise at the same sigma). Like iCEM's, the noise is circular (the last
+    step correlates with the first), and for H <= 3 every bin gets the same gain, so it stays white."""
     if beta == 0:
-        return x
+        return _randn(shape, gen, device)
+    home = gen.device if gen is not None else device  # filter where the numbers are drawn: the same on any device
+    x = _randn(shape, gen, home)  # (B, H, A)
     h = shape[1]
-    f = torch.fft.rfftfreq(h, device=device)  # (H//2 + 1,) cycles per step
+    f = torch.fft.rfftfreq(h, device=home)  # (H//2 + 1,) cycles per step
     f[0] = f[1] if h > 1 else 1.0
     gain = f ** (-beta / 2)  # (H//2 + 1,)
     mult = torch.full_like(gain, 2.0)  # each bin stands for itself and its mirror in the full spectrum...
@@ -255,7 +257,7 @@ def candidate_noise(shape: tuple[int, int, int], gen: torch.Generator | None, de
         mult[-1] = 1.0  # ...and the Nyquist bin
     gain = gain / torch.sqrt((mult * gain**2).sum() / h)  # unit variance after the filter
     spec = torch.fft.rfft(x, dim=1) * gain[None, :, None]  # (B, H//2 + 1, A)
-    return torch.fft.irfft(spec, n=h, dim=1)  # (B, H, A)
+    return torch.fft.irfft(spec, n=h, dim=1).to(device)  # (B, H, A)
 
 
 def _score(objective: Objective, cand: Tensor) -> Tensor:

@@ -44,10 +44,10 @@ class DriftConfig(SamplingConfig):
     per unit action over 16 steps)."""
 
     iterations: int = field(2, "response-surface fits, each around the previous step's centre")
-    init_std: float = field(0.025, "std of the per-step drift for every action dimension")
-    init_std_per_dim: tuple[float, ...] = field(
-        (0.025, 0.025, 0.025, 0.025, 0.0), "std of the per-step drift per action dimension (0 = not searched; "
-        "default: x, y, z, yaw searched, the gripper kept as the WAM's)")
+    init_std: float = field(0.025, "std of the per-step drift for every searched action dimension")
+    search_dims: tuple[int, ...] = field(
+        (0, 1, 2, 3), "action dimensions whose drift is searched (default x, y, z, yaw); the others, the gripper "
+        "among them, stay the WAM's. init_std_per_dim, if given, sets their stds (a 0 also leaves one out)")
     step_radius: float = field(1.0, "farthest step from the current centre, in units of sigma (a trust region: "
                                     "1 = no farther than the samples the surface was fitted on reach)")
     std_shrink: float = field(0.5, "sigma is multiplied by this after each iteration")
@@ -57,6 +57,9 @@ class DriftConfig(SamplingConfig):
         super().__post_init__()
         require(self.noise_beta == 0, "drift searches constant per-step offsets; noise_beta does not apply "
                                       f"(got {self.noise_beta}); leave it at 0")
+        require(len(self.search_dims) > 0 and min(self.search_dims) >= 0 and
+                len(set(self.search_dims)) == len(self.search_dims),
+                f"search_dims must be distinct action indices >= 0, got {self.search_dims}")
         require(self.step_radius > 0, f"step_radius must be > 0, got {self.step_radius}")
         require(0 < self.std_shrink <= 1, f"std_shrink must be in (0, 1], got {self.std_shrink}")
         require(self.ridge >= 0, f"ridge must be >= 0, got {self.ridge}")
@@ -103,13 +106,21 @@ class DriftPlanner(SamplingPlanner):
     config: DriftConfig
 
     def _begin(self, mu: Tensor, sigma: Tensor, frozen: Tensor) -> None:
+        a = mu.shape[1]
+        if max(self.config.search_dims) >= a:
+            raise ConfigError(f"search_dims {self.config.search_dims} name dimensions the {a}-D actions do not have; "
+                              f"pass indices below {a}")
+        keep = torch.ones(a, dtype=torch.bool, device=mu.device)  # (A,) True = stays the WAM's
+        keep[list(self.config.search_dims)] = False
+        sigma[:, keep] = 0.0
+        frozen[:, keep] = True
         self._active = ~frozen[0]  # (A,) searched dimensions: one drift coefficient each
         d = int(self._active.sum())
         need = 1 + d + d * (d + 1) // 2
         if self.config.num_candidates <= need:
             raise ConfigError(f"drift fits {need} response-surface coefficients for {d} searched dimensions and needs "
-                              f"more candidates than that; raise num_candidates above {need} or freeze dimensions "
-                              f"(init_std_per_dim 0)")
+                              f"more candidates than that; raise num_candidates above {need} or search fewer "
+                              f"dimensions (search_dims)")
 
     def _noise(self, shape: tuple[int, int, int], gen: torch.Generator | None, device: torch.device) -> Tensor:
         b, h, a = shape

@@ -48,7 +48,8 @@ from wamplan.wam.base import WAM, WAMOutput
 class FidelityConfig:
     num_candidates: int = field(32, "candidates per boundary: the WAM's chunk + N-1 Gaussian samples")
     sigma: float = field(0.10, "std of the samples around the WAM's chunk (normalised action units)")
-    noise_beta: float = field(0.0, "temporal colour of the samples' noise, as the planners' noise_beta (0 = white)")
+    noise_beta: float = field(0.0, "temporal colour of the samples' noise, as the planners' noise_beta (0 = white), "
+                                   "coloured over the whole chunk")
     top_k: int = field(8, "size of the top sets whose overlap is reported (chance = k/N)")
     boundaries: tuple[int, ...] = field((1, 2, 3, 4), "chunk boundaries to score, as chunk indices (1 = step H; "
                                         "0, the first chunk, always runs open loop); the episode stops after the last")
@@ -102,7 +103,10 @@ def cost_slope(costs: torch.Tensor, shift: torch.Tensor) -> torch.Tensor:
 
 def slope_cosine(model: torch.Tensor, true: torch.Tensor, shift: torch.Tensor) -> float:
     """Cosine between the model's and the simulator's cost slopes over the end-point shifts (N, d): whether the
-    model knows which way moving the chunk's end lowers the cost, even where its argmin is noise."""
+    model knows which way moving the chunk's end lowers the cost, even where its argmin is noise. NaN when the
+    N candidates cannot determine d slopes and an intercept (N <= d + 1)."""
+    if shift.shape[0] <= shift.shape[1] + 1:
+        return float("nan")
     a, b = cost_slope(model, shift), cost_slope(true, shift)
     den = float(a.norm() * b.norm())
     return float(a @ b) / den if den > 0 else float("nan")
@@ -256,10 +260,11 @@ class FidelityPolicy(Policy):
         if scored:
             rec = dict(seed=self._seed, step=t, models={})
             cands = self.scorers[self.labels[0]].candidates  # (N, H, A), the same for every scorer
-            shift = (cands - cands[:1]).sum(dim=1)[:, :-1]  # (N, A-1): end-point shift on the arm dims
             for label in self.labels:
                 model = self.scorers[label].costs
                 true = self.scorers["sim:" + self.reference[label]].costs
+                n = self.policies[label].dynamics.covered(self.chunk)  # the steps this model scores
+                shift = (cands - cands[:1])[:, :n].sum(dim=1)[:, :-1]  # (N, A-1): arm end-point shift (gripper last)
                 rec["models"][label] = dict(boundary_stats(model, true, self.cfg.top_k, shift),
                                             model_costs=model.tolist(), true_costs=true.tolist())
             if self.cfg.task_metric:
@@ -326,7 +331,7 @@ def _aggregate(records: Sequence[dict[str, Any]], label: str, cfg: FidelityConfi
                pick_beats_wam=mean(col["pick_beats_wam"]), random_beats_wam=mean(col["random_beats_wam"]),
                pick_gain_median=_median(col["pick_gain"]), best_gain_median=_median(col["best_gain"]),
                true_spread_median=_median(col["true_spread"]), slope_cosine_median=_median(col["slope_cosine"]),
-               slope_agree=mean((col["slope_cosine"] > 0).astype(float)))
+               slope_agree=mean((col["slope_cosine"][np.isfinite(col["slope_cosine"])] > 0).astype(float)))
     lifted = [row for r, row in zip(records, rows) if r.get("task", {}).get("lifted")]
     if lifted:
         out.update(lifted_boundaries=len(lifted), **{
