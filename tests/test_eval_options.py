@@ -16,6 +16,7 @@ from wamplan.evaluation.options import eval_config_from_args
 from wamplan.evaluation.runner import EvalConfig, _check_same_settings
 from wamplan.planning import PLANNERS, CEMConfig, CostConfig, MPPIConfig, PlanResult, Planner, register_planner
 from wamplan.planning.policy import PlannedPolicyConfig
+from wamplan.planning.presets import WamplanConfig
 
 
 @dataclass(frozen=True)
@@ -51,7 +52,7 @@ def test_a_registered_planner_appears_in_eval_with_its_options(toy_planner, caps
     with pytest.raises(SystemExit):
         build_parser().parse_args(["eval", "--help"])
     out = capsys.readouterr().out
-    assert "--planner {cem,cem-gripper,drift,mppi,toy}" in out and "--shift SHIFT" in out and "[toy]" in out
+    assert "--planner {cem,cem-gripper,drift,mppi,toy,wamplan}" in out and "--shift SHIFT" in out and "[toy]" in out
     assert "--toy-temperature" in out and "--mppi-temperature" in out  # the clash is spelled per planner
     with pytest.raises(ConfigError, match="shift must be >= 0"):
         _cfg("--planner", "toy", "--shift", "-1")
@@ -68,13 +69,16 @@ def test_every_planner_cost_and_policy_option_reaches_the_nested_config():
     assert cfg.cost == CostConfig(name="cls", view_weights=(0.0, 0.0, 1.0))
     assert cfg.policy == PlannedPolicyConfig(first_chunk="rest-history", plan_seed=3)
     assert (cfg.env.camera_size, cfg.env.max_episode_steps) == (64, 40)
-    assert _cfg("--num-elites", "4", "--std-ddof", "1").planner_config == CEMConfig(num_elites=4, std_ddof=1)
-    assert _cfg().planner_config == CEMConfig() and _cfg().planner == "cem"
+    assert _cfg("--planner", "cem", "--num-elites", "4", "--std-ddof", "1").planner_config == \
+        CEMConfig(num_elites=4, std_ddof=1)
+    assert _cfg().planner_config == WamplanConfig() and _cfg().planner == "wamplan"  # wamplan's default planner
+    assert _cfg("--temperature", "0.5").planner_config == WamplanConfig(temperature=0.5)
 
 
 def test_an_option_of_another_planner_is_refused_in_one_line(capsys):
-    with pytest.raises(UserError, match=r"--temperature is an option of planner\(s\) \['mppi'\], not of 'cem'"):
-        _cfg("--temperature", "0.3")
+    with pytest.raises(UserError, match=r"--temperature is an option of planner\(s\) \['mppi', 'wamplan'\], "
+                                        r"not of 'cem'"):
+        _cfg("--planner", "cem", "--temperature", "0.3")
     assert main(["eval", "--out", "x", "--planner", "mppi", "--num-elites", "4", "--wam", "w"]) == 2
     assert "--num-elites is an option of planner(s) ['cem', 'cem-gripper'], not of 'mppi'" in capsys.readouterr().err
     with pytest.raises(UserError, match="unknown planner 'nope'"):

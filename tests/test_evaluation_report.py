@@ -133,5 +133,7 @@ def test_reproduce_stages_wire_the_pipeline(tmp_path):
     aug = st["train augmented world model"][0][3]
     assert "on_policy" not in plain and aug.startswith(plain) and aug.endswith("on_policy")
     assert min(SEED_BASE.values()) >= PRESETS["paper"].eval_episodes  # training seeds never overlap eval seeds
+    ev = st["evaluate"][0]
+    assert ev[ev.index("--planner") + 1] == "cem"  # the paper's experiment with the paper's planner
     given = dict(stages(PRESETS["mini"], tmp_path, "/ckpt/wam", 1))
     assert "train TinyWAM" not in given and "/ckpt/wam" in given["evaluate"][0]

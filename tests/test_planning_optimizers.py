@@ -337,3 +337,16 @@ def test_without_mean_candidate():
     assert math.isnan(res.seed_cost) and math.isnan(res.history[0].mean_cost)  # the mean was never scored
     assert res.best_cost == pytest.approx(min(c.min().item() for _, c in rec.calls))
     assert res.num_evaluations == 32 * cfg.iterations and isinstance(res, PlanResult)
+
+
+def test_the_wamplan_preset_is_mppi_at_its_tuned_settings():
+    """``--planner wamplan`` searches exactly as MPPI with the preset's temperature, and takes MPPI's options."""
+    from wamplan.planning.presets import TEMPERATURE, WamplanConfig
+
+    seed, cost, _ = sum_problem(torch.Generator().manual_seed(4), 0.2)
+    preset = make_planner("wamplan").plan(seed, cost, seed=5)
+    mppi = make_planner("mppi", {"temperature": TEMPERATURE}).plan(seed, cost, seed=5)
+    assert torch.equal(preset.actions, mppi.actions) and preset.history == mppi.history
+    other = make_planner("wamplan", {"temperature": TEMPERATURE * 3, "iterations": 2}).plan(seed, cost, seed=5)
+    assert not torch.equal(other.actions, preset.actions) and len(other.history) == 2
+    assert isinstance(make_planner("wamplan").config, WamplanConfig)

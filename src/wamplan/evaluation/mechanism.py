@@ -7,7 +7,7 @@ At chunk boundary t of a condition-7 episode (the WAM with planning in the world
 
 The model's columns are its predicted terminal embeddings decoded to pixels (the decoder is only for
 looking; planning never uses it); the real columns are rendered after executing each chunk from the same
-snapshot. Costs are the planning cost (eq. 3) against the WAM's target: the model's (what CEM minimised)
+snapshot. Costs are the planning cost (eq. 3) against the WAM's target: the model's (what the planner minimised)
 and the true one (the rendered frame encoded by the same encoder), so the picture says whether the plan
 the model preferred is also better in the simulator, and where the model's picture differs from reality.
 """
@@ -66,7 +66,7 @@ def explain_chunk(cfg, decoder: str | Path, seed: int, chunk_index: int) -> Mech
     cands = torch.as_tensor(np.stack(list(chunks.values())), device=policy.device)  # (2, H, A)
     covered = policy.dynamics.covered(policy.chunk)
     z = policy.dynamics.terminal(policy._clip(cands[:, :covered]))  # (2, V, N, D), for the pictures
-    model_cost = policy.objective(target)(policy._clip(cands[:, :covered]))  # (2,) what CEM minimised
+    model_cost = policy.objective(target)(policy._clip(cands[:, :covered]))  # (2,) what the planner minimised
     pics = dec(z.flatten(0, 1).float().to(next(dec.parameters()).device))  # (2V, 3, S, S)
     pics = pics.permute(0, 2, 3, 1).reshape(2, len(CAMERAS), *pics.shape[2:], 3).cpu().numpy()
     snap = env.snapshot()

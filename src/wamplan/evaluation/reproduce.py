@@ -19,6 +19,8 @@ from typing import Any, Callable
 from wamplan.errors import UserError
 from wamplan.presets import PRESETS, Preset, get_preset
 
+PAPER_PLANNER = "cem"  # the paper's experiment uses the paper's CEM (wamplan eval defaults to --planner wamplan)
+
 __all__ = ["PRESETS", "SEED_BASE", "Call", "Stage", "plan", "stages", "reproduce"]
 
 SEED_BASE = {"expert": 1000, "noisy": 2000, "pink": 3000, "on_policy": 4000}  # evaluation uses seeds 0..49
@@ -59,12 +61,13 @@ def _collect(source: str, p: Preset, store: Path, workers: int, seeds: int, poli
 
 def evaluate_conditions(conditions: list[int], episodes: int, out: Path, workers: int, wam: str, wm_plain: str,
                         wm_augmented: str) -> dict[int, dict[str, int]]:
-    """``wamplan eval`` for ``conditions`` on seeds 0 .. episodes-1 (resumable); outcome counts of new episodes."""
+    """``wamplan eval`` for ``conditions`` on seeds 0 .. episodes-1 (resumable) with the paper's planner (CEM, not
+    wamplan's default); outcome counts of new episodes."""
     from collections import Counter
 
     from wamplan.evaluation.runner import EvalConfig, run_evaluation
 
-    cfg = EvalConfig(wam=wam, wm_plain=wm_plain, wm_augmented=wm_augmented)
+    cfg = EvalConfig(wam=wam, wm_plain=wm_plain, wm_augmented=wm_augmented, planner=PAPER_PLANNER)
     cfg.check_for(conditions)
     counts: dict[int, Counter] = {c: Counter() for c in conditions}
     for rec in run_evaluation(cfg, conditions, list(range(episodes)), out, workers=workers):
@@ -101,7 +104,7 @@ def plan(p: Preset, out: Path, wam: str | None, workers: int, sim_episodes: int 
         return Call(evaluate_conditions, dict(conditions=conds, episodes=episodes, out=out / "eval", workers=workers,
                                               **models),
                     ("eval", "--conditions", ",".join(map(str, conds)), "--episodes", str(episodes), "--out",
-                     str(out / "eval"), *model_flags, "--workers", str(workers)))
+                     str(out / "eval"), *model_flags, "--planner", PAPER_PLANNER, "--workers", str(workers)))
 
     out_stages = [
         Stage("collect expert", (_collect("expert", p, d / "expert", workers, p.expert),)),

@@ -46,7 +46,7 @@ class EvalConfig:
                               "checkpoints form an ensemble (see --disagreement-weight); the same for --wm-plain")
     sim_encoder: str = field("", "encoder for the simulator conditions (default: the plain world model's)")
     device: str = field("auto", "torch device for the models")
-    planner: str = field("cem", "planner by registry name (wamplan.planning.PLANNERS)", cli=False)
+    planner: str = field("wamplan", "planner by registry name (wamplan.planning.PLANNERS); the paper's is cem", cli=False)
     planner_config: Any = field(None, "the planner's config (its config_cls, or a dict of overrides); "
                                 "None = its defaults", cli=False)
     cost: CostConfig = field(help="the planning cost", default_factory=CostConfig)
