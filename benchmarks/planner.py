@@ -1,8 +1,9 @@
-"""Per-chunk planning time of the CEM search in the learned world model, KV-cached against a
-straightforward rollout that re-runs the full predictor over the window at every step, side by side in
-one run. Random weights (timing only). Prints one line per preset and the speed-up ratio.
+"""Per-chunk planning time of the search in the learned world model (wamplan's default planner, or
+``--planner cem`` for the paper's), KV-cached against a straightforward rollout that re-runs the full
+predictor over the window at every step, side by side in one run. Random weights (timing only). Prints one line per preset and the speed-up ratio.
 
-    .venv/bin/python benchmarks/planner.py                       # mini and paper presets, paper CEM
+    .venv/bin/python benchmarks/planner.py                       # mini and paper presets, --planner wamplan
+    .venv/bin/python benchmarks/planner.py --planner cem         # the paper's CEM (the same 32 x 4 evaluations)
     .venv/bin/python benchmarks/planner.py --presets mini --repeats 10
     .venv/bin/python benchmarks/planner.py --presets paper --candidates 8 --iterations 1 --repeats 1   # CPU
 """
@@ -17,7 +18,9 @@ import time
 import torch
 
 from wamplan.device import resolve_device
-from wamplan.planning import CEMConfig, make_cost, make_planner
+import dataclasses
+
+from wamplan.planning import PLANNERS, make_cost, make_planner
 from wamplan.planning.dynamics import LearnedDynamics, PlanningContext
 from wamplan.worldmodel.predictor import WorldModelPredictor
 from wamplan.presets import get_world_model_preset as get_preset
@@ -65,16 +68,20 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--device", default="auto")
     ap.add_argument("--dtype", default="float32", choices=("float32", "bfloat16"))
-    ap.add_argument("--iterations", type=int, default=4, help="CEM iterations (paper: 4)")
-    ap.add_argument("--candidates", type=int, default=32, help="CEM candidates per iteration (paper: 32); fewer "
+    ap.add_argument("--planner", default="wamplan", choices=sorted(PLANNERS), help="the search (cem: the paper's)")
+    ap.add_argument("--iterations", type=int, default=4, help="search iterations (paper: 4)")
+    ap.add_argument("--candidates", type=int, default=32, help="candidates per iteration (paper: 32); fewer "
                     "makes the paper preset feasible on a CPU (the ratio is what compares)")
     args = ap.parse_args()
     dev = resolve_device(args.device)
     dtype = getattr(torch, args.dtype)
     print(f"device {dev} ({platform.processor() or platform.machine()}, {torch.get_num_threads()} threads), "
-          f"torch {torch.__version__}, {args.dtype}, CEM {args.candidates} candidates x {args.iterations} iterations")
-    planner = make_planner("cem", CEMConfig(num_candidates=args.candidates, num_elites=max(1, args.candidates // 4),
-                                            iterations=args.iterations))
+          f"torch {torch.__version__}, {args.dtype}, {args.planner} {args.candidates} candidates x {args.iterations} "
+          f"iterations")
+    settings = dict(num_candidates=args.candidates, iterations=args.iterations)
+    if "num_elites" in {f.name for f in dataclasses.fields(PLANNERS.lookup(args.planner).config_cls)}:
+        settings["num_elites"] = max(1, args.candidates // 4)  # the paper's 8 of 32
+    planner = make_planner(args.planner, settings)
     for name in args.presets:
         torch.manual_seed(0)
         cfg = get_preset(name).predictor

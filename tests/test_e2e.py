@@ -27,7 +27,7 @@ def run(tmp_path_factory, expert_store):
 def test_eval_conditions_1_and_6_then_resume_and_report(run, capsys):
     args = ["eval", "--conditions", "1,6", "--episodes", "1", "--seed-start", "7", "--out", str(run / "eval"),
             "--wam", str(run / "wam"), "--wm-plain", str(run / "wm"), "--camera-size", "64", "--max-steps", "20",
-            "--num-candidates", "4", "--num-elites", "2", "--iterations", "1"]
+            "--num-candidates", "4", "--iterations", "1"]  # the default planner (wamplan's MPPI), tiny
     assert main(args) == 0
     recs = {r["condition"]: r for r in read_records(run / "eval")}
     assert set(recs) == {1, 6} and all(r["seed"] == 7 and r["length"] == 20 for r in recs.values())
@@ -44,7 +44,7 @@ def test_eval_conditions_1_and_6_then_resume_and_report(run, capsys):
     assert main(alias) == 0 and len(read_records(run / "eval")) == 2
     assert main(["report", str(run / "eval")]) == 0
     assert (run / "eval" / "figure3.png").is_file()
-    other = [*args[:-6], "--num-candidates", "8", "--num-elites", "2", "--iterations", "1"]
+    other = [*args[:-4], "--num-candidates", "8", "--iterations", "1"]
     assert main(other) == 2 and "other settings" in capsys.readouterr().err
 
 
@@ -106,12 +106,12 @@ def test_explain_draws_one_planned_chunk_in_the_model_and_in_the_simulator(run, 
     capsys.readouterr()
     assert main(["explain", "--wam", str(run / "wam"), "--wm-augmented", str(run / "wm"), "--decoder",
                  str(run / "dec"), "--seed", "7", "--chunk", "1", "--out", str(out), "--camera-size", "64",
-                 "--num-candidates", "4", "--num-elites", "2", "--iterations", "1"]) == 0
+                 "--num-candidates", "4", "--iterations", "1"]) == 0
     m = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert out.is_file() and m["step"] == 16
     assert set(m["model_cost"]) == set(m["true_cost"]) == {"wam", "plan"}
     assert all(math.isfinite(v) and v > 0 for d in ("model_cost", "true_cost") for v in m[d].values())
-    assert m["model_cost"]["plan"] != m["model_cost"]["wam"]  # the plan (CEM's final mean) moved off the WAM's chunk
+    assert m["model_cost"]["plan"] != m["model_cost"]["wam"]  # the plan moved off the WAM's chunk
     assert main(["explain", "--wam", str(run / "wam"), "--wm-augmented", str(run / "wm"), "--decoder",
                  str(run / "nope"), "--out", str(out)]) == 2
     assert "train-decoder" in capsys.readouterr().err
