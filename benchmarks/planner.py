@@ -1,6 +1,7 @@
 """Per-chunk planning time of the search in the learned world model (wamplan's default planner, or
 ``--planner cem`` for the paper's), KV-cached against a straightforward rollout that re-runs the full
-predictor over the window at every step, side by side in one run. Random weights (timing only). Prints one line per preset and the speed-up ratio.
+predictor over the window at every step, side by side in one run. Random weights (timing only). Prints
+one line per preset and the speed-up ratio.
 
     .venv/bin/python benchmarks/planner.py                       # mini and paper presets, --planner wamplan
     .venv/bin/python benchmarks/planner.py --planner cem         # the paper's CEM (the same 32 x 4 evaluations)
@@ -11,6 +12,7 @@ predictor over the window at every step, side by side in one run. Random weights
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import platform
 import statistics
 import time
@@ -18,8 +20,6 @@ import time
 import torch
 
 from wamplan.device import resolve_device
-import dataclasses
-
 from wamplan.planning import PLANNERS, make_cost, make_planner
 from wamplan.planning.dynamics import LearnedDynamics, PlanningContext
 from wamplan.worldmodel.predictor import WorldModelPredictor

@@ -13,6 +13,11 @@ $W env check
 $W env render --seed 0 --out "$OUT/views.png"
 $W env rollout --policy expert --episodes 1 --seed-start 0 --json "$OUT/expert_rollout.json" --video "$OUT/videos"
 if [ -f "$CK/tinywam/model.safetensors" ]; then
+  # an out/demo/eval from before stop 14 ran the paper's CEM (then the default): keep it aside, lose nothing
+  if [ -f "$OUT/eval/eval_config.json" ] && ! grep -q '"planner": "wamplan"' "$OUT/eval/eval_config.json"; then
+    old="$OUT/eval.$(date +%Y%m%d-%H%M%S)"
+    mv "$OUT/eval" "$old" && echo "an older demo evaluation (another planner) was kept in $old"
+  fi
   args=(--wam "$CK/tinywam" --episodes "$SEEDS" --seed-start 0 --out "$OUT/eval" --workers 2)
   if [ -f "$CK/wm_augmented/model.safetensors" ]; then
     $W eval --conditions 1,7 "${args[@]}" --wm-augmented "$CK/wm_augmented"

@@ -94,10 +94,12 @@ def test_one_directory_holds_one_nested_configuration(tmp_path):
     assert stored["planner"] == "mppi" and stored["planner_config.temperature"] == 0.3
     assert "policy.first_chunk" not in stored and "device" not in stored
     _check_same_settings(tmp_path, _cfg("--planner", "mppi", "--temperature", "0.3", "--first-chunk", "rest-history"))
-    for other in (("--planner", "mppi", "--temperature", "0.2"), ("--planner", "cem"),
+    for other in (("--planner", "mppi", "--temperature", "0.2"),
                   ("--planner", "mppi", "--temperature", "0.3", "--cost-name", "cls")):
         with pytest.raises(UserError, match="other settings"):
             _check_same_settings(tmp_path, _cfg(*other))
+    with pytest.raises(UserError, match="holds an evaluation with --planner mppi"):
+        _check_same_settings(tmp_path, _cfg("--planner", "cem"))
 
 
 def test_a_directory_from_before_a_new_setting_resumes_at_its_default(tmp_path):
@@ -114,6 +116,16 @@ def test_a_directory_from_before_a_new_setting_resumes_at_its_default(tmp_path):
             continue
         with pytest.raises(UserError, match="other settings"):
             _check_same_settings(tmp_path, _cfg(*other))
+
+
+def test_a_directory_of_another_planner_names_the_flag_that_resumes_it(tmp_path):
+    """Directories from before stop 14 ran the then-default CEM; the new default refuses them in one line that
+    names --planner cem, which resumes them."""
+    _check_same_settings(tmp_path, _cfg("--planner", "cem"))
+    with pytest.raises(UserError, match=r"holds an evaluation with --planner cem .* add --planner cem to resume it"):
+        _check_same_settings(tmp_path, _cfg())
+    _check_same_settings(tmp_path, _cfg("--planner", "cem"))
+    assert json.loads((tmp_path / "eval_config.json").read_text())["planner"] == "cem"
 
 
 def test_a_served_wam_is_chosen_with_url_and_profile(tmp_path):

@@ -108,6 +108,20 @@ def test_report_tables_and_figure(tmp_path):
 
     assert iio.imread(tmp_path / "figure3.png").shape[2] in (3, 4)
     assert (tmp_path / "table1.csv").read_text().splitlines()[0].startswith("condition,")
+    assert "Planner:" not in md  # no eval_config.json here: nothing to say
+
+
+def test_report_names_the_planner_and_what_was_changed(tmp_path):
+    from wamplan.evaluation.runner import EvalConfig, _check_same_settings
+
+    append_record(tmp_path, _rec(1, 0, "success"))
+    for cfg, line in ((EvalConfig(), "Planner: `wamplan` (32 candidates × 4 iterations; changed from its defaults: none;"),
+                      (EvalConfig(planner="cem", planner_config={"num_elites": 4}),
+                       "Planner: `cem` (32 candidates × 4 iterations; changed from its defaults: num_elites 4;")):
+        (tmp_path / "eval_config.json").unlink(missing_ok=True)
+        _check_same_settings(tmp_path, cfg)
+        assert main(["report", str(tmp_path)]) == 0
+        assert line in (tmp_path / "report.md").read_text()
 
 
 def test_eval_needs_its_checkpoints(tmp_path, capsys):

@@ -111,7 +111,7 @@ def test_reproducible_and_registered_with_cli_options():
                                                        "--num-elites", "4"]))
     assert name == "cem-gripper" and cfg == CEMGripperConfig(gripper_prior_steps=2.0, num_elites=4)
     with pytest.raises(Exception, match="cem-gripper"):
-        planner_config_from_args(p.parse_args(["--gripper-smoothing", "0.2"]))  # default planner is cem
+        planner_config_from_args(p.parse_args(["--gripper-smoothing", "0.2"]))  # the default planner is wamplan
 
 
 @pytest.mark.parametrize("kwargs,match", [({"gripper_prior_steps": 0}, "gripper_prior_steps"),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import json
 import math
 from collections import Counter, defaultdict
 from pathlib import Path
@@ -174,6 +175,28 @@ def figure3(rows: list[dict[str, Any]], path: Path) -> None:
     plt.close(fig)
 
 
+def _settings_line(out: Path) -> list[str]:
+    """The planner, its search size and the settings that differ from its defaults, from the directory's
+    ``eval_config.json`` (absent: nothing)."""
+    import dataclasses
+
+    from wamplan.config import to_dict
+    from wamplan.planning import PLANNERS
+
+    path = out / "eval_config.json"
+    if not path.is_file():
+        return []
+    s = json.loads(path.read_text())
+    name = s.get("planner", "")
+    size = f"{s.get('planner_config.num_candidates')} candidates × {s.get('planner_config.iterations')} iterations"
+    changed = "?"
+    if name in PLANNERS:
+        defaults = to_dict(PLANNERS.lookup(name).config_cls())
+        changed = ", ".join(f"{f.name} {s[k]}" for f in dataclasses.fields(PLANNERS.lookup(name).config_cls)
+                            if (k := f"planner_config.{f.name}") in s and s[k] != defaults[f.name]) or "none"
+    return [f"Planner: `{name}` ({size}; changed from its defaults: {changed}; all settings in eval_config.json)", ""]
+
+
 def write_report(out_dir: str | Path) -> dict[str, Path]:
     from wamplan.errors import UserError
 
@@ -193,7 +216,8 @@ def write_report(out_dir: str | Path) -> dict[str, Path]:
         for r in rows:
             w.writerow({**r, **{o: r["outcomes"].get(o, 0) for o in OUTCOMES}})
     figure3(rows, paths["figure3"])
-    parts = ["# Evaluation report", "", "## Table 1: success rate and length of successful episodes", "", md1, "",
+    parts = ["# Evaluation report", "", *_settings_line(out),
+             "## Table 1: success rate and length of successful episodes", "", md1, "",
              "![Figure 3](figure3.png)", "", "## Per-chunk timing (planned chunks)", "", markdown_timing(rows)]
     paired = markdown_paired(records)
     if paired:

@@ -19,10 +19,9 @@ from typing import Any, Callable
 from wamplan.errors import UserError
 from wamplan.presets import PRESETS, Preset, get_preset
 
-PAPER_PLANNER = "cem"  # the paper's experiment uses the paper's CEM (wamplan eval defaults to --planner wamplan)
-
 __all__ = ["PRESETS", "SEED_BASE", "Call", "Stage", "plan", "stages", "reproduce"]
 
+PAPER_PLANNER = "cem"  # the paper's experiment uses the paper's CEM (wamplan eval defaults to --planner wamplan)
 SEED_BASE = {"expert": 1000, "noisy": 2000, "pink": 3000, "on_policy": 4000}  # evaluation uses seeds 0..49
 TIMES_FILE = "stage_times.json"
 

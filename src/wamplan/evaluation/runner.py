@@ -204,6 +204,10 @@ def _check_same_settings(out: Path, cfg: EvalConfig) -> None:
     now = settings(cfg)
     if path.is_file():
         before = json.loads(path.read_text())
+        if before.get("planner", "cem") != now["planner"]:  # "cem" was eval's default before stop 14
+            raise UserError(f"{out} holds an evaluation with --planner {before.get('planner', 'cem')} (eval's default "
+                            f"is {EvalConfig.planner} since stop 14, cem before); add --planner "
+                            f"{before.get('planner', 'cem')} to resume it, or use another --out")
         addable = ("wm_plain", "wm_augmented", "sim_encoder")
         # a setting newer than the directory, requested at its default, is what the older version ran with
         default = settings(EvalConfig(planner=cfg.planner))

@@ -27,11 +27,12 @@ from wamplan.planning.base import PLANNERS
 _DEST = "planner_opt__"  # dest prefix: planner_opt__<planner or empty>__<field>
 
 
-def add_planner_arguments(parser: argparse.ArgumentParser, default: str = "cem") -> None:
+def add_planner_arguments(parser: argparse.ArgumentParser, default: str = "wamplan") -> None:
     """Add ``--planner`` and one option per planner config field (see the module docstring)."""
     names = sorted(PLANNERS)
     parser.add_argument("--planner", default=None, choices=names,
-                        help=f"planner by registry name (default: {default})")
+                        help=f"planner by registry name (default: {default}); wamplan: MPPI at the settings wamplan "
+                             f"tuned on validation seeds (planning/presets.py); cem: the paper's CEM")
     parser.set_defaults(planner_default=default)
     group = parser.add_argument_group(
         "planner options", "settings of the planner's config; each applies to the planners listed in brackets")
@@ -62,7 +63,7 @@ def _add(group: Any, flag: str, dest: str, entries: list[tuple[str, dataclasses.
 
 def planner_config_from_args(args: argparse.Namespace) -> tuple[str, Any]:
     """``(planner name, its config)`` from parsed options; an option of another planner is an error."""
-    name = getattr(args, "planner", None) or getattr(args, "planner_default", "cem")
+    name = getattr(args, "planner", None) or getattr(args, "planner_default", "wamplan")
     cls = PLANNERS.lookup(name).config_cls
     known = {f.name for f in dataclasses.fields(cls)}
     changes = {}

@@ -12,7 +12,7 @@ the simulator's) but their slope points the right way (cosine ~0.8): averaging m
 follows the slope, while CEM's refit to its 8 "best" follows single-candidate errors.
 
 The temperature was chosen on validation seeds 500-599 only (condition 7, the same seeds and checkpoints; open
-loop 15 %): 0.1 -> 18 %, 0.3 -> 18 %, 1.0 -> 15 % (0.1 kept: the best, and the value run on the test seeds).
+loop 15 %): 0.1 -> 18 %, 0.3 -> 18 %, 1.0 -> 15 % (0.1 and 0.3 tie; 0.1 kept, the value run on the test seeds).
 With MPPI, a wrist-only cost (``--cost-view-weights 0 0 1``) fell to 4 of 47 (more chunks aligned, fewer
 seated) and a two-model ensemble with ``--disagreement-weight 1`` changed nothing measurable.
 """
