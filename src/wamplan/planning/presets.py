@@ -8,13 +8,14 @@ Why MPPI (measured on the mini task, TinyWAM and the shipped augmented world mod
 "Planner variants"): with the same 32 x 4 candidate evaluations, MPPI's softmax-weighted mean beat the
 paper's CEM on the test seeds 0-99 (19 % vs 10 %, 11 gained / 2 lost, p = 0.022) and on validation seeds
 500-599 (18 % vs 13 %). The learned model's costs rank candidates poorly one by one (Spearman ~0.5 against
-the simulator's) but their slope points the right way (cosine ~0.8): averaging many candidates by weight
-follows the slope, while CEM's refit to its 8 "best" follows single-candidate errors.
+the simulator's) but their slope points the right way (cosine ~0.8): plausibly (not tested directly),
+averaging many candidates by weight follows that slope, while CEM's refit to its 8 "best" follows
+single-candidate errors.
 
 The temperature was chosen on validation seeds 500-599 only (condition 7, the same seeds and checkpoints; open
 loop 15 %): 0.1 -> 18 %, 0.3 -> 18 %, 1.0 -> 15 % (0.1 and 0.3 tie; 0.1 kept, the value run on the test seeds).
 With MPPI, a wrist-only cost (``--cost-view-weights 0 0 1``) fell to 4 of 47 (more chunks aligned, fewer
-seated) and a two-model ensemble with ``--disagreement-weight 1`` changed nothing measurable.
+seated); a two-model ensemble with ``--disagreement-weight 1`` got 14 % at 2.3x the search time.
 """
 
 from __future__ import annotations
