@@ -178,8 +178,6 @@ def figure3(rows: list[dict[str, Any]], path: Path) -> None:
 def _settings_line(out: Path) -> list[str]:
     """The planner, its search size and the settings that differ from its defaults, from the directory's
     ``eval_config.json`` (absent: nothing)."""
-    import dataclasses
-
     from wamplan.config import to_dict
     from wamplan.planning import PLANNERS
 
@@ -191,9 +189,9 @@ def _settings_line(out: Path) -> list[str]:
     size = f"{s.get('planner_config.num_candidates')} candidates × {s.get('planner_config.iterations')} iterations"
     changed = "?"
     if name in PLANNERS:
-        defaults = to_dict(PLANNERS.lookup(name).config_cls())
-        changed = ", ".join(f"{f.name} {s[k]}" for f in dataclasses.fields(PLANNERS.lookup(name).config_cls)
-                            if (k := f"planner_config.{f.name}") in s and s[k] != defaults[f.name]) or "none"
+        defaults = to_dict(PLANNERS.lookup(name).config_cls())  # JSON-ready, as eval_config.json stores them
+        changed = ", ".join(f"{k} {s[f'planner_config.{k}']}" for k, v in defaults.items()
+                            if f"planner_config.{k}" in s and s[f"planner_config.{k}"] != v) or "none"
     return [f"Planner: `{name}` ({size}; changed from its defaults: {changed}; all settings in eval_config.json)", ""]
 
 

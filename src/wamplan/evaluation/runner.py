@@ -25,6 +25,7 @@ from wamplan.evaluation.records import append_record, read_records, record_key
 from wamplan.parallel import Backend, imap_workers
 from wamplan.planning import PLANNERS, CostConfig
 from wamplan.planning.policy import DISCARDED, PlannedPolicyConfig
+from wamplan.planning.presets import DEFAULT_PLANNER
 
 
 def _env_default() -> EnvConfig:
@@ -46,7 +47,7 @@ class EvalConfig:
                               "checkpoints form an ensemble (see --disagreement-weight); the same for --wm-plain")
     sim_encoder: str = field("", "encoder for the simulator conditions (default: the plain world model's)")
     device: str = field("auto", "torch device for the models")
-    planner: str = field("wamplan", "planner by registry name (wamplan.planning.PLANNERS); the paper's is cem", cli=False)
+    planner: str = field(DEFAULT_PLANNER, "planner by registry name (wamplan.planning.PLANNERS); the paper's is cem", cli=False)
     planner_config: Any = field(None, "the planner's config (its config_cls, or a dict of overrides); "
                                 "None = its defaults", cli=False)
     cost: CostConfig = field(help="the planning cost", default_factory=CostConfig)
@@ -204,10 +205,10 @@ def _check_same_settings(out: Path, cfg: EvalConfig) -> None:
     now = settings(cfg)
     if path.is_file():
         before = json.loads(path.read_text())
-        if before.get("planner", "cem") != now["planner"]:  # "cem" was eval's default before stop 14
-            raise UserError(f"{out} holds an evaluation with --planner {before.get('planner', 'cem')} (eval's default "
-                            f"is {EvalConfig.planner} since stop 14, cem before); add --planner "
-                            f"{before.get('planner', 'cem')} to resume it, or use another --out")
+        ran = before.get("planner", "cem")  # "cem" was eval's default before stop 14
+        if ran != now["planner"]:
+            raise UserError(f"{out} holds an evaluation with --planner {ran} (eval's default is {DEFAULT_PLANNER} "
+                            f"since stop 14, cem before); add --planner {ran} to resume it, or use another --out")
         addable = ("wm_plain", "wm_augmented", "sim_encoder")
         # a setting newer than the directory, requested at its default, is what the older version ran with
         default = settings(EvalConfig(planner=cfg.planner))

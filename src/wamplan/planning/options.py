@@ -23,11 +23,12 @@ from typing import Any
 from wamplan.config import add_field_argument
 from wamplan.errors import UserError
 from wamplan.planning.base import PLANNERS
+from wamplan.planning.presets import DEFAULT_PLANNER
 
 _DEST = "planner_opt__"  # dest prefix: planner_opt__<planner or empty>__<field>
 
 
-def add_planner_arguments(parser: argparse.ArgumentParser, default: str = "wamplan") -> None:
+def add_planner_arguments(parser: argparse.ArgumentParser, default: str = DEFAULT_PLANNER) -> None:
     """Add ``--planner`` and one option per planner config field (see the module docstring)."""
     names = sorted(PLANNERS)
     parser.add_argument("--planner", default=None, choices=names,
@@ -63,7 +64,7 @@ def _add(group: Any, flag: str, dest: str, entries: list[tuple[str, dataclasses.
 
 def planner_config_from_args(args: argparse.Namespace) -> tuple[str, Any]:
     """``(planner name, its config)`` from parsed options; an option of another planner is an error."""
-    name = getattr(args, "planner", None) or getattr(args, "planner_default", "wamplan")
+    name = getattr(args, "planner", None) or getattr(args, "planner_default", DEFAULT_PLANNER)
     cls = PLANNERS.lookup(name).config_cls
     known = {f.name for f in dataclasses.fields(cls)}
     changes = {}

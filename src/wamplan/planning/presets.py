@@ -26,6 +26,7 @@ from wamplan.config import field
 from wamplan.planning.base import register_planner
 from wamplan.planning.mppi import MPPIConfig, MPPIPlanner
 
+DEFAULT_PLANNER = "wamplan"  # what `wamplan eval` plans with when no --planner is given
 # chosen on validation seeds 500-599 among 0.1, 0.3 and 1.0 (see the module docstring)
 TEMPERATURE = 0.1
 
@@ -34,10 +35,10 @@ TEMPERATURE = 0.1
 class WamplanConfig(MPPIConfig):
     """MPPI with wamplan's tuned defaults; every MPPI option still applies."""
 
-    temperature: float = field(TEMPERATURE, "softmax temperature of the path-integral weights")
+    temperature: float = field(TEMPERATURE, MPPIConfig.__dataclass_fields__["temperature"].metadata["help"])
 
 
-@register_planner("wamplan")
+@register_planner(DEFAULT_PLANNER)
 class WamplanPlanner(MPPIPlanner):
     """wamplan's default planner (see the module docstring); the search is MPPI's."""
 
