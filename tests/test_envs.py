@@ -10,6 +10,7 @@ from wamplan.config import ConfigError
 from wamplan.envs.contract import CAMERAS
 from wamplan.envs.core import EnvConfig
 from wamplan.policies import make_policy
+from wamplan.policies.expert import ExpertConfig, ExpertPolicy, quat_yaw, wrap_quarter
 from wamplan.policies.rollout import run_episode
 
 
@@ -101,6 +102,24 @@ def test_expert_succeeds(env):
         assert r.success and r.outcome == "success", (seed, r)
         assert r.reached["grasped"] and r.reached["lifted"] and r.reached["aligned"] and r.reached["descended"]
         assert 60 < r.length < 250
+
+
+@pytest.mark.parametrize("turn_in", ["descend", "approach"])
+def test_expert_turns_the_fingers_where_its_config_says(env, turn_in):
+    """'descend' turns only once above the cube (where a wrist camera sees its yaw), 'approach' from step 0."""
+    expert = ExpertPolicy(ExpertConfig(turn_in=turn_in))
+    obs = env.reset(1000)
+    assert abs(wrap_quarter(quat_yaw(obs.state["cube_pose"][3:]))) > 0.1  # a seed whose cube needs a turn
+    turning, over_cube = [], []
+    for _ in range(40):
+        a = expert.act(obs)
+        turning.append(abs(a[3]) > 0.05)
+        over_cube.append(np.linalg.norm(obs.state["tcp_pose"][:2] - obs.state["cube_pose"][:2]) < 0.005)
+        obs, _ = env.step(a)
+    first = turning.index(True)
+    assert over_cube[first] if turn_in == "descend" else (first == 0 and not over_cube[0])
+    r = run_episode(env, expert, 1000)
+    assert r.success, r
 
 
 def test_pink_explorer_outcome_and_reproducible(env):

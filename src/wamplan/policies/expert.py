@@ -2,9 +2,10 @@
 
 The expert is a state machine over the true cube, TCP and hole poses:
 
-1. ``approach``: open, move 6 cm above the cube, turn the fingers to the cube's yaw (mod 90°);
-2. ``descend``: go down to ``grasp_height`` above the cube's centre (12 mm: with tight clearance,
-   fingers that reach lower jam against the hole's walls later);
+1. ``approach``: open, move 6 cm above the cube;
+2. ``descend``: turn the fingers to the cube's yaw (mod 90°) while hovering, then go down to
+   ``grasp_height`` above the cube's centre (12 mm: with tight clearance, fingers that reach lower
+   jam against the hole's walls later);
 3. ``close``: close the gripper for a few steps;
 4. ``lift``: raise the cube well above the mount;
 5. ``transport``: move the cube over the hole and turn it to the hole's yaw, using the cube's own
@@ -18,6 +19,13 @@ alone (the grasp flag, the gripper width and the poses), using the same threshol
 above; :meth:`ExpertPolicy.sync_to` puts the expert in that phase. The expert oracle re-synchronises at
 every query, so its chunk is what the expert would do *from the current state*, whoever drove the robot
 there (paper conditions 2-4).
+
+Where the fingers turn (``turn_in``) matters to the policies that imitate the expert from pictures: at
+the first step the cube is a few pixels wide in the front and side views and at the edge of the wrist
+view, so a 64-px TinyWAM cannot read its yaw there and learns to not turn at all (it then carries the
+cube ~20° off the hole's yaw: the "lifted, not aligned" failures). Above the cube the wrist camera sees
+it large, so the default turns there ("descend"); "approach" (turning from the first step, while
+moving) is the expert before stop 15.
 
 Gains map metre/radian errors to normalised actions of the 5-D controller (pos 0.02 m, yaw 0.1 rad
 per unit; see ``wamplan.envs.controller``).
@@ -35,6 +43,8 @@ from wamplan.envs.contract import Observation
 from wamplan.policies.base import Policy, register_policy
 
 POS_BOUND, YAW_BOUND = 0.02, 0.1  # controller units (see wamplan.envs.controller)
+TURN_PHASES = ("descend", "approach")
+TURNED = 0.03  # rad: the fingers count as turned to the cube's yaw
 
 
 def quat_yaw(q: np.ndarray) -> float:
@@ -55,8 +65,12 @@ class ExpertConfig:
     close_steps: int = field(8, "steps the gripper closes before lifting")
     gain: float = field(1.0, "proportional gain on position errors (fraction of the error per step)")
     align_tol: float = field(0.002, "xy error over the hole below which insertion starts, metres")
+    turn_in: str = field("descend", "phase in which the fingers turn to the cube's yaw: 'descend' (hovering "
+                         "above the cube, where the wrist camera sees it, then down) or 'approach' (from the "
+                         "first step, while moving; the expert before stop 15)")
 
     def __post_init__(self):
+        require(self.turn_in in TURN_PHASES, f"turn_in must be one of {list(TURN_PHASES)}, got {self.turn_in!r}")
         require(self.insert_step > 0, f"insert_step must be > 0, got {self.insert_step}")
         require(0 < self.gain <= 1.5, f"gain must be in (0, 1.5], got {self.gain}")
 
@@ -135,18 +149,24 @@ class ExpertPolicy(Policy):
         grip = 1.0
         yaw_act = 0.0
         cube_yaw_err = wrap_quarter(quat_yaw(cq))  # cube yaw relative to the hole (yaw 0), mod 90°
-        if self.phase in ("approach", "descend"):
-            # Finger yaw must match the cube's (mod 90°); the TCP frame is flipped (z down), so yaw signs differ.
-            yaw_act = wrap_quarter(wrap_quarter(quat_yaw(cq)) - self._finger_yaw(tq))
+        # Finger yaw must match the cube's (mod 90°); the TCP frame is flipped (z down), so yaw signs differ.
+        finger_err = wrap_quarter(wrap_quarter(quat_yaw(cq)) - self._finger_yaw(tq))
         if self.phase == "approach":
+            yaw_act = finger_err if c.turn_in == "approach" else 0.0
             target = np.array([cube[0], cube[1], cube[2] + h + c.hover])
             move = self._goto(tcp, target)
-            if np.linalg.norm(target[:2] - tcp[:2]) < 0.004 and abs(yaw_act) < 0.03 and abs(target[2] - tcp[2]) < 0.02:
+            if np.linalg.norm(target[:2] - tcp[:2]) < 0.004 and abs(yaw_act) < TURNED and abs(target[2] - tcp[2]) < 0.02:
                 self._set("descend")
         elif self.phase == "descend":
-            target = np.array([cube[0], cube[1], cube[2] + c.grasp_height])
+            yaw_act = finger_err
+            # turning here: hold the height until the fingers are nearly turned, then go down and close turned
+            turned = c.turn_in == "approach" or abs(finger_err) < TURNED
+            z = cube[2] + c.grasp_height
+            if c.turn_in == "descend" and abs(finger_err) >= 0.1:
+                z = max(tcp[2], z)
+            target = np.array([cube[0], cube[1], z])
             move = self._goto(tcp, target, max_step=0.01)
-            if abs(tcp[2] - target[2]) < 0.003 and np.linalg.norm(target[:2] - tcp[:2]) < 0.003:
+            if abs(tcp[2] - target[2]) < 0.003 and np.linalg.norm(target[:2] - tcp[:2]) < 0.003 and turned:
                 self._set("close")
         elif self.phase == "close":
             move, grip = np.zeros(3), -1.0
