@@ -45,6 +45,7 @@ from wamplan.policies.base import Policy, register_policy
 POS_BOUND, YAW_BOUND = 0.02, 0.1  # controller units (see wamplan.envs.controller)
 TURN_PHASES = ("descend", "approach")
 TURNED = 0.03  # rad: the fingers count as turned to the cube's yaw
+HOVER_UNTIL = 0.1  # rad: turning above the cube, the fingers hold their height until within this of the cube's yaw
 
 
 def quat_yaw(q: np.ndarray) -> float:
@@ -149,24 +150,25 @@ class ExpertPolicy(Policy):
         grip = 1.0
         yaw_act = 0.0
         cube_yaw_err = wrap_quarter(quat_yaw(cq))  # cube yaw relative to the hole (yaw 0), mod 90°
-        # Finger yaw must match the cube's (mod 90°); the TCP frame is flipped (z down), so yaw signs differ.
-        finger_err = wrap_quarter(wrap_quarter(quat_yaw(cq)) - self._finger_yaw(tq))
+        turn_above = c.turn_in == "descend"
+        if self.phase in ("approach", "descend"):
+            # Finger yaw must match the cube's (mod 90°); the TCP frame is flipped (z down), so yaw signs differ.
+            finger_err = wrap_quarter(wrap_quarter(quat_yaw(cq)) - self._finger_yaw(tq))
         if self.phase == "approach":
-            yaw_act = finger_err if c.turn_in == "approach" else 0.0
+            yaw_act = 0.0 if turn_above else finger_err
             target = np.array([cube[0], cube[1], cube[2] + h + c.hover])
             move = self._goto(tcp, target)
             if np.linalg.norm(target[:2] - tcp[:2]) < 0.004 and abs(yaw_act) < TURNED and abs(target[2] - tcp[2]) < 0.02:
                 self._set("descend")
         elif self.phase == "descend":
             yaw_act = finger_err
-            # turning here: hold the height until the fingers are nearly turned, then go down and close turned
-            turned = c.turn_in == "approach" or abs(finger_err) < TURNED
             z = cube[2] + c.grasp_height
-            if c.turn_in == "descend" and abs(finger_err) >= 0.1:
+            if turn_above and abs(finger_err) >= HOVER_UNTIL:  # turn first, then go down
                 z = max(tcp[2], z)
             target = np.array([cube[0], cube[1], z])
             move = self._goto(tcp, target, max_step=0.01)
-            if abs(tcp[2] - target[2]) < 0.003 and np.linalg.norm(target[:2] - tcp[:2]) < 0.003 and turned:
+            if abs(tcp[2] - target[2]) < 0.003 and np.linalg.norm(target[:2] - tcp[:2]) < 0.003 \
+                    and (abs(finger_err) < TURNED or not turn_above):
                 self._set("close")
         elif self.phase == "close":
             move, grip = np.zeros(3), -1.0
