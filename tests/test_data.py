@@ -79,6 +79,23 @@ def test_incompatible_settings_rejected(store, capsys):
     assert rc == 2 and "images every 4 steps" in capsys.readouterr().err
 
 
+def test_collect_passes_expert_settings(tmp_path, capsys):
+    """--expert-* / --noisy-* reach the policy the workers build (the store records them), and a setting of
+    another source is refused before anything is written."""
+    out = tmp_path / "noisy"
+    assert main(["collect", "--source", "noisy-expert", "--episodes", "1", "--max-steps", "8", "--out", str(out),
+                 "--expert-turn-in", "approach", "--noisy-noise-std", "0.05", *SMALL]) == 0
+    (meta,) = EpisodeStore(out).iter_meta()
+    policy = EpisodeStore(out).load(meta["path"]).policy
+    assert policy["noise_std"] == 0.05 and policy["expert"]["turn_in"] == "approach"
+    assert policy["expert"]["align_tol"] == 0.002  # not given: the default
+    capsys.readouterr()
+    rc = main(["collect", "--source", "pink", "--episodes", "1", "--out", str(tmp_path / "pink"),
+               "--expert-gain", "0.5", *SMALL])
+    assert rc == 2 and "--expert-gain: not a setting of --source pink" in capsys.readouterr().err
+    assert not (tmp_path / "pink").exists()
+
+
 def test_world_model_windows_alignment(store):
     ds = WorldModelWindows([store], frameskip=4, history=3, horizon=2, split="all")
     s = EpisodeStore(store)

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import time
 from collections import Counter
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
 from typing import Any, Callable, Iterator
@@ -41,6 +41,7 @@ class CollectJob:
     max_steps: int | None = None
     loader: Callable[[str], Policy] = make_policy  # policy_spec -> Policy; a module-level function (picklable)
     branch: Any = None  # a wamplan.data.branch.BranchSpec: also store counterfactual branches of each episode
+    policy_kwargs: dict[str, Any] = field(default_factory=dict)  # loader(policy_spec, **these)
 
 
 STATE_KEYS = ("proprio", "stages", "cube_pose", "tcp_pose", "sim_state", "drive_targets")  # per step, (T+1, ...)
@@ -98,7 +99,7 @@ class CollectWorker:
     def __init__(self, job: CollectJob, write: bool = True):
         self.job = job
         self.env = InsertionEnv(job.env)
-        self.policy = job.loader(job.policy_spec)
+        self.policy = job.loader(job.policy_spec, **job.policy_kwargs)
         self.store = EpisodeStore(job.store) if write else None
 
     def __call__(self, seed: int) -> dict[str, Any]:
@@ -149,13 +150,14 @@ def collect(source: str, episodes: int, out: str | Path, *, seed_start: int = 0,
             policy: str | None = None, image_every: int = 4, max_steps: int | None = None,
             env: EnvConfig | None = None, progress: bool = True, log=print,
             loader: Callable[[str], Policy] = make_policy, backend: Backend = Backend(),
-            branch: Any = None) -> dict[str, Any]:
+            branch: Any = None, policy_kwargs: dict[str, Any] | None = None) -> dict[str, Any]:
     """Collect seeds ``seed_start .. seed_start + episodes - 1`` of ``source`` (expert, noisy-expert, pink,
     or policy with ``policy`` a WAM checkpoint) into the store ``out``, skipping the seeds it holds.
     ``loader`` builds the policy from its name or checkpoint in each worker: the registered policies by
     default; pass ``wamplan.evaluation.policies.load_policy`` to run WAM checkpoints (a layer above data).
     ``backend``: worker processes here, or Ray actors (see ``wamplan.parallel``). ``branch`` (a
     ``wamplan.data.branch.BranchSpec``, policy sources only) also stores counterfactual branches per episode.
+    ``policy_kwargs`` go to the policy's constructor (e.g. ``config=ExpertConfig(...)`` for the expert).
     Returns a summary (collected, skipped, seconds, episodes_per_min, outcomes)."""
     from tqdm import tqdm
 
@@ -181,7 +183,8 @@ def collect(source: str, episodes: int, out: str | Path, *, seed_start: int = 0,
     if have:
         log(f"resuming: {len(have)} of {len(seeds)} episodes already in {out}")
     job = CollectJob(store=str(out), source=tag, policy_spec=spec, env=env, image_every=image_every,
-                     max_steps=max_steps, loader=loader, branch=branch)
+                     max_steps=max_steps, loader=loader, branch=branch,
+                     policy_kwargs=dict(policy_kwargs or {}))
     counts: Counter = Counter()
     start, n = time.perf_counter(), 0
     bar = tqdm(total=len(seeds), initial=len(have), desc=f"collect {tag}", unit="ep", disable=not progress)

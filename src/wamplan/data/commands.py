@@ -12,12 +12,15 @@ from wamplan.errors import UserError
 from wamplan.registry import register_command
 
 SOURCES = ("expert", "noisy-expert", "pink", "policy")
+EXPERT_PREFIX, NOISY_PREFIX = "expert_", "noisy_"  # collect's --expert-<field> and --noisy-<field> options
 
 
 @register_command("data")
 def register(sub: argparse._SubParsersAction) -> None:
     from wamplan.envs.core import EnvConfig
     from wamplan.parallel import add_backend_argument
+    from wamplan.policies.expert import ExpertConfig
+    from wamplan.policies.noise import NoisyExpertConfig
 
     p = sub.add_parser("collect", help="collect episodes into an episode store (parallel, resumable)")
     p.add_argument("--source", required=True, choices=SOURCES)
@@ -38,6 +41,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--branch-context", type=int, default=8,
                    help="steps of the parent's history each branch episode keeps: (H_ctx - 1) x frameskip")
     add_arguments(p, EnvConfig)
+    g = p.add_argument_group("expert", "the scripted expert's settings (--source expert or noisy-expert)")
+    add_arguments(g, ExpertConfig, prefix=EXPERT_PREFIX)
+    g = p.add_argument_group("noisy expert", "the noise's settings (--source noisy-expert)")
+    add_arguments(g, NoisyExpertConfig, prefix=NOISY_PREFIX)
     p.set_defaults(func=cmd_collect)
 
     d = sub.add_parser("data", help="inspect episode stores")
@@ -82,9 +89,28 @@ def cmd_collect(args: argparse.Namespace) -> int:
     summary = collect(args.source, args.episodes, args.out, seed_start=args.seed_start, workers=args.workers,
                       policy=args.policy, image_every=args.image_every, max_steps=args.max_steps,
                       env=from_args(EnvConfig, args), loader=load_policy, backend=Backend.from_option(args.ray),
-                      branch=branch)
+                      branch=branch, policy_kwargs=expert_kwargs(args))
     print(json.dumps(summary))
     return 0
+
+
+def expert_kwargs(args: argparse.Namespace) -> dict:
+    """The constructor settings of the expert sources from ``--expert-*`` / ``--noisy-*`` (only those given)."""
+    from wamplan.policies.expert import ExpertConfig
+    from wamplan.policies.noise import NoisyExpertConfig
+
+    given = sorted(k for k, v in vars(args).items() if v is not None and k.startswith((EXPERT_PREFIX, NOISY_PREFIX)))
+    allowed = {"expert": (EXPERT_PREFIX,), "noisy-expert": (EXPERT_PREFIX, NOISY_PREFIX)}.get(args.source, ())
+    if wrong := [k for k in given if not any(k.startswith(a) for a in allowed)]:
+        flags = ", ".join("--" + k.replace("_", "-") for k in wrong)
+        raise UserError(f"{flags}: not a setting of --source {args.source}; --expert-* options are for the "
+                        f"expert and noisy-expert sources, --noisy-* for noisy-expert only")
+    if not given:
+        return {}
+    expert = from_args(ExpertConfig, args, prefix=EXPERT_PREFIX)
+    if args.source == "expert":
+        return dict(config=expert)
+    return dict(config=from_args(NoisyExpertConfig, args, prefix=NOISY_PREFIX), expert=expert)
 
 
 def store_info(root: Path) -> dict:
