@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 
 from wamplan.cli import main
+from wamplan.data.alignment import hole_position
 from wamplan.data.store import EpisodeStore
-from wamplan.encoders.probe import TARGETS, VIEWS, ProbeData, hole_position, probe_arrays, split_episodes
+from wamplan.encoders.probe import TARGETS, VIEWS, ProbeData, probe_arrays, split_episodes
 
 
 def _synthetic(n_eps=12, per=50, dim=40, seed=0):

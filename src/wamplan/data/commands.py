@@ -53,6 +53,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("dir", type=Path)
     p.add_argument("--json", action="store_true", help="print JSON instead of text")
     p.set_defaults(func=cmd_info)
+    p = dsub.add_parser("alignment", help="per episode: how close the cube came to the hole (xy, yaw, in-hand "
+                                          "offset) while carried over the mount, from the privileged poses")
+    p.add_argument("dir", type=Path)
+    p.add_argument("--json", action="store_true", help="print JSON (every episode and the summary) instead of text")
+    p.add_argument("--quiet", action="store_true", help="text: the per-outcome summary only")
+    p.set_defaults(func=cmd_alignment)
     p = dsub.add_parser("view", help="a contact sheet of the three views over one episode")
     p.add_argument("dir", type=Path)
     p.add_argument("--episode", type=int, default=0, help="index in the store's sorted episode list")
@@ -144,6 +150,31 @@ def cmd_info(args: argparse.Namespace) -> int:
     for src, s in info["sources"].items():
         outs = ", ".join(f"{k} {v}" for k, v in sorted(s["outcomes"].items()))
         print(f"  {src:20s} {s['episodes']:5d} episodes  success {100 * s['success_rate']:5.1f}%  ({outs})")
+    return 0
+
+
+def cmd_alignment(args: argparse.Namespace) -> int:
+    from wamplan.data.alignment import as_dicts, store_alignment, summary
+
+    rows = store_alignment(args.dir)
+    if args.json:
+        print(json.dumps(dict(episodes=as_dicts(rows), summary=summary(rows)), indent=1))
+        return 0
+    if not args.quiet:
+        print(f"{'source':20s} {'seed':>5s} {'outcome':22s} {'over':>4s} {'step':>4s} {'xy mm':>6s} {'dx':>6s} "
+              f"{'dy':>6s} {'yaw deg':>7s} {'in hand mm':>10s}")
+        for r in rows:
+            yaw = f"{r.yaw_deg:+7.1f}" if r.yaw_deg is not None else f"{'-':>7s}"
+            hand = f"{r.in_hand_mm:10.1f}" if r.in_hand_mm is not None else f"{'-':>10s}"
+            print(f"{r.source[:20]:20s} {r.seed:5d} {r.outcome:22s} {r.over_steps:4d} {r.step:4d} {r.xy_mm:6.1f} "
+                  f"{r.dx_mm:+6.1f} {r.dy_mm:+6.1f} {yaw} {hand}")
+    print("per outcome (medians over the episodes that got over the mount):")
+    for outcome, s in summary(rows).items():
+        line = f"  {outcome:22s} {s['episodes']:4d} episodes, {s['over_mount']:4d} over the mount"
+        if s["over_mount"]:
+            line += (f": xy {s['median_xy_mm']} mm, |yaw| {s['median_abs_yaw_deg']} deg, "
+                     f"in hand {s['median_in_hand_mm']} mm")
+        print(line)
     return 0
 
 

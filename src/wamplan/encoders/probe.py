@@ -39,6 +39,7 @@ import numpy as np
 import torch
 
 from wamplan.config import field, require
+from wamplan.data.alignment import hole_position
 from wamplan.data.store import EpisodeStore
 from wamplan.errors import UserError
 from wamplan.envs.contract import CAMERAS
@@ -76,13 +77,6 @@ class ProbeData:
 
 def _hash01(key: str) -> float:
     return int(hashlib.sha1(key.encode()).hexdigest()[:8], 16) / 0xFFFFFFFF
-
-
-def hole_position(env: dict[str, Any]) -> np.ndarray:
-    """The hole's top centre (x, y, mount height) of a store's env settings, (3,) metres."""
-    from wamplan.envs.task import HOLE_XY  # the mount is fixed in the task
-
-    return np.array([*HOLE_XY, float(env.get("mount_height", 0.025))], np.float32)
 
 
 @torch.inference_mode()

@@ -1,0 +1,101 @@
+"""``wamplan data alignment``: how close each episode of a store brought the cube to the hole, from the
+privileged poses it records (the diagnostic behind stop 15's expert change).
+
+Per episode, over the steps where the cube is carried over the mount (its bottom at most 2 mm below the
+mount's top, its centre within ``near`` of the hole's axis): the step of the smallest xy error to the
+hole's axis, that error (and its x / y parts), the cube's yaw error to the hole there (mod 90°, as the task
+scores it), the cube's offset from the TCP in xy (an off-centre grasp), and how many steps it spent there.
+An episode that never gets there reports its smallest xy error over the whole episode.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from wamplan.data.store import EpisodeStore
+
+NEAR = 0.03  # m: "over the mount" = cube centre within this of the hole's axis
+
+
+def quat_yaw(q: np.ndarray) -> np.ndarray:
+    """Yaw of (..., 4) wxyz quaternions, radians."""
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    return np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+
+
+def wrap_quarter(a: np.ndarray) -> np.ndarray:
+    """Angles mod 90°, in [-45°, 45°) (the cube and the hole are square)."""
+    return (a + np.pi / 4) % (np.pi / 2) - np.pi / 4
+
+
+@dataclass(frozen=True)
+class EpisodeAlignment:
+    source: str
+    seed: int
+    outcome: str
+    over_steps: int  # steps carried over the mount
+    step: int  # the step of the smallest xy error (over the mount if ever there)
+    xy_mm: float  # cube centre to the hole's axis
+    dx_mm: float
+    dy_mm: float
+    yaw_deg: float | None  # cube yaw to the hole's, mod 90°; None if never over the mount
+    in_hand_mm: float | None  # cube centre to the TCP in xy at that step; None if never over the mount
+
+
+def episode_alignment(cube_pose: np.ndarray, tcp_pose: np.ndarray, hole: np.ndarray, cube_half: float,
+                      near: float = NEAR, **attrs: Any) -> EpisodeAlignment:
+    """``cube_pose``, ``tcp_pose``: (T+1, 7) xyz + wxyz; ``hole``: (3,) the hole's top centre (x, y, mount height)."""
+    cube_pose, tcp_pose, hole = (np.asarray(a, np.float64) for a in (cube_pose, tcp_pose, hole))
+    d = cube_pose[:, :2] - hole[:2]  # (T+1, 2)
+    err = np.linalg.norm(d, axis=1)  # (T+1,)
+    over = (cube_pose[:, 2] - cube_half > hole[2] - 0.002) & (err < near)  # (T+1,)
+    if not over.any():
+        i = int(np.argmin(err))
+        return EpisodeAlignment(over_steps=0, step=i, xy_mm=float(1e3 * err[i]), dx_mm=float(1e3 * d[i, 0]),
+                                dy_mm=float(1e3 * d[i, 1]), yaw_deg=None, in_hand_mm=None, **attrs)
+    i = int(np.flatnonzero(over)[np.argmin(err[over])])
+    yaw = np.degrees(wrap_quarter(quat_yaw(cube_pose[i, 3:])))  # the hole is axis-aligned
+    return EpisodeAlignment(over_steps=int(over.sum()), step=i, xy_mm=float(1e3 * err[i]), dx_mm=float(1e3 * d[i, 0]),
+                            dy_mm=float(1e3 * d[i, 1]), yaw_deg=float(yaw),
+                            in_hand_mm=1e3 * float(np.linalg.norm(cube_pose[i, :2] - tcp_pose[i, :2])), **attrs)
+
+
+def hole_position(env: dict[str, Any]) -> np.ndarray:
+    """The hole's top centre (x, y, mount height) of a store's env settings, (3,) metres."""
+    from wamplan.envs.task import HOLE_XY  # the mount is fixed in the task
+
+    return np.array([*HOLE_XY, float(env.get("mount_height", 0.025))], np.float32)
+
+
+def store_alignment(root: str | Path, near: float = NEAR) -> list[EpisodeAlignment]:
+    """One :class:`EpisodeAlignment` per episode of the store ``root`` (sorted as the store lists them)."""
+    store = EpisodeStore(root)
+    hole, cube_half = hole_position(store.env), float(store.env.get("cube_half_size", 0.02))
+    out = []
+    for p in store.episode_paths():
+        with store.open_episode(p) as f:
+            out.append(episode_alignment(f["cube_pose"][:], f["tcp_pose"][:], hole, cube_half, near,
+                                         source=str(f.attrs["source"]), seed=int(f.attrs["seed"]),
+                                         outcome=str(f.attrs["outcome"])))
+    return out
+
+
+def summary(rows: list[EpisodeAlignment]) -> dict[str, dict[str, Any]]:
+    """Per outcome: episodes, and the median |xy|, |yaw| and in-hand offset of those that got over the mount."""
+    out: dict[str, dict[str, Any]] = {}
+    for outcome in sorted({r.outcome for r in rows}):
+        rs = [r for r in rows if r.outcome == outcome]
+        over = [r for r in rs if r.over_steps]
+        med = (lambda xs: round(float(np.median(xs)), 1) if xs else None)  # noqa: E731
+        out[outcome] = dict(episodes=len(rs), over_mount=len(over), median_xy_mm=med([r.xy_mm for r in over]),
+                            median_abs_yaw_deg=med([abs(r.yaw_deg) for r in over]),
+                            median_in_hand_mm=med([r.in_hand_mm for r in over]))
+    return out
+
+
+def as_dicts(rows: list[EpisodeAlignment]) -> list[dict[str, Any]]:
+    return [{k: (round(v, 2) if isinstance(v, float) else v) for k, v in asdict(r).items()} for r in rows]
