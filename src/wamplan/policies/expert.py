@@ -66,6 +66,7 @@ class ExpertConfig:
     close_steps: int = field(8, "steps the gripper closes before lifting")
     gain: float = field(1.0, "proportional gain on position errors (fraction of the error per step)")
     align_tol: float = field(0.002, "xy error over the hole below which insertion starts, metres")
+    align_yaw_tol: float = field(0.02, "cube yaw error to the hole (mod 90°) below which insertion starts, radians")
     turn_in: str = field("descend", "phase in which the fingers turn to the cube's yaw: 'descend' (hovering "
                          "above the cube, where the wrist camera sees it, then down) or 'approach' (from the "
                          "first step, while moving; the expert before stop 15)")
@@ -74,6 +75,8 @@ class ExpertConfig:
         require(self.turn_in in TURN_PHASES, f"turn_in must be one of {list(TURN_PHASES)}, got {self.turn_in!r}")
         require(self.insert_step > 0, f"insert_step must be > 0, got {self.insert_step}")
         require(0 < self.gain <= 1.5, f"gain must be in (0, 1.5], got {self.gain}")
+        require(self.align_tol > 0 and self.align_yaw_tol > 0,
+                f"align_tol and align_yaw_tol must be > 0, got {self.align_tol}, {self.align_yaw_tol}")
 
 
 @register_policy("expert")
@@ -119,7 +122,7 @@ class ExpertPolicy(Policy):
             z_goal = hole[2] + c.carry_clearance + h + c.grasp_height  # carrying height of the TCP
             if xy_hole < 2 * c.align_tol and tcp[2] < z_goal - 0.005:
                 return "insert"  # over the hole and already going down
-            if xy_hole < c.align_tol and abs(wrap_quarter(quat_yaw(s["cube_pose"][3:]))) < 0.02:
+            if xy_hole < c.align_tol and abs(wrap_quarter(quat_yaw(s["cube_pose"][3:]))) < c.align_yaw_tol:
                 return "insert"
             return "transport" if tcp[2] > z_goal - 0.01 else "lift"
         above = tcp[2] < cube[2] + h + c.hover + 0.02  # at or below the hover height over the cube
@@ -187,7 +190,7 @@ class ExpertPolicy(Policy):
             target = tcp + np.array([hole[0] - cube[0], hole[1] - cube[1], z_goal - tcp[2]])
             move = self._goto(tcp, target)
             yaw_act = -cube_yaw_err
-            if np.linalg.norm(hole[:2] - cube[:2]) < c.align_tol and abs(cube_yaw_err) < 0.02:
+            if np.linalg.norm(hole[:2] - cube[:2]) < c.align_tol and abs(cube_yaw_err) < c.align_yaw_tol:
                 self._set("insert")
         elif self.phase == "insert":
             grip = -1.0
