@@ -88,7 +88,7 @@ def test_accept_margin_keeps_the_wams_chunk_unless_the_plan_is_clearly_better(sm
         assert c2["planned"] == planned and c2["plan_cost"] == pytest.approx(c["plan_cost"], rel=1e-4)
         if not planned:
             assert c2["open_loop"] == "rejected" and info["open_loop_chunks"]["rejected"] == 1
-            np.testing.assert_array_equal(np.asarray(executed[16:32]), wam)  # the WAM's chunk, untouched
+            np.testing.assert_array_equal(np.asarray(executed[17:33]), wam)  # the WAM's chunk, untouched
     warm = _policy(encoder, accept_margin=0.99, warm_start="residual")
     run_episode(small_env, warm, seed=2, max_steps=17)
     assert warm.chunks[1]["open_loop"] == "rejected" and warm._correction is None  # a rejected plan never carries over
@@ -108,16 +108,19 @@ def test_rank_gate_keeps_the_wams_chunk_when_the_model_prefers_it_to_its_neighbo
     seed, r = next((s, r) for s, r in ranks.items() if 0 < r < 1)
     assert r * 7 == pytest.approx(round(r * 7))  # a share of the 7 samples
     for gate, planned in ((r, True), (r + 0.5 / 7, False)):
-        executed = []
+        executed = []  # on_obs sees (reset, None) first, then the action of each step: executed[17:33] = steps 16..31
         pol = _policy(encoder, rank_gate=gate, warm_start="residual")
         info = run_episode(small_env, pol, seed=seed, max_steps=32, on_obs=lambda e, o, a: executed.append(a)).policy_info
         (c,) = [c for c in info["chunks"] if c["step"] == 16]
         assert c["seed_rank"] == r and c["planned"] == planned
         if planned:
-            assert not np.array_equal(np.asarray(executed[16:32]), wam)
+            assert not np.array_equal(np.asarray(executed[17:33]), wam)
+            # the record says what planning changed: the executed chunk minus the WAM's, mean per action dim
+            want = (np.asarray(executed[17:33]) - wam).mean(0)
+            np.testing.assert_allclose(c["correction"], want, atol=1e-4)
         else:
             assert c["open_loop"] == "rank-gated" and info["open_loop_chunks"]["rank-gated"] == 1
-            np.testing.assert_array_equal(np.asarray(executed[16:32]), wam)  # the WAM's chunk, untouched
+            np.testing.assert_array_equal(np.asarray(executed[17:33]), wam)  # the WAM's chunk, untouched
             assert pol._correction is None  # a discarded plan never carries over
     with pytest.raises(ValueError, match="rank_gate must be in"):
         PlannedPolicyConfig(rank_gate=0.0)

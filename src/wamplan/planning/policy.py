@@ -255,7 +255,8 @@ class PlannedPolicy(Policy):
         plan = np.concatenate([result.actions.cpu().numpy(), seed_out.actions[covered:]]).astype(np.float32)  # (H, A)
         init_cost = float(result.seed_cost) if result.seed_cost is not None else float("nan")
         rec.update(planned=True, seed_cost=init_cost if wam_cost is None else wam_cost, best_cost=float(result.best_cost),
-                   seed_rank=result.seed_rank)
+                   seed_rank=result.seed_rank,  # what planning changed: plan minus the WAM's chunk, mean per action dim
+                   correction=[round(float(v), 4) for v in (plan[:covered] - seed_out.actions[:covered]).mean(0)])
         if init is not seed:
             rec["init_cost"] = init_cost  # the warm-started initial mean's cost
         self.last_plan = result
