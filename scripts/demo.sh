@@ -29,11 +29,11 @@ if [ -f "$CK/tinywam/model.safetensors" ]; then
   $W report "$OUT/eval"
   # the episode-by-episode comparison of these seeds (the 100-seed table is in the README, "Measured")
   awk '/^## /{show = /^## Episode by episode/} show' "$OUT/eval/report.md"
-  echo "($SEEDS seeds cannot call a difference: the 100-seed test runs of these checkpoints are in README.md, 'TinyWAM since stop 15'; 'Planner variants on the test seeds' and 'The test run, once' are the stop-9 TinyWAM's)"
+  echo "($SEEDS seeds cannot call a difference: the 100-seed test run of these checkpoints is in README.md, 'Planning helps since stop 16'; the older tables there are of earlier checkpoints)"
   if [ -f "$CK/decoder/model.safetensors" ] && [ -f "$CK/wm_augmented/model.safetensors" ]; then
     # the mechanism: one planned chunk, the WAM's target against the model's and the simulator's outcomes
     $W explain --wam "$CK/tinywam" --wm-augmented "$CK/wm_augmented" --decoder "$CK/decoder" \
-      --seed "${DEMO_EXPLAIN_SEED:-1}" --chunk "${DEMO_EXPLAIN_CHUNK:-5}" --out "$OUT/mechanism.png"
+      --seed "${DEMO_EXPLAIN_SEED:-1}" --chunk "${DEMO_EXPLAIN_CHUNK:-8}" --out "$OUT/mechanism.png"
   fi
 else
   echo "no demo checkpoints in $CK: see README 'Demo checkpoints' for the command that makes them"
