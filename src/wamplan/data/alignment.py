@@ -17,19 +17,9 @@ from typing import Any
 import numpy as np
 
 from wamplan.data.store import EpisodeStore
+from wamplan.policies.expert import quat_yaw, wrap_quarter  # the expert's yaw of a wxyz quaternion, mod 90°
 
 NEAR = 0.03  # m: "over the mount" = cube centre within this of the hole's axis
-
-
-def quat_yaw(q: np.ndarray) -> np.ndarray:
-    """Yaw of (..., 4) wxyz quaternions, radians."""
-    w, x, y, z = np.moveaxis(q, -1, 0)
-    return np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-
-
-def wrap_quarter(a: np.ndarray) -> np.ndarray:
-    """Angles mod 90°, in [-45°, 45°) (the cube and the hole are square)."""
-    return (a + np.pi / 4) % (np.pi / 2) - np.pi / 4
 
 
 @dataclass(frozen=True)
@@ -90,11 +80,14 @@ def summary(rows: list[EpisodeAlignment]) -> dict[str, dict[str, Any]]:
     for outcome in sorted({r.outcome for r in rows}):
         rs = [r for r in rows if r.outcome == outcome]
         over = [r for r in rs if r.over_steps]
-        med = (lambda xs: round(float(np.median(xs)), 1) if xs else None)  # noqa: E731
-        out[outcome] = dict(episodes=len(rs), over_mount=len(over), median_xy_mm=med([r.xy_mm for r in over]),
-                            median_abs_yaw_deg=med([abs(r.yaw_deg) for r in over]),
-                            median_in_hand_mm=med([r.in_hand_mm for r in over]))
+        out[outcome] = dict(episodes=len(rs), over_mount=len(over), median_xy_mm=_median([r.xy_mm for r in over]),
+                            median_abs_yaw_deg=_median([abs(r.yaw_deg) for r in over]),
+                            median_in_hand_mm=_median([r.in_hand_mm for r in over]))
     return out
+
+
+def _median(xs: list[float]) -> float | None:
+    return round(float(np.median(xs)), 1) if xs else None
 
 
 def as_dicts(rows: list[EpisodeAlignment]) -> list[dict[str, Any]]:
