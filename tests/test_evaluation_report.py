@@ -151,3 +151,25 @@ def test_reproduce_stages_wire_the_pipeline(tmp_path):
     assert ev[ev.index("--planner") + 1] == "cem"  # the paper's experiment with the paper's planner
     given = dict(stages(PRESETS["mini"], tmp_path, "/ckpt/wam", 1))
     assert "train TinyWAM" not in given and "/ckpt/wam" in given["evaluate"][0]
+
+
+def test_report_merges_runs_of_different_conditions(tmp_path, capsys):
+    """Conditions run apart on the same seeds make one Table 1, Figure 3 and paired comparison."""
+    c1, c7, merged = tmp_path / "c1", tmp_path / "c7", tmp_path / "merged"
+    c1.mkdir(), c7.mkdir()
+    for i in range(6):
+        append_record(c1, _rec(1, i, "success" if i < 2 else "aligned_not_descended"))
+        append_record(c7, _rec(7, i, "success" if i < 5 else "never_lifted"))
+    assert main(["report", str(merged), str(c1), str(c7)]) == 0
+    md = (merged / "report.md").read_text()
+    assert "| 1 | None (open loop) | WAM | — | 6 | 33% (10–70) |" in md
+    assert "| 7 | 6 | 3 | 0 | 0.25 |" in md  # seeds 2-4 gained, none lost
+    assert f"`{c1}`" in md and not (c1 / "report.md").exists()
+    append_record(merged, _rec(7, 0, "success"))  # the same episode in two runs: refused, nothing written
+    (merged / "report.md").unlink()
+    assert main(["report", str(merged), str(c7)]) == 2
+    assert "condition 7 (open-loop) seed 0 is in both" in capsys.readouterr().err
+    assert not (merged / "report.md").exists()
+    assert main(["report", str(merged), f"{c7}:1"]) == 0  # only condition 1 of that run: none, no clash
+    assert main(["report", str(merged), str(tmp_path / "missing")]) == 2
+    assert "has no evaluation records" in capsys.readouterr().err

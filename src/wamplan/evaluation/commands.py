@@ -50,7 +50,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_explain)
 
     p = sub.add_parser("report", help="Table 1, Figure 3 (and Table 2, timings) from an evaluation directory")
-    p.add_argument("dir", type=Path)
+    p.add_argument("dir", type=Path, help="evaluation directory; the report is written there")
+    p.add_argument("more", nargs="*", metavar="RUN", help="further evaluation directories whose records join DIR's "
+                   "(e.g. conditions run apart on the same seeds), each DIR or DIR:C[,C...] for only those "
+                   "conditions; DIR may then be a new, empty directory")
     p.set_defaults(func=cmd_report)
 
 
@@ -111,7 +114,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 def cmd_report(args: argparse.Namespace) -> int:
     from wamplan.evaluation.report import write_report
 
-    paths = write_report(args.dir)
+    paths = write_report(args.dir, args.more)
     print((args.dir / "table1.md").read_text())
     print("wrote " + ", ".join(str(p) for p in paths.values()))
     return 0

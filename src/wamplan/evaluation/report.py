@@ -13,7 +13,7 @@ import numpy as np
 
 from wamplan.envs.contract import OUTCOMES
 from wamplan.evaluation.conditions import CONDITIONS
-from wamplan.evaluation.records import read_records
+from wamplan.evaluation.records import RECORDS, read_records
 
 # Figure 3's colours: success, then the furthest stage reached by failures
 # Failures run red -> orange -> yellow -> light blue as they get closer to success, so no failure shade
@@ -68,6 +68,11 @@ def table1(records: list[dict[str, Any]], variant: str = "open-loop") -> list[di
                          planned_chunks=sum(r.get("planned_chunks", 0) for r in rs), open_loop_chunks=dict(open_loop),
                          **{f"mean_{k}": float(np.mean(v)) for k, v in timing.items()}))
     return rows
+
+
+def _p(p: float) -> str:
+    """A p-value: two decimals, or two significant digits below 0.01 (so 3e-7 does not read 0.00)."""
+    return f"{p:.2f}" if p >= 0.01 else f"{p:.1e}"
 
 
 def _fmt(x: float | None, digits: int = 0) -> str:
@@ -144,7 +149,7 @@ def markdown_paired(records: list[dict[str, Any]], baseline: int = 1) -> str | N
                 return "—"
             return f"{100 * sum(r['success'] for r in aligned) / len(aligned):.0f}% of {len(aligned)}"
 
-        out.append(f"| {c} | {len(seeds)} | {gained} | {lost} | {p:.2f} | {inserted(baseline)} → {inserted(c)} |")
+        out.append(f"| {c} | {len(seeds)} | {gained} | {lost} | {_p(p)} | {inserted(baseline)} → {inserted(c)} |")
     return "\n".join(out) if len(out) > 2 else None
 
 
@@ -175,9 +180,9 @@ def figure3(rows: list[dict[str, Any]], path: Path) -> None:
     plt.close(fig)
 
 
-def _settings_line(out: Path) -> list[str]:
+def _settings_line(out: Path, named: bool = False) -> list[str]:
     """The planner, its search size and the settings that differ from its defaults, from the directory's
-    ``eval_config.json`` (absent: nothing)."""
+    ``eval_config.json`` (absent: nothing); ``named``: say which directory."""
     from wamplan.config import to_dict
     from wamplan.planning import PLANNERS
 
@@ -192,16 +197,61 @@ def _settings_line(out: Path) -> list[str]:
         defaults = to_dict(PLANNERS.lookup(name).config_cls())  # JSON-ready, as eval_config.json stores them
         changed = ", ".join(f"{k} {s[f'planner_config.{k}']}" for k, v in defaults.items()
                             if f"planner_config.{k}" in s and s[f"planner_config.{k}"] != v) or "none"
-    return [f"Planner: `{name}` ({size}; changed from its defaults: {changed}; all settings in eval_config.json)", ""]
+    where = f" in `{out}`" if named else ""
+    return [f"Planner{where}: `{name}` ({size}; changed from its defaults: {changed}; all settings in eval_config.json)", ""]
 
 
-def write_report(out_dir: str | Path) -> dict[str, Path]:
+def run_spec(spec: str | Path) -> tuple[Path, set[int] | None]:
+    """``DIR`` or ``DIR:C[,C...]`` (only those conditions of that run) -> (directory, conditions or None)."""
+    from wamplan.errors import UserError
+
+    text = str(spec)
+    head, sep, tail = text.rpartition(":")
+    if not sep or not tail.replace(",", "").isdigit():
+        return Path(text), None
+    try:
+        return Path(head), {int(c) for c in tail.split(",") if c}
+    except ValueError:
+        raise UserError(f"{text}: expected DIR or DIR:C[,C...] (conditions as numbers, e.g. runs/a:1,7)") from None
+
+
+def merged_records(specs: list[str | Path]) -> list[dict[str, Any]]:
+    """The records of several evaluation directories as one run (e.g. condition 1 and condition 7 run
+    apart on the same seeds), each ``DIR`` or ``DIR:C[,C...]``. A (condition, variant, seed) found in two
+    directories is refused."""
+    from wamplan.errors import UserError
+
+    seen: dict[tuple, Path] = {}
+    records = []
+    for spec in specs:
+        d, conditions = run_spec(spec)
+        for r in read_records(d):
+            if conditions is not None and r["condition"] not in conditions:
+                continue
+            key = (r["condition"], r.get("variant", "open-loop"), r["seed"])
+            if key in seen and seen[key] != d:
+                raise UserError(f"condition {key[0]} ({key[1]}) seed {key[2]} is in both {seen[key]} and {d}; "
+                                f"keep one, e.g. {d}:<other conditions>")
+            seen[key] = d
+            records.append(r)
+    return records
+
+
+def write_report(out_dir: str | Path, more: list[str | Path] = ()) -> dict[str, Path]:
+    """Table 1, Figure 3, timings and the paired comparison, written into ``out_dir``; with ``more``, the
+    records of those evaluation directories (``DIR`` or ``DIR:C[,C...]``) are merged with ``out_dir``'s (which
+    may then be empty)."""
     from wamplan.errors import UserError
 
     out = Path(out_dir)
-    records = read_records(out)
+    dirs = [out, *(run_spec(m)[0] for m in more)]
+    for d in dirs[1:]:
+        if not (d / RECORDS).is_file():
+            raise UserError(f"{d} has no evaluation records ({RECORDS}); name directories `wamplan eval` wrote")
+    records = merged_records([out, *more])
     if not records:
         raise UserError(f"{out} has no evaluation records; run `wamplan eval --out {out}` first")
+    out.mkdir(parents=True, exist_ok=True)
     rows = table1(records)
     paths = {"table1_md": out / "table1.md", "table1_csv": out / "table1.csv", "figure3": out / "figure3.png",
              "report": out / "report.md"}
@@ -214,7 +264,10 @@ def write_report(out_dir: str | Path) -> dict[str, Path]:
         for r in rows:
             w.writerow({**r, **{o: r["outcomes"].get(o, 0) for o in OUTCOMES}})
     figure3(rows, paths["figure3"])
-    parts = ["# Evaluation report", "", *_settings_line(out),
+    settings = [line for d in dirs for line in _settings_line(d, named=len(dirs) > 1)]
+    sources = ["Runs merged: " + ", ".join(f"`{m}`" for m in ([out] if (out / RECORDS).is_file() else []) + list(more)),
+               ""] if more else []
+    parts = ["# Evaluation report", "", *sources, *settings,
              "## Table 1: success rate and length of successful episodes", "", md1, "",
              "![Figure 3](figure3.png)", "", "## Per-chunk timing (planned chunks)", "", markdown_timing(rows)]
     paired = markdown_paired(records)
