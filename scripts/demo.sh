@@ -29,7 +29,7 @@ if [ -f "$CK/tinywam/model.safetensors" ]; then
   $W report "$OUT/eval"
   # the episode-by-episode comparison of these seeds (the 100-seed table is in the README, "Measured")
   awk '/^## /{show = /^## Episode by episode/} show' "$OUT/eval/report.md"
-  echo "($SEEDS seeds cannot call a difference: the 100-seed test run of these checkpoints is in README.md, 'Planning helps since stop 16'; the older tables there are of earlier checkpoints)"
+  echo "($SEEDS seeds cannot call a difference: the 100-seed test run of these checkpoints is the table at the top of README.md, 'Measured on this machine')"
   if [ -f "$CK/decoder/model.safetensors" ] && [ -f "$CK/wm_augmented/model.safetensors" ]; then
     # the mechanism: one planned chunk, the WAM's target against the model's and the simulator's outcomes
     $W explain --wam "$CK/tinywam" --wm-augmented "$CK/wm_augmented" --decoder "$CK/decoder" \

@@ -5,7 +5,7 @@ CEM executes the mean of its lowest-cost candidates. With a ranker that orders c
 and the elite mean follow the model's per-candidate errors (the winner's curse), and the executed chunk is
 the WAM's plus a random walk. What such a model does get right is the cost's large-scale slope: regressed
 on where the candidates end, the model's and the simulator's costs fall in the same direction (cosine
-0.77, positive at all 16 validation boundaries of `wm fidelity`; see the README's planner notes).
+0.77, positive at all 16 validation boundaries of `wm fidelity`; see docs/history.md, "Planner-side levers").
 
 So this planner searches only a *drift*: one constant per-step offset per searched action dimension,
 added to every step of the WAM's chunk (for delta end-effector control, a path that bends progressively
@@ -21,7 +21,7 @@ so errors of single candidates average out instead of picking the winner; the ex
 smooth drift, never per-step jitter. sigma then shrinks by ``std_shrink`` and the next iteration refits
 around the new centre. The final centre is returned.
 
-Measured on the mini task (README, "Planner-side levers"): with the learned model it lost 4 of TinyWAM's
+Measured on the mini task (docs/history.md, "Planner-side levers"): with the learned model it lost 4 of TinyWAM's
 successes and gained none on validation seeds; with the simulator's dynamics it was neutral (3/8 against 3/8),
 where CEM's free per-step search gains decisively. Keep it for models whose argmin is unreliable but whose
 slope is not, and measure.

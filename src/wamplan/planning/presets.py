@@ -4,8 +4,8 @@ A preset is an ordinary registry entry (a planner class whose config subclass ch
 ``make_planner("wamplan")``, ``EvalConfig(planner="wamplan")`` and every generated option work as for any
 planner, and an evaluation directory records all of its settings. The paper's CEM stays ``--planner cem``.
 
-Why MPPI (measured on the mini task, TinyWAM and the shipped augmented world model, condition 7; README
-"Planner variants"): with the same 32 x 4 candidate evaluations, MPPI's softmax-weighted mean beat the
+Why MPPI (measured on the mini task, TinyWAM and the stop-11 augmented world model, condition 7;
+docs/history.md, "Planner variants on the test seeds"): with the same 32 x 4 candidate evaluations, MPPI's softmax-weighted mean beat the
 paper's CEM on the test seeds 0-99 (19 % vs 10 %, 11 gained / 2 lost, p = 0.022) and on validation seeds
 500-599 (18 % vs 13 %). The learned model's costs rank candidates poorly one by one (Spearman ~0.5 against
 the simulator's) but their slope points the right way (cosine ~0.8): plausibly (not tested directly),
