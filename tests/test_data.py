@@ -88,7 +88,7 @@ def test_collect_passes_expert_settings(tmp_path, capsys):
     (meta,) = EpisodeStore(out).iter_meta()
     policy = EpisodeStore(out).load(meta["path"]).policy
     assert policy["noise_std"] == 0.05 and policy["expert"]["turn_in"] == "approach"
-    assert policy["expert"]["align_tol"] == 0.002  # not given: the default
+    assert policy["expert"]["align_tol"] == 0.003  # not given: the default
     capsys.readouterr()
     rc = main(["collect", "--source", "pink", "--episodes", "1", "--out", str(tmp_path / "pink"),
                "--expert-gain", "0.5", *SMALL])

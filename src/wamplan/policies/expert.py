@@ -65,8 +65,11 @@ class ExpertConfig:
     insert_step: float = field(0.003, "maximum descent per step while inserting, metres")
     close_steps: int = field(8, "steps the gripper closes before lifting")
     gain: float = field(1.0, "proportional gain on position errors (fraction of the error per step)")
-    align_tol: float = field(0.002, "xy error over the hole below which insertion starts, metres")
-    align_yaw_tol: float = field(0.02, "cube yaw error to the hole (mod 90°) below which insertion starts, radians")
+    # Since stop 17 insertion starts inside 3 mm and 0.05 rad (was 2 mm, 0.02 rad) and corrects on the way down:
+    # the clean expert's demos barely change, the noisy expert succeeds 58 % of the time instead of 40 %, and a
+    # TinyWAM trained on them hovers over the mount less (validation 35 % open loop instead of 26 %).
+    align_tol: float = field(0.003, "xy error over the hole below which insertion starts, metres")
+    align_yaw_tol: float = field(0.05, "cube yaw error to the hole (mod 90°) below which insertion starts, radians")
     turn_in: str = field("descend", "phase in which the fingers turn to the cube's yaw: 'descend' (hovering "
                          "above the cube, where the wrist camera sees it, then down) or 'approach' (from the "
                          "first step, while moving; the expert before stop 15)")
