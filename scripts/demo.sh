@@ -33,7 +33,7 @@ if [ -f "$CK/tinywam/model.safetensors" ]; then
   if [ -f "$CK/decoder/model.safetensors" ] && [ -f "$CK/wm_augmented/model.safetensors" ]; then
     # the mechanism: one planned chunk, the WAM's target against the model's and the simulator's outcomes
     $W explain --wam "$CK/tinywam" --wm-augmented "$CK/wm_augmented" --decoder "$CK/decoder" \
-      --seed "${DEMO_EXPLAIN_SEED:-1}" --chunk "${DEMO_EXPLAIN_CHUNK:-8}" --out "$OUT/mechanism.png"
+      --seed "${DEMO_EXPLAIN_SEED:-7}" --chunk "${DEMO_EXPLAIN_CHUNK:-9}" --out "$OUT/mechanism.png"
   fi
 else
   echo "no demo checkpoints in $CK: see README 'Demo checkpoints' for the command that makes them"
