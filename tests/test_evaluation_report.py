@@ -2,13 +2,14 @@
 
 import json
 
+import numpy as np
 import pytest
 
 from wamplan.cli import main
 from wamplan.errors import UserError
 from wamplan.evaluation.conditions import CONDITIONS, parse_conditions
 from wamplan.evaluation.records import RECORDS, append_record, read_records
-from wamplan.evaluation.report import markdown_paired, sign_test, table1, wilson
+from wamplan.evaluation.report import gap_closed, markdown_gap, markdown_paired, sign_test, table1, wilson
 
 
 def test_conditions_match_the_paper():
@@ -173,3 +174,20 @@ def test_report_merges_runs_of_different_conditions(tmp_path, capsys):
     assert main(["report", str(merged), f"{c7}:1"]) == 0  # only condition 1 of that run: none, no clash
     assert main(["report", str(merged), str(tmp_path / "missing")]) == 2
     assert "has no evaluation records" in capsys.readouterr().err
+
+
+def test_gap_to_the_oracle_is_measured_on_shared_seeds():
+    """Condition 7 closing 3 of the 6 seeds between condition 1 (2/10) and the oracle, condition 5 (8/10)."""
+    recs = [_rec(1, s, "success" if s < 2 else "never_lifted") for s in range(10)]
+    recs += [_rec(5, s, "success" if s < 8 else "never_lifted") for s in range(10)]
+    recs += [_rec(7, s, "success" if s < 5 else "never_lifted") for s in range(10)]
+    recs += [_rec(7, 50 + s, "success") for s in range(5)]  # seeds the oracle did not run: left out
+    row = markdown_gap(recs).splitlines()[-1]
+    assert row.startswith("| 7 | 5 | 10 | 2 / 5 / 8 | 50% (")
+    assert row.endswith("| 3 |")  # seeds 5-7: the oracle solves them, condition 7 does not
+    point, lo, hi = gap_closed(*(np.array([r["success"] for r in recs if r["condition"] == c and r["seed"] < 10],
+                                          dtype=float) for c in (1, 7, 5)))
+    assert point == pytest.approx(0.5) and 0.0 <= lo < 0.5 < hi <= 1.0
+    assert markdown_gap([r for r in recs if r["condition"] != 5]) is None  # no oracle run: no row
+    flat = [_rec(c, s, "never_lifted") for c in (1, 5, 7) for s in range(4)]
+    assert "no gap" in markdown_gap(flat)
