@@ -121,6 +121,15 @@ def markdown_table2(records: list[dict[str, Any]]) -> str | None:
     return "\n".join(out)
 
 
+def open_loop_by_seed(records: list[dict[str, Any]]) -> dict[int, dict[int, dict[str, Any]]]:
+    """condition -> seed -> record, of the runs without a planned first chunk (the paired tables' episodes)."""
+    by: dict[int, dict[int, dict[str, Any]]] = defaultdict(dict)
+    for r in records:
+        if r.get("variant", "open-loop") == "open-loop":
+            by[r["condition"]][r["seed"]] = r
+    return by
+
+
 def markdown_paired(records: list[dict[str, Any]], baseline: int = 1) -> str | None:
     """Each condition against the baseline on the seeds both ran (paper §5: where the net gain comes from).
 
@@ -128,10 +137,7 @@ def markdown_paired(records: list[dict[str, Any]], baseline: int = 1) -> str | N
     on those discordant seeds. "Inserted | aligned" is the share of episodes that reached the aligned stage
     and went on to succeed: the insertion skill on its own.
     """
-    by = defaultdict(dict)
-    for r in records:
-        if r.get("variant", "open-loop") == "open-loop":
-            by[r["condition"]][r["seed"]] = r
+    by = open_loop_by_seed(records)
     if baseline not in by or len(by) < 2:
         return None
     out = [f"| Condition | Seeds shared with {baseline} | Gained | Lost | p (sign test) | Inserted \\| aligned "
@@ -183,10 +189,7 @@ def gap_closed(base: np.ndarray, this: np.ndarray, ceiling: np.ndarray, resample
 def markdown_gap(records: list[dict[str, Any]], baseline: int = 1) -> str | None:
     """How much of the gap from the baseline to the simulator oracle each learned world model closes, on the
     seeds all three ran (the paper's headline: condition 7 recovers 64 % of the way from condition 1 to 5)."""
-    by = defaultdict(dict)
-    for r in records:
-        if r.get("variant", "open-loop") == "open-loop":
-            by[r["condition"]][r["seed"]] = bool(r["success"])
+    by = open_loop_by_seed(records)
     out = [f"| Condition | Oracle | Seeds shared | Successes: {baseline} / this / oracle | Gap closed (95 % CI) "
            f"| Oracle solves, this does not |", "|---|---|---|---|---|---|"]
     for c in sorted(k for k in by if CONDITIONS[k].dynamics.startswith("learned")):
@@ -194,7 +197,8 @@ def markdown_gap(records: list[dict[str, Any]], baseline: int = 1) -> str | None
         seeds = sorted(set(by[c]) & set(by.get(baseline, {})) & set(by.get(o, {})))
         if not seeds:
             continue
-        base, this, ceil = (np.array([by[k][s] for s in seeds], dtype=np.float64) for k in (baseline, c, o))
+        base, this, ceil = (np.array([by[k][s]["success"] for s in seeds], dtype=np.float64)
+                            for k in (baseline, c, o))  # (n,) each
         point, lo, hi = gap_closed(base, this, ceil)
         closed = "— (no gap)" if not np.isfinite(point) else f"{100 * point:.0f}% ({100 * lo:.0f}–{100 * hi:.0f})"
         out.append(f"| {c} | {o} | {len(seeds)} | {int(base.sum())} / {int(this.sum())} / {int(ceil.sum())} "
