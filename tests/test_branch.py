@@ -112,3 +112,32 @@ def test_branch_groups_stack_the_siblings_of_each_boundary(tmp_path, capsys):
     assert main(["wm", "train", "--data", str(out), "--out", str(tmp_path / "wm2"), "--max-steps", "1",
                  "--sibling-weight", "1"]) == 2
     assert "groups of counterfactual branches" in capsys.readouterr().err
+
+
+def test_planned_collection_follows_the_planners_chunks_and_branches_them(tmp_path):
+    """``collect --plan-with WM``: the parent is condition 7's planned policy (the first chunk open loop, the
+    next one planned, so it leaves the open-loop WAM's actions), stored under its own source, and its branches
+    perturb the chunk the planner executed."""
+    wam, wm = "checkpoints/mini/tinywam", "checkpoints/mini/wm_augmented"
+    from wamplan.evaluation.policies import load_policy
+
+    kw = dict(seed_start=7, policy=wam, max_steps=32, progress=False, loader=load_policy)
+    collect("policy", 1, tmp_path / "open", **kw)
+    s = collect("policy", 1, tmp_path / "planned", branch=BranchSpec(branches=1, sigmas=(0.1,)), plan_with=wm, **kw)
+    tag = "policy:tinywam+plan:wm_augmented"
+    assert s["source"] == tag
+    store = EpisodeStore(tmp_path / "planned")
+    assert store.finished_seeds(tag) == {7} and store.finished_seeds("branch:tinywam+plan:wm_augmented") == {7000}
+    planned = store.load(store.episode_path(tag, 7))
+    opened = EpisodeStore(tmp_path / "open").load(EpisodeStore(tmp_path / "open").episode_path("policy:tinywam", 7))
+    assert planned.policy["name"] == "planned" and planned.length == opened.length == 32
+    np.testing.assert_allclose(planned.actions[:16], opened.actions[:16], atol=1e-6)  # the first chunk: open loop
+    assert np.abs(planned.actions[16:] - opened.actions[16:]).max() > 1e-3  # the planned chunk
+    branch = store.load(store.episode_path("branch:tinywam+plan:wm_augmented", 7000))
+    assert branch.policy["branch_step"] == 16
+    assert 0.03 < (branch.actions[8:] - planned.actions[16:32]).std() < 0.2  # σ 0.1 around the planned chunk
+    with pytest.raises(Exception, match="--plan-with needs --source policy"):
+        collect("expert", 1, tmp_path / "x", plan_with=wm, progress=False)
+    with pytest.raises(Exception, match="does not exist"):
+        collect("policy", 1, tmp_path / "y", policy=wam, plan_with=str(tmp_path / "no_model"), progress=False,
+                loader=load_policy)

@@ -150,7 +150,8 @@ def collect(source: str, episodes: int, out: str | Path, *, seed_start: int = 0,
             policy: str | None = None, image_every: int = 4, max_steps: int | None = None,
             env: EnvConfig | None = None, progress: bool = True, log=print,
             loader: Callable[[str], Policy] = make_policy, backend: Backend = Backend(),
-            branch: Any = None, policy_kwargs: dict[str, Any] | None = None) -> dict[str, Any]:
+            branch: Any = None, policy_kwargs: dict[str, Any] | None = None,
+            plan_with: str = "") -> dict[str, Any]:
     """Collect seeds ``seed_start .. seed_start + episodes - 1`` of ``source`` (expert, noisy-expert, pink,
     or policy with ``policy`` a WAM checkpoint) into the store ``out``, skipping the seeds it holds.
     ``loader`` builds the policy from its name or checkpoint in each worker: the registered policies by
@@ -158,6 +159,9 @@ def collect(source: str, episodes: int, out: str | Path, *, seed_start: int = 0,
     ``backend``: worker processes here, or Ray actors (see ``wamplan.parallel``). ``branch`` (a
     ``wamplan.data.branch.BranchSpec``, policy sources only) also stores counterfactual branches per episode.
     ``policy_kwargs`` go to the policy's constructor (e.g. ``config=ExpertConfig(...)`` for the expert).
+    ``plan_with`` (world model checkpoints; policy sources, with ``load_policy`` as the loader) plans every
+    chunk of the WAM in that model, so the episodes (and branches) follow the planner's own trajectories; their
+    source is ``policy:<wam>+plan:<world model>``, apart from the open-loop ``policy:<wam>`` episodes.
     Returns a summary (collected, skipped, seconds, episodes_per_min, outcomes)."""
     from tqdm import tqdm
 
@@ -168,6 +172,17 @@ def collect(source: str, episodes: int, out: str | Path, *, seed_start: int = 0,
         if not policy:
             raise UserError("--source policy needs --policy CKPT (a WAM checkpoint directory)")
         spec, tag = policy, f"policy:{Path(policy).resolve().name}"
+        if plan_with:
+            if loader is make_policy:
+                raise UserError("plan_with builds a planned WAM, which the registered policies' loader cannot: pass "
+                                "loader=wamplan.evaluation.policies.load_policy")
+            if missing := [p for p in plan_with.split(",") if not Path(p).exists()]:
+                raise UserError(f"--plan-with {missing[0]} does not exist; pass a world model checkpoint "
+                                f"(e.g. from `wamplan wm train`)")
+            tag += "+plan:" + "+".join(Path(p).resolve().name for p in plan_with.split(","))
+            policy_kwargs = dict(policy_kwargs or {}, plan_with=plan_with)
+    elif plan_with:
+        raise UserError(f"--plan-with needs --source policy (it plans a WAM's chunks), got --source {source}")
     else:
         if policy:
             raise UserError(f"--policy is only for --source policy (got --source {source})")

@@ -31,6 +31,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="worker processes (one simulator each), or Ray actors with --ray")
     add_backend_argument(p)
     p.add_argument("--policy", default=None, help="with --source policy: a WAM checkpoint directory")
+    p.add_argument("--plan-with", default="", metavar="WM",
+                   help="with --source policy: plan every chunk of the WAM in this world model (condition 7's "
+                        "policy at eval's default planner and cost), so episodes and branches follow the planner's "
+                        "own trajectories")
     p.add_argument("--image-every", type=int, default=4, help="store the three views every N steps (and the last)")
     p.add_argument("--max-steps", type=int, default=None, help="truncate episodes earlier than the env's limit")
     p.add_argument("--branches", type=int, default=0,
@@ -95,7 +99,7 @@ def cmd_collect(args: argparse.Namespace) -> int:
     summary = collect(args.source, args.episodes, args.out, seed_start=args.seed_start, workers=args.workers,
                       policy=args.policy, image_every=args.image_every, max_steps=args.max_steps,
                       env=from_args(EnvConfig, args), loader=load_policy, backend=Backend.from_option(args.ray),
-                      branch=branch, policy_kwargs=expert_kwargs(args))
+                      branch=branch, policy_kwargs=expert_kwargs(args), plan_with=args.plan_with)
     print(json.dumps(summary))
     return 0
 

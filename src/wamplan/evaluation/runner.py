@@ -127,9 +127,8 @@ class EvalWorker:
     def policy(self, cid: int):
         if cid in self._policies:
             return self._policies[cid]
-        from wamplan.planning import make_planner
+        from wamplan.evaluation.policies import planned_policy
         from wamplan.planning.dynamics import SimulatorDynamics, learned_dynamics
-        from wamplan.planning.policy import PlannedPolicy
         from wamplan.wam import WAMPolicy
         from wamplan.wam.oracle import ExpertOracleWAM
 
@@ -146,8 +145,7 @@ class EvalWorker:
             oracle = ExpertOracleWAM(self.env) if "expert" in (c.seed, c.target) else None
             seed_wam = oracle if c.seed == "expert" else self.wam
             target_wam = oracle if c.target == "expert" else self.wam
-            pol = PlannedPolicy(seed_wam, make_planner(cfg.planner, cfg.planner_config), dyn, enc, cfg.cost.build(),
-                                target_wam=target_wam, config=cfg.policy)
+            pol = planned_policy(cfg, seed_wam, dyn, enc, target_wam=target_wam)
         self._policies[cid] = pol
         return pol
 

@@ -124,6 +124,11 @@ class PlannedPolicy(Policy):
         self.reset()
 
     @property
+    def chunk_length(self) -> int:
+        """H: the planned policy acts in the WAM's chunks (what ``collect --branches`` cuts at)."""
+        return self.chunk
+
+    @property
     def device(self) -> torch.device:
         """Where the search runs: the dynamics backend's device."""
         return self.dynamics.device
