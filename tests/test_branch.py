@@ -1,6 +1,7 @@
 """Counterfactual branches (wamplan/data/branch.py): the parent's history, the perturbed chunk, the windows."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,6 +13,7 @@ from wamplan.data.readers import WorldModelWindows
 from wamplan.data.store import EpisodeStore
 from wamplan.envs.core import EnvConfig
 from wamplan.envs.contract import CAMERAS
+from wamplan.errors import UserError
 from wamplan.policies.base import make_policy
 from wamplan.policies.rollout import run_episode
 
@@ -131,13 +133,34 @@ def test_planned_collection_follows_the_planners_chunks_and_branches_them(tmp_pa
     planned = store.load(store.episode_path(tag, 7))
     opened = EpisodeStore(tmp_path / "open").load(EpisodeStore(tmp_path / "open").episode_path("policy:tinywam", 7))
     assert planned.policy["name"] == "planned" and planned.length == opened.length == 32
+    assert planned.policy["world_models"] == [str(Path(wm).resolve())]  # which model planned it
     np.testing.assert_allclose(planned.actions[:16], opened.actions[:16], atol=1e-6)  # the first chunk: open loop
     assert np.abs(planned.actions[16:] - opened.actions[16:]).max() > 1e-3  # the planned chunk
     branch = store.load(store.episode_path("branch:tinywam+plan:wm_augmented", 7000))
     assert branch.policy["branch_step"] == 16
     assert 0.03 < (branch.actions[8:] - planned.actions[16:32]).std() < 0.2  # σ 0.1 around the planned chunk
-    with pytest.raises(Exception, match="--plan-with needs --source policy"):
+    again = collect("policy", 1, tmp_path / "planned", branch=BranchSpec(branches=1, sigmas=(0.1,)), plan_with=wm, **kw)
+    assert again["collected"] == 0 and again["skipped"] == 1  # resumes: nothing collected twice
+    with pytest.raises(UserError, match="--plan-with needs --source policy"):
         collect("expert", 1, tmp_path / "x", plan_with=wm, progress=False)
-    with pytest.raises(Exception, match="does not exist"):
-        collect("policy", 1, tmp_path / "y", policy=wam, plan_with=str(tmp_path / "no_model"), progress=False,
-                loader=load_policy)
+    for bad in (str(tmp_path / "no_model"), wm + ","):
+        with pytest.raises(UserError, match="does not exist"):
+            collect("policy", 1, tmp_path / "y", policy=wam, plan_with=bad, progress=False, loader=load_policy)
+    with pytest.raises(UserError, match="loader=wamplan.evaluation.policies.load_policy"):
+        collect("policy", 1, tmp_path / "z", policy=wam, plan_with=wm, progress=False)
+
+
+def test_a_store_refuses_a_source_whose_file_names_another_source_wrote(expert_store, tmp_path):
+    """File names keep only [A-Za-z0-9_.-] of a source, so two sources can share them; resuming one onto the
+    other's files would skip its seeds and mix the data. The store names both instead."""
+    import shutil
+
+    store = EpisodeStore(shutil.copytree(expert_store, tmp_path / "s"))
+    store.check_source("expert")  # its own files: fine
+    store.check_source("policy:nothing_here")  # no files under that name: fine
+    src = store.episode_paths()[0]
+    src.rename(src.with_name("policy_a_b-s0000000.h5"))  # an episode whose source attribute says "expert"
+    with pytest.raises(UserError, match="holds episodes of source 'expert' under the file names of 'policy:a\\+b'"):
+        store.check_source("policy:a+b")
+    with pytest.raises(UserError, match="holds episodes of source 'expert'"):
+        store.check_source("policy:a_b")

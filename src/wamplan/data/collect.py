@@ -176,7 +176,7 @@ def collect(source: str, episodes: int, out: str | Path, *, seed_start: int = 0,
             if loader is make_policy:
                 raise UserError("plan_with builds a planned WAM, which the registered policies' loader cannot: pass "
                                 "loader=wamplan.evaluation.policies.load_policy")
-            if missing := [p for p in plan_with.split(",") if not Path(p).exists()]:
+            if missing := [p for p in plan_with.split(",") if not p or not Path(p).exists()]:
                 raise UserError(f"--plan-with {missing[0]} does not exist; pass a world model checkpoint "
                                 f"(e.g. from `wamplan wm train`)")
             tag += "+plan:" + "+".join(Path(p).resolve().name for p in plan_with.split(","))
@@ -193,6 +193,7 @@ def collect(source: str, episodes: int, out: str | Path, *, seed_start: int = 0,
     store = EpisodeStore(out, create=True, env=env.task_kwargs(), image_every=image_every, provenance=provenance())
     if (n := store.clean_partial()):
         log(f"removed {n} partial episode file(s) left by an interrupted run")
+    store.check_source(tag)
     seeds = list(range(seed_start, seed_start + episodes))
     have = store.finished_seeds(tag) & set(seeds)
     if have:

@@ -174,6 +174,19 @@ class EpisodeStore:
         return {int(p.stem[len(prefix):]) for p in self.episode_paths() if p.stem.startswith(prefix)
                 and p.stem[len(prefix):].isdigit()}
 
+    def check_source(self, source: str) -> None:
+        """Refuse ``source`` when the store's files under its name were written by another source: file names
+        keep only letters, digits and ``_.-`` of a source, so ``policy:a+b`` and ``policy:a_b`` share them."""
+        prefix = source_tag(source) + "-s"
+        for p in self.episode_paths():
+            if p.stem.startswith(prefix) and p.stem[len(prefix):].isdigit():
+                with self.open_episode(p) as f:
+                    other = str(f.attrs["source"])
+                if other != source:
+                    raise StoreError(f"{self.root} holds episodes of source '{other}' under the file names of "
+                                     f"'{source}'; collect into another --out (or rename the checkpoint directory)")
+                return
+
     def clean_partial(self) -> int:
         """Delete temporary files that a killed writer left behind; returns how many."""
         n = 0

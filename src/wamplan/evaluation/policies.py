@@ -12,14 +12,15 @@ from wamplan.errors import UserError
 from wamplan.policies import POLICIES, Policy, make_policy
 
 
-def planned_policy(cfg: Any, wam: Any, dynamics: Any, encoder: Any, target_wam: Any = None) -> Policy:
+def planned_policy(cfg: Any, wam: Any, dynamics: Any, encoder: Any, target_wam: Any = None,
+                   world_models: tuple[str, ...] = ()) -> Policy:
     """``wam`` refined by planning in ``dynamics`` with the planner, cost and chunk rules of ``cfg`` (an
     ``EvalConfig``): the one place the evaluation and the planned collection build a planned policy."""
     from wamplan.planning import make_planner
     from wamplan.planning.policy import PlannedPolicy
 
     return PlannedPolicy(wam, make_planner(cfg.planner, cfg.planner_config), dynamics, encoder, cfg.cost.build(),
-                         target_wam=target_wam, config=cfg.policy)
+                         target_wam=target_wam, config=cfg.policy, world_models=world_models)
 
 
 def load_policy(spec: str, instruction: str | None = None, plan_with: str = "", **kwargs: Any) -> Policy:
@@ -36,13 +37,15 @@ def load_policy(spec: str, instruction: str | None = None, plan_with: str = "", 
         raise UserError(f"unknown policy '{spec}': choose one of {sorted(POLICIES)} or pass a WAM checkpoint directory")
     from wamplan.wam import WAMPolicy, load_wam
 
-    wam = load_wam(spec)
     if not plan_with:
+        wam = load_wam(spec)
         return WAMPolicy(wam, instruction=instruction) if instruction else WAMPolicy(wam)
     from wamplan.evaluation.runner import EvalConfig
     from wamplan.planning.dynamics import learned_dynamics
     from wamplan.worldmodel.train import load_world_model
 
-    cfg = EvalConfig(wam=spec, wm_augmented=plan_with)
-    dyn, enc = learned_dynamics([load_world_model(p) for p in plan_with.split(",")])
-    return planned_policy(cfg, wam, dyn, enc)
+    cfg = EvalConfig(wam=spec, wm_augmented=plan_with)  # on cfg.device, as the evaluation loads them
+    paths = plan_with.split(",")
+    dyn, enc = learned_dynamics([load_world_model(p, device=cfg.device) for p in paths])
+    return planned_policy(cfg, load_wam(spec, device=cfg.device), dyn, enc,
+                          world_models=tuple(str(Path(p).resolve()) for p in paths))

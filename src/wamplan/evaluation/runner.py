@@ -138,14 +138,15 @@ class EvalWorker:
         else:
             if c.dynamics == "simulator":
                 enc = self._sim_encoder()
-                dyn = SimulatorDynamics(self.env, enc)
+                dyn, paths = SimulatorDynamics(self.env, enc), []
             else:
                 paths = (cfg.wm_plain if c.dynamics == "learned-plain" else cfg.wm_augmented).split(",")
                 dyn, enc = learned_dynamics([self._world_model(p) for p in paths])  # several: an ensemble
             oracle = ExpertOracleWAM(self.env) if "expert" in (c.seed, c.target) else None
             seed_wam = oracle if c.seed == "expert" else self.wam
             target_wam = oracle if c.target == "expert" else self.wam
-            pol = planned_policy(cfg, seed_wam, dyn, enc, target_wam=target_wam)
+            pol = planned_policy(cfg, seed_wam, dyn, enc, target_wam=target_wam,
+                                 world_models=tuple(str(Path(p).resolve()) for p in paths))
         self._policies[cid] = pol
         return pol
 

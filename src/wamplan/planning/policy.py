@@ -107,10 +107,11 @@ class PlannedPolicy(Policy):
 
     def __init__(self, wam: WAM, planner: Planner, dynamics: Dynamics, encoder, cost: CostFn, *,
                  target_wam: WAM | None = None, config: PlannedPolicyConfig | None = None,
-                 instruction: str | None = None):
+                 instruction: str | None = None, world_models: tuple[str, ...] = ()):
         self.wam, self.target_wam = wam, target_wam or wam
         self.planner, self.dynamics, self.encoder, self.cost = planner, dynamics, encoder, cost
         self.config = config or PlannedPolicyConfig()
+        self.world_models = tuple(world_models)  # the learned dynamics' checkpoints, for the record (config_dict)
         self.instruction = instruction or getattr(wam, "default_instruction", "")
         self.chunk = wam.chunk_length
         self.frameskip = getattr(dynamics, "frameskip", self.chunk)
@@ -185,7 +186,8 @@ class PlannedPolicy(Policy):
     def config_dict(self) -> dict[str, Any]:
         return dict(name=self.name, wam=self.wam.config_dict(), target_wam=self.target_wam.config_dict(),
                     planner=type(self.planner).__name__, planner_config=to_dict(self.planner.config),
-                    dynamics=type(self.dynamics).__name__, encoder=self.encoder.config_dict(), **to_dict(self.config))
+                    dynamics=type(self.dynamics).__name__, world_models=list(self.world_models),
+                    encoder=self.encoder.config_dict(), **to_dict(self.config))
 
     # ------------------------------------------------------------------ internals
     @torch.inference_mode()
