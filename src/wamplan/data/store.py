@@ -169,23 +169,24 @@ class EpisodeStore:
     def episode_paths(self) -> list[Path]:
         return sorted(p for p in (self.root / EPISODES).glob("*.h5") if not p.name.startswith("."))
 
-    def finished_seeds(self, source: str) -> set[int]:
+    def _files_of(self, source: str) -> dict[int, Path]:
+        """seed -> episode file, of the files named for ``source``."""
         prefix = source_tag(source) + "-s"
-        return {int(p.stem[len(prefix):]) for p in self.episode_paths() if p.stem.startswith(prefix)
+        return {int(p.stem[len(prefix):]): p for p in self.episode_paths() if p.stem.startswith(prefix)
                 and p.stem[len(prefix):].isdigit()}
+
+    def finished_seeds(self, source: str) -> set[int]:
+        return set(self._files_of(source))
 
     def check_source(self, source: str) -> None:
         """Refuse ``source`` when the store's files under its name were written by another source: file names
         keep only letters, digits and ``_.-`` of a source, so ``policy:a+b`` and ``policy:a_b`` share them."""
-        prefix = source_tag(source) + "-s"
-        for p in self.episode_paths():
-            if p.stem.startswith(prefix) and p.stem[len(prefix):].isdigit():
-                with self.open_episode(p) as f:
-                    other = str(f.attrs["source"])
-                if other != source:
-                    raise StoreError(f"{self.root} holds episodes of source '{other}' under the file names of "
-                                     f"'{source}'; collect into another --out (or rename the checkpoint directory)")
-                return
+        for p in list(self._files_of(source).values())[:1]:
+            with self.open_episode(p) as f:
+                other = str(f.attrs["source"])
+            if other != source:
+                raise StoreError(f"{self.root} holds episodes of source '{other}' under the file names of "
+                                 f"'{source}'; collect into another --out (or rename the checkpoint directory)")
 
     def clean_partial(self) -> int:
         """Delete temporary files that a killed writer left behind; returns how many."""

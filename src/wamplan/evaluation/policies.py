@@ -6,21 +6,23 @@ the WAM and planning layers because it may load both; lower layers that need a p
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 from wamplan.errors import UserError
 from wamplan.policies import POLICIES, Policy, make_policy
 
 
 def planned_policy(cfg: Any, wam: Any, dynamics: Any, encoder: Any, target_wam: Any = None,
-                   world_models: tuple[str, ...] = ()) -> Policy:
+                   world_models: Sequence[str] = ()) -> Policy:
     """``wam`` refined by planning in ``dynamics`` with the planner, cost and chunk rules of ``cfg`` (an
-    ``EvalConfig``): the one place the evaluation and the planned collection build a planned policy."""
+    ``EvalConfig``): the one place the evaluation and the planned collection build a planned policy.
+    ``world_models``: the checkpoints behind ``dynamics``, recorded resolved (none for the simulator)."""
     from wamplan.planning import make_planner
     from wamplan.planning.policy import PlannedPolicy
 
     return PlannedPolicy(wam, make_planner(cfg.planner, cfg.planner_config), dynamics, encoder, cfg.cost.build(),
-                         target_wam=target_wam, config=cfg.policy, world_models=world_models)
+                         target_wam=target_wam, config=cfg.policy,
+                         world_models=tuple(str(Path(p).resolve()) for p in world_models))
 
 
 def load_policy(spec: str, instruction: str | None = None, plan_with: str = "", **kwargs: Any) -> Policy:
@@ -47,5 +49,4 @@ def load_policy(spec: str, instruction: str | None = None, plan_with: str = "", 
     cfg = EvalConfig(wam=spec, wm_augmented=plan_with)  # on cfg.device, as the evaluation loads them
     paths = plan_with.split(",")
     dyn, enc = learned_dynamics([load_world_model(p, device=cfg.device) for p in paths])
-    return planned_policy(cfg, load_wam(spec, device=cfg.device), dyn, enc,
-                          world_models=tuple(str(Path(p).resolve()) for p in paths))
+    return planned_policy(cfg, load_wam(spec, device=cfg.device), dyn, enc, world_models=paths)

@@ -145,8 +145,7 @@ class EvalWorker:
             oracle = ExpertOracleWAM(self.env) if "expert" in (c.seed, c.target) else None
             seed_wam = oracle if c.seed == "expert" else self.wam
             target_wam = oracle if c.target == "expert" else self.wam
-            pol = planned_policy(cfg, seed_wam, dyn, enc, target_wam=target_wam,
-                                 world_models=tuple(str(Path(p).resolve()) for p in paths))
+            pol = planned_policy(cfg, seed_wam, dyn, enc, target_wam=target_wam, world_models=paths)
         self._policies[cid] = pol
         return pol
 
