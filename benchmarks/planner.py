@@ -6,6 +6,7 @@ one line per preset and the speed-up ratio.
     .venv/bin/python benchmarks/planner.py                       # mini and paper presets, --planner wamplan
     .venv/bin/python benchmarks/planner.py --planner cem         # the paper's CEM (the same 32 x 4 evaluations)
     .venv/bin/python benchmarks/planner.py --presets mini --repeats 10
+    .venv/bin/python benchmarks/planner.py --presets mini --replan-every 8   # + the re-plans of a chunk
     .venv/bin/python benchmarks/planner.py --presets paper --candidates 8 --iterations 1 --repeats 1   # CPU
 """
 
@@ -44,9 +45,10 @@ class NaiveDynamics(LearnedDynamics):
         return z[:, -1]
 
 
-def time_search(dyn, ctx, target, planner, repeats: int) -> float:
+def time_search(dyn, ctx, target, planner, repeats: int, length: int = CHUNK) -> float:
+    """Median seconds of one search over the first ``length`` steps of a chunk (its covered actions)."""
     cost = make_cost("patch")
-    covered = dyn.covered(CHUNK)
+    covered = dyn.covered(length)
     seed = torch.zeros(covered, 5)
     times = []
     for i in range(repeats + 1):
@@ -72,6 +74,8 @@ def main() -> None:
     ap.add_argument("--iterations", type=int, default=4, help="search iterations (paper: 4)")
     ap.add_argument("--candidates", type=int, default=32, help="candidates per iteration (paper: 32); fewer "
                     "makes the paper preset feasible on a CPU (the ratio is what compares)")
+    ap.add_argument("--replan-every", type=int, default=None, help="also time a chunk with re-planning every K "
+                    "steps (--replan-every of wamplan eval): the boundary's search plus the shorter re-plans")
     args = ap.parse_args()
     dev = resolve_device(args.device)
     dtype = getattr(torch, args.dtype)
@@ -96,6 +100,12 @@ def main() -> None:
         print(f"[{name}] {model.num_params() / 1e6:.1f} M params, {cfg.num_views}x{cfg.num_patches} tokens/frame, "
               f"{steps} rollout steps/chunk: KV-cached search {fast:.3f} s/chunk, naive {slow:.3f} s/chunk, "
               f"speed-up {slow / fast:.2f}x")
+        k = args.replan_every
+        if k:
+            rests = range(CHUNK - k, 0, -k)  # what each re-plan still covers: 16 - K, 16 - 2K, ...
+            total = fast + sum(time_search(LearnedDynamics(model), ctx, target, planner, args.repeats, r) for r in rests)
+            print(f"[{name}] re-planning every {k} steps ({len(rests)} re-plan(s) of {', '.join(map(str, rests))} steps):"
+                  f" {total:.3f} s/chunk KV-cached, {total / fast:.2f}x the whole-chunk search")
 
 
 if __name__ == "__main__":

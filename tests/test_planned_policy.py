@@ -292,3 +292,39 @@ def test_search_tensors_follow_the_dynamics_device(small_env, encoder):
     cands = torch.zeros(4, 16, 5, device=meta)
     cost = pol.cost(pol.dynamics.terminal(cands), target)  # would raise if the two sat on different devices
     assert cost.shape == (4,) and cost.device == meta
+
+
+def test_receding_horizon_replans_the_rest_of_a_planned_chunk(small_env, encoder):
+    """replan_every=8: the chunk planned at 16 runs 8 steps as planned, then its last 8 are searched again at
+    step 24 from the history 16, 20, 24, starting from the rest of the plan; what runs is the re-plan."""
+    pol = PlannedPolicy(EchoWAM(), _cem(8, 2), LearnedDynamics(_predictor(encoder)), encoder, make_cost("patch"),
+                        config=PlannedPolicyConfig(replan_every=8))
+    contexts, plans = [], []
+    prepare, plan = pol.dynamics.prepare, pol.planner.plan
+    pol.dynamics.prepare = lambda ctx: (contexts.append(ctx), prepare(ctx))[1]
+    pol.planner.plan = lambda init, obj, **kw: (lambda res: (plans.append((init.clone(), res)), res)[1])(
+        plan(init, obj, **kw))
+    executed = []
+    r = run_episode(small_env, pol, seed=2, max_steps=32, on_obs=lambda e, o, a: executed.append(a))
+    chunks = r.policy_info["chunks"]
+    assert [c["step"] for c in chunks] == [0, 16] and [c["planned"] for c in chunks] == [False, True]
+    assert [p["step"] for p in chunks[1]["replans"]] == [24] and r.policy_info["replans"] == 1
+    assert chunks[1]["search_s"] >= chunks[1]["replans"][0]["search_s"] > 0
+    assert not chunks[0].get("replans")  # the first chunk runs open loop, whole (the paper's rule)
+    (init16, plan16), (init24, plan24) = plans
+    assert init16.shape == (16, 5) and init24.shape == (8, 5)
+    torch.testing.assert_close(init24, plan16.actions[8:])  # the search starts from the rest of the plan
+    np.testing.assert_allclose(np.stack(executed[17:25]), np.clip(plan16.actions[:8].numpy(), -1, 1), atol=1e-6)
+    np.testing.assert_allclose(np.stack(executed[25:33]), np.clip(plan24.actions.numpy(), -1, 1), atol=1e-6)
+    ctx24 = contexts[-1]  # frames 16, 20, 24 and the actions executed from 16 to 23
+    np.testing.assert_array_equal(ctx24.a.numpy().reshape(8, 5), np.asarray(pol._executed[16:24]))
+    assert [s for s in range(33) if pol.wants_images(s)] == list(range(0, 33, 4))
+
+
+@pytest.mark.parametrize("k, match", [(16, "divide"), (6, "divide"), (2, "multiple of the world model's frameskip")])
+def test_a_replan_period_that_does_not_fit_the_chunk_or_frameskip_is_refused(encoder, k, match):
+    from wamplan.planning.policy import PlanningError
+
+    with pytest.raises(PlanningError, match=match):
+        PlannedPolicy(EchoWAM(), _cem(), LearnedDynamics(_predictor(encoder)), encoder, make_cost("patch"),
+                      config=PlannedPolicyConfig(replan_every=k))

@@ -23,6 +23,13 @@ Chunk rules, the same for every dynamics backend:
   a history frame that should exist but was never
   shown to the policy is a :class:`PlanningError`, never a silent open-loop chunk.
 
+Receding horizon (``replan_every`` K, not in the paper): a planned chunk executes only its first K steps as
+planned; at t+K, t+2K, ... the rest of it is searched again from the new observation toward the same target
+(the WAM is not queried again: its target is the chunk's end), the remaining plan being the search's initial
+mean. A learned model then predicts 16-K steps from a real frame instead of 16, and conditions on the history
+anchored at the re-planning step (so K must be a multiple of Δ). The boundary's gates and tests decide whether
+a chunk is planned at all; its re-plans then execute.
+
 Warm start (``warm_start="residual"``): a plan covers at most the chunk it refines and the whole chunk is
 executed, so "the previous plan shifted by H" is always empty here; what can carry over is the previous
 chunk's correction (plan minus the WAM's chunk, step by step), added with ``warm_weight`` to the WAM's new
@@ -82,6 +89,11 @@ class PlannedPolicyConfig:
         "(samples around its initial mean: the WAM's chunk, unless warm-started) score below that mean, i.e. the "
         "model sees it as no better than its neighbours; else the WAM's chunk (e.g. 0.5). None = always execute "
         "the plan (the paper)")
+    replan_every: int | None = field(
+        None, "receding horizon: execute this many steps of a planned chunk, then re-plan the rest of it from the "
+        "new observation toward the same target (a multiple of the world model's frameskip that divides the "
+        "chunk, e.g. 8 for the mini preset's 16-step chunks and frameskip 4). None = execute the whole chunk "
+        "(the paper)")
 
     def __post_init__(self):
         require(self.first_chunk in ("open-loop", "rest-history"),
@@ -96,6 +108,8 @@ class PlannedPolicyConfig:
                 "the search runs only for costs between the two")
         require(self.rank_gate is None or 0.0 < self.rank_gate <= 1.0,
                 f"rank_gate must be in (0, 1] or None, got {self.rank_gate}")
+        require(self.replan_every is None or self.replan_every >= 1,
+                f"replan_every must be >= 1 or None, got {self.replan_every}")
 
 
 class PlanningError(UserError):
@@ -116,6 +130,7 @@ class PlannedPolicy(Policy):
         self.chunk = wam.chunk_length
         self.frameskip = getattr(dynamics, "frameskip", self.chunk)
         self.context = getattr(dynamics, "context", 1)
+        self.period = self._replan_period()  # steps between planning points: the chunk, or replan_every
         if self.config.rank_gate is not None and not getattr(planner.config, "include_mean", False):
             raise PlanningError("rank_gate compares the WAM's chunk with the search's first samples, so the planner "
                                 "must score it: drop --no-include-mean or the rank gate")
@@ -123,6 +138,18 @@ class PlannedPolicy(Policy):
             raise PlanningError("disagreement_weight needs an ensemble of world models, got one; pass several "
                                 "comma-separated checkpoints (e.g. --wm-augmented A,B,C) or set it to 0")
         self.reset()
+
+    def _replan_period(self) -> int:
+        k = self.config.replan_every
+        if k is None:
+            return self.chunk
+        if not (k < self.chunk and self.chunk % k == 0):
+            raise PlanningError(f"replan_every={k} must divide the WAM's {self.chunk}-step chunk and be shorter than "
+                                f"it, e.g. {self.chunk // 2}; or drop it to execute whole chunks")
+        if self.dynamics.needs_history and k % self.frameskip:
+            raise PlanningError(f"replan_every={k} must be a multiple of the world model's frameskip "
+                                f"{self.frameskip}: its history is anchored at the re-planning step")
+        return k
 
     @property
     def chunk_length(self) -> int:
@@ -145,6 +172,7 @@ class PlannedPolicy(Policy):
         self.chunks: list[dict[str, Any]] = []
         self.last_plan = None
         self._correction: torch.Tensor | None = None  # (H_opt, A) last planned chunk minus its WAM seed
+        self._replan: dict[str, Any] | None = None  # the planned chunk being executed: its target and record
         self._episode_seed = seed or 0
 
     def _history_steps(self, t: int) -> list[int]:
@@ -152,8 +180,9 @@ class PlannedPolicy(Policy):
         return [t - i * self.frameskip for i in range(self.context - 1, -1, -1)]
 
     def _is_history_step(self, step: int) -> bool:
-        """Whether ``step`` is t - iΔ (0 <= i < H_ctx) for some chunk boundary t >= step."""
-        return any((step + i * self.frameskip) % self.chunk == 0 for i in range(self.context))
+        """Whether ``step`` is t - iΔ (0 <= i < H_ctx) for some planning point t >= step (a chunk boundary, or
+        a re-planning step)."""
+        return any((step + i * self.frameskip) % self.period == 0 for i in range(self.context))
 
     def wants_images(self, step: int) -> bool:
         return step % self.chunk == 0 or (self.dynamics.needs_history and self._is_history_step(step))
@@ -168,7 +197,10 @@ class PlannedPolicy(Policy):
             oldest = t - (self.context - 1) * self.frameskip - self.chunk  # nothing older is needed again
             self._frames = {s: f for s, f in self._frames.items() if s >= oldest}
         if t % self.chunk == 0:
+            self._replan = None
             self._queue = list(self._plan_chunk(obs))
+        elif t % self.period == 0 and self._replan is not None:
+            self._queue = list(self._replan_rest(obs))
         a = self._queue.pop(0)
         self._executed.append(np.clip(a, -1, 1))
         return a
@@ -181,6 +213,7 @@ class PlannedPolicy(Policy):
             if not c["planned"]:
                 open_loop[c["open_loop"]] = open_loop.get(c["open_loop"], 0) + 1
         return dict(chunks=self.chunks, planned_chunks=len(planned), open_loop_chunks=open_loop,
+                    replans=sum(len(c.get("replans", ())) for c in self.chunks),
                     mean_s={k: float(np.mean([c[k] for c in planned])) for k in keys} if planned else {})
 
     def config_dict(self) -> dict[str, Any]:
@@ -279,6 +312,35 @@ class PlannedPolicy(Policy):
                 self._correction = None  # the WAM's chunk ran: nothing of this plan carries over
                 return seed_out.actions
         rec["search_s"] = time.perf_counter() - t3
+        if self.period < self.chunk:
+            self._replan = dict(objective=objective, rec=rec, seed=seed_out.actions)
+            rec["replans"] = []
+        return plan
+
+    def _replan_rest(self, obs: Observation) -> np.ndarray:
+        """At a re-planning step inside a planned chunk: search the rest of it again from this observation,
+        toward the chunk's target, starting from the rest of the current plan. -> (R, A) the actions to run."""
+        t0 = time.perf_counter()
+        rest = np.stack(self._queue)  # (R, A) what the plan would still execute
+        context = self._context(obs.step) if self.dynamics.needs_history else None
+        if self.dynamics.needs_history and context is None:
+            return rest  # (only with H_ctx·Δ beyond the step) the history reaches before step 0: keep the plan
+        self.dynamics.prepare(context)
+        covered = self.dynamics.covered(len(rest))
+        init = torch.as_tensor(rest[:covered], device=self.device)  # (R_opt, A)
+        result = self.planner.plan(init, self._replan["objective"],
+                                   seed=self.config.plan_seed + self._episode_seed * 1000 + obs.step)
+        plan = np.concatenate([result.actions.cpu().numpy(), rest[covered:]]).astype(np.float32)  # (R, A)
+        offset = obs.step % self.chunk
+        if self._correction is not None:  # the chunk's executed correction now ends with this re-plan
+            seed = torch.as_tensor(self._replan["seed"][offset:offset + covered], device=self.device)
+            self._correction[offset:offset + covered] = result.actions[:covered].float() - seed.float()
+        self.last_plan = result
+        dt = time.perf_counter() - t0
+        rec = self._replan["rec"]
+        rec["replans"].append(dict(step=obs.step, seed_cost=float(result.seed_cost), best_cost=float(result.best_cost),
+                                   search_s=dt))
+        rec["search_s"] += dt  # a chunk's search time includes its re-plans
         return plan
 
     def objective(self, target: torch.Tensor):
