@@ -36,7 +36,8 @@ import torch
 
 from wamplan.config import field, require
 from wamplan.envs.agent import CONTROL_MODE
-from wamplan.envs.contract import ACTION_DIM, CAMERAS, ENV_ID, MAX_EPISODE_STEPS, OUTCOMES, STAGES, Observation
+from wamplan.envs.contract import (ACTION_DIM, CAMERAS, CUBE_METRICS, ENV_ID, MAX_EPISODE_STEPS, OUTCOMES, STAGES,
+                                   Observation)
 
 _CORNERS = np.array(list(itertools.product((0, 1), repeat=3)))  # (8, 3): min (0) or max (1) per axis
 
@@ -145,8 +146,7 @@ class InsertionEnv:
         flags = {s: bool(ev[s][0]) for s in STAGES}
         for s in STAGES:
             self.reached[s] |= flags[s]
-        return dict(flags, success=flags["seated"], cube_xy_error=float(ev["cube_xy_error"][0]),
-                    cube_yaw_error=float(ev["cube_yaw_error"][0]))
+        return dict(flags, success=flags["seated"], **{k: float(ev[k][0]) for k in CUBE_METRICS})
 
     def outcome(self) -> str:
         """The episode's outcome so far: success, or the furthest stage reached before failing."""
@@ -160,6 +160,12 @@ class InsertionEnv:
         if r["lifted"]:
             return "lifted_not_aligned"
         return "never_lifted"
+
+    @property
+    def metrics(self) -> dict[str, Any]:
+        """The task's evaluation of the current state (privileged): the stage flags, ``success`` and the
+        cube's continuous measures (``CUBE_METRICS``: metres, radians)."""
+        return dict(self._last)
 
     @property
     def success(self) -> bool:

@@ -40,7 +40,7 @@ from mani_skill.utils.scene_builder.table import TableSceneBuilder
 from mani_skill.utils.structs.pose import Pose
 
 from wamplan.envs.agent import CONTROL_MODE, REST_QPOS, PandaInsertion
-from wamplan.envs.contract import ENV_ID, MAX_EPISODE_STEPS, STAGES
+from wamplan.envs.contract import ALIGN_XY_TOL, ENV_ID, MAX_EPISODE_STEPS, STAGES
 
 HOLE_XY = (0.0, 0.12)
 CUBE_X_RANGE = (-0.10, 0.05)
@@ -168,11 +168,11 @@ class CubeInsertionEnv(BaseEnv):
         tilt = torch.arccos(torch.clamp(up[:, 2].abs(), max=1.0))  # (B,)
         grasped = self.agent.is_grasping(self.cube)
         lifted = bottom > 0.01
-        aligned = (bottom > self.mount_height - 0.002) & (xy_err < 0.004) & (yaw_err < 0.1)
+        aligned = (bottom > self.mount_height - 0.002) & (xy_err < ALIGN_XY_TOL) & (yaw_err < 0.1)
         descended = (bottom < self.mount_height - 0.002) & (xy_err < self.clearance + 0.002)
         seated = (bottom < 0.0015) & (xy_err < self.clearance + 0.002) & (tilt < 0.1)
         return dict(success=seated, grasped=grasped, lifted=lifted, aligned=aligned, descended=descended,
-                    seated=seated, cube_xy_error=xy_err, cube_yaw_error=yaw_err)
+                    seated=seated, cube_xy_error=xy_err, cube_yaw_error=yaw_err, cube_bottom=bottom, cube_tilt=tilt)
 
     def proprio(self) -> torch.Tensor:
         """(B, 10) float32: gripper width, TCP xyz, first two columns of the TCP rotation matrix."""

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from wamplan.envs.contract import OUTCOMES
+from wamplan.envs.contract import ALIGN_XY_TOL, OUTCOMES
 from wamplan.evaluation.conditions import CONDITIONS
 from wamplan.evaluation.records import RECORDS, read_records
 
@@ -206,6 +206,30 @@ def markdown_gap(records: list[dict[str, Any]], baseline: int = 1) -> str | None
     return "\n".join(out) if len(out) > 2 else None
 
 
+def markdown_release(records: list[dict[str, Any]]) -> str | None:
+    """Where each condition let the cube go (the records' privileged ``release``): how far from the hole's
+    axis and how high, and how often it was inside the alignment tolerance then, with the success of each
+    kind. None when no record carries a release (records written before stop 20)."""
+    by = open_loop_by_seed(records)
+    tol = 1000 * ALIGN_XY_TOL
+    out = [f"| Condition | Released after a grasp | Off the axis at release, median [IQR] mm | Cube bottom at release, "
+           f"median mm | Released within {tol:.0f} mm of the axis | Success: released within / beyond |",
+           "|---|---|---|---|---|---|"]
+    for c in sorted(by):
+        rel = [(r["release"], r["success"]) for r in by[c].values() if r.get("release")]
+        if not rel:
+            continue
+        xy = np.array([x["xy_mm"] for x, _ in rel])  # (n,)
+        bottom = np.array([x["bottom_mm"] for x, _ in rel])  # (n,)
+        near = xy <= tol  # (n,)
+        ok = np.array([s for _, s in rel], bool)  # (n,)
+        q1, q2, q3 = np.percentile(xy, [25, 50, 75])
+        out.append(f"| {c} | {len(rel)} of {len(by[c])} | {q2:.1f} [{q1:.1f}, {q3:.1f}] | {np.median(bottom):.1f} "
+                   f"| {int(near.sum())} | {int(ok[near].sum())} of {int(near.sum())} / {int(ok[~near].sum())} of "
+                   f"{int((~near).sum())} |")
+    return "\n".join(out) if len(out) > 2 else None
+
+
 def figure3(rows: list[dict[str, Any]], path: Path) -> None:
     import matplotlib
 
@@ -329,6 +353,9 @@ def write_report(out_dir: str | Path, more: list[str | Path] = ()) -> dict[str, 
     gap = markdown_gap(records)
     if gap:
         parts += ["", "## The gap to the simulator oracle", "", gap]
+    released = markdown_release(records)
+    if released:
+        parts += ["", "## Where the cube was let go (privileged)", "", released]
     t2 = markdown_table2(records)
     if t2:
         parts += ["", "## Table 2: first chunk skipped vs planned", "", t2]

@@ -4,6 +4,8 @@ process as episodes finish.
 Every condition runs the same seeds. A job is one (condition, seed); a worker builds the env, the WAM
 and the world models once and a policy per condition on first use. Re-running the same command skips
 the jobs already recorded, so an interrupted evaluation resumes without repeating or losing episodes.
+Every record also carries the cube's privileged path (``trace``, every ``TRACE_EVERY`` steps) and where it
+was let go (``release``), for reading failures; no policy sees them.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from wamplan.planning import PLANNERS, CostConfig
 from wamplan.planning.policy import DISCARDED, PlannedPolicyConfig
 from wamplan.planning.presets import DEFAULT_PLANNER
 
+TRACE_EVERY = 4  # steps between the cube's privileged samples in a record's "trace" (evaluation/trace.py)
 
 def _env_default() -> EnvConfig:
     return EnvConfig()
@@ -150,10 +153,12 @@ class EvalWorker:
         return pol
 
     def __call__(self, job: tuple[int, int]) -> dict[str, Any]:
+        from wamplan.evaluation.trace import CubeTrace, release
         from wamplan.policies.rollout import run_episode
 
         cid, seed = job
-        r = run_episode(self.env, self.policy(cid), seed, max_steps=self.cfg.env.max_episode_steps)
+        trace = CubeTrace(every=TRACE_EVERY)
+        r = run_episode(self.env, self.policy(cid), seed, max_steps=self.cfg.env.max_episode_steps, on_obs=trace)
         chunks = r.policy_info.get("chunks")  # PlannedPolicy: per-chunk records; WAMPolicy: a count
         planned = [ch for ch in chunks if ch.get("planned")] if isinstance(chunks, list) else []
         searched = [ch for ch in chunks if ch.get("planned") or ch.get("open_loop") in DISCARDED] \
@@ -168,7 +173,7 @@ class EvalWorker:
                     planned_chunks=len(planned), open_loop_chunks=r.policy_info.get("open_loop_chunks", {}),
                     chunk_timing_s=timing,
                     chunks=[{k: (round(v, 4) if isinstance(v, float) else v) for k, v in ch.items()} for ch in searched],
-                    finished=time.time())
+                    release=release(trace.rows), trace=trace.close(), finished=time.time())
 
 
 def _same(a: Any, b: Any) -> bool:
