@@ -101,7 +101,10 @@ def main() -> None:
               f"{steps} rollout steps/chunk: KV-cached search {fast:.3f} s/chunk, naive {slow:.3f} s/chunk, "
               f"speed-up {slow / fast:.2f}x")
         k = args.replan_every
-        if k:
+        if k and (k >= CHUNK or CHUNK % k or k % cfg.frameskip):
+            print(f"[{name}] --replan-every {k} does not fit: it must divide the {CHUNK}-step chunk, be shorter than "
+                  f"it and be a multiple of the frameskip {cfg.frameskip} (as `wamplan eval` requires); not timed")
+        elif k:
             rests = range(CHUNK - k, 0, -k)  # what each re-plan still covers: 16 - K, 16 - 2K, ...
             total = fast + sum(time_search(LearnedDynamics(model), ctx, target, planner, args.repeats, r) for r in rests)
             print(f"[{name}] re-planning every {k} steps ({len(rests)} re-plan(s) of {', '.join(map(str, rests))} steps):"

@@ -37,7 +37,9 @@ def test_eval_conditions_1_and_6_then_resume_and_report(run, capsys):
     assert chunk["best_cost"] <= chunk["seed_cost"]  # the WAM's chunk is a candidate: the search never does worse
     assert recs[6]["chunk_timing_s"]["search_s"] == pytest.approx(chunk["search_s"], abs=1e-4)  # the mean of one
     assert [x["t"] for x in recs[1]["trace"]] == [0, 4, 8, 12, 16, 20]  # the cube's privileged path, every 4 steps
-    assert recs[1]["trace"][0]["bottom_mm"] == pytest.approx(0, abs=1) and "release" in recs[1]
+    assert recs[1]["trace"][0]["bottom_mm"] == pytest.approx(0, abs=1)
+    assert recs[1]["held_at_end"] == recs[1]["trace"][-1]["grasped"] and (recs[1]["release"] is None) == (
+        recs[1]["releases"] == 0)
     capsys.readouterr()
     assert main(args) == 0  # resume: nothing left to do
     assert "already recorded" in capsys.readouterr().out and len(read_records(run / "eval")) == 2

@@ -195,13 +195,14 @@ def test_gap_to_the_oracle_is_measured_on_shared_seeds():
 
 
 def test_release_table_counts_where_each_condition_let_go():
-    rel = lambda xy, bottom: dict(t=140, xy_mm=xy, bottom_mm=bottom, tilt=0.0, yaw=0.0, grasped=False, grip_mm=60.0)  # noqa: E731
+    rel = lambda xy, bottom: dict(t=140, xy_mm=xy + 1, bottom_mm=0.0, grasped=False, held_mm=[xy, bottom])  # noqa: E731
     recs = [dict(_rec(1, 0, "success"), release=rel(1.0, 20.0)), dict(_rec(1, 1, "success"), release=rel(3.0, 22.0)),
-            dict(_rec(1, 2, "never_lifted"), release=None),
+            dict(_rec(1, 2, "success"), release=None, held_at_end=True),
+            dict(_rec(1, 3, "never_lifted")),  # written before the trace: not counted
             dict(_rec(7, 0, "success"), release=rel(2.0, 21.0)),
             dict(_rec(7, 1, "descended_not_seated"), release=rel(8.0, 44.0)),
             dict(_rec(7, 2, "lifted_not_aligned"), release=rel(6.0, 40.0))]
     lines = markdown_release(recs).splitlines()
-    assert lines[2] == "| 1 | 2 of 3 | 2.0 [1.5, 2.5] | 21.0 | 2 | 2 of 2 / 0 of 0 |"
-    assert lines[3] == "| 7 | 3 of 3 | 6.0 [4.0, 7.0] | 40.0 | 1 | 1 of 1 / 0 of 2 |"
+    assert lines[2] == "| 1 | 3 | 2 | 1 | 2.0 [1.5, 2.5] | 21.0 | 2 | 2 of 2 / 0 of 0 |"  # where it was last held
+    assert lines[3] == "| 7 | 3 | 3 | 0 | 6.0 [4.0, 7.0] | 40.0 | 1 | 1 of 1 / 0 of 2 |"
     assert markdown_release([_rec(1, 0, "success")]) is None  # records from before the trace: no table

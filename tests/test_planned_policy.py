@@ -304,8 +304,9 @@ def test_receding_horizon_replans_the_rest_of_a_planned_chunk(small_env, encoder
     pol.dynamics.prepare = lambda ctx: (contexts.append(ctx), prepare(ctx))[1]
     pol.planner.plan = lambda init, obj, **kw: (lambda res: (plans.append((init.clone(), res)), res)[1])(
         plan(init, obj, **kw))
-    executed = []
-    r = run_episode(small_env, pol, seed=2, max_steps=32, on_obs=lambda e, o, a: executed.append(a))
+    executed, rendered = [], []
+    r = run_episode(small_env, pol, seed=2, max_steps=32,
+                    on_obs=lambda e, o, a: (executed.append(a), o.images is not None and rendered.append(o.step)))
     chunks = r.policy_info["chunks"]
     assert [c["step"] for c in chunks] == [0, 16] and [c["planned"] for c in chunks] == [False, True]
     assert [p["step"] for p in chunks[1]["replans"]] == [24] and r.policy_info["replans"] == 1
@@ -318,13 +319,18 @@ def test_receding_horizon_replans_the_rest_of_a_planned_chunk(small_env, encoder
     np.testing.assert_allclose(np.stack(executed[25:33]), np.clip(plan24.actions.numpy(), -1, 1), atol=1e-6)
     ctx24 = contexts[-1]  # frames 16, 20, 24 and the actions executed from 16 to 23
     np.testing.assert_array_equal(ctx24.a.numpy().reshape(8, 5), np.asarray(pol._executed[16:24]))
-    assert [s for s in range(33) if pol.wants_images(s)] == list(range(0, 33, 4))
+    # views where a boundary's history needs them (8, 12, 16; 24, 28, 32) and, in the planned chunk only, for
+    # its re-plan at 24 (20); the open-loop first chunk never re-plans, so step 4 is not rendered
+    assert rendered == [0, 8, 12, 16, 20, 24, 28, 32]
 
 
-@pytest.mark.parametrize("k, match", [(16, "divide"), (6, "divide"), (2, "multiple of the world model's frameskip")])
-def test_a_replan_period_that_does_not_fit_the_chunk_or_frameskip_is_refused(encoder, k, match):
+@pytest.mark.parametrize("k, match, opt", [(16, "divide", None), (6, "divide", None),
+                                           (2, "multiple of the world model's frameskip", None),
+                                           (8, "drop --num-optimized", 12)])
+def test_a_replan_period_that_does_not_fit_the_chunk_or_frameskip_is_refused(encoder, k, match, opt):
     from wamplan.planning.policy import PlanningError
 
+    planner = make_planner("cem", CEMConfig(num_candidates=8, num_elites=2, iterations=1, num_optimized=opt))
     with pytest.raises(PlanningError, match=match):
-        PlannedPolicy(EchoWAM(), _cem(), LearnedDynamics(_predictor(encoder)), encoder, make_cost("patch"),
+        PlannedPolicy(EchoWAM(), planner, LearnedDynamics(_predictor(encoder)), encoder, make_cost("patch"),
                       config=PlannedPolicyConfig(replan_every=k))

@@ -207,24 +207,31 @@ def markdown_gap(records: list[dict[str, Any]], baseline: int = 1) -> str | None
 
 
 def markdown_release(records: list[dict[str, Any]]) -> str | None:
-    """Where each condition let the cube go (the records' privileged ``release``): how far from the hole's
-    axis and how high, and how often it was inside the alignment tolerance then, with the success of each
-    kind. None when no record carries a release (records written before stop 20)."""
+    """Where each condition let the cube go (the records' privileged ``release``, the episodes whose first chunk
+    ran open loop): how far from the hole's axis and how high it was on the last step it was held, how often
+    that was inside the alignment tolerance, with the success of each kind. None when no record carries a
+    trace (records written before stop 20)."""
     by = open_loop_by_seed(records)
     tol = 1000 * ALIGN_XY_TOL
-    out = [f"| Condition | Released after a grasp | Off the axis at release, median [IQR] mm | Cube bottom at release, "
-           f"median mm | Released within {tol:.0f} mm of the axis | Success: released within / beyond |",
-           "|---|---|---|---|---|---|"]
+    out = [f"| Condition | Episodes traced | Let go after a grasp | Held at the end | Off the axis when let go, median "
+           f"[IQR] mm | Cube bottom when let go, median mm | Let go within {tol:.0f} mm of the axis | Success: let go "
+           f"within / beyond |", "|---|---|---|---|---|---|---|---|"]
     for c in sorted(by):
-        rel = [(r["release"], r["success"]) for r in by[c].values() if r.get("release")]
-        if not rel:
+        traced = [r for r in by[c].values() if "release" in r]
+        rel = [(r["release"].get("held_mm", [r["release"]["xy_mm"], r["release"]["bottom_mm"]]), r["success"])
+               for r in traced if r["release"]]
+        if not traced:
             continue
-        xy = np.array([x["xy_mm"] for x, _ in rel])  # (n,)
-        bottom = np.array([x["bottom_mm"] for x, _ in rel])  # (n,)
+        held = sum(bool(r.get("held_at_end")) for r in traced)
+        if not rel:
+            out.append(f"| {c} | {len(traced)} | 0 | {held} | — | — | — | — |")
+            continue
+        xy = np.array([x for (x, _), _ in rel])  # (n,) mm
+        bottom = np.array([b for (_, b), _ in rel])  # (n,) mm
         near = xy <= tol  # (n,)
         ok = np.array([s for _, s in rel], bool)  # (n,)
         q1, q2, q3 = np.percentile(xy, [25, 50, 75])
-        out.append(f"| {c} | {len(rel)} of {len(by[c])} | {q2:.1f} [{q1:.1f}, {q3:.1f}] | {np.median(bottom):.1f} "
+        out.append(f"| {c} | {len(traced)} | {len(rel)} | {held} | {q2:.1f} [{q1:.1f}, {q3:.1f}] | {np.median(bottom):.1f} "
                    f"| {int(near.sum())} | {int(ok[near].sum())} of {int(near.sum())} / {int(ok[~near].sum())} of "
                    f"{int((~near).sum())} |")
     return "\n".join(out) if len(out) > 2 else None

@@ -4,8 +4,9 @@ process as episodes finish.
 Every condition runs the same seeds. A job is one (condition, seed); a worker builds the env, the WAM
 and the world models once and a policy per condition on first use. Re-running the same command skips
 the jobs already recorded, so an interrupted evaluation resumes without repeating or losing episodes.
-Every record also carries the cube's privileged path (``trace``, every ``TRACE_EVERY`` steps) and where it
-was let go (``release``), for reading failures; no policy sees them.
+Every record also carries the cube's privileged path (``trace``, every ``TRACE_EVERY`` steps), where it was
+first let go (``release``, found at every step) and whether it was still held at the end, for reading
+failures; no policy sees them.
 """
 
 from __future__ import annotations
@@ -153,7 +154,7 @@ class EvalWorker:
         return pol
 
     def __call__(self, job: tuple[int, int]) -> dict[str, Any]:
-        from wamplan.evaluation.trace import CubeTrace, release
+        from wamplan.evaluation.trace import CubeTrace
         from wamplan.policies.rollout import run_episode
 
         cid, seed = job
@@ -173,7 +174,7 @@ class EvalWorker:
                     planned_chunks=len(planned), open_loop_chunks=r.policy_info.get("open_loop_chunks", {}),
                     chunk_timing_s=timing,
                     chunks=[{k: (round(v, 4) if isinstance(v, float) else v) for k, v in ch.items()} for ch in searched],
-                    release=release(trace.rows), trace=trace.close(), finished=time.time())
+                    **trace.summary(), finished=time.time())
 
 
 def _same(a: Any, b: Any) -> bool:

@@ -1,14 +1,15 @@
 """Where the cube went during an evaluation episode (privileged, for reading failures, never for acting).
 
-``CubeTrace`` is a ``run_episode`` hook: every ``every`` steps it notes the cube's distance from the hole's
-axis, its height, tilt and yaw, whether the fingers grasp it, and the gripper's opening. ``release``
-reads the moment that decides the insertion off a trace: the first sample after a grasp where the cube is
-no longer grasped, i.e. where and how high it was let go (inside the hole: its bottom below the mount's top).
+``CubeTrace`` is a ``run_episode`` hook. Every ``every`` steps it keeps a row of the cube's distance from the
+hole's axis, its height, tilt and yaw, whether the fingers grasp it, and the gripper's opening; at every step
+it watches for the moment that decides the insertion: the first step after a grasp at which the cube is no
+longer grasped, i.e. where and how high it was let go (inside the hole: its bottom below the mount's top).
 
     trace = CubeTrace(every=4)
     run_episode(env, policy, seed, on_obs=trace)
-    trace.rows   # [{"t": 0, "xy_mm": 121.3, "bottom_mm": 0.0, "tilt": 0.0, "yaw": 0.31, "grasped": False, "grip_mm": 80.0}, ...]
-    release(trace.rows)   # {"t": 148, "xy_mm": 6.2, "bottom_mm": 43.9, ...} or None (never released after a grasp)
+    trace.close()   # [{"t": 0, "xy_mm": 121.3, "bottom_mm": 0.0, "tilt": 0.0, "yaw": 0.31, "grasped": False, "grip_mm": 80.0}, ...]
+    trace.release   # {"t": 148, "xy_mm": 6.2, "bottom_mm": 43.9, ..., "held_mm": [5.8, 45.0]} or None
+    trace.held_at_end  # grasped at the last step (e.g. seated while still holding: nothing let go)
 """
 
 from __future__ import annotations
@@ -17,14 +18,21 @@ from typing import Any
 
 
 class CubeTrace:
-    """``on_obs`` hook: one row of the cube's state every ``every`` steps (and at the episode's last step,
-    which the caller adds with :meth:`close`)."""
+    """``on_obs`` hook: rows every ``every`` steps (:meth:`close` adds the last step), the first release at
+    full resolution (``release``: its row, plus where the cube was on the last step it was held,
+    ``held_mm`` = [xy, bottom]), and how many times the grasp was lost (``releases``)."""
 
     def __init__(self, every: int = 4):
         if every < 1:
             raise ValueError(f"every must be >= 1 step, got {every}")
         self.every, self.rows = every, []
+        self.release: dict[str, Any] | None = None
+        self.releases = 0
         self._last: dict[str, Any] | None = None
+
+    @property
+    def held_at_end(self) -> bool:
+        return bool(self._last and self._last["grasped"])
 
     def __call__(self, env, obs, action) -> None:
         m = env.metrics
@@ -32,7 +40,11 @@ class CubeTrace:
                    bottom_mm=round(1000 * m.get("cube_bottom", float("nan")), 2),
                    tilt=round(m.get("cube_tilt", float("nan")), 4), yaw=round(m.get("cube_yaw_error", float("nan")), 4),
                    grasped=bool(m.get("grasped", False)), grip_mm=round(1000 * float(obs.proprio[0]), 2))
-        self._last = row
+        prev, self._last = self._last, row
+        if prev is not None and prev["grasped"] and not row["grasped"]:
+            self.releases += 1
+            if self.release is None:
+                self.release = dict(row, held_mm=[prev["xy_mm"], prev["bottom_mm"]])
         if obs.step % self.every == 0:
             self.rows.append(row)
 
@@ -42,13 +54,6 @@ class CubeTrace:
             self.rows.append(self._last)
         return self.rows
 
-
-def release(rows: list[dict[str, Any]]) -> dict[str, Any] | None:
-    """The first row after a grasp where the cube is no longer grasped (the release), or None."""
-    held = False
-    for row in rows:
-        if row["grasped"]:
-            held = True
-        elif held:
-            return dict(row)
-    return None
+    def summary(self) -> dict[str, Any]:
+        """What a record keeps: the rows, the first release, the number of releases, held at the end."""
+        return dict(trace=self.close(), release=self.release, releases=self.releases, held_at_end=self.held_at_end)

@@ -9,7 +9,7 @@ means (learned world model or simulator).
 Chunk rules, the same for every dynamics backend:
 * the first chunk runs open loop (paper §3.3 "Full-chunk deployment"), or is planned from a synthesised
   rest-state history with ``first_chunk="rest-history"`` (appendix A);
-* the history a learned world model conditions on is anchored to the chunk boundaries: at boundary t it is
+* the history a learned world model conditions on is anchored to the planning points: at boundary t it is
   the frames at t-(H_ctx-1)Δ, ..., t-Δ, t with the actions executed between them, whether or not Δ divides
   the chunk (paper Δ=5, H=16: frames t-10, t-5, t). ``wants_images`` asks for exactly those frames;
 * a boundary whose history reaches before step 0 (only when (H_ctx-1)Δ exceeds the chunk) runs open loop
@@ -27,8 +27,11 @@ Receding horizon (``replan_every`` K, not in the paper): a planned chunk execute
 planned; at t+K, t+2K, ... the rest of it is searched again from the new observation toward the same target
 (the WAM is not queried again: its target is the chunk's end), the remaining plan being the search's initial
 mean. A learned model then predicts 16-K steps from a real frame instead of 16, and conditions on the history
-anchored at the re-planning step (so K must be a multiple of Δ). The boundary's gates and tests decide whether
-a chunk is planned at all; its re-plans then execute.
+anchored at the re-planning step; K must be a multiple of Δ that divides the chunk, so that the rest's rollout
+ends at the target's step (the paper's Δ = 5 with 16-step chunks has no such K). The boundary's gates and tests
+(gate_threshold, gate_above, accept_margin, rank_gate) decide whether a chunk is planned at all; its re-plans
+then execute unconditionally. A chunk's ``search_s`` includes its re-plans; ``correction`` and the costs are
+the boundary search's.
 
 Warm start (``warm_start="residual"``): a plan covers at most the chunk it refines and the whole chunk is
 executed, so "the previous plan shifted by H" is always empty here; what can carry over is the previous
@@ -92,8 +95,8 @@ class PlannedPolicyConfig:
     replan_every: int | None = field(
         None, "receding horizon: execute this many steps of a planned chunk, then re-plan the rest of it from the "
         "new observation toward the same target (a multiple of the world model's frameskip that divides the "
-        "chunk, e.g. 8 for the mini preset's 16-step chunks and frameskip 4). None = execute the whole chunk "
-        "(the paper)")
+        "chunk, e.g. 8 for the mini preset's 16-step chunks and frameskip 4; the paper preset's frameskip 5 has "
+        "none). Re-plans are not gated or trust-tested. None = execute the whole chunk (the paper)")
 
     def __post_init__(self):
         require(self.first_chunk in ("open-loop", "rest-history"),
@@ -148,7 +151,10 @@ class PlannedPolicy(Policy):
                                 f"it, e.g. {self.chunk // 2}; or drop it to execute whole chunks")
         if self.dynamics.needs_history and k % self.frameskip:
             raise PlanningError(f"replan_every={k} must be a multiple of the world model's frameskip "
-                                f"{self.frameskip}: its history is anchored at the re-planning step")
+                                f"{self.frameskip}, so that the rest's rollout ends at the target's step")
+        if getattr(self.planner.config, "num_optimized", None) is not None:
+            raise PlanningError("replan_every re-plans the rest of a chunk, all of which the search optimises; "
+                                "drop --num-optimized or --replan-every")
         return k
 
     @property
@@ -180,9 +186,10 @@ class PlannedPolicy(Policy):
         return [t - i * self.frameskip for i in range(self.context - 1, -1, -1)]
 
     def _is_history_step(self, step: int) -> bool:
-        """Whether ``step`` is t - iΔ (0 <= i < H_ctx) for some planning point t >= step (a chunk boundary, or
-        a re-planning step)."""
-        return any((step + i * self.frameskip) % self.period == 0 for i in range(self.context))
+        """Whether ``step`` is t - iΔ (0 <= i < H_ctx) for some planning point t >= step: a chunk boundary, or
+        a re-planning step of the chunk being executed when it was planned (only such a chunk re-plans)."""
+        period = self.period if self._replan is not None else self.chunk
+        return any((step + i * self.frameskip) % period == 0 for i in range(self.context))
 
     def wants_images(self, step: int) -> bool:
         return step % self.chunk == 0 or (self.dynamics.needs_history and self._is_history_step(step))
@@ -322,10 +329,8 @@ class PlannedPolicy(Policy):
         toward the chunk's target, starting from the rest of the current plan. -> (R, A) the actions to run."""
         t0 = time.perf_counter()
         rest = np.stack(self._queue)  # (R, A) what the plan would still execute
-        context = self._context(obs.step) if self.dynamics.needs_history else None
-        if self.dynamics.needs_history and context is None:
-            return rest  # (only with H_ctx·Δ beyond the step) the history reaches before step 0: keep the plan
-        self.dynamics.prepare(context)
+        # a planned chunk had its history at its boundary, so the later frames of this one exist too
+        self.dynamics.prepare(self._context(obs.step) if self.dynamics.needs_history else None)
         covered = self.dynamics.covered(len(rest))
         init = torch.as_tensor(rest[:covered], device=self.device)  # (R_opt, A)
         result = self.planner.plan(init, self._replan["objective"],
