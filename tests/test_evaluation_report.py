@@ -206,3 +206,27 @@ def test_release_table_counts_where_each_condition_let_go():
     assert lines[2] == "| 1 | 3 | 2 | 1 | 2.0 [1.5, 2.5] | 21.0 | 2 | 2 of 2 / 0 of 0 |"  # where it was last held
     assert lines[3] == "| 7 | 3 | 3 | 0 | 6.0 [4.0, 7.0] | 40.0 | 1 | 1 of 1 / 0 of 2 |"
     assert markdown_release([_rec(1, 0, "success")]) is None  # records from before the trace: no table
+
+
+def test_the_release_is_the_final_let_go_of_a_lifted_cube():
+    """A graze at the start (grasped, never lifted) is no release; the last let-go after a lift is; a cube
+    held again at the end has none."""
+    from types import SimpleNamespace
+
+    from wamplan.evaluation.trace import CubeTrace
+
+    def feed(trace, t, grasped, bottom, xy=0.05):
+        env = SimpleNamespace(metrics=dict(cube_xy_error=xy, cube_bottom=bottom, cube_tilt=0.0, cube_yaw_error=0.0,
+                                           grasped=grasped))
+        trace(env, SimpleNamespace(step=t, proprio=np.zeros(10, np.float32)), None)
+
+    path = [(True, 0.0), (False, 0.0), (True, 0.0), (True, 0.03), (False, 0.028), (True, 0.03), (True, 0.045),
+            (False, 0.044)]  # graze, grasp, lift, drop, regrasp, carry, let go
+    trace = CubeTrace(every=2)
+    for t, (g, b) in enumerate(path):
+        feed(trace, t, g, b, xy=0.01 * t)
+    assert trace.releases == 2 and not trace.held_at_end
+    assert trace.release["t"] == 7 and trace.release["held_mm"] == [60.0, 45.0]
+    assert [r["t"] for r in trace.close()] == [0, 2, 4, 6, 7]
+    feed(trace, 8, True, 0.045)  # grasped again at the end: nothing was let go for good
+    assert trace.release is None and trace.summary()["held_at_end"]

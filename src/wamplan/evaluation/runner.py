@@ -5,7 +5,7 @@ Every condition runs the same seeds. A job is one (condition, seed); a worker bu
 and the world models once and a policy per condition on first use. Re-running the same command skips
 the jobs already recorded, so an interrupted evaluation resumes without repeating or losing episodes.
 Every record also carries the cube's privileged path (``trace``, every ``TRACE_EVERY`` steps), where it was
-first let go (``release``, found at every step) and whether it was still held at the end, for reading
+finally let go (``release``, found at every step) and whether it was still held at the end, for reading
 failures; no policy sees them.
 """
 

@@ -2,8 +2,9 @@
 
 ``CubeTrace`` is a ``run_episode`` hook. Every ``every`` steps it keeps a row of the cube's distance from the
 hole's axis, its height, tilt and yaw, whether the fingers grasp it, and the gripper's opening; at every step
-it watches for the moment that decides the insertion: the first step after a grasp at which the cube is no
-longer grasped, i.e. where and how high it was let go (inside the hole: its bottom below the mount's top).
+it watches for the moment that decides the insertion: the last step at which the cube, once lifted in the
+fingers, stopped being grasped, i.e. where and how high it was finally let go (inside the hole: its bottom
+below the mount's top). Grasps that never lifted the cube (a graze at the start) do not count.
 
     trace = CubeTrace(every=4)
     run_episode(env, policy, seed, on_obs=trace)
@@ -16,23 +17,31 @@ from __future__ import annotations
 
 from typing import Any
 
+LIFTED_MM = 10.0  # the task's "lifted": the cube's bottom this far above the table
 
 class CubeTrace:
-    """``on_obs`` hook: rows every ``every`` steps (:meth:`close` adds the last step), the first release at
-    full resolution (``release``: its row, plus where the cube was on the last step it was held,
-    ``held_mm`` = [xy, bottom]), and how many times the grasp was lost (``releases``)."""
+    """``on_obs`` hook: rows every ``every`` steps (:meth:`close` adds the last step), the final release at
+    full resolution (``release``), and how many times a lifted grasp was lost (``releases``)."""
 
     def __init__(self, every: int = 4):
         if every < 1:
             raise ValueError(f"every must be >= 1 step, got {every}")
         self.every, self.rows = every, []
-        self.release: dict[str, Any] | None = None
         self.releases = 0
         self._last: dict[str, Any] | None = None
+        self._let_go: dict[str, Any] | None = None
+        self._lifted = False
 
     @property
     def held_at_end(self) -> bool:
         return bool(self._last and self._last["grasped"])
+
+    @property
+    def release(self) -> dict[str, Any] | None:
+        """The final let-go: the last step after the cube was first lifted in the fingers at which it was no
+        longer grasped, with where it was on the step before (``held_mm`` = [xy, bottom]); None while it is
+        still held, or if it was never lifted."""
+        return None if self.held_at_end else self._let_go
 
     def __call__(self, env, obs, action) -> None:
         m = env.metrics
@@ -41,10 +50,10 @@ class CubeTrace:
                    tilt=round(m.get("cube_tilt", float("nan")), 4), yaw=round(m.get("cube_yaw_error", float("nan")), 4),
                    grasped=bool(m.get("grasped", False)), grip_mm=round(1000 * float(obs.proprio[0]), 2))
         prev, self._last = self._last, row
-        if prev is not None and prev["grasped"] and not row["grasped"]:
+        self._lifted |= row["grasped"] and row["bottom_mm"] > LIFTED_MM
+        if self._lifted and prev is not None and prev["grasped"] and not row["grasped"]:
             self.releases += 1
-            if self.release is None:
-                self.release = dict(row, held_mm=[prev["xy_mm"], prev["bottom_mm"]])
+            self._let_go = dict(row, held_mm=[prev["xy_mm"], prev["bottom_mm"]])
         if obs.step % self.every == 0:
             self.rows.append(row)
 
@@ -55,5 +64,5 @@ class CubeTrace:
         return self.rows
 
     def summary(self) -> dict[str, Any]:
-        """What a record keeps: the rows, the first release, the number of releases, held at the end."""
+        """What a record keeps: the rows, the final release, the number of releases, held at the end."""
         return dict(trace=self.close(), release=self.release, releases=self.releases, held_at_end=self.held_at_end)
