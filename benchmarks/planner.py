@@ -23,6 +23,7 @@ import torch
 from wamplan.device import resolve_device
 from wamplan.planning import PLANNERS, make_cost, make_planner
 from wamplan.planning.dynamics import LearnedDynamics, PlanningContext
+from wamplan.planning.policy import PlanningError, check_replan_every
 from wamplan.worldmodel.predictor import WorldModelPredictor
 from wamplan.presets import get_world_model_preset as get_preset
 
@@ -101,14 +102,17 @@ def main() -> None:
               f"{steps} rollout steps/chunk: KV-cached search {fast:.3f} s/chunk, naive {slow:.3f} s/chunk, "
               f"speed-up {slow / fast:.2f}x")
         k = args.replan_every
-        if k and (k >= CHUNK or CHUNK % k or k % cfg.frameskip):
-            print(f"[{name}] --replan-every {k} does not fit: it must divide the {CHUNK}-step chunk, be shorter than "
-                  f"it and be a multiple of the frameskip {cfg.frameskip} (as `wamplan eval` requires); not timed")
-        elif k:
-            rests = range(CHUNK - k, 0, -k)  # what each re-plan still covers: 16 - K, 16 - 2K, ...
-            total = fast + sum(time_search(LearnedDynamics(model), ctx, target, planner, args.repeats, r) for r in rests)
-            print(f"[{name}] re-planning every {k} steps ({len(rests)} re-plan(s) of {', '.join(map(str, rests))} steps):"
-                  f" {total:.3f} s/chunk KV-cached, {total / fast:.2f}x the whole-chunk search")
+        if not k:
+            continue
+        try:
+            check_replan_every(k, CHUNK, cfg.frameskip)  # what `wamplan eval` accepts
+        except PlanningError as e:
+            print(f"[{name}] not timed with re-planning: {e}")
+            continue
+        rests = range(CHUNK - k, 0, -k)  # what each re-plan still covers: 16 - K, 16 - 2K, ...
+        total = fast + sum(time_search(LearnedDynamics(model), ctx, target, planner, args.repeats, r) for r in rests)
+        print(f"[{name}] re-planning every {k} steps ({len(rests)} re-plan(s) of {', '.join(map(str, rests))} steps):"
+              f" {total:.3f} s/chunk KV-cached, {total / fast:.2f}x the whole-chunk search")
 
 
 if __name__ == "__main__":

@@ -217,7 +217,7 @@ def test_the_release_is_the_final_let_go_of_a_lifted_cube():
 
     def feed(trace, t, grasped, bottom, xy=0.05):
         env = SimpleNamespace(metrics=dict(cube_xy_error=xy, cube_bottom=bottom, cube_tilt=0.0, cube_yaw_error=0.0,
-                                           grasped=grasped))
+                                           grasped=grasped, lifted=bottom > 0.01))
         trace(env, SimpleNamespace(step=t, proprio=np.zeros(10, np.float32)), None)
 
     path = [(True, 0.0), (False, 0.0), (True, 0.0), (True, 0.03), (False, 0.028), (True, 0.03), (True, 0.045),

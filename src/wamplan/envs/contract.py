@@ -22,9 +22,9 @@ CAMERAS = ("front", "side", "wrist")
 ACTION_DIM = 5
 PROPRIO_DIM = 10
 STAGES = ("grasped", "lifted", "aligned", "descended", "seated")
+ALIGN_XY_TOL = 0.004  # metres: "aligned" needs the cube's centre this close to the hole's axis (and the yaw within 0.1 rad)
 # the task's continuous measures of the cube, in every step's info: metres (xy from the hole's axis; bottom above
 # the table) and radians (yaw from the hole's square; tilt of its axis from vertical)
-ALIGN_XY_TOL = 0.004  # metres: "aligned" needs the cube's centre this close to the hole's axis (and the yaw within 0.1 rad)
 CUBE_METRICS = ("cube_xy_error", "cube_yaw_error", "cube_bottom", "cube_tilt")
 OUTCOMES = ("success", "never_lifted", "lifted_not_aligned", "aligned_not_descended", "descended_not_seated")
 

@@ -218,8 +218,7 @@ def markdown_release(records: list[dict[str, Any]]) -> str | None:
            f"within / beyond |", "|---|---|---|---|---|---|---|---|"]
     for c in sorted(by):
         traced = [r for r in by[c].values() if "release" in r]
-        rel = [(r["release"].get("held_mm", [r["release"]["xy_mm"], r["release"]["bottom_mm"]]), r["success"])
-               for r in traced if r["release"]]
+        rel = [(r["release"]["held_mm"], r["success"]) for r in traced if r["release"]]  # ([xy, bottom] mm, success)
         if not traced:
             continue
         held = sum(bool(r.get("held_at_end")) for r in traced)

@@ -32,6 +32,7 @@ from wamplan.planning.presets import DEFAULT_PLANNER
 
 TRACE_EVERY = 4  # steps between the cube's privileged samples in a record's "trace" (evaluation/trace.py)
 
+
 def _env_default() -> EnvConfig:
     return EnvConfig()
 

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 from typing import Any
 
-LIFTED_MM = 10.0  # the task's "lifted": the cube's bottom this far above the table
 
 class CubeTrace:
     """``on_obs`` hook: rows every ``every`` steps (:meth:`close` adds the last step), the final release at
@@ -50,7 +49,7 @@ class CubeTrace:
                    tilt=round(m.get("cube_tilt", float("nan")), 4), yaw=round(m.get("cube_yaw_error", float("nan")), 4),
                    grasped=bool(m.get("grasped", False)), grip_mm=round(1000 * float(obs.proprio[0]), 2))
         prev, self._last = self._last, row
-        self._lifted |= row["grasped"] and row["bottom_mm"] > LIFTED_MM
+        self._lifted |= row["grasped"] and bool(m.get("lifted", False))  # the task's own "lifted" flag
         if self._lifted and prev is not None and prev["grasped"] and not row["grasped"]:
             self.releases += 1
             self._let_go = dict(row, held_mm=[prev["xy_mm"], prev["bottom_mm"]])

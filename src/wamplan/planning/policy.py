@@ -119,6 +119,18 @@ class PlanningError(UserError):
     """The planned policy was driven in a way that leaves it without the history it needs."""
 
 
+def check_replan_every(k: int, chunk: int, frameskip: int | None) -> None:
+    """Refuse a re-planning period that does not fit: K must divide the ``chunk`` and be shorter than it, and be
+    a multiple of a learned model's ``frameskip`` (None: the simulator, any K) so the rest's rollout ends at
+    the target's step."""
+    if not (k < chunk and chunk % k == 0):
+        raise PlanningError(f"replan_every={k} must divide the WAM's {chunk}-step chunk and be shorter than "
+                            f"it, e.g. {chunk // 2}; or drop it to execute whole chunks")
+    if frameskip is not None and k % frameskip:
+        raise PlanningError(f"replan_every={k} must be a multiple of the world model's frameskip "
+                            f"{frameskip}, so that the rest's rollout ends at the target's step")
+
+
 class PlannedPolicy(Policy):
     name = "planned"
 
@@ -146,12 +158,7 @@ class PlannedPolicy(Policy):
         k = self.config.replan_every
         if k is None:
             return self.chunk
-        if not (k < self.chunk and self.chunk % k == 0):
-            raise PlanningError(f"replan_every={k} must divide the WAM's {self.chunk}-step chunk and be shorter than "
-                                f"it, e.g. {self.chunk // 2}; or drop it to execute whole chunks")
-        if self.dynamics.needs_history and k % self.frameskip:
-            raise PlanningError(f"replan_every={k} must be a multiple of the world model's frameskip "
-                                f"{self.frameskip}, so that the rest's rollout ends at the target's step")
+        check_replan_every(k, self.chunk, self.frameskip if self.dynamics.needs_history else None)
         if getattr(self.planner.config, "num_optimized", None) is not None:
             raise PlanningError("replan_every re-plans the rest of a chunk, all of which the search optimises; "
                                 "drop --num-optimized or --replan-every")
