@@ -334,3 +334,43 @@ def test_a_replan_period_that_does_not_fit_the_chunk_or_frameskip_is_refused(enc
     with pytest.raises(PlanningError, match=match):
         PlannedPolicy(EchoWAM(), planner, LearnedDynamics(_predictor(encoder)), encoder, make_cost("patch"),
                       config=PlannedPolicyConfig(replan_every=k))
+
+
+def test_bias_correction_adds_the_models_error_on_the_chunk_just_run(small_env, encoder):
+    """bias_correction=0.5: at boundary t the model's error on the chunk that just ran (the frame seen at t minus
+    its prediction from the history at t-16 under the executed actions) is measured, and every candidate's
+    predicted terminal embedding gets half of it before the cost; the records say how much of the error the
+    previous chunk's would have removed."""
+    pol = PlannedPolicy(EchoWAM(), _cem(8, 2), LearnedDynamics(_predictor(encoder)), encoder, make_cost("patch"),
+                        config=PlannedPolicyConfig(bias_correction=0.5))
+    contexts, calls = [], []
+    prepare, plan = pol.dynamics.prepare, pol.planner.plan
+    pol.dynamics.prepare = lambda ctx: (contexts.append(ctx), prepare(ctx))[1]
+    pol.planner.plan = lambda init, obj, **kw: (calls.append((obj, pol._bias)), plan(init, obj, **kw))[1]
+    r = run_episode(small_env, pol, seed=3, max_steps=49)
+    chunks = r.policy_info["chunks"]
+    assert [c["planned"] for c in chunks] == [False, True, True, True]
+    assert "bias" not in chunks[1]  # boundary 16: the boundary before it (0) had no history
+    assert "bias" in chunks[2] and "bias_left" not in chunks[2] and "bias_left" in chunks[3]
+    # the bias at 32: frame 32 minus a fresh rollout of the executed 16..31 from the history at 16
+    ref = LearnedDynamics(pol.dynamics.model)
+    ref.prepare(contexts[0])
+    acts = torch.from_numpy(np.stack(pol._executed[16:32]))[None]  # (1, 16, 5)
+    b32, b48 = calls[1][1], calls[2][1]
+    torch.testing.assert_close(b32, pol._frames[32][0] - ref.terminal(acts)[0], rtol=1e-5, atol=1e-5)
+    assert chunks[2]["bias"] == pytest.approx(float(b32.square().mean()), rel=1e-5)
+    assert chunks[3]["bias_left"] == pytest.approx(float((b48 - 0.5 * b32).square().mean()), rel=1e-5)
+    # the objective at 48 scores the prediction shifted by half the bias, toward the target (the views at 48)
+    cands = torch.rand(4, 16, 5, generator=torch.Generator().manual_seed(0)) * 2 - 1
+    costs = calls[2][0](cands)  # the dynamics is still prepared at 48, its last boundary
+    target = pol._frames[48][0]
+    torch.testing.assert_close(costs, pol.cost(pol.dynamics.terminal(cands) + 0.5 * b48, target))
+    assert not torch.allclose(costs, pol.cost(pol.dynamics.terminal(cands), target))
+    with pytest.raises(ValueError, match="bias_correction must be in"):
+        PlannedPolicyConfig(bias_correction=1.5)
+
+
+def test_without_bias_correction_nothing_is_measured(small_env, encoder):
+    pol = PlannedPolicy(EchoWAM(), _cem(4, 1), LearnedDynamics(_predictor(encoder)), encoder, make_cost("patch"))
+    r = run_episode(small_env, pol, seed=3, max_steps=33)
+    assert not any("bias" in c for c in r.policy_info["chunks"]) and pol._bias is None

@@ -33,6 +33,15 @@ ends at the target's step (the paper's Δ = 5 with 16-step chunks has no such K)
 then execute unconditionally. A chunk's ``search_s`` includes its re-plans; ``correction`` and the costs are
 the boundary search's.
 
+Bias correction (``bias_correction`` α, not in the paper; offset-free MPC's disturbance estimate): at boundary t
+the learned model first predicts the frame it is now looking at, from the previous boundary's history under
+the actions actually executed since; the error r = z(t) - ẑ(t) is its bias on the chunk just run. Every
+candidate's predicted terminal embedding then gets α·r added before the cost, on the bet that the model's
+error persists from one chunk to the next (a systematic offset of the cube near the mount, say). The chunk's
+record keeps the bias (``bias``: mean square of r) and how well the previous chunk's bias would have predicted
+it (``bias_left``: mean square of r - α·r_prev), the test of that bet. A boundary whose previous one has no
+history (the first two) or a model whose rollout ends before the boundary (Δ not dividing H) is not corrected.
+
 Warm start (``warm_start="residual"``): a plan covers at most the chunk it refines and the whole chunk is
 executed, so "the previous plan shifted by H" is always empty here; what can carry over is the previous
 chunk's correction (plan minus the WAM's chunk, step by step), added with ``warm_weight`` to the WAM's new
@@ -92,6 +101,10 @@ class PlannedPolicyConfig:
         "(samples around its initial mean: the WAM's chunk, unless warm-started) score below that mean, i.e. the "
         "model sees it as no better than its neighbours; else the WAM's chunk (e.g. 0.5). None = always execute "
         "the plan (the paper)")
+    bias_correction: float = field(
+        0.0, "offset-free planning: add this share of the learned model's error on the chunk just executed (the "
+        "observed frame minus the model's prediction of it from the previous boundary) to every candidate's "
+        "predicted terminal embedding, e.g. 0.5; 0 = off (the paper)")
     replan_every: int | None = field(
         None, "receding horizon: execute this many steps of a planned chunk, then re-plan the rest of it from the "
         "new observation toward the same target (a multiple of the world model's frameskip that divides the "
@@ -111,6 +124,7 @@ class PlannedPolicyConfig:
                 "the search runs only for costs between the two")
         require(self.rank_gate is None or 0.0 < self.rank_gate <= 1.0,
                 f"rank_gate must be in (0, 1] or None, got {self.rank_gate}")
+        require(0.0 <= self.bias_correction <= 1.0, f"bias_correction must be in [0, 1], got {self.bias_correction}")
         require(self.replan_every is None or self.replan_every >= 1,
                 f"replan_every must be >= 1 or None, got {self.replan_every}")
 
@@ -187,6 +201,7 @@ class PlannedPolicy(Policy):
         self._correction: torch.Tensor | None = None  # (H_opt, A) last planned chunk minus its WAM seed
         self._replan: dict[str, Any] | None = None  # the planned chunk being executed: its target and record
         self._episode_seed = seed or 0
+        self._bias: torch.Tensor | None = None  # (V, N, D) the model's error on the chunk before (bias_correction)
 
     def _history_steps(self, t: int) -> list[int]:
         """The steps of the history frames for the chunk boundary t, oldest first."""
@@ -285,10 +300,11 @@ class PlannedPolicy(Policy):
         t2 = time.perf_counter()
         target = self._encode(target_out.images)  # (V, N, D) on the search's device
         t3 = time.perf_counter()
+        bias = self._measure_bias(obs.step, rec) if self.config.bias_correction > 0 else None
         self.dynamics.prepare(context)
         covered = self.dynamics.covered(self.chunk)
         seed = torch.as_tensor(seed_out.actions, device=self.device)[:covered]  # (H_opt, A)
-        objective = self.objective(target)
+        objective = self.objective(target, bias)
         rec.update(wam_s=rec["wam_s"] + t2 - t1, target_encode_s=t3 - t2)
         init, wam_cost = seed, None
         if self.config.gate_threshold is not None or self.config.gate_above is not None or \
@@ -355,18 +371,41 @@ class PlannedPolicy(Policy):
         rec["search_s"] += dt  # a chunk's search time includes its re-plans
         return plan
 
-    def objective(self, target: torch.Tensor):
-        """candidates (B, H_opt, A) -> costs (B,): the cost of the dynamics' prediction against ``target``
-        (V, N, D), plus ``disagreement_weight`` times the ensemble's disagreement."""
+    def objective(self, target: torch.Tensor, bias: torch.Tensor | None = None):
+        """candidates (B, H_opt, A) -> costs (B,): the cost of the dynamics' prediction (plus ``bias_correction``
+        times ``bias`` (V, N, D), when given) against ``target`` (V, N, D), plus ``disagreement_weight`` times
+        the ensemble's disagreement."""
         w = self.config.disagreement_weight
+        shift = None if bias is None else self.config.bias_correction * bias  # (V, N, D)
 
         def objective(cands: torch.Tensor) -> torch.Tensor:
             if w == 0:
-                return self.cost(self.dynamics.terminal(cands), target)  # (B,)
-            z, spread = self.dynamics.predict(cands)  # (B, V, N, D), (B,)
-            return self.cost(z, target) + w * spread.to(self.device)  # (B,)
+                z, spread = self.dynamics.terminal(cands), None  # (B, V, N, D)
+            else:
+                z, spread = self.dynamics.predict(cands)  # (B, V, N, D), (B,)
+            c = self.cost(z if shift is None else z.float() + shift, target)  # (B,)
+            return c if spread is None else c + w * spread.to(self.device)
 
         return objective
+
+    def _measure_bias(self, t: int, rec: dict[str, Any]) -> torch.Tensor | None:
+        """The learned model's error on the chunk that ended at boundary t: the frame seen at t minus its
+        prediction from the previous boundary's history under the executed actions -> (V, N, D), or None where
+        it cannot be measured. Leaves the dynamics prepared at t - H (the caller prepares it again)."""
+        prev, bias_prev = t - self.chunk, self._bias
+        self._bias = None
+        if not self.dynamics.needs_history or prev < 0 or self.dynamics.covered(self.chunk) != self.chunk:
+            return None
+        context = self._context(prev)
+        if context is None:
+            return None
+        acts = torch.from_numpy(np.stack(self._executed[prev:t])).to(self.device)  # (H, A) as executed (clipped)
+        self.dynamics.prepare(context)
+        self._bias = self._frames[t][0] - self.dynamics.terminal(acts[None])[0].float()  # (V, N, D)
+        rec["bias"] = float(self._bias.square().mean())
+        if bias_prev is not None:  # would the chunk before's bias have predicted this one's?
+            rec["bias_left"] = float((self._bias - self.config.bias_correction * bias_prev).square().mean())
+        return self._bias
 
     def _clip(self, actions: torch.Tensor) -> torch.Tensor:
         """The seed as a planner scores it: clipped to the planner's action bounds."""
