@@ -74,3 +74,22 @@ def test_fidelity_of_a_world_model_and_of_the_simulator_against_itself(env):
     assert wrist["augmented"]["model_costs"] != recs[0]["models"]["augmented"]["model_costs"]
     assert wrist["augmented"]["true_costs"] != recs[0]["models"]["augmented"]["true_costs"]
     assert wrist["simulator"]["spearman"] == pytest.approx(1.0, abs=1e-9)
+
+
+def test_a_bias_corrected_twin_scores_the_same_candidates_with_its_correction(env):
+    """Scored(policy=PlannedPolicyConfig(bias_correction=...)) sharing the plain model's dynamics: the same
+    candidates and simulator costs, its own model costs, and the bias measured from the second boundary on."""
+    from wamplan.planning.policy import PlannedPolicyConfig
+
+    wam = load_wam("checkpoints/mini/tinywam", device="cpu")
+    model, enc = load_world_model("checkpoints/mini/wm_augmented")
+    dyn = LearnedDynamics(model)
+    models = [Scored("augmented", dyn, enc), Scored("augmented+bias", dyn, enc, PlannedPolicyConfig(bias_correction=1.0))]
+    cfg = FidelityConfig(num_candidates=4, top_k=2, boundaries=(2, 3), task_metric=False)
+    recs = run_fidelity(env, wam, models, [501], cfg)["records"]
+    assert [r["step"] for r in recs] == [32, 48]
+    for r in recs:
+        plain, fixed = r["models"]["augmented"], r["models"]["augmented+bias"]
+        assert plain["true_costs"] == fixed["true_costs"] and plain["model_costs"] != fixed["model_costs"]
+        assert "bias" not in plain and fixed["bias"] > 0
+    assert "bias_left" not in recs[0]["models"]["augmented+bias"] and recs[1]["models"]["augmented+bias"]["bias_left"] > 0

@@ -38,7 +38,7 @@ from wamplan.config import field, require
 from wamplan.planning.base import IterationStats, PlanResult, candidate_noise
 from wamplan.planning.costs import CostFn, make_cost
 from wamplan.planning.dynamics import Dynamics, SimulatorDynamics
-from wamplan.planning.policy import PlannedPolicy
+from wamplan.planning.policy import PlannedPolicy, PlannedPolicyConfig
 from wamplan.envs.contract import Observation
 from wamplan.policies.base import Policy
 from wamplan.wam.base import WAM, WAMOutput
@@ -194,6 +194,7 @@ class Scored:
     label: str
     dynamics: Dynamics
     encoder: Any
+    policy: PlannedPolicyConfig | None = None  # e.g. bias_correction: the model scored as that policy would
 
 
 class FidelityPolicy(Policy):
@@ -209,8 +210,8 @@ class FidelityPolicy(Policy):
         cost = cost or make_cost("patch")
         self.labels = [m.label for m in models]
         self.scorers = {m.label: _Scorer() for m in models}
-        self.policies = {m.label: PlannedPolicy(self.wam, self.scorers[m.label], m.dynamics, m.encoder, cost)
-                         for m in models}
+        self.policies = {m.label: PlannedPolicy(self.wam, self.scorers[m.label], m.dynamics, m.encoder, cost,
+                                                config=m.policy) for m in models}
         self.reference: dict[str, str] = {}  # label -> simulator reference key (one per distinct encoder)
         self.sim_policies: dict[str, PlannedPolicy] = {}
         for m in models:
@@ -265,7 +266,8 @@ class FidelityPolicy(Policy):
                 true = self.scorers["sim:" + self.reference[label]].costs
                 n = self.policies[label].dynamics.covered(self.chunk)  # the steps this model scores
                 shift = (cands - cands[:1])[:, :n].sum(dim=1)[:, :-1]  # (N, A-1): arm end-point shift (gripper last)
-                rec["models"][label] = dict(boundary_stats(model, true, self.cfg.top_k, shift),
+                bias = {k: v for k, v in self.policies[label].chunks[-1].items() if k in ("bias", "bias_left")}
+                rec["models"][label] = dict(boundary_stats(model, true, self.cfg.top_k, shift), **bias,
                                             model_costs=model.tolist(), true_costs=true.tolist())
             if self.cfg.task_metric:
                 rec["task"] = self._task(self.scorers[self.labels[0]].candidates)

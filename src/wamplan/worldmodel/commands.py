@@ -105,6 +105,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--cost-view-weights", type=float, nargs="+", default=None,
                    help="per-view weights of the planning cost (front side wrist), as `eval --cost-view-weights`; "
                         "both the model's and the simulator's costs use them")
+    p.add_argument("--bias-correction", type=float, default=None, metavar="A",
+                   help="also score every model with `eval --bias-correction A` (its error on the chunk just run "
+                        "added to its predictions), as LABEL+bias; the same candidates, dynamics and references")
     p.add_argument("--device", default="cpu")
     p.add_argument("--json", type=Path, default=None)
     p.set_defaults(func=cmd_fidelity)
@@ -233,6 +236,7 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
     from wamplan.envs.core import EnvConfig, InsertionEnv
     from wamplan.planning.dynamics import learned_dynamics
     from wamplan.planning.fidelity import FidelityConfig, Scored, format_fidelity, run_fidelity
+    from wamplan.planning.policy import PlannedPolicyConfig
     from wamplan.wam import load_wam
     from wamplan.worldmodel.train import load_world_model
 
@@ -250,6 +254,9 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
                 raise UserError(f"--wm {path} does not exist; pass a world-model checkpoint directory")
             loaded.append(load_world_model(path, device=args.device))
         models.append(Scored(label, *learned_dynamics(loaded)))
+        if args.bias_correction is not None:  # the same model (and dynamics object), scored as the corrected policy
+            models.append(Scored(f"{label}+bias", models[-1].dynamics, models[-1].encoder,
+                                 PlannedPolicyConfig(bias_correction=args.bias_correction)))
     wam = load_wam(args.wam, device=args.device)
     env = InsertionEnv(EnvConfig(camera_size=args.camera_size))
 
