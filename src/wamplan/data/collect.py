@@ -22,7 +22,7 @@ import numpy as np
 from wamplan.data.store import EpisodeData, EpisodeStore
 from wamplan.envs.contract import CAMERAS
 from wamplan.envs.core import EnvConfig, InsertionEnv
-from wamplan.errors import UserError
+from wamplan.errors import UserError, require_paths
 from wamplan.parallel import Backend, imap_workers
 from wamplan.policies.base import Policy, make_policy
 from wamplan.policies.rollout import run_episode
@@ -176,9 +176,7 @@ def collect(source: str, episodes: int, out: str | Path, *, seed_start: int = 0,
             if loader is make_policy:
                 raise UserError("plan_with builds a planned WAM, which the registered policies' loader cannot: pass "
                                 "loader=wamplan.evaluation.policies.load_policy")
-            if missing := [p for p in plan_with.split(",") if not p or not Path(p).exists()]:
-                raise UserError(f"--plan-with {missing[0]} does not exist; pass a world model checkpoint "
-                                f"(e.g. from `wamplan wm train`)")
+            require_paths(plan_with.split(","), "--plan-with", "pass a world model checkpoint (e.g. from `wamplan wm train`)")
             tag += "+plan:" + "+".join(Path(p).resolve().name for p in plan_with.split(","))
             policy_kwargs = dict(policy_kwargs or {}, plan_with=plan_with)
     elif plan_with:

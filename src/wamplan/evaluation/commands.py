@@ -58,14 +58,13 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_explain(args: argparse.Namespace) -> int:
-    from wamplan.errors import UserError
+    from wamplan.errors import require_paths
     from wamplan.evaluation.mechanism import explain_chunk, mechanism_figure
     from wamplan.evaluation.options import eval_config_from_args
 
     cfg = eval_config_from_args(args)
     cfg.check_for([7])
-    if not Path(args.decoder).exists():
-        raise UserError(f"--decoder {args.decoder} does not exist; train one with `wamplan wm train-decoder`")
+    require_paths([args.decoder], "--decoder", "train one with `wamplan wm train-decoder`")
     m = explain_chunk(cfg, args.decoder, args.seed, args.chunk)
     title = (f"seed {args.seed}, chunk {args.chunk}: WAM {Path(cfg.wam).name}, world model "
              f"{Path(cfg.wm_augmented).name}, planner {cfg.planner}")

@@ -68,7 +68,7 @@ class EvalConfig:
         object.__setattr__(self, "planner_config", pc)
 
     def check_for(self, conditions: list[int]) -> None:
-        from wamplan.errors import UserError
+        from wamplan.errors import UserError, require_paths
 
         if not self.wam and not self.wam_url:
             raise UserError("--wam CKPT is required (a WAM checkpoint, e.g. from `wamplan wam train`), or "
@@ -87,11 +87,9 @@ class EvalConfig:
                 attr, flag = need[CONDITIONS[c].dynamics]
                 if not getattr(self, attr):
                     raise UserError(f"condition {c} needs {flag} CKPT (a world model from `wamplan wm train`)")
-                for path in getattr(self, attr).split(","):
-                    if not Path(path).exists():
-                        raise UserError(f"{flag} {path} does not exist; train it or fix the path")
-        if self.wam and not Path(self.wam).exists():
-            raise UserError(f"--wam {self.wam} does not exist; train one with `wamplan wam train` or fix the path")
+                require_paths(getattr(self, attr).split(","), flag, "train it or fix the path")
+        if self.wam:
+            require_paths([self.wam], "--wam", "train one with `wamplan wam train` or fix the path")
 
 
 class EvalWorker:

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from wamplan.config import add_arguments, from_args
 from wamplan.envs.contract import CAMERAS
-from wamplan.errors import UserError
+from wamplan.errors import UserError, require_paths
 from wamplan.registry import register_command
 from wamplan.worldmodel.config import TrainConfig
 
@@ -248,11 +248,9 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
     for spec in (s for s in args.wm.split(",") if s):
         label, _, paths = spec.rpartition("=")
         label = label or "+".join(Path(p).name for p in paths.split("+"))
-        loaded = []
-        for path in paths.split("+"):  # A+B+C: an ensemble, its mean prediction scored (as --wm-augmented A,B,C)
-            if not Path(path).exists():
-                raise UserError(f"--wm {path} does not exist; pass a world-model checkpoint directory")
-            loaded.append(load_world_model(path, device=args.device))
+        require_paths(paths.split("+"), "--wm", "pass a world-model checkpoint directory")
+        # A+B+C: an ensemble, its mean prediction scored (as --wm-augmented A,B,C)
+        loaded = [load_world_model(path, device=args.device) for path in paths.split("+")]
         models.append(Scored(label, *learned_dynamics(loaded)))
         if args.bias_correction is not None:  # the same model (and dynamics object), scored as the corrected policy
             models.append(Scored(f"{label}+bias", models[-1].dynamics, models[-1].encoder,
