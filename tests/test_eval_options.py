@@ -182,3 +182,16 @@ def test_eval_plans_with_a_served_wam_through_a_profile(tmp_path, capsys):
     assert wam.seen[0] == ((10,), {c: (224, 224, 3) for c in ("front", "side", "wrist")},
                            "insert the cube into the square hole")
     assert len(wam.seen) == 2  # steps 0 and 16: one query per 16-step chunk
+
+
+def test_a_missing_checkpoint_is_named_with_its_flag_and_fix(tmp_path):
+    """Every world model of a comma list must exist; the first one missing (an empty one included) is named."""
+    ok = str(tmp_path)
+    cfg = _cfg("--wam", ok, "--wm-augmented", f"{ok},{tmp_path / 'gone'}")
+    with pytest.raises(UserError, match=r"^--wm-augmented .*gone does not exist; train it or fix the path$"):
+        cfg.check_for([7])
+    with pytest.raises(UserError, match=r"^--wm-augmented \(empty\) does not exist"):
+        _cfg("--wam", ok, "--wm-augmented", f"{ok},").check_for([7])
+    with pytest.raises(UserError, match=r"^--wam .*nowhere does not exist; train one with `wamplan wam train`"):
+        _cfg("--wam", str(tmp_path / "nowhere")).check_for([1])
+    _cfg("--wam", ok, "--wm-augmented", f"{ok},{ok}").check_for([1, 7])  # all there: no error
