@@ -347,9 +347,12 @@ def test_bias_correction_adds_the_models_error_on_the_chunk_just_run(small_env, 
     prepare, plan = pol.dynamics.prepare, pol.planner.plan
     pol.dynamics.prepare = lambda ctx: (contexts.append(ctx), prepare(ctx))[1]
     pol.planner.plan = lambda init, obj, **kw: (calls.append((obj, pol._bias)), plan(init, obj, **kw))[1]
-    r = run_episode(small_env, pol, seed=3, max_steps=49)
+    executed = []
+    r = run_episode(small_env, pol, seed=3, max_steps=49, on_obs=lambda e, o, a: executed.append(a))
     chunks = r.policy_info["chunks"]
     assert [c["planned"] for c in chunks] == [False, True, True, True]
+    assert len(pol._executed) == 49  # one entry a step: _executed[16:32] is what ran from frame 16 to frame 32
+    np.testing.assert_allclose(np.stack(pol._executed[16:32]), np.clip(np.stack(executed[17:33]), -1, 1), atol=0)
     assert "bias" not in chunks[1]  # boundary 16: the boundary before it (0) had no history
     assert "bias" in chunks[2] and "bias_left" not in chunks[2] and "bias_left" in chunks[3]
     # the bias at 32: frame 32 minus a fresh rollout of the executed 16..31 from the history at 16
@@ -368,6 +371,22 @@ def test_bias_correction_adds_the_models_error_on_the_chunk_just_run(small_env, 
     assert not torch.allclose(costs, pol.cost(pol.dynamics.terminal(cands), target))
     with pytest.raises(ValueError, match="bias_correction must be in"):
         PlannedPolicyConfig(bias_correction=1.5)
+    from wamplan.planning.policy import PlanningError
+
+    for dyn, cfg, match in ((LearnedDynamics(_delta5_predictor(encoder)), {}, "frameskip 5 does not divide"),
+                            (LearnedDynamics(_predictor(encoder)), dict(replan_every=8), "drop --replan-every")):
+        with pytest.raises(PlanningError, match=match):
+            PlannedPolicy(EchoWAM(), _cem(4, 1), dyn, encoder, make_cost("patch"),
+                          config=PlannedPolicyConfig(bias_correction=0.5, **cfg))
+
+
+def test_bias_correction_skips_a_rest_state_history(small_env, encoder):
+    """first_chunk=rest-history plans chunk 0 from a synthetic history; the bias is measured from real ones only."""
+    pol = PlannedPolicy(EchoWAM(), _cem(4, 1), LearnedDynamics(_predictor(encoder)), encoder, make_cost("patch"),
+                        config=PlannedPolicyConfig(bias_correction=0.5, first_chunk="rest-history"))
+    chunks = run_episode(small_env, pol, seed=3, max_steps=33).policy_info["chunks"]
+    assert [c["planned"] for c in chunks] == [True, True, True]
+    assert "bias" not in chunks[1] and "bias" in chunks[2]
 
 
 def test_without_bias_correction_nothing_is_measured(small_env, encoder):

@@ -39,8 +39,11 @@ the actions actually executed since; the error r = z(t) - ẑ(t) is its bias on 
 candidate's predicted terminal embedding then gets α·r added before the cost, on the bet that the model's
 error persists from one chunk to the next (a systematic offset of the cube near the mount, say). The chunk's
 record keeps the bias (``bias``: mean square of r) and how well the previous chunk's bias would have predicted
-it (``bias_left``: mean square of r - α·r_prev), the test of that bet. A boundary whose previous one has no
-history (the first two) or a model whose rollout ends before the boundary (Δ not dividing H) is not corrected.
+it (``bias_left``: mean square of r - α·r_prev), the test of that bet. A boundary whose previous boundary's
+history reaches before step 0 is not corrected (a rest-state history is synthetic, not the model's regime);
+the gates compare corrected costs, and the measurement's rollout counts in ``search_s``. It needs a learned
+model whose rollout ends at the boundary (Δ dividing H) and whole chunks (no ``replan_every``: a re-plan's
+shorter rollout from a fresh frame has another error).
 
 Warm start (``warm_start="residual"``): a plan covers at most the chunk it refines and the whole chunk is
 executed, so "the previous plan shifted by H" is always empty here; what can carry over is the previous
@@ -104,7 +107,7 @@ class PlannedPolicyConfig:
     bias_correction: float = field(
         0.0, "offset-free planning: add this share of the learned model's error on the chunk just executed (the "
         "observed frame minus the model's prediction of it from the previous boundary) to every candidate's "
-        "predicted terminal embedding, e.g. 0.5; 0 = off (the paper)")
+        "predicted terminal embedding, e.g. 0.5; the gates then compare corrected costs. 0 = off (the paper)")
     replan_every: int | None = field(
         None, "receding horizon: execute this many steps of a planned chunk, then re-plan the rest of it from the "
         "new observation toward the same target (a multiple of the world model's frameskip that divides the "
@@ -163,6 +166,14 @@ class PlannedPolicy(Policy):
         if self.config.rank_gate is not None and not getattr(planner.config, "include_mean", False):
             raise PlanningError("rank_gate compares the WAM's chunk with the search's first samples, so the planner "
                                 "must score it: drop --no-include-mean or the rank gate")
+        if self.config.bias_correction > 0 and dynamics.needs_history:
+            if dynamics.covered(self.chunk) != self.chunk:
+                raise PlanningError(f"bias_correction compares the model's prediction with the frame at the next "
+                                    f"boundary, but its frameskip {self.frameskip} does not divide the "
+                                    f"{self.chunk}-step chunk; drop --bias-correction")
+            if self.config.replan_every is not None:
+                raise PlanningError("bias_correction measures the error of whole chunks; drop --replan-every or "
+                                    "--bias-correction")
         if self.config.disagreement_weight > 0 and isinstance(dynamics, LearnedDynamics):
             raise PlanningError("disagreement_weight needs an ensemble of world models, got one; pass several "
                                 "comma-separated checkpoints (e.g. --wm-augmented A,B,C) or set it to 0")
@@ -394,12 +405,10 @@ class PlannedPolicy(Policy):
         it cannot be measured. Leaves the dynamics prepared at t - H (the caller prepares it again)."""
         prev, bias_prev = t - self.chunk, self._bias
         self._bias = None
-        if not self.dynamics.needs_history or prev < 0 or self.dynamics.covered(self.chunk) != self.chunk:
-            return None
+        if not self.dynamics.needs_history or self._history_steps(prev)[0] < 0:
+            return None  # the simulator has no bias; a history before step 0 is not a real one
         context = self._context(prev)
-        if context is None:
-            return None
-        acts = torch.from_numpy(np.stack(self._executed[prev:t])).to(self.device)  # (H, A) as executed (clipped)
+        acts = torch.from_numpy(np.stack(self._executed[prev:t]).astype(np.float32)).to(self.device)  # (H, A)
         self.dynamics.prepare(context)
         self._bias = self._frames[t][0] - self.dynamics.terminal(acts[None])[0].float()  # (V, N, D)
         rec["bias"] = float(self._bias.square().mean())
