@@ -84,7 +84,8 @@ def test_a_bias_corrected_twin_scores_the_same_candidates_with_its_correction(en
     wam = load_wam("checkpoints/mini/tinywam", device="cpu")
     model, enc = load_world_model("checkpoints/mini/wm_augmented")
     dyn = LearnedDynamics(model)
-    models = [Scored("augmented", dyn, enc), Scored("augmented+bias", dyn, enc, PlannedPolicyConfig(bias_correction=1.0))]
+    models = [Scored("augmented", dyn, enc),
+              Scored("augmented+bias", dyn, enc, PlannedPolicyConfig(bias_correction=1.0))]
     cfg = FidelityConfig(num_candidates=4, top_k=2, boundaries=(2, 3), task_metric=False)
     recs = run_fidelity(env, wam, models, [501], cfg)["records"]
     assert [r["step"] for r in recs] == [32, 48]
@@ -92,4 +93,5 @@ def test_a_bias_corrected_twin_scores_the_same_candidates_with_its_correction(en
         plain, fixed = r["models"]["augmented"], r["models"]["augmented+bias"]
         assert plain["true_costs"] == fixed["true_costs"] and plain["model_costs"] != fixed["model_costs"]
         assert "bias" not in plain and fixed["bias"] > 0
-    assert "bias_left" not in recs[0]["models"]["augmented+bias"] and recs[1]["models"]["augmented+bias"]["bias_left"] > 0
+    fixed = [r["models"]["augmented+bias"] for r in recs]
+    assert "bias_left" not in fixed[0] and fixed[1]["bias_left"] > 0

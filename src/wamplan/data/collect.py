@@ -176,7 +176,8 @@ def collect(source: str, episodes: int, out: str | Path, *, seed_start: int = 0,
             if loader is make_policy:
                 raise UserError("plan_with builds a planned WAM, which the registered policies' loader cannot: pass "
                                 "loader=wamplan.evaluation.policies.load_policy")
-            require_paths(plan_with.split(","), "--plan-with", "pass a world model checkpoint (e.g. from `wamplan wm train`)")
+            require_paths(plan_with.split(","), "--plan-with",
+                          "pass a world model checkpoint (e.g. from `wamplan wm train`)")
             tag += "+plan:" + "+".join(Path(p).resolve().name for p in plan_with.split(","))
             policy_kwargs = dict(policy_kwargs or {}, plan_with=plan_with)
     elif plan_with:

@@ -247,10 +247,10 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
     models = []
     for spec in (s for s in args.wm.split(",") if s):
         label, _, paths = spec.rpartition("=")
-        label = label or "+".join(Path(p).name for p in paths.split("+"))
-        require_paths(paths.split("+"), "--wm", "pass a world-model checkpoint directory")
-        # A+B+C: an ensemble, its mean prediction scored (as --wm-augmented A,B,C)
-        loaded = [load_world_model(path, device=args.device) for path in paths.split("+")]
+        members = paths.split("+")  # A+B+C: an ensemble, its mean prediction scored (as --wm-augmented A,B,C)
+        label = label or "+".join(Path(p).name for p in members)
+        require_paths(members, "--wm", "pass a world-model checkpoint directory")
+        loaded = [load_world_model(path, device=args.device) for path in members]
         models.append(Scored(label, *learned_dynamics(loaded)))
         if args.bias_correction is not None:  # the same model (and dynamics object), scored as the corrected policy
             models.append(Scored(f"{label}+bias", models[-1].dynamics, models[-1].encoder,
