@@ -77,6 +77,22 @@ def test_branches_share_their_parents_split_and_stay_in_their_seed_space(small_e
         collect_branched(small_env, make_policy("expert"), 3, "policy:expert", 4, BranchSpec(branches=60))
 
 
+def test_branch_steps_restrict_the_boundaries(small_env, tmp_path, capsys):
+    spec = BranchSpec(branches=1, chunk=16, context_steps=8, sigmas=(0.1,), steps=(30, 40))
+    parent, branches = collect_branched(small_env, make_policy("expert"), 5, "policy:expert", 4, spec, max_steps=56)
+    assert [b.policy["branch_step"] for b in branches] == [32]  # 16 and 48 lie outside 30..40 (48 also ends late)
+    with pytest.raises(ValueError, match="lo <= hi"):
+        BranchSpec(steps=(40, 30))
+    from wamplan.cli import main
+
+    base = ["collect", "--source", "policy", "--policy", "expert", "--episodes", "1", "--out", str(tmp_path / "x")]
+    assert main(base + ["--branch-steps", "96", "128"]) == 2
+    assert "add --branches N" in capsys.readouterr().err
+    assert main(base + ["--branches", "2", "--branch-steps", "128", "96"]) == 2
+    assert "LO <= HI" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
+
+
 def test_branch_groups_stack_the_siblings_of_each_boundary(tmp_path, capsys):
     """BranchGroups: one item per boundary, its siblings' windows stacked; they share the context (frames up to
     the boundary and the actions before it) and differ in the chunk and the future."""

@@ -6,7 +6,8 @@ the model which of two close chunks lands the cube nearer the hole (``wamplan wm
 the consequence: a rank correlation of 0.1-0.2 with the simulator's ranking of CEM's candidates).
 
 ``collect_branched`` runs the policy's episode as ``collect_one`` does and snapshots the simulator at
-every chunk boundary t (t = H, 2H, ... with at least ``context_steps`` of history). After the episode it
+every chunk boundary t (t = H, 2H, ... with at least ``context_steps`` of history; only those within
+``steps`` when it is set, e.g. the descent onto the mount, where the planner's choices decide the outcome). After the episode it
 restores each snapshot and executes ``branches`` chunks drawn as CEM draws its candidates: the chunk the
 policy executed from t plus Gaussian noise (one ``sigma`` per branch, cycling through ``sigmas``),
 clipped to the action bounds. Each branch is stored as its own short episode in the ordinary schema,
@@ -41,10 +42,16 @@ class BranchSpec:
     context_steps: int = 8  # history kept before t: (H_ctx - 1) * Δ of the world model
     sigmas: tuple[float, ...] = (0.05, 0.1, 0.2)  # noise std per branch, cycled
     rng_seed: int = 0
+    steps: tuple[int, int] | None = None  # (lo, hi): branch only the boundaries t with lo <= t <= hi
 
     def __post_init__(self):
         if self.branches <= 0 or self.chunk <= 0 or self.context_steps < 0 or not self.sigmas:
             raise ValueError(f"invalid branch spec {self}")
+        if self.steps is not None and not (len(self.steps) == 2 and 0 <= self.steps[0] <= self.steps[1]):
+            raise ValueError(f"branch steps {self.steps} must be two steps lo <= hi")
+
+    def branches_at(self, t: int) -> bool:
+        return self.steps is None or self.steps[0] <= t <= self.steps[1]
 
 
 def branch_source(parent_source: str) -> str:
@@ -73,7 +80,8 @@ def collect_branched(env: InsertionEnv, policy: Policy, seed: int, source: str, 
 
     def at_boundary(e: InsertionEnv, obs, action) -> None:
         t = obs.step
-        if t % spec.chunk == 0 and t >= max(spec.context_steps, 1) and t + spec.chunk <= limit:
+        if (t % spec.chunk == 0 and t >= max(spec.context_steps, 1) and t + spec.chunk <= limit
+                and spec.branches_at(t)):
             snaps[t] = e.snapshot()
 
     parent = collect_one(env, policy, seed, source, image_every, max_steps, on_step=at_boundary)

@@ -42,6 +42,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "(the policy's chunk plus Gaussian noise; wamplan/data/branch.py)")
     p.add_argument("--branch-sigmas", type=float, nargs="+", default=[0.05, 0.1, 0.2],
                    help="noise std of the branches, cycled (default: 0.05 0.1 0.2)")
+    p.add_argument("--branch-steps", type=int, nargs=2, metavar=("LO", "HI"),
+                   help="branch only the chunk boundaries at steps LO..HI (default: every boundary), to aim the "
+                        "data at one phase of the task, e.g. 96 128 for the descent onto the mount")
     p.add_argument("--branch-context", type=int, default=8,
                    help="steps of the parent's history each branch episode keeps: (H_ctx - 1) x frameskip")
     add_arguments(p, EnvConfig)
@@ -89,13 +92,18 @@ def cmd_collect(args: argparse.Namespace) -> int:
     from wamplan.parallel import Backend
 
     branch = None
+    if args.branch_steps and not args.branches:
+        raise UserError("--branch-steps chooses where to branch: add --branches N (branches per boundary)")
     if args.branches:
         from wamplan.data.branch import BranchSpec
 
         if args.branches < 0 or min(args.branch_sigmas) <= 0 or args.branch_context < 0:
             raise UserError("--branches, --branch-sigmas and --branch-context must be positive")
+        steps = tuple(args.branch_steps) if args.branch_steps else None
+        if steps and not 0 <= steps[0] <= steps[1]:
+            raise UserError(f"--branch-steps {steps[0]} {steps[1]}: give two steps LO <= HI, both >= 0")
         branch = BranchSpec(branches=args.branches, sigmas=tuple(args.branch_sigmas),
-                            context_steps=args.branch_context)
+                            context_steps=args.branch_context, steps=steps)
     summary = collect(args.source, args.episodes, args.out, seed_start=args.seed_start, workers=args.workers,
                       policy=args.policy, image_every=args.image_every, max_steps=args.max_steps,
                       env=from_args(EnvConfig, args), loader=load_policy, backend=Backend.from_option(args.ray),
