@@ -124,6 +124,11 @@ def test_branch_groups_stack_the_siblings_of_each_boundary(tmp_path, capsys):
                  "--sibling-weight", "1", "--sibling-groups", "2", "--log-every-steps", "1"]) == 0
     logged = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
     assert any("train/sib_mse_h4" in m for m in logged)
+    # `wm eval` scores the same groups: the share of the siblings' differences the model misses
+    assert main(["wm", "eval", "--ckpt", str(run / "checkpoint"), "--data", str(out), "--split", "all",
+                 "--json", str(tmp_path / "eval.json")]) == 0
+    scored = json.loads((tmp_path / "eval.json").read_text())
+    assert scored["sibling_groups"] == 2 and 0 < scored["sib_rel_h4"] < 10 and scored["sib_mse_h4"] > 0
     store = EpisodeStore(out)
     for s in store.finished_seeds("branch:expert"):
         store.episode_path("branch:expert", s).unlink()

@@ -52,7 +52,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         add_arguments(p, TrainConfig)
         p.set_defaults(func=func)
 
-    p = s.add_parser("eval", help="held-out latent errors per horizon against copying the last frame (JSON)")
+    p = s.add_parser("eval", help="held-out latent errors per horizon against copying the last frame, and on "
+                                  "counterfactual branch groups the share of sibling differences missed (JSON)")
     p.add_argument("--ckpt", type=Path, required=True)
     p.add_argument("--data", required=True)
     p.add_argument("--horizon", type=int, default=4, help="autoregressive steps to score")
@@ -153,9 +154,9 @@ def cmd_train_decoder(args: argparse.Namespace) -> int:
 
 def cmd_eval(args: argparse.Namespace) -> int:
     from wamplan.data.features import feature_key
-    from wamplan.data.readers import WorldModelWindows
+    from wamplan.data.readers import BranchGroups, WorldModelWindows
     from wamplan.worldmodel.stores import encode_stores
-    from wamplan.worldmodel.train import evaluate_predictor, load_world_model
+    from wamplan.worldmodel.train import evaluate_predictor, evaluate_siblings, load_world_model
 
     model, enc = load_world_model(args.ckpt)
     stores = _stores(args.data)
@@ -166,6 +167,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if len(ds) == 0:
         raise UserError(f"no {args.split} windows of {model.cfg.context}+{args.horizon} frames in {args.data}")
     m = evaluate_predictor(model, ds, args.horizon, 0.95)
+    groups = BranchGroups(stores, model.cfg.frameskip, model.cfg.context, args.horizon, split=args.split,
+                          val_fraction=args.val_fraction, features=feature_key(enc.config_dict()))
+    if len(groups):  # the data has counterfactual branches: how well the model tells sibling chunks apart
+        m.update(evaluate_siblings(model, groups, args.horizon), sibling_groups=len(groups))
     out = dict(ckpt=str(args.ckpt), data=args.data, split=args.split, windows=len(ds), horizon=args.horizon,
                frameskip=model.cfg.frameskip, **m)
     print(json.dumps(out, indent=1))
