@@ -95,3 +95,14 @@ def test_a_bias_corrected_twin_scores_the_same_candidates_with_its_correction(en
         assert "bias" not in plain and fixed["bias"] > 0
     fixed = [r["models"]["augmented+bias"] for r in recs]
     assert "bias_left" not in fixed[0] and fixed[1]["bias_left"] > 0
+
+
+def test_fidelity_cli_refuses_labels_that_collide_before_loading_anything(capsys):
+    from wamplan.cli import main
+
+    wm = "checkpoints/mini/wm_augmented"
+    base = ["wm", "fidelity", "--wam", "checkpoints/mini/tinywam", "--seeds", "500"]
+    assert main(base + ["--wm", f"a={wm},a=/no/such/dir"]) == 2  # the label is checked before the paths
+    assert "a appears twice" in capsys.readouterr().err
+    assert main(base + ["--wm", f"x={wm},x+bias={wm}", "--bias-correction", "0.5"]) == 2
+    assert "x+bias appears twice" in capsys.readouterr().err

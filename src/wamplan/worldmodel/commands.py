@@ -249,11 +249,18 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
                          top_k=args.top_k,
                          boundaries=tuple(_seed_list(args.boundaries, "--boundaries")), seed=args.sample_seed)
     seeds = _seed_list(args.seeds)
-    models = []
+    specs = []
     for spec in (s for s in args.wm.split(",") if s):
         label, _, paths = spec.rpartition("=")
         members = paths.split("+")  # A+B+C: an ensemble, its mean prediction scored (as --wm-augmented A,B,C)
-        label = label or "+".join(Path(p).name for p in members)
+        specs.append((label or "+".join(Path(p).name for p in members), members))
+    labels = [lab for lab, _ in specs] + ([f"{lab}+bias" for lab, _ in specs] if args.bias_correction is not None else [])
+    if len(set(labels)) < len(labels):
+        dup = sorted({lab for lab in labels if labels.count(lab) > 1})
+        raise UserError(f"--wm labels must differ (the corrected twins are LABEL+bias): {', '.join(dup)} appears twice; "
+                        f"name each model, e.g. --wm shipped=DIR,new=DIR")
+    models = []
+    for label, members in specs:
         require_paths(members, "--wm", "pass a world-model checkpoint directory")
         loaded = [load_world_model(path, device=args.device) for path in members]
         models.append(Scored(label, *learned_dynamics(loaded)))
