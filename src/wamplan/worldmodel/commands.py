@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from collections import Counter
 import json
 from pathlib import Path
 
@@ -254,18 +255,21 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
         label, _, paths = spec.rpartition("=")
         members = paths.split("+")  # A+B+C: an ensemble, its mean prediction scored (as --wm-augmented A,B,C)
         specs.append((label or "+".join(Path(p).name for p in members), members))
-    labels = [lab for lab, _ in specs] + ([f"{lab}+bias" for lab, _ in specs] if args.bias_correction is not None else [])
-    if len(set(labels)) < len(labels):
-        dup = sorted({lab for lab in labels if labels.count(lab) > 1})
-        raise UserError(f"--wm labels must differ (the corrected twins are LABEL+bias): {', '.join(dup)} appears twice; "
-                        f"name each model, e.g. --wm shipped=DIR,new=DIR")
+    twin = "{}+bias".format  # the label of a model's bias-corrected twin
+    labels = [lab for lab, _ in specs]
+    if args.bias_correction is not None:
+        labels += [twin(lab) for lab in labels]
+    dup = sorted(lab for lab, n in Counter(labels).items() if n > 1)
+    if dup:
+        raise UserError(f"--wm labels must differ (the corrected twins are LABEL+bias): {', '.join(dup)} appears "
+                        f"twice; name each model, e.g. --wm shipped=DIR,new=DIR")
     models = []
     for label, members in specs:
         require_paths(members, "--wm", "pass a world-model checkpoint directory")
         loaded = [load_world_model(path, device=args.device) for path in members]
         models.append(Scored(label, *learned_dynamics(loaded)))
         if args.bias_correction is not None:  # the same model (and dynamics object), scored as the corrected policy
-            models.append(Scored(f"{label}+bias", models[-1].dynamics, models[-1].encoder,
+            models.append(Scored(twin(label), models[-1].dynamics, models[-1].encoder,
                                  PlannedPolicyConfig(bias_correction=args.bias_correction)))
     wam = load_wam(args.wam, device=args.device)
     env = InsertionEnv(EnvConfig(camera_size=args.camera_size))
