@@ -129,6 +129,8 @@ def test_branch_groups_stack_the_siblings_of_each_boundary(tmp_path, capsys):
                  "--json", str(tmp_path / "eval.json")]) == 0
     scored = json.loads((tmp_path / "eval.json").read_text())
     assert scored["sibling_groups"] == 2 and 0 < scored["sib_rel_h4"] < 10 and scored["sib_mse_h4"] > 0
+    # the gain is the slope of predicted on true sibling differences, so (Cauchy-Schwarz) sib_rel >= (1 - gain)^2
+    assert scored["sib_rel_h4"] >= (1 - scored["sib_gain_h4"]) ** 2 - 1e-6
     store = EpisodeStore(out)
     for s in store.finished_seeds("branch:expert"):
         store.episode_path("branch:expert", s).unlink()

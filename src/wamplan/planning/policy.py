@@ -113,6 +113,11 @@ class PlannedPolicyConfig:
         "new observation toward the same target (a multiple of the world model's frameskip that divides the "
         "chunk, e.g. 8 for the mini preset's 16-step chunks and frameskip 4; the paper preset's frameskip 5 has "
         "none). Re-plans are not gated or trust-tested. None = execute the whole chunk (the paper)")
+    correction_gain: float = field(
+        1.0, "damped planning: execute the WAM's chunk plus this share of the planned correction (plan minus the "
+        "WAM's chunk), e.g. 0.5 for a world model that predicts only part of how outcomes move with the actions "
+        "(`wm eval`'s sib_gain_hK on data with branches); a re-plan is damped toward the plan it refines. "
+        "1 = execute the plan (the paper)")
 
     def __post_init__(self):
         require(self.first_chunk in ("open-loop", "rest-history"),
@@ -130,6 +135,8 @@ class PlannedPolicyConfig:
         require(0.0 <= self.bias_correction <= 1.0, f"bias_correction must be in [0, 1], got {self.bias_correction}")
         require(self.replan_every is None or self.replan_every >= 1,
                 f"replan_every must be >= 1 or None, got {self.replan_every}")
+        require(0.0 < self.correction_gain <= 1.0, f"correction_gain must be in (0, 1], got {self.correction_gain}; "
+                "to run the WAM's chunks unplanned, use condition 1")
 
 
 class PlanningError(UserError):
@@ -331,9 +338,10 @@ class PlannedPolicy(Policy):
             init = seed.clone()  # (H_opt, A)
             init[:, :-1] += self.config.warm_weight * correction[:, :-1]  # arm only: the gripper stays the WAM's
         result = self.planner.plan(init, objective, seed=self.config.plan_seed + self._episode_seed * 1000 + obs.step)
+        planned = self._damped(result.actions[:covered], seed)  # (H_opt, A) what is executed of the plan
         if self.config.warm_start != "none":
-            self._correction = result.actions[:covered].float() - seed.float()  # (H_opt, A)
-        plan = np.concatenate([result.actions.cpu().numpy(), seed_out.actions[covered:]]).astype(np.float32)  # (H, A)
+            self._correction = planned.float() - seed.float()  # (H_opt, A)
+        plan = np.concatenate([planned.cpu().numpy(), seed_out.actions[covered:]]).astype(np.float32)  # (H, A)
         init_cost = float(result.seed_cost) if result.seed_cost is not None else float("nan")
         rec.update(planned=True, seed_cost=init_cost if wam_cost is None else wam_cost, best_cost=float(result.best_cost),
                    seed_rank=result.seed_rank,  # what planning changed: plan minus the WAM's chunk, mean per action dim
@@ -346,7 +354,7 @@ class PlannedPolicy(Policy):
             self._correction = None  # the WAM's chunk ran: nothing of this plan carries over
             return seed_out.actions
         if self.config.accept_margin is not None:
-            plan_cost = float(objective(self._clip(result.actions[:covered])[None])[0])  # what would be executed
+            plan_cost = float(objective(self._clip(planned)[None])[0])  # what would be executed
             rec["plan_cost"] = plan_cost
             if plan_cost > (1.0 - self.config.accept_margin) * wam_cost:  # not clearly better: keep the WAM's
                 rec.update(planned=False, open_loop="rejected", search_s=time.perf_counter() - t3)
@@ -369,11 +377,12 @@ class PlannedPolicy(Policy):
         init = torch.as_tensor(rest[:covered], device=self.device)  # (R_opt, A)
         result = self.planner.plan(init, self._replan["objective"],
                                    seed=self.config.plan_seed + self._episode_seed * 1000 + obs.step)
-        plan = np.concatenate([result.actions.cpu().numpy(), rest[covered:]]).astype(np.float32)  # (R, A)
+        planned = self._damped(result.actions[:covered], init)  # (R_opt, A)
+        plan = np.concatenate([planned.cpu().numpy(), rest[covered:]]).astype(np.float32)  # (R, A)
         offset = obs.step % self.chunk
         if self._correction is not None:  # the chunk's executed correction now ends with this re-plan
             seed = torch.as_tensor(self._replan["seed"][offset:offset + covered], device=self.device)
-            self._correction[offset:offset + covered] = result.actions[:covered].float() - seed.float()
+            self._correction[offset:offset + covered] = planned.float() - seed.float()
         self.last_plan = result
         dt = time.perf_counter() - t0
         rec = self._replan["rec"]
@@ -415,6 +424,12 @@ class PlannedPolicy(Policy):
         if bias_prev is not None:  # would the chunk before's bias have predicted this one's?
             rec["bias_left"] = float((self._bias - self.config.bias_correction * bias_prev).square().mean())
         return self._bias
+
+    def _damped(self, actions: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+        """(L, A) planned actions -> (L, A): ``ref`` (the WAM's chunk, or the plan a re-plan refines) plus
+        ``correction_gain`` times the planned change; the plan itself at gain 1."""
+        g = self.config.correction_gain
+        return actions if g == 1.0 else ref.to(actions) + g * (actions - ref.to(actions))
 
     def _clip(self, actions: torch.Tensor) -> torch.Tensor:
         """The seed as a planner scores it: clipped to the planner's action bounds."""

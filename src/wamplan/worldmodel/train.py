@@ -70,8 +70,9 @@ def window_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], hori
 
 
 def _sibling_errors(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int
-                    ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per-step squared errors (K,) of the sibling-relative prediction, and of predicting no difference."""
+                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Per-step squared errors (K,) of the sibling-relative prediction, of predicting no difference, and the
+    mean product (K,) of the predicted and true sibling differences (for the gain: cross / spread)."""
     b, g = batch["z"].shape[:2]
     flat = {k: batch[k].flatten(0, 1) for k in ("z", "q", "a")}  # (B G, T, ...)
     (zc, qc, ac), a_future, (zt, _) = _split(model, flat, horizon)
@@ -80,7 +81,8 @@ def _sibling_errors(model: WorldModelPredictor, batch: dict[str, torch.Tensor], 
     dp, dt = zp - zp.mean(dim=1, keepdim=True), zt - zt.mean(dim=1, keepdim=True)  # relative to the group mean
     err = (dp - dt).pow(2).flatten(3).mean(dim=-1).mean(dim=(0, 1))  # (K,)
     spread = dt.pow(2).flatten(3).mean(dim=-1).mean(dim=(0, 1))  # (K,)
-    return err, spread
+    cross = (dp * dt).flatten(3).mean(dim=-1).mean(dim=(0, 1))  # (K,)
+    return err, spread, cross
 
 
 def sibling_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int,
@@ -91,7 +93,7 @@ def sibling_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], hor
     moves with the chunk, which is all that ranking CEM's candidates uses. Visual features only, like the
     planner's cost. Logs at step K: ``sib_mse`` and ``sib_rel`` (that error over the error of predicting no
     difference: 0 exact, 1 no better than predicting none; in training, a mean of per-step ratios)."""
-    err, spread = _sibling_errors(model, batch, horizon)
+    err, spread, _ = _sibling_errors(model, batch, horizon)
     w = gamma ** torch.arange(horizon, device=err.device, dtype=err.dtype)  # (K,)
     return (w * err).sum(), {f"sib_mse_h{horizon}": float(err[-1].detach()),
                              f"sib_rel_h{horizon}": float((err[-1] / spread[-1].clamp_min(1e-12)).detach())}
@@ -102,16 +104,21 @@ def evaluate_siblings(model: WorldModelPredictor, groups: Dataset, horizon: int,
                       device: torch.device | None = None) -> dict[str, float]:
     """:func:`sibling_loss`'s error at step K on held-out branch groups, pooled over them: ``sib_rel_hK`` is the
     share of how sibling chunks' outcomes differ that the model misses (1 = no better than predicting no
-    difference)."""
+    difference); ``sib_gain_hK`` the least-squares slope of the predicted sibling differences on the true ones
+    (1 = the model moves its prediction with the chunk as much as the world does; below 1 a planner that trusts
+    it over-drives its corrections by about 1/gain, see ``--correction-gain``)."""
     device = device or next(model.parameters()).device
     was_training = model.training
     model.eval()
-    err = spread = 0.0
+    err = spread = cross = 0.0
     for batch in DataLoader(groups, batch_size=batch_size, shuffle=False):
-        e, s = _sibling_errors(model, {k: v.to(device) for k, v in batch.items()}, horizon)
-        err, spread = err + float(e[-1]) * len(batch["z"]), spread + float(s[-1]) * len(batch["z"])
+        e, s, c = _sibling_errors(model, {k: v.to(device) for k, v in batch.items()}, horizon)
+        n = len(batch["z"])
+        err, spread, cross = err + float(e[-1]) * n, spread + float(s[-1]) * n, cross + float(c[-1]) * n
     model.train(was_training)
-    return {f"sib_mse_h{horizon}": err / len(groups), f"sib_rel_h{horizon}": err / max(spread, 1e-12)}  # type: ignore[arg-type]
+    spread = max(spread, 1e-12)
+    return {f"sib_mse_h{horizon}": err / len(groups), f"sib_rel_h{horizon}": err / spread,  # type: ignore[arg-type]
+            f"sib_gain_h{horizon}": cross / spread}
 
 
 @torch.no_grad()
