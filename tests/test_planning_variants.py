@@ -97,20 +97,24 @@ def test_accept_margin_keeps_the_wams_chunk_unless_the_plan_is_clearly_better(sm
 
 
 # ------------------------------------------------------------------ damped planning (correction gain)
-def test_correction_gain_executes_that_share_of_the_planned_correction(small_env, encoder):
+def test_correction_gain_executes_that_multiple_of_the_planned_correction(small_env, encoder):
     wam = np.zeros((16, 5), np.float32)
     wam[:, 0], wam[:, 4] = 0.3, 1.0  # EchoWAM's chunk
     runs = {}
-    for gain in (1.0, 0.5):
+    for gain in (1.0, 0.5, 2.0):
         executed = []
         pol = _policy(encoder, correction_gain=gain)
         info = run_episode(small_env, pol, seed=2, max_steps=32, on_obs=lambda e, o, a: executed.append(a)).policy_info
         runs[gain] = (np.asarray(executed[17:33]), pol.last_plan.actions.numpy(), info["chunks"][1])
-    (full, plan1, c1), (half, plan05, c05) = runs[1.0], runs[0.5]
-    np.testing.assert_array_equal(plan1, plan05)  # the same search (same seed, history and target) ...
+    full, plan, rec = runs[1.0]
     assert not np.allclose(full, wam)
-    np.testing.assert_allclose(half, np.clip(wam + 0.5 * (plan1 - wam), -1, 1), atol=1e-6)  # ... half of it executed
-    np.testing.assert_allclose(c05["correction"], 0.5 * np.asarray(c1["correction"]), atol=2e-4)  # the record says so
+    for gain in (0.5, 2.0):
+        got, plan_g, rec_g = runs[gain]
+        np.testing.assert_array_equal(plan_g, plan)  # the same search (same seed, history and target) ...
+        want = np.clip(wam + gain * (plan - wam), -1, 1)  # ... scaled around the WAM's chunk, within the bounds
+        np.testing.assert_allclose(got, want, atol=1e-6)
+        np.testing.assert_allclose(rec_g["correction"], (want - wam).mean(0), atol=2e-4)  # the record says so
+    assert np.abs(runs[2.0][0]).max() <= 1.0
     with pytest.raises(ValueError, match="correction_gain must be in"):
         PlannedPolicyConfig(correction_gain=0.0)
 

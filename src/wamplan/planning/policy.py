@@ -114,10 +114,11 @@ class PlannedPolicyConfig:
         "chunk, e.g. 8 for the mini preset's 16-step chunks and frameskip 4; the paper preset's frameskip 5 has "
         "none). Re-plans are not gated or trust-tested. None = execute the whole chunk (the paper)")
     correction_gain: float = field(
-        1.0, "damped planning: execute the WAM's chunk plus this share of the planned correction (plan minus the "
-        "WAM's chunk), e.g. 0.5 for a world model that predicts only part of how outcomes move with the actions "
-        "(`wm eval`'s sib_gain_hK on data with branches); a re-plan is damped toward the plan it refines. "
-        "1 = execute the plan (the paper)")
+        1.0, "execute the WAM's chunk plus this multiple of the planned correction (plan minus the WAM's chunk), "
+        "clipped to the action bounds: below 1 damps it, above 1 extends it along the way the search went, for a "
+        "world model that predicts only part of how outcomes move with the actions (`wm eval`'s sib_gain_hK on "
+        "data with branches) and a search too short to make up for it. A re-plan's is scaled around the plan it "
+        "refines. 1 = execute the plan (the paper)")
 
     def __post_init__(self):
         require(self.first_chunk in ("open-loop", "rest-history"),
@@ -135,7 +136,7 @@ class PlannedPolicyConfig:
         require(0.0 <= self.bias_correction <= 1.0, f"bias_correction must be in [0, 1], got {self.bias_correction}")
         require(self.replan_every is None or self.replan_every >= 1,
                 f"replan_every must be >= 1 or None, got {self.replan_every}")
-        require(0.0 < self.correction_gain <= 1.0, f"correction_gain must be in (0, 1], got {self.correction_gain}; "
+        require(0.0 < self.correction_gain <= 4.0, f"correction_gain must be in (0, 4], got {self.correction_gain}; "
                 "to run the WAM's chunks unplanned, use condition 1")
 
 
@@ -427,9 +428,9 @@ class PlannedPolicy(Policy):
 
     def _damped(self, actions: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
         """(L, A) planned actions -> (L, A): ``ref`` (the WAM's chunk, or the plan a re-plan refines) plus
-        ``correction_gain`` times the planned change; the plan itself at gain 1."""
+        ``correction_gain`` times the planned change, clipped to the planner's bounds; the plan itself at gain 1."""
         g = self.config.correction_gain
-        return actions if g == 1.0 else ref.to(actions) + g * (actions - ref.to(actions))
+        return actions if g == 1.0 else self._clip(ref.to(actions) + g * (actions - ref.to(actions))).to(actions)
 
     def _clip(self, actions: torch.Tensor) -> torch.Tensor:
         """The seed as a planner scores it: clipped to the planner's action bounds."""
