@@ -195,3 +195,20 @@ def test_a_missing_checkpoint_is_named_with_its_flag_and_fix(tmp_path):
     with pytest.raises(UserError, match=r"^--wam .*nowhere does not exist; train one with `wamplan wam train`"):
         _cfg("--wam", str(tmp_path / "nowhere")).check_for([1])
     _cfg("--wam", ok, "--wm-augmented", f"{ok},{ok}").check_for([1, 7])  # all there: no error
+
+
+
+def test_progress_bars_refresh_rarely_when_written_to_a_log(tmp_path):
+    import io
+
+    from wamplan.progress import LOG_MININTERVAL_S, progress_bar
+
+    with open(tmp_path / "job.log", "w") as log:  # a redirected stream is no terminal
+        assert progress_bar(total=1, file=log).mininterval == LOG_MININTERVAL_S
+        assert progress_bar(total=1, file=log, mininterval=2).mininterval == 2  # an explicit setting wins
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    assert progress_bar(total=1, file=Terminal()).mininterval == 0.1  # tqdm's own default on a terminal

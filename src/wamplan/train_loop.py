@@ -31,7 +31,7 @@ from typing import Any, Callable, Iterable, Protocol, Sequence
 import torch
 from torch import nn
 from torch.utils.data import DataLoader, Dataset
-from tqdm.auto import tqdm
+from wamplan.progress import progress_bar
 
 from wamplan.checkpoint import (CKPT_DIR, CONFIG_FILE, STATE_DIR, has_training_state, load_training_state,
                                 load_weights, read_config, save_checkpoint)
@@ -252,8 +252,8 @@ def fit(model: nn.Module, batches: Batches, step_fn: StepFn, cfg: LoopConfig, *,
             epoch, start = state["epoch"], state["step_in_epoch"]
             g = torch.Generator().manual_seed(cfg.seed * 1_000_003 + epoch)
             order = torch.randperm(n, generator=g)[: steps_per_epoch * bs][start * bs:].tolist()
-            bar = tqdm(total=steps_per_epoch, initial=start, desc=f"{desc} {epoch + 1}/{cfg.epochs}",
-                       disable=not progress, dynamic_ncols=True)
+            bar = progress_bar(total=steps_per_epoch, initial=start, desc=f"{desc} {epoch + 1}/{cfg.epochs}",
+                               disable=not progress, dynamic_ncols=True)
             sums: dict[str, float] = {}
             window: dict[str, float] = {}  # sums since the last step record
             count, window_n, t0, seen = 0, 0, time.perf_counter(), 0

@@ -163,7 +163,7 @@ def collect(source: str, episodes: int, out: str | Path, *, seed_start: int = 0,
     chunk of the WAM in that model, so the episodes (and branches) follow the planner's own trajectories; their
     source is ``policy:<wam>+plan:<world model>``, apart from the open-loop ``policy:<wam>`` episodes.
     Returns a summary (collected, skipped, seconds, episodes_per_min, outcomes)."""
-    from tqdm import tqdm
+    from wamplan.progress import progress_bar
 
     backend.check()
     if episodes <= 0 or workers <= 0 or image_every <= 0:
@@ -202,7 +202,7 @@ def collect(source: str, episodes: int, out: str | Path, *, seed_start: int = 0,
                      policy_kwargs=dict(policy_kwargs or {}))
     counts: Counter = Counter()
     start, n = time.perf_counter(), 0
-    bar = tqdm(total=len(seeds), initial=len(have), desc=f"collect {tag}", unit="ep", disable=not progress)
+    bar = progress_bar(total=len(seeds), initial=len(have), desc=f"collect {tag}", unit="ep", disable=not progress)
     for rec in run_collection(job, seeds, workers=workers, backend=backend):
         n += 1
         counts[rec["outcome"]] += 1

@@ -95,7 +95,7 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 # ---------------------------------------------------------------------- rollout
 def cmd_rollout(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
+    from wamplan.progress import progress_bar
 
     from wamplan.envs.core import EnvConfig, InsertionEnv
     from wamplan.envs.media import write_video
@@ -109,7 +109,8 @@ def cmd_rollout(args: argparse.Namespace) -> int:
     policy = load_policy(args.policy, args.instruction)
     env = InsertionEnv(cfg)
     records, counts = [], Counter()
-    bar = tqdm(range(args.seed_start, args.seed_start + args.episodes), desc=f"rollout {args.policy}", unit="ep")
+    seeds = range(args.seed_start, args.seed_start + args.episodes)
+    bar = progress_bar(seeds, desc=f"rollout {args.policy}", unit="ep")
     for seed in bar:
         frames: list = []
         record = args.video is not None
@@ -120,7 +121,7 @@ def cmd_rollout(args: argparse.Namespace) -> int:
         records.append(r.summary())
         counts[r.outcome] += 1
         bar.set_postfix(success=f"{counts['success']}/{len(records)}")
-        tqdm.write(f"seed {seed:4d}  success={r.success!s:5s}  outcome={r.outcome:22s} length={r.length}")
+        bar.write(f"seed {seed:4d}  success={r.success!s:5s}  outcome={r.outcome:22s} length={r.length}")
     lengths = sorted(rec["length"] for rec in records if rec["success"])
     summary = dict(policy=args.policy, episodes=len(records), success_rate=counts["success"] / len(records),
                    outcomes=dict(counts), median_success_length=lengths[len(lengths) // 2] if lengths else None)

@@ -75,7 +75,7 @@ def cmd_explain(args: argparse.Namespace) -> int:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
+    from wamplan.progress import progress_bar
 
     from wamplan.errors import UserError
     from wamplan.evaluation.conditions import parse_conditions
@@ -98,11 +98,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if have:
         print(f"resuming: {have} of {total} episodes already recorded in {args.out}")
     counts: dict[int, Counter] = {c: Counter() for c in conds}
-    bar = tqdm(total=total, initial=have, desc="eval", unit="ep")
+    bar = progress_bar(total=total, initial=have, desc="eval", unit="ep")
     for rec in run_evaluation(cfg, conds, seeds, args.out, workers=args.workers, backend=backend):
         counts[rec["condition"]][rec["outcome"]] += 1
         bar.update(1)
-        tqdm.write(f"cond {rec['condition']} seed {rec['seed']:4d} {rec['outcome']:22s} len {rec['length']:3d} "
+        bar.write(f"cond {rec['condition']} seed {rec['seed']:4d} {rec['outcome']:22s} len {rec['length']:3d} "
                    f"{rec['wall_time_s']:.0f}s")
     bar.close()
     summary = {c: dict(v) for c, v in counts.items() if v}

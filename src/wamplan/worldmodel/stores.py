@@ -27,15 +27,15 @@ def frozen_encoder(name: str, kwargs: dict[str, Any], path: str | None = None, d
 
 def encode_stores(stores: Sequence[str | Path], enc, progress: bool = True) -> None:
     """Cache ``enc``'s features of every episode not yet encoded (``data.features.encode_store``)."""
-    from tqdm import tqdm
+    from wamplan.progress import progress_bar
 
     from wamplan.data.features import encode_store
     from wamplan.data.store import EpisodeStore
 
     for root in stores:
         n = len(EpisodeStore(root).episode_paths())
-        for _ in tqdm(encode_store(root, enc), desc=f"encode {Path(root).name} ({enc.name})", total=n, leave=False,
-                      disable=not progress):
+        for _ in progress_bar(encode_store(root, enc), desc=f"encode {Path(root).name} ({enc.name})", total=n,
+                              leave=False, disable=not progress):
             pass
 
 
