@@ -136,8 +136,8 @@ class PlannedPolicyConfig:
         require(0.0 <= self.bias_correction <= 1.0, f"bias_correction must be in [0, 1], got {self.bias_correction}")
         require(self.replan_every is None or self.replan_every >= 1,
                 f"replan_every must be >= 1 or None, got {self.replan_every}")
-        require(0.0 < self.correction_gain <= 4.0, f"correction_gain must be in (0, 4], got {self.correction_gain}; "
-                "to run the WAM's chunks unplanned, use condition 1")
+        require(0.0 < self.correction_gain <= 4.0, f"correction_gain must be in (0, 4], got {self.correction_gain} "
+                "(1 executes the plan; for the WAM's own chunks, unplanned, run condition 1)")
 
 
 class PlanningError(UserError):
