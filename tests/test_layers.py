@@ -11,9 +11,10 @@ from pathlib import Path
 
 SRC = Path(__file__).resolve().parents[1] / "src" / "wamplan"
 
-# the shared helpers every layer may use (configs, registries, errors, checkpoints, the training loop)
+# the shared helpers every layer may use (configs, registries, errors, checkpoints, the training loop, progress bars)
 FOUNDATION = {"wamplan", "wamplan.errors", "wamplan.config", "wamplan.registry", "wamplan.device", "wamplan.optim",
-              "wamplan.parallel", "wamplan.provenance", "wamplan.checkpoint", "wamplan.train_loop", "wamplan.plot"}
+              "wamplan.parallel", "wamplan.provenance", "wamplan.checkpoint", "wamplan.train_loop", "wamplan.plot",
+              "wamplan.progress"}
 LAYERS = {"envs": 1, "policies": 2, "data": 3, "encoders": 4, "worldmodel": 4, "wam": 4, "planning": 5,
           "evaluation": 6, "presets": 6}
 CLI = 7  # wamplan.cli, wamplan.plot_commands and every <concept>/commands.py
