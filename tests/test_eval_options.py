@@ -197,7 +197,6 @@ def test_a_missing_checkpoint_is_named_with_its_flag_and_fix(tmp_path):
     _cfg("--wam", ok, "--wm-augmented", f"{ok},{ok}").check_for([1, 7])  # all there: no error
 
 
-
 def test_progress_bars_refresh_rarely_when_written_to_a_log(tmp_path):
     import io
 

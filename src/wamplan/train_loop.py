@@ -31,12 +31,12 @@ from typing import Any, Callable, Iterable, Protocol, Sequence
 import torch
 from torch import nn
 from torch.utils.data import DataLoader, Dataset
-from wamplan.progress import progress_bar
 
 from wamplan.checkpoint import (CKPT_DIR, CONFIG_FILE, STATE_DIR, has_training_state, load_training_state,
                                 load_weights, read_config, save_checkpoint)
 from wamplan.errors import UserError
 from wamplan.optim import make_adamw, optimizer_step, warmup_cosine
+from wamplan.progress import progress_bar
 
 METRICS_FILE = "metrics.jsonl"
 # fields of a config's "train" section that may change when a run is resumed (everything else must match)

@@ -9,8 +9,8 @@ the consequence: a rank correlation of 0.1-0.2 with the simulator's ranking of C
 every chunk boundary t (t = H, 2H, ... with at least ``context_steps`` of history; only those within
 ``steps`` when it is set, e.g. the descent onto the mount, where the planner's choices decide the outcome).
 After the episode it restores each snapshot and executes ``branches`` chunks drawn as CEM draws its
-candidates: the chunk the policy executed from t plus Gaussian noise (one ``sigma`` per branch, cycling through ``sigmas``),
-clipped to the action bounds. Each branch is stored as its own short episode in the ordinary schema,
+candidates: the chunk the policy executed from t plus Gaussian noise (one ``sigma`` per branch, cycling
+through ``sigmas``), clipped to the action bounds. Each branch is stored as its own short episode in the ordinary schema,
 re-based to start ``context_steps`` before t: the parent's history (its states, actions and frames)
 followed by the branch's H steps, so the world model's windows (history frames, then predicted frames)
 start in the shared past and end in the branch's own future.

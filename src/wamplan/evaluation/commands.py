@@ -103,7 +103,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         counts[rec["condition"]][rec["outcome"]] += 1
         bar.update(1)
         bar.write(f"cond {rec['condition']} seed {rec['seed']:4d} {rec['outcome']:22s} len {rec['length']:3d} "
-                   f"{rec['wall_time_s']:.0f}s")
+                  f"{rec['wall_time_s']:.0f}s")
     bar.close()
     summary = {c: dict(v) for c, v in counts.items() if v}
     print(json.dumps({"new_episodes": summary}))

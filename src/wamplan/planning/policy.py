@@ -115,10 +115,9 @@ class PlannedPolicyConfig:
         "none). Re-plans are not gated or trust-tested. None = execute the whole chunk (the paper)")
     correction_gain: float = field(
         1.0, "execute the WAM's chunk plus this multiple of the planned correction (plan minus the WAM's chunk), "
-        "clipped to the action bounds: below 1 damps it, above 1 extends it along the way the search went, for a "
-        "world model that predicts only part of how outcomes move with the actions (`wm eval`'s sib_gain_hK on "
-        "data with branches) and a search too short to make up for it. A re-plan's is scaled around the plan it "
-        "refines. 1 = execute the plan (the paper)")
+        "clipped to the action bounds: below 1 damps it, above 1 extends it along the way the search went. A "
+        "re-plan's is scaled around the plan it refines. 1 = execute the plan (the paper; on the mini task's "
+        "validation seeds 0.3, 0.5, 1.5 and 2 all lost to it, stop 23)")
 
     def __post_init__(self):
         require(self.first_chunk in ("open-loop", "rest-history"),
@@ -430,7 +429,10 @@ class PlannedPolicy(Policy):
         """(L, A) planned actions -> (L, A): ``ref`` (the WAM's chunk, or the plan a re-plan refines) plus
         ``correction_gain`` times the planned change, clipped to the planner's bounds; the plan itself at gain 1."""
         g = self.config.correction_gain
-        return actions if g == 1.0 else self._clip(ref.to(actions) + g * (actions - ref.to(actions))).to(actions)
+        if g == 1.0:
+            return actions
+        ref = ref.to(actions)  # (L, A)
+        return self._clip(ref + g * (actions - ref)).to(actions)
 
     def _clip(self, actions: torch.Tensor) -> torch.Tensor:
         """The seed as a planner scores it: clipped to the planner's action bounds."""

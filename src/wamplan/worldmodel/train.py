@@ -79,10 +79,11 @@ def _sibling_errors(model: WorldModelPredictor, batch: dict[str, torch.Tensor], 
     zp, _ = model.rollout(zc, qc, ac, a_future)  # (B G, K, V, N, D)
     zp, zt = zp.unflatten(0, (b, g)), zt.unflatten(0, (b, g))  # (B, G, K, V, N, D)
     dp, dt = zp - zp.mean(dim=1, keepdim=True), zt - zt.mean(dim=1, keepdim=True)  # relative to the group mean
-    err = (dp - dt).pow(2).flatten(3).mean(dim=-1).mean(dim=(0, 1))  # (K,)
-    spread = dt.pow(2).flatten(3).mean(dim=-1).mean(dim=(0, 1))  # (K,)
-    cross = (dp * dt).flatten(3).mean(dim=-1).mean(dim=(0, 1))  # (K,)
-    return err, spread, cross
+
+    def per_step(x: torch.Tensor) -> torch.Tensor:  # (B, G, K, V, N, D) -> (K,)
+        return x.flatten(3).mean(dim=-1).mean(dim=(0, 1))
+
+    return per_step((dp - dt).pow(2)), per_step(dt.pow(2)), per_step(dp * dt)
 
 
 def sibling_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int,
@@ -105,8 +106,8 @@ def evaluate_siblings(model: WorldModelPredictor, groups: Dataset, horizon: int,
     """:func:`sibling_loss`'s error at step K on held-out branch groups, pooled over them: ``sib_rel_hK`` is the
     share of how sibling chunks' outcomes differ that the model misses (1 = no better than predicting no
     difference); ``sib_gain_hK`` the least-squares slope of the predicted sibling differences on the true ones
-    (1 = the model moves its prediction with the chunk as much as the world does; below 1 a planner that trusts
-    it over-drives its corrections by about 1/gain, see ``--correction-gain``)."""
+    (1 = the model moves its prediction with the chunk as much as the world does; below 1 it predicts only that
+    share of a chunk's effect)."""
     device = device or next(model.parameters()).device
     was_training = model.training
     model.eval()
