@@ -119,3 +119,51 @@ def test_simulate_guards_the_stale_env(env):
         env.simulate(snap, np.zeros((4, 5), np.float32))
     with pytest.raises(ValueError, match="finite"):
         env.simulate(snap, np.full((1, 4, 5), np.nan, np.float32))
+
+
+def test_blended_dynamics_moves_the_models_prediction_toward_the_simulators(env):
+    """BlendedDynamics (the --oracle-blend diagnostic) is the model at weight 0, the simulator at 1, and the
+    straight line between them in embedding space at any other weight; the env is left at the snapshot."""
+    from wamplan.planning.dynamics import BlendedDynamics, LearnedDynamics, PlanningContext
+    from wamplan.worldmodel.train import load_world_model
+
+    model, enc = load_world_model("checkpoints/mini/wm_augmented")
+    learned, sim = LearnedDynamics(model), SimulatorDynamics(env, enc)
+    snap, cands = _boundary(env, 1, 48)
+    env.restore(snap)
+    views = env.render()
+    z_now = enc.encode(np.stack([views[c] for c in CAMERAS]))  # (V, N, D) the boundary's frame
+    q_now = torch.as_tensor(env.proprio(), dtype=torch.float32)  # (P,)
+    tc, fs = learned.context, learned.frameskip
+    hold = torch.zeros(fs, 5)
+    hold[:, 4] = 1.0
+    context = PlanningContext(z_now.expand(tc, *z_now.shape).clone(), q_now.expand(tc, -1).clone(),
+                              hold.reshape(1, -1).expand(tc - 1, -1).clone())  # a resting history
+    acts = torch.from_numpy(cands)  # (3, 16, 5)
+    learned.prepare(context)
+    sim.prepare(context)
+    z_model, z_sim = learned.terminal(acts).float(), sim.terminal(acts).float()  # (3, V, N, D)
+    assert (z_model - z_sim).abs().max() > 0.5  # the model errs: there is something to blend
+    for w, expected in ((0.0, z_model), (1.0, z_sim), (0.25, 0.75 * z_model + 0.25 * z_sim)):
+        blend = BlendedDynamics(LearnedDynamics(model), SimulatorDynamics(env, enc), w)
+        assert blend.needs_history and blend.covered(16) == 16
+        blend.prepare(context)
+        # a rollout repeats the simulator's only up to PhysX's hidden state (< 0.01 here, against a model error of ~2)
+        torch.testing.assert_close(blend.terminal(acts), expected, atol=1e-5 + 0.02 * w, rtol=0)
+        assert env.step_count == 48  # the simulator restored its snapshot
+    with pytest.raises(ValueError, match="outside"):
+        BlendedDynamics(learned, sim, 1.5)
+
+
+def test_oracle_blend_is_checked_in_one_line():
+    from wamplan.config import ConfigError
+    from wamplan.errors import UserError
+    from wamplan.evaluation.runner import EvalConfig
+
+    with pytest.raises(ConfigError, match="outside"):
+        EvalConfig(oracle_blend=-0.1)
+    cfg = EvalConfig(wam="checkpoints/mini/tinywam", oracle_blend=0.5)
+    with pytest.raises(UserError, match="add condition 6 or 7"):
+        cfg.check_for([1, 5])
+    EvalConfig(wam="checkpoints/mini/tinywam", wm_augmented="checkpoints/mini/wm_augmented",
+               oracle_blend=0.5).check_for([1, 7])

@@ -52,6 +52,10 @@ class EvalConfig:
                               "checkpoints form an ensemble (see --disagreement-weight); the same for --wm-plain")
     sim_encoder: str = field("", "encoder for the simulator conditions (default: the plain world model's)")
     device: str = field("auto", "torch device for the models")
+    oracle_blend: float = field(0.0, "a diagnostic, not the method: conditions 6 and 7 plan with the world model's "
+                                "prediction moved this share of the way to the simulator's exact outcome (0: the "
+                                "model, as the paper; 1: the oracle's dynamics); every candidate is simulated, so it "
+                                "runs at the oracle's speed")
     planner: str = field(DEFAULT_PLANNER, "planner by registry name (wamplan.planning.PLANNERS); the paper's is cem", cli=False)
     planner_config: Any = field(None, "the planner's config (its config_cls, or a dict of overrides); "
                                 "None = its defaults", cli=False)
@@ -66,6 +70,8 @@ class EvalConfig:
         require(isinstance(pc, cls), f"planner '{self.planner}' needs a {cls.__name__} as planner_config, "
                 f"got {type(pc).__name__}; pass that planner's config or None")
         object.__setattr__(self, "planner_config", pc)
+        require(0.0 <= self.oracle_blend <= 1.0, f"--oracle-blend {self.oracle_blend} is outside [0, 1]; 0 plans in "
+                "the world model alone, 1 with the simulator's dynamics")
 
     def check_for(self, conditions: list[int]) -> None:
         from wamplan.errors import UserError, require_paths
@@ -81,6 +87,9 @@ class EvalConfig:
             from wamplan.wam.cosmos_client import profile_config
 
             profile_config(self.wam_profile, url=self.wam_url)  # a bad URL or profile fails now, in one line
+        if self.oracle_blend > 0 and not any(CONDITIONS[c].dynamics.startswith("learned") for c in conditions):
+            raise UserError(f"--oracle-blend blends a world model's predictions, but conditions {conditions} plan in "
+                            "none; add condition 6 or 7, or drop --oracle-blend")
         for c in conditions:
             need = {"learned-plain": ("wm_plain", "--wm-plain"), "learned-augmented": ("wm_augmented", "--wm-augmented")}
             if CONDITIONS[c].dynamics in need:
@@ -131,7 +140,7 @@ class EvalWorker:
         if cid in self._policies:
             return self._policies[cid]
         from wamplan.evaluation.policies import planned_policy
-        from wamplan.planning.dynamics import SimulatorDynamics, learned_dynamics
+        from wamplan.planning.dynamics import BlendedDynamics, SimulatorDynamics, learned_dynamics
         from wamplan.wam import WAMPolicy
         from wamplan.wam.oracle import ExpertOracleWAM
 
@@ -145,6 +154,8 @@ class EvalWorker:
             else:
                 paths = (cfg.wm_plain if c.dynamics == "learned-plain" else cfg.wm_augmented).split(",")
                 dyn, enc = learned_dynamics([self._world_model(p) for p in paths])  # several: an ensemble
+                if cfg.oracle_blend > 0:  # the simulator encodes with the model's encoder: one embedding space
+                    dyn = BlendedDynamics(dyn, SimulatorDynamics(self.env, enc), cfg.oracle_blend)
             oracle = ExpertOracleWAM(self.env) if "expert" in (c.seed, c.target) else None
             seed_wam = oracle if c.seed == "expert" else self.wam
             target_wam = oracle if c.target == "expert" else self.wam

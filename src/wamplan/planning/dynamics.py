@@ -12,6 +12,8 @@ actions the backend's rollout covers (``covered``): Δ·⌊H/Δ⌋ for the learn
   predicts their mean and, through ``predict``, their disagreement, the variance across members averaged
   over views, patches and dims (the units of the patch cost), which the planned policy adds to the cost
   with a weight so the search avoids actions the members disagree about.
+* :class:`BlendedDynamics` (a diagnostic) moves a learned model's prediction a given share of the way to
+  the simulator's, to measure how much of the model's error planning can bear.
 * :class:`SimulatorDynamics` (the oracle) hands all candidates to ``InsertionEnv.simulate`` (restore the
   chunk-boundary snapshot once, controller and physics only, render the terminal views with frustum
   culling), encodes the views, and restores the snapshot afterwards, so that the chosen plan executes
@@ -139,6 +141,41 @@ class SimulatorDynamics(Dynamics):
         b, nv = imgs.shape[:2]
         z = self.encoder.encode(imgs.flatten(0, 1).to(self.encoder.device))  # (B·V, N, D)
         return z.reshape(b, nv, *z.shape[1:])  # (B, V, N, D)
+
+
+class BlendedDynamics(Dynamics):
+    """A diagnostic, not a method: a learned model's prediction moved a share ``weight`` of the way to the
+    simulator's exact outcome, ``z = (1 - w) z_model + w z_sim``, with the same encoder.
+
+    Weight 0 plans as the learned model does, 1 as the oracle does; in between the model's error on every
+    candidate is scaled by 1 - w, keeping its structure (which candidates it confuses, and how). Planning
+    success against w says how much of the model's error must go before planning reaches the oracle, which
+    is what a better world model must buy. It costs what the oracle costs (every candidate is simulated).
+    """
+
+    def __init__(self, model: Dynamics, oracle: SimulatorDynamics, weight: float):
+        if not 0.0 <= weight <= 1.0:
+            raise ValueError(f"blend weight {weight} is outside [0, 1]; 0 is the learned model, 1 the simulator")
+        self.model, self.oracle, self.weight = model, oracle, float(weight)
+        self.needs_history = model.needs_history
+        self.frameskip = getattr(model, "frameskip", None)
+        self.context = getattr(model, "context", 1)
+
+    @property
+    def device(self) -> torch.device:
+        return self.model.device
+
+    def covered(self, chunk: int) -> int:
+        return min(self.model.covered(chunk), self.oracle.covered(chunk))
+
+    def prepare(self, context: PlanningContext | None) -> None:
+        self.model.prepare(context)
+        self.oracle.prepare(context)
+
+    def terminal(self, actions: torch.Tensor) -> torch.Tensor:
+        z_model = self.model.terminal(actions).float()  # (B, V, N, D)
+        z_sim = self.oracle.terminal(actions).float().to(z_model.device)  # (B, V, N, D)
+        return torch.lerp(z_model, z_sim, self.weight)  # (B, V, N, D)
 
 
 class EnsembleDynamics(Dynamics):
