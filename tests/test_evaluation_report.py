@@ -123,7 +123,12 @@ def test_report_names_the_planner_and_what_was_changed(tmp_path):
         (tmp_path / "eval_config.json").unlink(missing_ok=True)
         _check_same_settings(tmp_path, cfg)
         assert main(["report", str(tmp_path)]) == 0
-        assert line in (tmp_path / "report.md").read_text()
+        md = (tmp_path / "report.md").read_text()
+        assert line in md and "oracle-blend" not in md
+    (tmp_path / "eval_config.json").unlink()
+    _check_same_settings(tmp_path, EvalConfig(oracle_blend=0.5))  # the diagnostic says so under the table
+    assert main(["report", str(tmp_path)]) == 0
+    assert "moved 0.5 of the way to the simulator's (`--oracle-blend`)" in (tmp_path / "report.md").read_text()
 
 
 def test_eval_needs_its_checkpoints(tmp_path, capsys):

@@ -281,7 +281,11 @@ def _settings_line(out: Path, named: bool = False) -> list[str]:
         changed = ", ".join(f"{k} {s[f'planner_config.{k}']}" for k, v in defaults.items()
                             if f"planner_config.{k}" in s and s[f"planner_config.{k}"] != v) or "none"
     where = f" in `{out}`" if named else ""
-    return [f"Planner{where}: `{name}` ({size}; changed from its defaults: {changed}; all settings in eval_config.json)", ""]
+    lines = [f"Planner{where}: `{name}` ({size}; changed from its defaults: {changed}; all settings in eval_config.json)"]
+    if s.get("oracle_blend"):
+        lines.append(f"Diagnostic: conditions 6 and 7 planned with the world model's predictions moved "
+                     f"{s['oracle_blend']:g} of the way to the simulator's (`--oracle-blend`), not the world model alone.")
+    return [*lines, ""]
 
 
 def run_spec(spec: str | Path) -> tuple[Path, set[int] | None]:
