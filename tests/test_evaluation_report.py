@@ -235,3 +235,10 @@ def test_the_release_is_the_final_let_go_of_a_lifted_cube():
     assert [r["t"] for r in trace.close()] == [0, 2, 4, 6, 7]
     feed(trace, 8, True, 0.045)  # grasped again at the end: nothing was let go for good
     assert trace.release is None and trace.summary()["held_at_end"]
+
+
+def test_a_blended_run_is_labelled_as_such_in_table1():
+    """Records of the --oracle-blend diagnostic carry its weight; Table 1 (and Figure 3) name the blend."""
+    rows = table1([_rec(1, 0, "success"), dict(_rec(7, 0, "success"), oracle_blend=0.25)])
+    assert [r["dynamics"] for r in rows] == ["None (open loop)", "Augmented WM 0.75 + simulator 0.25"]
+    assert table1([_rec(7, 0, "success")])[0]["dynamics"] == "Augmented WM"

@@ -59,7 +59,9 @@ def table1(records: list[dict[str, Any]], variant: str = "open-loop") -> list[di
             for key, v in r.get("chunk_timing_s", {}).items():
                 timing[key].append(v)
             open_loop.update(r.get("open_loop_chunks", {}))
-        rows.append(dict(condition=cid, dynamics=c.label, seed=c.seed.upper() if c.seed == "wam" else "Expert",
+        blend = rs[0].get("oracle_blend")  # the --oracle-blend diagnostic: not the world model alone
+        label = c.label if not blend else f"{c.label} {1 - blend:g} + simulator {blend:g}"
+        rows.append(dict(condition=cid, dynamics=label, seed=c.seed.upper() if c.seed == "wam" else "Expert",
                          target="—" if c.target == "none" else ("WAM" if c.target == "wam" else "Expert"),
                          episodes=n, successes=k, success_rate=k / n, ci_low=lo, ci_high=hi,
                          mean_length=float(np.mean(lengths)) if lengths else None,

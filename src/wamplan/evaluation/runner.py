@@ -184,7 +184,12 @@ class EvalWorker:
                     planned_chunks=len(planned), open_loop_chunks=r.policy_info.get("open_loop_chunks", {}),
                     chunk_timing_s=timing,
                     chunks=[{k: (round(v, 4) if isinstance(v, float) else v) for k, v in ch.items()} for ch in searched],
-                    **trace.summary(), finished=time.time())
+                    **trace.summary(), **self._blend(cid), finished=time.time())
+
+    def _blend(self, cid: int) -> dict[str, float]:
+        """The record's mark of the --oracle-blend diagnostic, where it changed the dynamics (none otherwise)."""
+        learned = CONDITIONS[cid].dynamics.startswith("learned")
+        return {"oracle_blend": self.cfg.oracle_blend} if learned and self.cfg.oracle_blend > 0 else {}
 
 
 def _same(a: Any, b: Any) -> bool:
