@@ -13,6 +13,11 @@ class Condition:
     target: str  # wam | expert | none  (whose predicted t+H views the search aims at)
 
     @property
+    def learned(self) -> bool:
+        """Plans in a learned world model (conditions 6 and 7)."""
+        return self.dynamics.startswith("learned")
+
+    @property
     def label(self) -> str:
         dyn = {"none": "None (open loop)", "simulator": "Simulator", "learned-plain": "Learned WM",
                "learned-augmented": "Augmented WM"}[self.dynamics]

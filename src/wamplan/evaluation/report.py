@@ -194,7 +194,7 @@ def markdown_gap(records: list[dict[str, Any]], baseline: int = 1) -> str | None
     by = open_loop_by_seed(records)
     out = [f"| Condition | Oracle | Seeds shared | Successes: {baseline} / this / oracle | Gap closed (95 % CI) "
            f"| Oracle solves, this does not |", "|---|---|---|---|---|---|"]
-    for c in sorted(k for k in by if CONDITIONS[k].dynamics.startswith("learned")):
+    for c in sorted(k for k in by if CONDITIONS[k].learned):
         o = oracle_condition(c)
         seeds = sorted(set(by[c]) & set(by.get(baseline, {})) & set(by.get(o, {})))
         if not seeds:
@@ -286,7 +286,8 @@ def _settings_line(out: Path, named: bool = False) -> list[str]:
     lines = [f"Planner{where}: `{name}` ({size}; changed from its defaults: {changed}; all settings in eval_config.json)"]
     if s.get("oracle_blend"):
         lines.append(f"Diagnostic: conditions 6 and 7 planned with the world model's predictions moved "
-                     f"{s['oracle_blend']:g} of the way to the simulator's (`--oracle-blend`), not the world model alone.")
+                     f"{s['oracle_blend']:g} of the way to the simulator's (`--oracle-blend`), "
+                     "not the world model alone.")
     return [*lines, ""]
 
 

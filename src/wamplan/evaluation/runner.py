@@ -87,7 +87,7 @@ class EvalConfig:
             from wamplan.wam.cosmos_client import profile_config
 
             profile_config(self.wam_profile, url=self.wam_url)  # a bad URL or profile fails now, in one line
-        if self.oracle_blend > 0 and not any(CONDITIONS[c].dynamics.startswith("learned") for c in conditions):
+        if self.oracle_blend > 0 and not any(CONDITIONS[c].learned for c in conditions):
             raise UserError(f"--oracle-blend blends a world model's predictions, but conditions {conditions} plan in "
                             "none; add condition 6 or 7, or drop --oracle-blend")
         for c in conditions:
@@ -188,8 +188,7 @@ class EvalWorker:
 
     def _blend(self, cid: int) -> dict[str, float]:
         """The record's mark of the --oracle-blend diagnostic, where it changed the dynamics (none otherwise)."""
-        learned = CONDITIONS[cid].dynamics.startswith("learned")
-        return {"oracle_blend": self.cfg.oracle_blend} if learned and self.cfg.oracle_blend > 0 else {}
+        return {"oracle_blend": self.cfg.oracle_blend} if CONDITIONS[cid].learned and self.cfg.oracle_blend > 0 else {}
 
 
 def _same(a: Any, b: Any) -> bool:
