@@ -144,7 +144,7 @@ def test_planned_collection_follows_the_planners_chunks_and_branches_them(tmp_pa
     next one planned, so it leaves the open-loop WAM's actions), stored under its own source, and its branches
     perturb the chunk the planner executed."""
     wam, wm = "checkpoints/mini/tinywam", "checkpoints/mini/wm_augmented"
-    from wamplan.evaluation.policies import load_policy
+    from wamplan.evaluation.build import load_policy
 
     kw = dict(seed_start=7, policy=wam, max_steps=32, progress=False, loader=load_policy)
     collect("policy", 1, tmp_path / "open", **kw)
@@ -169,7 +169,7 @@ def test_planned_collection_follows_the_planners_chunks_and_branches_them(tmp_pa
     for bad in (str(tmp_path / "no_model"), wm + ","):
         with pytest.raises(UserError, match="does not exist"):
             collect("policy", 1, tmp_path / "y", policy=wam, plan_with=bad, progress=False, loader=load_policy)
-    with pytest.raises(UserError, match="loader=wamplan.evaluation.policies.load_policy"):
+    with pytest.raises(UserError, match="loader=wamplan.evaluation.build.load_policy"):
         collect("policy", 1, tmp_path / "z", policy=wam, plan_with=wm, progress=False)
 
 

@@ -12,11 +12,12 @@ import torch
 from wamplan.cli import build_parser, main
 from wamplan.config import ConfigError, field, require
 from wamplan.errors import UserError
-from wamplan.evaluation.options import eval_config_from_args
-from wamplan.evaluation.runner import EvalConfig, _check_same_settings
+from wamplan.cli.eval_options import eval_config_from_args
+from wamplan.evaluation.config import EvalConfig
+from wamplan.evaluation.runner import _check_same_settings
 from wamplan.planning import PLANNERS, CEMConfig, CostConfig, MPPIConfig, PlanResult, Planner, register_planner
 from wamplan.planning.policy import PlannedPolicyConfig
-from wamplan.planning.presets import WamplanConfig
+from wamplan.planning.defaults import WamplanConfig
 
 
 @dataclass(frozen=True)

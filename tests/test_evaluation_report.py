@@ -114,7 +114,8 @@ def test_report_tables_and_figure(tmp_path):
 
 
 def test_report_names_the_planner_and_what_was_changed(tmp_path):
-    from wamplan.evaluation.runner import EvalConfig, _check_same_settings
+    from wamplan.evaluation.config import EvalConfig
+    from wamplan.evaluation.runner import _check_same_settings
 
     append_record(tmp_path, _rec(1, 0, "success"))
     for cfg, line in ((EvalConfig(), "Planner: `wamplan` (32 candidates × 4 iterations; changed from its defaults: none;"),

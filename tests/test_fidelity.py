@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from wamplan.planning.dynamics import LearnedDynamics, SimulatorDynamics
-from wamplan.planning.fidelity import (FidelityConfig, Scored, boundary_stats, cost_slope, format_fidelity, ranks,
+from wamplan.evaluation.fidelity import (FidelityConfig, Scored, boundary_stats, cost_slope, format_fidelity, ranks,
                                        run_fidelity, slope_cosine, spearman, top_overlap)
 from wamplan.wam import load_wam
 from wamplan.worldmodel.train import load_world_model

@@ -1,6 +1,8 @@
-"""No import points up the layers (design.md): envs -> policies -> data -> encoders/worldmodel/wam ->
-planning -> evaluation -> command-line. Every import in src/wamplan counts, lazy ones inside functions too.
-Run as a script (``python tests/test_layers.py``) it prints the import map between layers."""
+"""The layers of docs/design.md, checked on the code: envs -> policies -> data -> encoders/worldmodel/wam ->
+planning -> evaluation -> api -> cli. An import may only point down (or stay in its folder), between
+modules and between folders, and no modules import each other in a circle. Every import in src/wamplan
+counts, lazy ones inside functions too. Run as a script (``python tests/test_layers.py``) it prints the
+map between layers, the upward imports and the circles (modules and folders)."""
 
 from __future__ import annotations
 
@@ -16,21 +18,26 @@ FOUNDATION = {"wamplan", "wamplan.errors", "wamplan.config", "wamplan.registry",
               "wamplan.parallel", "wamplan.provenance", "wamplan.checkpoint", "wamplan.train_loop", "wamplan.plot",
               "wamplan.progress"}
 LAYERS = {"envs": 1, "policies": 2, "data": 3, "encoders": 4, "worldmodel": 4, "wam": 4, "planning": 5,
-          "evaluation": 6, "presets": 6}
-CLI = 7  # wamplan.cli, wamplan.plot_commands and every <concept>/commands.py
+          "evaluation": 6, "presets": 6, "api": 7, "cli": 8}
 NAMES = {0: "foundation", 1: "envs", 2: "policies", 3: "data", 4: "encoders/worldmodel/wam", 5: "planning",
-         6: "evaluation", 7: "cli/commands"}
+         6: "evaluation", 7: "api", 8: "cli"}
+# the package's face re-exports the API lazily (PEP 562 __getattr__), so it counts as the API layer's for its imports
+FACE = "wamplan"
 
 
 def layer(module: str) -> int:
-    if module in ("wamplan.cli", "wamplan.plot_commands") or module.endswith(".commands"):
-        return CLI
     if module in FOUNDATION:
         return 0
     parts = module.split(".")
     if len(parts) < 2 or parts[1] not in LAYERS:
         raise AssertionError(f"{module} is in no layer; add it to tests/test_layers.py")
     return LAYERS[parts[1]]
+
+
+def folder(module: str) -> str:
+    """The top-level concept a module belongs to: ``wamplan.planning.policy`` -> ``planning``."""
+    parts = module.split(".")
+    return "foundation" if module in FOUNDATION else parts[1]
 
 
 def module_name(path: Path) -> str:
@@ -40,30 +47,100 @@ def module_name(path: Path) -> str:
 
 
 def imports() -> dict[str, set[str]]:
-    """module -> the wamplan modules it imports (``from wamplan.x import y`` counts as wamplan.x)."""
-    return {module_name(path): _wamplan_imports(path) for path in sorted(SRC.rglob("*.py"))}
+    """module -> the wamplan modules it imports (``from wamplan.x import y`` counts as wamplan.x, or as
+    wamplan.x.y where that is a module)."""
+    known = {module_name(p) for p in SRC.rglob("*.py")}
+    return {module_name(path): _wamplan_imports(path, known) for path in sorted(SRC.rglob("*.py"))}
 
 
-def _wamplan_imports(path: Path) -> set[str]:
+def _wamplan_imports(path: Path, known: set[str] | None = None) -> set[str]:
     out = set()
     for node in ast.walk(ast.parse(path.read_text(), str(path))):
-        names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
-            [node.module] if isinstance(node, ast.ImportFrom) and node.module and node.level == 0 else []
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            sub = [f"{node.module}.{a.name}" for a in node.names]
+            names = [node.module, *(s for s in sub if known and s in known)]
+        else:
+            names = []
         out.update(n for n in names if n == "wamplan" or n.startswith("wamplan."))
     return out
 
 
+def _edges() -> list[tuple[str, str]]:
+    return [(m, t) for m, targets in imports().items() if m != FACE for t in sorted(targets)
+            if t != m and t != FACE and not m.startswith(t + ".")]  # a package's own __init__ is not an edge
+
+
+def upward_modules() -> list[str]:
+    return [f"{m} ({NAMES[layer(m)]}) imports {t} ({NAMES[layer(t)]})" for m, t in _edges() if layer(t) > layer(m)]
+
+
+def upward_folders() -> list[str]:
+    """Folder pairs whose imports point up, or both ways (then the two folders cannot be in distinct layers)."""
+    pairs = {(folder(m), folder(t)) for m, t in _edges() if folder(m) != folder(t)}
+    both = sorted({tuple(sorted(p)) for p in pairs if (p[1], p[0]) in pairs})
+    order = {f: (0 if f == "foundation" else LAYERS[f]) for pair in pairs for f in pair}
+    up = sorted(f"{a} imports {b}" for a, b in pairs if order[b] > order[a])
+    return up + [f"{a} and {b} import each other" for a, b in both]
+
+
+def circles() -> list[list[str]]:
+    """The module import graph's strongly connected components of more than one module (Tarjan)."""
+    graph: dict[str, set[str]] = defaultdict(set)
+    for m, t in _edges():
+        graph[m].add(t)
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on: set[str] = set()
+    out: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in list(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
 def test_no_import_points_up_the_layers():
-    upward = [f"{m} ({NAMES[layer(m)]}) imports {t} ({NAMES[layer(t)]})"
-              for m, targets in imports().items() for t in sorted(targets) if layer(t) > layer(m)]
-    assert not upward, "upward imports:\n" + "\n".join(upward)
+    up = upward_modules()
+    assert not up, "upward imports:\n" + "\n".join(up)
 
 
-def test_nothing_imports_a_command_module():
-    tests = {f"tests.{p.stem}": _wamplan_imports(p) for p in sorted(Path(__file__).parent.glob("*.py"))}
-    users = [f"{m} imports {t}" for m, targets in {**imports(), **tests}.items() for t in targets
-             if layer(t) == CLI and t != "wamplan.cli"]
-    assert not users, "command modules are entry points, not libraries:\n" + "\n".join(users)
+def test_folders_sit_where_their_imports_say():
+    up = upward_folders()
+    assert not up, "folders whose imports run up or both ways:\n" + "\n".join(up)
+
+
+def test_no_modules_import_each_other_in_a_circle():
+    found = circles()
+    assert not found, "import circles:\n" + "\n".join(" <-> ".join(c) for c in found)
+
+
+def test_nothing_below_the_cli_imports_it():
+    users = [f"{m} imports {t}" for m, t in _edges() if folder(t) == "cli" and folder(m) != "cli"]
+    assert not users, "the command line is an entry point, not a library:\n" + "\n".join(users)
 
 
 def test_the_task_contract_is_imported_from_envs_only():
@@ -80,10 +157,13 @@ def test_the_task_contract_is_imported_from_envs_only():
 
 if __name__ == "__main__":
     by_layer: dict[str, set[str]] = defaultdict(set)
-    for m, targets in imports().items():
-        for t in targets:
-            if layer(t) != layer(m) or m.split(".")[:2] != t.split(".")[:2]:
-                by_layer[m].add(t)
+    for m, t in _edges():
+        if folder(m) != folder(t):
+            by_layer[m].add(t)
     for m in sorted(by_layer, key=lambda m: (layer(m), m)):
         print(f"[{NAMES[layer(m)]}] {m} -> {', '.join(sorted(by_layer[m]))}")
+    up, fup, circ = upward_modules(), upward_folders(), circles()
+    print(f"\nupward imports between modules: {len(up)}", *up, sep="\n  ")
+    print(f"folders importing up or both ways: {len(fup)}", *fup, sep="\n  ")
+    print(f"circles of modules: {len(circ)}", *(" <-> ".join(c) for c in circ), sep="\n  ")
     sys.exit(0)

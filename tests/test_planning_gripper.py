@@ -7,7 +7,7 @@ import torch
 
 from wamplan.planning import PLANNERS, CEMGripperConfig, make_planner
 from wamplan.planning.cem_gripper import gripper_categories
-from wamplan.planning.options import add_planner_arguments, planner_config_from_args
+from wamplan.cli.planner_options import add_planner_arguments, planner_config_from_args
 
 H, A = 16, 5
 

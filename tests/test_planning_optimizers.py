@@ -341,7 +341,7 @@ def test_without_mean_candidate():
 
 def test_the_wamplan_preset_is_mppi_at_its_tuned_settings():
     """``--planner wamplan`` searches exactly as MPPI with the preset's temperature, and takes MPPI's options."""
-    from wamplan.planning.presets import TEMPERATURE, WamplanConfig
+    from wamplan.planning.defaults import TEMPERATURE, WamplanConfig
 
     seed, cost, _ = sum_problem(torch.Generator().manual_seed(4), 0.2)
     preset = make_planner("wamplan").plan(seed, cost, seed=5)

@@ -40,7 +40,7 @@ def untimed(x):
 
 
 def test_eval_on_ray_equals_local_and_resumes(ray_cluster, tmp_path, capsys):
-    from wamplan.evaluation.options import eval_config_from_args
+    from wamplan.cli.eval_options import eval_config_from_args
     from wamplan.evaluation.runner import run_evaluation
     from wamplan.cli import build_parser
 

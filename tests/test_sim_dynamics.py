@@ -158,7 +158,7 @@ def test_blended_dynamics_moves_the_models_prediction_toward_the_simulators(env)
 def test_oracle_blend_is_checked_in_one_line():
     from wamplan.config import ConfigError
     from wamplan.errors import UserError
-    from wamplan.evaluation.runner import EvalConfig
+    from wamplan.evaluation.config import EvalConfig
 
     with pytest.raises(ConfigError, match="outside"):
         EvalConfig(oracle_blend=-0.1)

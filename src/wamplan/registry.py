@@ -1,5 +1,5 @@
 """One registry type for every family that is built by name: policies, WAMs, WAM checkpoint loaders,
-encoders, planners, costs and the ``wamplan`` sub-commands (lerobot's ``register_subclass`` pattern).
+encoders, planners, costs and the ``wamplan`` sub-commands (``wamplan.cli.main.COMMANDS``) (lerobot's ``register_subclass`` pattern).
 
 One way to fill them: an entry registers itself with the ``register(name)`` decorator in the module that
 defines it, and the registry names the modules holding its built-in entries (``modules``), which it
@@ -76,13 +76,3 @@ class Registry(dict):
     def get(self, name: str, default=None):
         return dict.get(self.load(), name, default)
 
-
-COMMANDS = Registry("command", modules=(
-    "wamplan.envs.commands",
-    "wamplan.data.commands",
-    "wamplan.worldmodel.commands",
-    "wamplan.wam.commands",
-    "wamplan.evaluation.commands",
-    "wamplan.plot_commands",
-))
-register_command = COMMANDS.register  # decorator on a command module's ``register(subparsers)``

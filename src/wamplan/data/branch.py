@@ -26,7 +26,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from wamplan.data.collect import STATE_KEYS, collect_one, record_state
+from wamplan.data.record import STATE_KEYS, collect_one, record_state
 from wamplan.data.store import BRANCH_SEED_FACTOR, EpisodeData, EpisodeStore, parent_episode
 from wamplan.envs.contract import CAMERAS
 from wamplan.envs.core import InsertionEnv

@@ -17,15 +17,13 @@ from functools import partial
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
-import numpy as np
 
+from wamplan.data.record import collect_one
 from wamplan.data.store import EpisodeData, EpisodeStore
-from wamplan.envs.contract import CAMERAS
 from wamplan.envs.core import EnvConfig, InsertionEnv
 from wamplan.errors import UserError, require_paths
 from wamplan.parallel import Backend, imap_workers
 from wamplan.policies.base import Policy, make_policy
-from wamplan.policies.rollout import run_episode
 from wamplan.provenance import provenance
 
 
@@ -42,54 +40,6 @@ class CollectJob:
     loader: Callable[[str], Policy] = make_policy  # policy_spec -> Policy; a module-level function (picklable)
     branch: Any = None  # a wamplan.data.branch.BranchSpec: also store counterfactual branches of each episode
     policy_kwargs: dict[str, Any] = field(default_factory=dict)  # loader(policy_spec, **these)
-
-
-STATE_KEYS = ("proprio", "stages", "cube_pose", "tcp_pose", "sim_state", "drive_targets")  # per step, (T+1, ...)
-
-
-def record_state(rec: dict[str, list], env: InsertionEnv, obs) -> None:
-    """Append the per-step state arrays of ``obs`` (and the env's physics state) to ``rec``'s lists."""
-    rec["proprio"].append(obs.proprio)
-    rec["stages"].append(obs.state["stages"])
-    rec["cube_pose"].append(obs.state["cube_pose"])
-    rec["tcp_pose"].append(obs.state["tcp_pose"])
-    rec["sim_state"].append(env.sim_state())
-    rec["drive_targets"].append(env.drive_targets())
-
-
-def collect_one(env: InsertionEnv, policy: Policy, seed: int, source: str, image_every: int,
-                max_steps: int | None = None, on_step=None) -> EpisodeData:
-    """Run one episode, recording states every step and the three views every ``image_every`` steps and at the end.
-    ``on_step(env, obs, action)`` is called after each recorded observation (e.g. to take snapshots)."""
-    rec: dict[str, list] = {k: [] for k in (*STATE_KEYS, "actions", "image_steps")}
-    frames: dict[str, list] = {c: [] for c in CAMERAS}
-
-    def on_obs(e: InsertionEnv, obs, action) -> None:
-        if action is not None:
-            rec["actions"].append(action)
-        record_state(rec, e, obs)
-        if obs.images is not None and obs.step % image_every == 0:
-            rec["image_steps"].append(obs.step)
-            for c in CAMERAS:
-                frames[c].append(obs.images[c])
-        if on_step is not None:
-            on_step(e, obs, action)
-
-    r = run_episode(env, policy, seed, images_at=lambda t: t % image_every == 0, on_obs=on_obs, max_steps=max_steps)
-    if not rec["image_steps"] or rec["image_steps"][-1] != r.length:  # always keep the final frame
-        views = env.render()
-        rec["image_steps"].append(r.length)
-        for c in CAMERAS:
-            frames[c].append(views[c])
-    arrays = {k: np.stack(v) if v else np.zeros((0, 5), np.float32) for k, v in rec.items()}
-    return EpisodeData(seed=seed, source=source, success=r.success, outcome=r.outcome, actions=arrays["actions"],
-                       proprio=arrays["proprio"], stages=arrays["stages"], cube_pose=arrays["cube_pose"],
-                       tcp_pose=arrays["tcp_pose"], sim_state=arrays["sim_state"],
-                       drive_targets=arrays["drive_targets"], image_steps=arrays["image_steps"].astype(np.int32),
-                       images={c: np.stack(frames[c]) for c in CAMERAS}, reached=r.reached,
-                       policy=policy.config_dict(),
-                       provenance=provenance(max_steps=max_steps or env.config.max_episode_steps,
-                                             wall_time_s=round(r.wall_time, 3)))
 
 
 class CollectWorker:
@@ -155,7 +105,7 @@ def collect(source: str, episodes: int, out: str | Path, *, seed_start: int = 0,
     """Collect seeds ``seed_start .. seed_start + episodes - 1`` of ``source`` (expert, noisy-expert, pink,
     or policy with ``policy`` a WAM checkpoint) into the store ``out``, skipping the seeds it holds.
     ``loader`` builds the policy from its name or checkpoint in each worker: the registered policies by
-    default; pass ``wamplan.evaluation.policies.load_policy`` to run WAM checkpoints (a layer above data).
+    default; pass ``wamplan.evaluation.build.load_policy`` to run WAM checkpoints (a layer above data).
     ``backend``: worker processes here, or Ray actors (see ``wamplan.parallel``). ``branch`` (a
     ``wamplan.data.branch.BranchSpec``, policy sources only) also stores counterfactual branches per episode.
     ``policy_kwargs`` go to the policy's constructor (e.g. ``config=ExpertConfig(...)`` for the expert).
@@ -175,7 +125,7 @@ def collect(source: str, episodes: int, out: str | Path, *, seed_start: int = 0,
         if plan_with:
             if loader is make_policy:
                 raise UserError("plan_with builds a planned WAM, which the registered policies' loader cannot: pass "
-                                "loader=wamplan.evaluation.policies.load_policy")
+                                "loader=wamplan.evaluation.build.load_policy")
             require_paths(plan_with.split(","), "--plan-with",
                           "pass a world model checkpoint (e.g. from `wamplan wm train`)")
             tag += "+plan:" + "+".join(Path(p).resolve().name for p in plan_with.split(","))

@@ -41,7 +41,7 @@ def explain_chunk(cfg, decoder: str | Path, seed: int, chunk_index: int) -> Mech
     """Run condition 7 of ``cfg`` (an ``EvalConfig``) on ``seed`` up to chunk ``chunk_index`` (>= 1), plan that
     chunk, and compare the WAM's chunk with the plan in the model and in the simulator."""
     from wamplan.evaluation.runner import EvalWorker
-    from wamplan.planning.fidelity import OnceWAM
+    from wamplan.wam.once import OnceWAM
     from wamplan.policies.rollout import run_episode
     from wamplan.worldmodel.decoder import load_decoder
 

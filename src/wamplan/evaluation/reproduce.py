@@ -47,7 +47,7 @@ class Stage:
 def _collect(source: str, p: Preset, store: Path, workers: int, seeds: int, policy: str | None = None,
              max_steps: int | None = None) -> Call:
     from wamplan.data.collect import collect
-    from wamplan.evaluation.policies import load_policy
+    from wamplan.evaluation.build import load_policy
 
     key = "on_policy" if source == "policy" else source.removesuffix("-expert")
     cmd = ["collect", "--source", source, *(["--policy", policy] if policy else []), "--episodes", str(seeds),
@@ -64,7 +64,8 @@ def evaluate_conditions(conditions: list[int], episodes: int, out: Path, workers
     wamplan's default); outcome counts of new episodes."""
     from collections import Counter
 
-    from wamplan.evaluation.runner import EvalConfig, run_evaluation
+    from wamplan.evaluation.config import EvalConfig
+    from wamplan.evaluation.runner import run_evaluation
 
     cfg = EvalConfig(wam=wam, wm_plain=wm_plain, wm_augmented=wm_augmented, planner=PAPER_PLANNER)
     cfg.check_for(conditions)

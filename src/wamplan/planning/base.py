@@ -271,7 +271,7 @@ def _score(objective: Objective, cand: Tensor) -> Tensor:
 
 PLANNERS = Registry("planner", set_name=True, modules=("wamplan.planning.cem", "wamplan.planning.mppi",
                                                           "wamplan.planning.cem_gripper", "wamplan.planning.drift",
-                                                          "wamplan.planning.presets"))
+                                                          "wamplan.planning.defaults"))
 register_planner = PLANNERS.register  # class decorator: make a planner constructible by name
 
 

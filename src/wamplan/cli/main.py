@@ -1,8 +1,8 @@
 """The one command-line entry point, ``wamplan``.
 
-Each concept registers its own sub-commands from ``wamplan/<concept>/commands.py`` (and
-``wamplan/plot_commands.py``): a function ``register(subparsers)`` decorated with
-``@register_command(name)`` (the ``COMMANDS`` registry in ``wamplan.registry``, which lists those modules);
+Each command family registers its sub-commands from its module in ``wamplan/cli/`` (``env``, ``data``, ``wm``,
+``wam``, ``eval``, ``plot``): a function ``register(subparsers)`` decorated with
+``@register_command(name)`` (the ``COMMANDS`` registry below, which lists those modules);
 a handler is a function ``(args) -> int``. Imports are lazy so that ``wamplan --help`` stays fast.
 """
 
@@ -11,7 +11,17 @@ from __future__ import annotations
 import argparse
 import sys
 
-from wamplan.registry import COMMANDS
+from wamplan.registry import Registry
+
+COMMANDS = Registry("command", modules=(
+    "wamplan.cli.env",
+    "wamplan.cli.data",
+    "wamplan.cli.wm",
+    "wamplan.cli.wam",
+    "wamplan.cli.eval",
+    "wamplan.cli.plot",
+))
+register_command = COMMANDS.register  # decorator on a command module's ``register(subparsers)``
 
 
 def build_parser() -> argparse.ArgumentParser:

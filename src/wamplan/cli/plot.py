@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from wamplan.registry import register_command
+from wamplan.cli.main import register_command
 
 
 @register_command("plot")

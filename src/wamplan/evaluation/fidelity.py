@@ -41,7 +41,8 @@ from wamplan.planning.dynamics import Dynamics, SimulatorDynamics
 from wamplan.planning.policy import PlannedPolicy, PlannedPolicyConfig
 from wamplan.envs.contract import Observation
 from wamplan.policies.base import Policy
-from wamplan.wam.base import WAM, WAMOutput
+from wamplan.wam.once import OnceWAM
+from wamplan.wam.base import WAM
 
 
 @dataclass(frozen=True)
@@ -134,37 +135,6 @@ def task_stats(model: torch.Tensor, true: torch.Tensor, xy: torch.Tensor) -> dic
     return dict(true_vs_xy=spearman(true, xy), model_vs_xy=spearman(model, xy),
                 pick_xy_change_mm=float(xy[pick] - xy[0]), sim_pick_xy_change_mm=float(xy[sim_pick] - xy[0]),
                 best_xy_change_mm=float(xy.min() - xy[0]))
-
-
-class OnceWAM(WAM):
-    """Queries ``inner`` once per step of an episode and hands every caller that same output."""
-
-    def __init__(self, inner: WAM):
-        self.inner = inner
-        self.name = inner.name
-        self.chunk_length, self.action_dim = inner.chunk_length, inner.action_dim
-        self.cameras, self.default_instruction = inner.cameras, inner.default_instruction
-        self._out: dict[int, WAMOutput] = {}
-
-    def predict(self, obs: Observation, instruction: str) -> WAMOutput:
-        if obs.step not in self._out:
-            self._out = {obs.step: self.inner.validate(self.inner.predict(obs, instruction))}
-        return self._out[obs.step]
-
-    @property
-    def last(self) -> WAMOutput | None:
-        """The output of the latest step queried (None before the first query of an episode)."""
-        return next(iter(self._out.values()), None)
-
-    def reset(self) -> None:
-        """A no-op: every PlannedPolicy resets its WAM, so the driver resets the inner WAM itself, once."""
-
-    def new_episode(self) -> None:
-        self.inner.reset()
-        self._out = {}
-
-    def config_dict(self) -> dict[str, Any]:
-        return self.inner.config_dict()
 
 
 class _Scorer:

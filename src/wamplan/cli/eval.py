@@ -7,12 +7,12 @@ import json
 from collections import Counter
 from pathlib import Path
 
-from wamplan.registry import register_command
+from wamplan.cli.main import register_command
 
 
 @register_command("evaluation")
 def register(sub: argparse._SubParsersAction) -> None:
-    from wamplan.evaluation.options import add_eval_arguments
+    from wamplan.cli.eval_options import add_eval_arguments
     from wamplan.parallel import add_backend_argument
 
     p = sub.add_parser("eval", help="run the paper's evaluation conditions (resumable, parallel)")
@@ -60,7 +60,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def cmd_explain(args: argparse.Namespace) -> int:
     from wamplan.errors import require_paths
     from wamplan.evaluation.mechanism import explain_chunk, mechanism_figure
-    from wamplan.evaluation.options import eval_config_from_args
+    from wamplan.cli.eval_options import eval_config_from_args
 
     cfg = eval_config_from_args(args)
     cfg.check_for([7])
@@ -79,7 +79,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     from wamplan.errors import UserError
     from wamplan.evaluation.conditions import parse_conditions
-    from wamplan.evaluation.options import eval_config_from_args
+    from wamplan.cli.eval_options import eval_config_from_args
     from wamplan.evaluation.records import read_records, record_key
     from wamplan.evaluation.runner import run_evaluation
     from wamplan.parallel import Backend

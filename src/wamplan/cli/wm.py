@@ -10,7 +10,7 @@ from pathlib import Path
 from wamplan.config import add_arguments, from_args
 from wamplan.envs.contract import CAMERAS
 from wamplan.errors import UserError, require_paths
-from wamplan.registry import register_command
+from wamplan.cli.main import register_command
 from wamplan.worldmodel.config import TrainConfig
 
 
@@ -241,7 +241,7 @@ def _seed_list(spec: str, flag: str = "--seeds") -> list[int]:
 def cmd_fidelity(args: argparse.Namespace) -> int:
     from wamplan.envs.core import EnvConfig, InsertionEnv
     from wamplan.planning.dynamics import learned_dynamics
-    from wamplan.planning.fidelity import FidelityConfig, Scored, format_fidelity, run_fidelity
+    from wamplan.evaluation.fidelity import FidelityConfig, Scored, format_fidelity, run_fidelity
     from wamplan.planning.policy import PlannedPolicyConfig
     from wamplan.wam import load_wam
     from wamplan.worldmodel.train import load_world_model

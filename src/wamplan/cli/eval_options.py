@@ -1,6 +1,6 @@
 """``wamplan eval``'s options, generated from the configs :class:`EvalConfig` nests: the checkpoints, the
 planned policy, the cost (``--cost-*``), the task, and every registered planner's config
-(``wamplan.planning.options``), and the nested config built back from them."""
+(``wamplan.cli.planner_options``), and the nested config built back from them."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ import dataclasses
 
 from wamplan.config import add_arguments, from_args
 from wamplan.envs.core import EnvConfig
-from wamplan.evaluation.runner import EvalConfig
+from wamplan.evaluation.config import EvalConfig
 from wamplan.planning import CostConfig
-from wamplan.planning.options import add_planner_arguments, planner_config_from_args
+from wamplan.cli.planner_options import add_planner_arguments, planner_config_from_args
 from wamplan.planning.policy import PlannedPolicyConfig
 
 

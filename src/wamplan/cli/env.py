@@ -11,7 +11,7 @@ from pathlib import Path
 
 from wamplan.config import add_arguments, from_args
 from wamplan.errors import UserError
-from wamplan.registry import register_command
+from wamplan.cli.main import register_command
 
 
 @register_command("env")
@@ -100,7 +100,7 @@ def cmd_rollout(args: argparse.Namespace) -> int:
     from wamplan.envs.core import EnvConfig, InsertionEnv
     from wamplan.envs.media import write_video
     from wamplan.policies.rollout import run_episode
-    from wamplan.evaluation.policies import load_policy
+    from wamplan.evaluation.build import load_policy
     from wamplan.provenance import provenance
 
     if args.episodes <= 0:

@@ -42,7 +42,7 @@ def load_policy(spec: str, instruction: str | None = None, plan_with: str = "", 
     if not plan_with:
         wam = load_wam(spec)
         return WAMPolicy(wam, instruction=instruction) if instruction else WAMPolicy(wam)
-    from wamplan.evaluation.runner import EvalConfig
+    from wamplan.evaluation.config import EvalConfig
     from wamplan.planning.dynamics import learned_dynamics
     from wamplan.worldmodel.train import load_world_model
 

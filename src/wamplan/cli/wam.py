@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from wamplan.errors import UserError
-from wamplan.registry import register_command
+from wamplan.cli.main import register_command
 
 
 @register_command("wam")

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from wamplan.config import add_arguments, from_args
 from wamplan.errors import UserError
-from wamplan.registry import register_command
+from wamplan.cli.main import register_command
 
 SOURCES = ("expert", "noisy-expert", "pink", "policy")
 EXPERT_PREFIX, NOISY_PREFIX = "expert_", "noisy_"  # collect's --expert-<field> and --noisy-<field> options
@@ -88,7 +88,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def cmd_collect(args: argparse.Namespace) -> int:
     from wamplan.data.collect import collect
     from wamplan.envs.core import EnvConfig
-    from wamplan.evaluation.policies import load_policy
+    from wamplan.evaluation.build import load_policy
     from wamplan.parallel import Backend
 
     branch = None

@@ -23,7 +23,7 @@ from typing import Any
 from wamplan.config import add_field_argument
 from wamplan.errors import UserError
 from wamplan.planning.base import PLANNERS
-from wamplan.planning.presets import DEFAULT_PLANNER
+from wamplan.planning.defaults import DEFAULT_PLANNER
 
 _DEST = "planner_opt__"  # dest prefix: planner_opt__<planner or empty>__<field>
 
@@ -33,7 +33,7 @@ def add_planner_arguments(parser: argparse.ArgumentParser, default: str = DEFAUL
     names = sorted(PLANNERS)
     parser.add_argument("--planner", default=None, choices=names,
                         help=f"planner by registry name (default: {default}); wamplan: MPPI at the settings wamplan "
-                             f"tuned on validation seeds (planning/presets.py); cem: the paper's CEM")
+                             f"tuned on validation seeds (planning/defaults.py); cem: the paper's CEM")
     parser.set_defaults(planner_default=default)
     group = parser.add_argument_group(
         "planner options", "settings of the planner's config; each applies to the planners listed in brackets")

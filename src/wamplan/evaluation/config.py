@@ -1,0 +1,83 @@
+"""One evaluation's settings, :class:`EvalConfig`: the checkpoints, and the configs of the env, the planner, the
+cost and the planned policy, nested as they are used; ``check_for(conditions)`` refuses what those conditions
+cannot run with, in one line, before anything loads."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from wamplan.config import field, from_dict, require
+from wamplan.envs.core import EnvConfig
+from wamplan.evaluation.conditions import CONDITIONS
+from wamplan.planning import PLANNERS, CostConfig
+from wamplan.planning.defaults import DEFAULT_PLANNER
+from wamplan.planning.policy import PlannedPolicyConfig
+
+
+def _env_default() -> EnvConfig:
+    return EnvConfig()
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    """One evaluation: the checkpoints, and the configs of the env, the planner (by registry name with its
+    own config), the cost and the planned policy, nested as they are used."""
+
+    wam: str = field("", "WAM checkpoint directory (e.g. a TinyWAM)")
+    wam_url: str = field("", "a served WAM's /act endpoint (Cosmos Policy protocol) instead of --wam, "
+                         "e.g. http://127.0.0.1:8777/act")
+    wam_profile: str = field("", "with --wam-url: the server's field mapping and sizes by name "
+                             "(cosmos-robocasa, cosmos-aloha); empty: the client's defaults")
+    wm_plain: str = field("", "plain world model checkpoint (condition 6)")
+    wm_augmented: str = field("", "augmented world model checkpoint (condition 7); several comma-separated "
+                              "checkpoints form an ensemble (see --disagreement-weight); the same for --wm-plain")
+    sim_encoder: str = field("", "encoder for the simulator conditions (default: the plain world model's)")
+    device: str = field("auto", "torch device for the models")
+    oracle_blend: float = field(0.0, "a diagnostic, not the method: conditions 6 and 7 plan with the world model's "
+                                "prediction moved this share of the way to the simulator's exact outcome (0: the "
+                                "model, as the paper; 1: the oracle's dynamics); every candidate is simulated, so it "
+                                "runs at the oracle's speed")
+    planner: str = field(DEFAULT_PLANNER, "planner by registry name (wamplan.planning.PLANNERS); the paper's is cem", cli=False)
+    planner_config: Any = field(None, "the planner's config (its config_cls, or a dict of overrides); "
+                                "None = its defaults", cli=False)
+    cost: CostConfig = field(help="the planning cost", default_factory=CostConfig)
+    policy: PlannedPolicyConfig = field(help="the planned policy's chunk rules", default_factory=PlannedPolicyConfig)
+    env: EnvConfig = field(help="the task (camera size, episode length, ...)", default_factory=_env_default)
+
+    def __post_init__(self):
+        cls = PLANNERS.lookup(self.planner).config_cls
+        pc = self.planner_config
+        pc = cls() if pc is None else from_dict(cls, pc) if isinstance(pc, dict) else pc
+        require(isinstance(pc, cls), f"planner '{self.planner}' needs a {cls.__name__} as planner_config, "
+                f"got {type(pc).__name__}; pass that planner's config or None")
+        object.__setattr__(self, "planner_config", pc)
+        require(0.0 <= self.oracle_blend <= 1.0, f"--oracle-blend {self.oracle_blend} is outside [0, 1]; 0 plans in "
+                "the world model alone, 1 with the simulator's dynamics")
+
+    def check_for(self, conditions: list[int]) -> None:
+        from wamplan.errors import UserError, require_paths
+
+        if not self.wam and not self.wam_url:
+            raise UserError("--wam CKPT is required (a WAM checkpoint, e.g. from `wamplan wam train`), or "
+                            "--wam-url URL for a served WAM")
+        if self.wam and self.wam_url:
+            raise UserError("pass only one of --wam CKPT and --wam-url URL (one WAM per evaluation)")
+        if self.wam_profile and not self.wam_url:
+            raise UserError("--wam-profile needs --wam-url (a profile describes a served WAM)")
+        if self.wam_url:
+            from wamplan.wam.cosmos_client import profile_config
+
+            profile_config(self.wam_profile, url=self.wam_url)  # a bad URL or profile fails now, in one line
+        if self.oracle_blend > 0 and not any(CONDITIONS[c].learned for c in conditions):
+            raise UserError(f"--oracle-blend blends a world model's predictions, but conditions {conditions} plan in "
+                            "none; add condition 6 or 7, or drop --oracle-blend")
+        for c in conditions:
+            need = {"learned-plain": ("wm_plain", "--wm-plain"), "learned-augmented": ("wm_augmented", "--wm-augmented")}
+            if CONDITIONS[c].dynamics in need:
+                attr, flag = need[CONDITIONS[c].dynamics]
+                if not getattr(self, attr):
+                    raise UserError(f"condition {c} needs {flag} CKPT (a world model from `wamplan wm train`)")
+                require_paths(getattr(self, attr).split(","), flag, "train it or fix the path")
+        if self.wam:
+            require_paths([self.wam], "--wam", "train one with `wamplan wam train` or fix the path")
