@@ -13,7 +13,7 @@ $W env check
 $W env render --seed 0 --out "$OUT/views.png"
 $W env rollout --policy expert --episodes 1 --seed-start 0 --json "$OUT/expert_rollout.json" --video "$OUT/videos"
 if [ -f "$CK/tinywam/model.safetensors" ]; then
-  # an out/demo/eval from before stop 14 ran the paper's CEM (then the default): keep it aside, lose nothing
+  # an out/demo/eval made with another planner (older demos ran the paper's CEM) is kept aside, not mixed in
   if [ -f "$OUT/eval/eval_config.json" ] && ! grep -q '"planner": "wamplan"' "$OUT/eval/eval_config.json"; then
     old="$OUT/eval.$(date +%Y%m%d-%H%M%S)"
     mv "$OUT/eval" "$old" && echo "an older demo evaluation (another planner) was kept in $old"
@@ -27,9 +27,9 @@ if [ -f "$CK/tinywam/model.safetensors" ]; then
     $W eval --conditions 1 "${args[@]}"
   fi
   $W report "$OUT/eval"
-  # the episode-by-episode comparison of these seeds (the 100-seed table is in the README, "Measured")
+  # the episode-by-episode comparison of these seeds (the 100-seed table: README.md, "Results")
   awk '/^## /{show = /^## Episode by episode/} show' "$OUT/eval/report.md"
-  echo "($SEEDS seeds cannot call a difference: the 100-seed test run of these checkpoints is the table at the top of README.md, 'Measured on this machine')"
+  echo "($SEEDS seeds cannot call a difference: the 100-seed test run of these checkpoints is README.md's 'Results' and docs/results.md)"
   if [ -f "$CK/decoder/model.safetensors" ] && [ -f "$CK/wm_augmented/model.safetensors" ]; then
     # the mechanism: one planned chunk, the WAM's target against the model's and the simulator's outcomes
     $W explain --wam "$CK/tinywam" --wm-augmented "$CK/wm_augmented" --decoder "$CK/decoder" \
