@@ -13,8 +13,9 @@ from wamplan.errors import UserError
 from wamplan.presets import PRESETS as ALL_PRESETS
 from wamplan.presets import get_world_model_preset as get_preset
 from wamplan.train_loop import CKPT_DIR, METRICS_FILE
-from wamplan.worldmodel import (Decoder, DecoderConfig, PredictorConfig, TrainConfig, WorldModelPredictor,
-                                evaluate_predictor, load_decoder, load_predictor, train_decoder, train_predictor)
+from wamplan.worldmodel import (Decoder, DecoderConfig, DecoderTrainConfig, PredictorConfig, TrainConfig,
+                                WorldModelPredictor, evaluate_predictor, load_decoder, load_predictor, train_decoder,
+                                train_predictor)
 from wamplan.worldmodel.synthetic import SyntheticWindows
 
 PRESETS = {name: p.world_model for name, p in ALL_PRESETS.items()}
@@ -62,7 +63,7 @@ def test_configs_validate_with_messages_that_say_what_to_fix():
         TrainConfig(epochs=2, warmup_epochs=3)
     with pytest.raises(ConfigError, match="pass a positive --lr"):
         TrainConfig(lr=0)
-    for cfg in (TINY, DecoderConfig(), TrainConfig()):
+    for cfg in (TINY, DecoderConfig(), TrainConfig(), DecoderTrainConfig()):
         assert from_dict(type(cfg), json.loads(json.dumps(to_dict(cfg)))) == cfg
 
 
@@ -293,7 +294,7 @@ def test_decoder_outputs_images_in_unit_range_and_trains(tmp_path):
         out = dec(torch.randn(3, 4, 8) * 10)
     assert out.shape == (3, 3, 16, 16) and float(out.min()) >= 0.0 and float(out.max()) <= 1.0
     data = _Pairs(64, cfg)  # 32 px images, resized to 16 px for the loss
-    train = TrainConfig(lr=3e-3, batch_size=8, epochs=20, warmup_epochs=1, weight_decay=1e-5)
+    train = DecoderTrainConfig(lr=3e-3, batch_size=8, epochs=20, warmup_epochs=1, weight_decay=1e-5)
     model, metrics = train_decoder(data, cfg, train, tmp_path, val_set=data, device="cpu", progress=False)
     first = json.loads((tmp_path / METRICS_FILE).read_text().splitlines()[0])
     assert metrics["val/pixel_mse"] < 0.5 * first["val/pixel_mse"], (first, metrics)
@@ -301,6 +302,36 @@ def test_decoder_outputs_images_in_unit_range_and_trains(tmp_path):
     with torch.no_grad():
         assert torch.equal(loaded(data.z[:2]), model(data.z[:2]))
 
+
+
+def test_decoder_runs_store_only_decoder_fields_and_old_runs_resume(tmp_path):
+    """A decoder's train section holds DecoderTrainConfig's keys; a run saved with the predictor's keys as well
+    (before the decoder had its own config, as checkpoints/mini/decoder) loads and resumes, those keys ignored."""
+    from pathlib import Path
+
+    from wamplan.checkpoint import CONFIG_FILE
+    from wamplan.worldmodel.decoder import PREDICTOR_ONLY_TRAIN_KEYS
+
+    shipped = Path(__file__).parents[1] / "checkpoints" / "mini" / "decoder"
+    saved = json.loads((shipped / CONFIG_FILE).read_text())["config"]["train"]
+    assert {"horizon", "gamma"} <= set(saved) <= set(TrainConfig.__dataclass_fields__)
+    assert load_decoder(shipped).cfg == PRESETS["mini"].decoder
+    cfg = DecoderConfig(num_patches=4, enc_dim=8, image_size=16, width=32, depth=1, heads=4, mlp_dim=32,
+                        head_channels=16)
+    train = DecoderTrainConfig(batch_size=8, epochs=2, warmup_epochs=0)
+    with pytest.raises(ConfigError, match="takes a DecoderTrainConfig"):
+        train_decoder(_Pairs(16, cfg), cfg, TrainConfig(batch_size=8), tmp_path / "x", device="cpu", progress=False)
+    train_decoder(_Pairs(16, cfg), cfg, train, tmp_path, device="cpu", max_steps=1, progress=False)
+    path = tmp_path / CKPT_DIR / CONFIG_FILE
+    ckpt = json.loads(path.read_text())
+    assert set(ckpt["config"]["train"]) == set(DecoderTrainConfig.__dataclass_fields__)
+    ckpt["config"]["train"].update({k: saved.get(k, 0) for k in PREDICTOR_ONLY_TRAIN_KEYS})  # the old layout
+    path.write_text(json.dumps(ckpt))
+    with pytest.raises(UserError, match="different lr"):  # the shared fields must still match
+        train_decoder(_Pairs(16, cfg), cfg, dataclasses.replace(train, lr=1e-3), tmp_path, device="cpu",
+                      resume=True, progress=False)
+    _, metrics = train_decoder(_Pairs(16, cfg), cfg, train, tmp_path, device="cpu", resume=True, progress=False)
+    assert metrics["epoch"] == 2
 
 def test_action_blocks_are_time_major_and_models_run_in_bfloat16():
     from wamplan.worldmodel import action_blocks

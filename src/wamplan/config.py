@@ -33,6 +33,12 @@ def field(default: Any = dataclasses.MISSING, help: str = "", cli: bool = True, 
     return dataclasses.field(default=default, metadata={"help": help, "cli": cli}, **kw)
 
 
+def with_default(cls: type, name: str, default: Any) -> Any:
+    """``cls``'s field ``name`` with another default, for a subclass that redeclares it: the help stays the
+    base's and the field keeps its place in the base's order (in ``--help`` and in saved configs)."""
+    return dataclasses.field(default=default, metadata=cls.__dataclass_fields__[name].metadata)
+
+
 def require(cond: bool, message: str) -> None:
     """Raise ConfigError(message) unless cond holds."""
     if not cond:
@@ -122,11 +128,16 @@ def add_arguments(parser: Any, cls: type, prefix: str = "") -> None:
 
 
 def from_args(cls: type[T], args: argparse.Namespace, base: T | None = None, prefix: str = "") -> T:
-    """Overlay the options the user passed (not None) onto ``base`` (or the defaults)."""
+    """Overlay the options the user passed (not None) onto ``base`` (or the defaults). ``base`` may be of
+    another config class than ``cls`` (the one the options were generated from): an option passed for a
+    field ``base`` lacks is refused."""
     base = base if base is not None else cls()
     changes = {}
     for f in dataclasses.fields(cls):
         v = getattr(args, prefix + f.name, None) if f.metadata.get("cli", True) else None
         if v is not None:
             changes[f.name] = tuple(v) if isinstance(v, list) else v
+    extra = sorted(set(changes) - {f.name for f in dataclasses.fields(base)})
+    require(not extra, f"{', '.join('--' + (prefix + k).replace('_', '-') for k in extra)} does not apply to "
+                       f"{type(base).__name__}; drop it")
     return dataclasses.replace(base, **changes)

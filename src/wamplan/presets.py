@@ -15,17 +15,13 @@ RoPE base 100, decoder MLP 4096 and 256 head channels, decoder grad clip 1.0.
 World model, ``mini``: the ``patch-pixels`` encoder (64 px, 16 px patches, fixed random projection to 128
 dims: 3 views x 16 tokens x 128), Delta 4 (divides the 16-step chunk: 4 rollout steps end exactly at
 t+16), a width-128 depth-4 predictor with MLP 384 (0.73 M params) that predicts the change from the
-current frame, lr 1e-3 (better than 3e-4 on the synthetic task at this size), batch 64, 4 epochs (the
-demo checkpoints' setting). Measured on the 2-core CPU while two other jobs used ~1.1 cores
-(``benchmarks/profile_worldmodel.py --threads 1``): one CEM plan (32 candidates x 4 iterations x 4 steps,
-KV-cached) 0.94-1.11 s, naive re-running 4.4-4.7x slower (MLP 512 took 1.18 s, so it was trimmed);
-training ~55 windows/s on 1 thread, i.e. ~6 min per epoch of 20k windows. When other processes share
-the 2 cores, use ``torch.set_num_threads(1)``: 2 threads then thrash (a training step measured 80x slower).
+current frame, lr 1e-3, batch 64, 4 epochs (the demo checkpoints' setting); decoder width 192, depth 4,
+MLP 768, lr 3e-4, wd 1e-5, batch 32, 8 epochs.
 
 Data (paper §4): 100 expert, 500 noisy, 500 pink-noise (~84 steps each), 500 on-policy episodes; 50
-evaluation episodes. ``mini``: smaller datasets, the sizes the demo checkpoints were made with (README
-"Demo checkpoints"), about 3 h of collection and training on 2 cores, and 10 episodes for the costly
-simulator conditions (2-5).
+evaluation episodes. ``mini``: 100 expert, 150 noisy, 150 pink-noise (100 steps), 100 on-policy episodes,
+a decoder trained on the expert store only, 50 evaluation episodes and 10 for the costly simulator
+conditions (2-5).
 """
 
 from __future__ import annotations
@@ -36,7 +32,7 @@ from typing import Any
 from wamplan.errors import UserError
 from wamplan.wam.tinywam import TinyWAMConfig
 from wamplan.wam.train import WAMTrainConfig
-from wamplan.worldmodel.config import DecoderConfig, PredictorConfig, TrainConfig
+from wamplan.worldmodel.config import DecoderConfig, DecoderTrainConfig, PredictorConfig, TrainConfig
 
 
 @dataclass(frozen=True)
@@ -47,7 +43,7 @@ class WorldModelPreset:
     predictor: PredictorConfig = field(default_factory=PredictorConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     decoder: DecoderConfig = field(default_factory=DecoderConfig)
-    decoder_train: TrainConfig = field(default_factory=TrainConfig)
+    decoder_train: DecoderTrainConfig = field(default_factory=DecoderTrainConfig)
 
 
 @dataclass(frozen=True)
@@ -98,8 +94,8 @@ WM_PAPER = WorldModelPreset(
                       warmup_epochs=1, grad_clip=1.0, log_every_steps=50),
     decoder=DecoderConfig(num_patches=196, enc_dim=1024, image_size=224, width=1024, depth=4, heads=8,
                           mlp_dim=4096, head_channels=256),
-    decoder_train=TrainConfig(lr=3e-4, weight_decay=1e-5, batch_size=16, epochs=24, warmup_epochs=2, grad_clip=1.0,
-                              log_every_steps=50),
+    decoder_train=DecoderTrainConfig(lr=3e-4, weight_decay=1e-5, batch_size=16, epochs=24, warmup_epochs=2,
+                                     grad_clip=1.0, log_every_steps=50),
 )
 
 WM_MINI = WorldModelPreset(
@@ -113,8 +109,8 @@ WM_MINI = WorldModelPreset(
                       warmup_epochs=0.5, grad_clip=1.0, log_every_steps=20),
     decoder=DecoderConfig(num_patches=16, enc_dim=128, image_size=64, width=192, depth=4, heads=8,
                           mlp_dim=768, head_channels=128),
-    decoder_train=TrainConfig(lr=3e-4, weight_decay=1e-5, batch_size=32, epochs=8, warmup_epochs=1, grad_clip=1.0,
-                              log_every_steps=20),
+    decoder_train=DecoderTrainConfig(lr=3e-4, weight_decay=1e-5, batch_size=32, epochs=8, warmup_epochs=1,
+                                     grad_clip=1.0, log_every_steps=20),
 )
 
 # TinyWAM (the mini stand-in for Cosmos Policy; the paper preset trains the same network longer)

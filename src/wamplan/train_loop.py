@@ -13,18 +13,20 @@ the progress bar, validation and logging at epoch ends, and saving (at every epo
 ``save_every_steps``, on ``max_steps`` and on Ctrl-C).
 
 One resume rule: a run is resumed only with the same data (the ``data`` identity: stores, episodes,
-split) and the same config (except :data:`RUN_ONLY_FIELDS` of its ``train`` section); anything else is
-refused with one line naming the difference. Resuming is exact: the data order of epoch e is a
-permutation seeded by (seed, e), the loop skips the batches already done, and weights, optimizer,
-scheduler, counters and the torch CPU RNG are restored. (A CUDA RNG is not saved: with dropout on a
-GPU a resumed run differs from an uninterrupted one only in its dropout masks.)
+split) and the same config (except :data:`RUN_ONLY_FIELDS` of its ``train`` section and the keys a
+trainer names as retired); anything else is refused with one line naming the difference. Resuming is
+exact: the data order of epoch e is a permutation seeded by (seed, e), the loop skips the batches
+already done, and weights, optimizer, scheduler, counters and the torch CPU RNG are restored. (A CUDA
+RNG is not saved: with dropout on a GPU a resumed run differs from an uninterrupted one only in its
+dropout masks.)
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterable, Protocol, Sequence
 
@@ -34,6 +36,7 @@ from torch.utils.data import DataLoader, Dataset
 
 from wamplan.checkpoint import (CKPT_DIR, CONFIG_FILE, STATE_DIR, has_training_state, load_training_state,
                                 load_weights, read_config, save_checkpoint)
+from wamplan.config import field, require
 from wamplan.errors import UserError
 from wamplan.optim import make_adamw, optimizer_step, warmup_cosine
 from wamplan.progress import progress_bar
@@ -45,19 +48,38 @@ RUN_ONLY_FIELDS = ("epochs", "num_workers", "device", "save_every_steps", "log_e
 StepFn = Callable[[nn.Module, Any], tuple[torch.Tensor, dict[str, float]]]
 
 
-class LoopConfig(Protocol):
-    """The optimisation fields the loop reads (``worldmodel.TrainConfig`` and ``WAMTrainConfig`` have them)."""
+@dataclass(frozen=True)
+class LoopConfig:
+    """The optimisation fields every trainer shares and the loop reads. The trainers' configs extend it
+    (``wam.train.WAMTrainConfig``, ``worldmodel.config.TrainConfig`` and ``DecoderTrainConfig``), redeclaring
+    a default with :func:`wamplan.config.with_default` where theirs differs."""
 
-    epochs: int
-    batch_size: int
-    lr: float
-    weight_decay: float
-    warmup_epochs: float
-    min_lr_ratio: float
-    grad_clip: float
-    seed: int
-    save_every_steps: int
-    log_every_steps: int
+    epochs: int = field(24, "passes over the training set (raise it and re-run to train a finished run longer)")
+    batch_size: int = field(24, "items per optimisation step")
+    lr: float = field(5e-5, "peak learning rate (AdamW)")
+    weight_decay: float = field(1e-3, "AdamW weight decay (on weight matrices and kernels only)")
+    warmup_epochs: float = field(1.0, "linear warm-up length in epochs, then cosine decay")
+    min_lr_ratio: float = field(0.0, "the cosine decays to lr * min_lr_ratio")
+    grad_clip: float = field(1.0, "clip the global gradient norm to this (0: no clipping)")
+    seed: int = field(0, "seed of the initialisation, the data order and any augmentation")
+    num_workers: int = field(0, "worker processes that read the training data")
+    save_every_steps: int = field(0, "also checkpoint every this many steps (0: at epoch ends only)")
+    log_every_steps: int = field(0, "also log the running training losses to metrics.jsonl every this many steps "
+                                     "(0: at epoch ends only)")
+
+    def __post_init__(self) -> None:
+        name = type(self).__name__
+        for k in ("epochs", "batch_size"):
+            v = getattr(self, k)
+            require(isinstance(v, int) and v > 0, f"{name}.{k} must be a positive int, got {v!r}")
+        require(self.lr > 0, f"{name}.lr must be > 0, got {self.lr}; pass a positive --lr")
+        require(self.weight_decay >= 0, f"{name}.weight_decay must be >= 0, got {self.weight_decay}")
+        require(0 <= self.warmup_epochs <= self.epochs,
+                f"{name}.warmup_epochs must be in [0, epochs={self.epochs}], got {self.warmup_epochs}")
+        require(0 <= self.min_lr_ratio <= 1, f"{name}.min_lr_ratio must be in [0, 1], got {self.min_lr_ratio}")
+        require(self.grad_clip >= 0, f"{name}.grad_clip must be >= 0 (0 disables it), got {self.grad_clip}")
+        for k in ("num_workers", "save_every_steps", "log_every_steps"):
+            require(getattr(self, k) >= 0, f"{name}.{k} must be >= 0, got {getattr(self, k)}")
 
 
 class Batches(Protocol):
@@ -90,7 +112,8 @@ class DatasetBatches:
 class FitResult:
     state: dict[str, Any]  # epoch, step_in_epoch, global_step
     metrics: dict[str, Any]  # the last epoch record (or the counters, with "stopped", when stopped mid-epoch)
-    history: list[dict[str, Any]] = field(default_factory=list)  # every epoch record of the run, resumes included
+    # every epoch record of the run, resumes included
+    history: list[dict[str, Any]] = dataclasses.field(default_factory=list)
     finished_before: bool = False  # the run had already done all its epochs: nothing was trained
 
 
@@ -153,15 +176,18 @@ def check_data(run_dir: str | Path, kind: str, data: dict[str, Any]) -> None:
                         f"--data or use another --out")
 
 
-def check_resume(run_dir: str | Path, kind: str, config: dict[str, Any], data: dict[str, Any] | None) -> None:
-    """The resume rule: the same data and the same config (but :data:`RUN_ONLY_FIELDS`) as the saved run."""
+def check_resume(run_dir: str | Path, kind: str, config: dict[str, Any], data: dict[str, Any] | None,
+                 retired: Sequence[str] = ()) -> None:
+    """The resume rule: the same data and the same config (but :data:`RUN_ONLY_FIELDS`) as the saved run.
+    ``retired``: keys of the ``train`` section that older runs of ``kind`` stored and this version no longer
+    has (ignored)."""
     if data is not None:
         check_data(run_dir, kind, data)
     saved = json.loads(json.dumps(read_config(run_paths(run_dir)[0], kind)))
     now = json.loads(json.dumps(config))
     diff = []
     for section in sorted((set(saved) | set(now)) - {"data"}):
-        skip = RUN_ONLY_FIELDS if section == "train" else ()
+        skip = (*RUN_ONLY_FIELDS, *retired) if section == "train" else ()
         diff += _leaf_diff(saved.get(section), now.get(section), section, skip)
     if diff:
         raise UserError(f"{run_dir} was trained with a different config ({'; '.join(diff)}); re-run with the same "
@@ -187,7 +213,7 @@ def fit(model: nn.Module, batches: Batches, step_fn: StepFn, cfg: LoopConfig, *,
         evaluate: Callable[[nn.Module], dict[str, float]] | None = None,
         on_fresh_start: Callable[[], None] | None = None, resume: bool = False, max_steps: int | None = None,
         betas: Sequence[float] = (0.9, 0.999), progress: bool = True, desc: str = "train",
-        log: Callable[[str], None] | None = print) -> FitResult:
+        log: Callable[[str], None] | None = print, retired: Sequence[str] = ()) -> FitResult:
     """Train ``model`` (already on ``device``) into ``run_dir`` with ``step_fn(model, batch) -> (loss, logs)``.
 
     ``config`` is stored in the checkpoint (``kind`` names the model family) with ``data`` (the identity
@@ -195,6 +221,8 @@ def fit(model: nn.Module, batches: Batches, step_fn: StepFn, cfg: LoopConfig, *,
     no_grad in eval mode after every epoch; ``on_fresh_start`` runs only when not resuming (e.g. to
     compute normalisation statistics). ``resume`` continues the run's checkpoint (an error without it if
     one exists). ``max_steps`` stops after that many optimisation steps in all (saved; resumable).
+    ``retired``: ``train`` keys that older runs of ``kind`` stored and this version no longer has (see
+    :func:`check_resume`).
     """
     run = Path(run_dir)
     ckpt, metrics_path = run_paths(run)
@@ -217,7 +245,7 @@ def fit(model: nn.Module, batches: Batches, step_fn: StepFn, cfg: LoopConfig, *,
     if has_training_state(ckpt) and not resume:
         raise UserError(f"{run} already holds a training checkpoint; pass --resume to continue it or a new --out")
     if resume and has_training_state(ckpt):
-        check_resume(run, kind, config, data)
+        check_resume(run, kind, config, data, retired)
         load_weights(ckpt, model, device)
         saved = load_training_state(ckpt, opt, sched)
         if saved.get("steps_per_epoch") != steps_per_epoch:

@@ -1,5 +1,5 @@
 """``wamplan data alignment``: how close each episode of a store brought the cube to the hole, from the
-privileged poses it records (the diagnostic behind stop 15's expert change).
+privileged poses it records.
 
 Per episode, over the steps where the cube is carried over the mount (its bottom at most 2 mm below the
 mount's top, its centre within ``near`` of the hole's axis): the step of the smallest xy error to the

@@ -1,9 +1,7 @@
 """Counterfactual branches: at each chunk boundary of an on-policy episode, the same state under perturbed chunks.
 
 A world model that plans must tell apart the outcomes of *nearby* chunks from the *same* state: that is
-what CEM asks of it. Ordinary on-policy episodes show one chunk per state, so nothing in them teaches
-the model which of two close chunks lands the cube nearer the hole (``wamplan wm fidelity`` measured
-the consequence: a rank correlation of 0.1-0.2 with the simulator's ranking of CEM's candidates).
+what CEM asks of it. Ordinary on-policy episodes show one chunk per state; branches show several.
 
 ``collect_branched`` runs the policy's episode as ``collect_one`` does and snapshots the simulator at
 every chunk boundary t (t = H, 2H, ... with at least ``context_steps`` of history; only those within

@@ -212,7 +212,7 @@ def markdown_release(records: list[dict[str, Any]]) -> str | None:
     """Where each condition let the cube go (the records' privileged ``release``, the episodes whose first chunk
     ran open loop): how far from the hole's axis and how high it was on the last step it was held, how often
     that was inside the alignment tolerance, with the success of each kind. None when no record carries a
-    trace (records written before stop 20)."""
+    trace (older records have none)."""
     by = open_loop_by_seed(records)
     tol = 1000 * ALIGN_XY_TOL
     out = [f"| Condition | Episodes traced | Let go after a grasp | Held at the end | Off the axis when let go, median "

@@ -21,13 +21,11 @@ The categorical distribution starts as a prior centred on the WAM: a category's 
 Hamming distance (in steps) to the WAM's binarised gripper sequence divided by ``gripper_prior_steps``
 (``keep`` has distance 0), so nearby switch times are likelier than far ones and none is excluded. Categories are
 drawn by systematic resampling, so a near-uniform distribution over the 2·H_opt+1 categories visits nearly
-every one of them in the first iteration (a random categorical sample collapses onto the first few it
-happens to draw: on the toy costs of tests/test_planning_gripper.py it then cancelled a grasp in 5 of 20
-seeds; the defaults below cancel it in 20 of 20). After
-each iteration the probabilities are refit to the elites' category frequencies, mixed with the previous
-distribution by ``gripper_smoothing`` (0 = the plain CEM refit). Candidate 0 is the current mean with the
-most probable category (ties: the lowest index, so ``keep`` first); the plan returned is the final mean with
-the final most probable category.
+every one of them in the first iteration (a random categorical sample can collapse onto the first few it
+happens to draw). After each iteration the probabilities are refit to the elites' category frequencies,
+mixed with the previous distribution by ``gripper_smoothing`` (0 = the plain CEM refit). Candidate 0 is
+the current mean with the most probable category (ties: the lowest index, so ``keep`` first); the plan
+returned is the final mean with the final most probable category.
 """
 
 from __future__ import annotations

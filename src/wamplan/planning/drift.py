@@ -1,17 +1,12 @@
 """Drift search: a response-surface step on a smooth, low-dimensional correction of the WAM's chunk.
 
-CEM executes the mean of its lowest-cost candidates. With a ranker that orders candidates only roughly
-(a learned world model at the millimetre scale of this task: Spearman ~0.5 with the simulator), the argmin
-and the elite mean follow the model's per-candidate errors (the winner's curse), and the executed chunk is
-the WAM's plus a random walk. What such a model does get right is the cost's large-scale slope: regressed
-on where the candidates end, the model's and the simulator's costs fall in the same direction (cosine
-0.77, positive at all 16 validation boundaries of `wm fidelity`; see docs/history.md, "Planner-side levers").
-
-So this planner searches only a *drift*: one constant per-step offset per searched action dimension,
-added to every step of the WAM's chunk (for delta end-effector control, a path that bends progressively
-toward a displaced end point; d = 4 numbers for x, y, z, yaw, the gripper frozen). Each iteration scores the
-current chunk and ``num_candidates - 1`` drifts x ~ N(0, I) (in units of sigma), fits a quadratic response
-surface
+CEM executes the mean of its lowest-cost candidates, so with a ranker that orders candidates only roughly
+the argmin and the elite mean follow its per-candidate errors (the winner's curse). This planner follows
+the cost's large-scale slope instead. It searches only a *drift*: one constant per-step offset per searched
+action dimension, added to every step of the WAM's chunk (for delta end-effector control, a path that bends
+progressively toward a displaced end point; d = 4 numbers for x, y, z, yaw, the gripper frozen). Each
+iteration scores the current chunk and ``num_candidates - 1`` drifts x ~ N(0, I) (in units of sigma), fits
+a quadratic response surface
 
     c(x) ~ c0 + g.x + 1/2 x.Q.x          (1 + d + d(d+1)/2 coefficients, least squares over all candidates)
 
@@ -19,12 +14,8 @@ and moves to its minimiser x* = -Q^-1 g when Q is positive definite, else along 
 than ``step_radius`` (in sigma units) from the current centre. The regression uses every candidate's cost,
 so errors of single candidates average out instead of picking the winner; the executed correction is a
 smooth drift, never per-step jitter. sigma then shrinks by ``std_shrink`` and the next iteration refits
-around the new centre. The final centre is returned.
-
-Measured on the mini task (docs/history.md, "Planner-side levers"): with the learned model it lost 4 of TinyWAM's
-successes and gained none on validation seeds; with the simulator's dynamics it was neutral (3/8 against 3/8),
-where CEM's free per-step search gains decisively. Keep it for models whose argmin is unreliable but whose
-slope is not, and measure.
+around the new centre. The final centre is returned. It suits a cost model whose argmin is unreliable but
+whose slope is not.
 """
 
 from __future__ import annotations

@@ -20,12 +20,9 @@ above; :meth:`ExpertPolicy.sync_to` puts the expert in that phase. The expert or
 every query, so its chunk is what the expert would do *from the current state*, whoever drove the robot
 there (paper conditions 2-4).
 
-Where the fingers turn (``turn_in``) matters to the policies that imitate the expert from pictures: at
-the first step the cube is a few pixels wide in the front and side views and at the edge of the wrist
-view, so a 64-px TinyWAM cannot read its yaw there and learns to not turn at all (it then carries the
-cube ~20° off the hole's yaw: the "lifted, not aligned" failures). Above the cube the wrist camera sees
-it large, so the default turns there ("descend"); "approach" (turning from the first step, while
-moving) is the expert before stop 15.
+Where the fingers turn (``turn_in``) decides what its demonstrations show a policy that imitates them from
+pictures: "descend" (the default) turns while hovering above the cube, where the wrist camera sees it
+large; "approach" turns from the first step, while moving.
 
 Gains map metre/radian errors to normalised actions of the 5-D controller (pos 0.02 m, yaw 0.1 rad
 per unit; see ``wamplan.envs.controller``).
@@ -59,20 +56,19 @@ def wrap_quarter(a: float) -> float:
 
 @dataclass(frozen=True)
 class ExpertConfig:
+    """Heights, step sizes, gain and tolerances of the expert's state machine (metres, radians)."""
+
     grasp_height: float = field(0.012, "TCP height above the cube centre when grasping, metres")
     hover: float = field(0.06, "height above the cube top before descending, metres")
     carry_clearance: float = field(0.035, "cube bottom clearance above the mount while carrying, metres")
     insert_step: float = field(0.003, "maximum descent per step while inserting, metres")
     close_steps: int = field(8, "steps the gripper closes before lifting")
     gain: float = field(1.0, "proportional gain on position errors (fraction of the error per step)")
-    # Since stop 17 insertion starts inside 3 mm and 0.05 rad (was 2 mm, 0.02 rad) and corrects on the way down:
-    # the clean expert's demos barely change, the noisy expert succeeds 58 % of the time instead of 40 %, and a
-    # TinyWAM trained on them hovers over the mount less (validation 35 % open loop instead of 26 %).
     align_tol: float = field(0.003, "xy error over the hole below which insertion starts, metres")
     align_yaw_tol: float = field(0.05, "cube yaw error to the hole (mod 90°) below which insertion starts, radians")
     turn_in: str = field("descend", "phase in which the fingers turn to the cube's yaw: 'descend' (hovering "
                          "above the cube, where the wrist camera sees it, then down) or 'approach' (from the "
-                         "first step, while moving; the expert before stop 15)")
+                         "first step, while moving)")
 
     def __post_init__(self):
         require(self.turn_in in TURN_PHASES, f"turn_in must be one of {list(TURN_PHASES)}, got {self.turn_in!r}")

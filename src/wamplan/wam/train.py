@@ -24,56 +24,42 @@ import torch.nn.functional as F
 from torch.utils.data import DataLoader
 
 from wamplan.checkpoint import CONFIG_FILE, CheckpointError, has_training_state, load_weights, read_config
-from wamplan.config import field, from_dict, require, to_dict
+from wamplan.config import field, from_dict, require, to_dict, with_default
 from wamplan.device import resolve_device
 from wamplan.envs.contract import CAMERAS
 from wamplan.errors import UserError
-from wamplan.train_loop import check_resume, check_run_dir, fit, read_metrics, run_paths, saved_progress
+from wamplan.train_loop import (LoopConfig, check_resume, check_run_dir, fit, read_metrics, run_paths,
+                                saved_progress)
 from wamplan.wam.tinywam import KIND, TinyWAMConfig, TinyWAMNet, to_model_frames
 
 IMAGE_LOSSES = ("l1", "mse")
 
 
 @dataclass(frozen=True)
-class WAMTrainConfig:
-    """How to train TinyWAM."""
+class WAMTrainConfig(LoopConfig):
+    """How to train TinyWAM: the loop's optimisation fields (:class:`~wamplan.train_loop.LoopConfig`, with
+    TinyWAM's defaults), the loss, the augmentation, the validation split and the device."""
 
-    epochs: int = field(30, "passes over the training items (raise it and re-run to train a finished run longer)")
-    batch_size: int = field(32, "items per optimisation step")
-    lr: float = field(1e-3, "peak learning rate (AdamW)")
-    weight_decay: float = field(1e-4, "AdamW weight decay on weight matrices and kernels")
-    warmup_epochs: float = field(1.0, "linear warm-up length in epochs, then cosine decay")
-    min_lr_ratio: float = field(0.05, "the cosine decays to lr * min_lr_ratio")
-    grad_clip: float = field(1.0, "clip the gradient norm to this (0: no clipping)")
-    image_weight: float = field(10.0, "lambda, weight of the image loss against the action MSE (image MSE is ~10x smaller)")
-    image_loss: str = field("mse", "image loss: mse or l1 (pixels in [0, 1]; l1 tends to stall at \"nothing moves\")")
+    epochs: int = with_default(LoopConfig, "epochs", 30)
+    batch_size: int = with_default(LoopConfig, "batch_size", 32)
+    lr: float = with_default(LoopConfig, "lr", 1e-3)
+    weight_decay: float = with_default(LoopConfig, "weight_decay", 1e-4)
+    min_lr_ratio: float = with_default(LoopConfig, "min_lr_ratio", 0.05)
+    log_every_steps: int = with_default(LoopConfig, "log_every_steps", 10)
+    image_weight: float = field(10.0, "lambda, weight of the image loss against the action MSE")
+    image_loss: str = field("mse", "image loss: mse or l1 (on pixels in [0, 1])")
     shift_pixels: int = field(4, "augmentation: random shift of each view by up to this many pixels (0: off)")
     val_fraction: float = field(0.1, "fraction of episodes held out for validation (by a hash of source and seed)")
-    seed: int = field(0, "seed of the initialisation, data order and augmentation")
     device: str = field("auto", "torch device: auto, cpu, cuda, cuda:1, mps, ...")
-    num_workers: int = field(0, "worker processes that read the stores into memory at the start")
-    save_every_steps: int = field(0, "also checkpoint every this many steps (0: at epoch ends only)")
-    log_every_steps: int = field(10, "also log the running training losses to metrics.jsonl every this many steps "
-                                     "(0: at epoch ends only)")
 
     def __post_init__(self) -> None:
-        for name in ("epochs", "batch_size"):
-            v = getattr(self, name)
-            require(isinstance(v, int) and v > 0, f"WAMTrainConfig.{name} must be a positive int, got {v!r}")
-        require(self.lr > 0, f"WAMTrainConfig.lr must be > 0, got {self.lr}; pass a positive --lr")
-        require(self.weight_decay >= 0, f"WAMTrainConfig.weight_decay must be >= 0, got {self.weight_decay}")
-        require(self.warmup_epochs >= 0, f"WAMTrainConfig.warmup_epochs must be >= 0, got {self.warmup_epochs}")
-        require(0 <= self.min_lr_ratio <= 1, f"WAMTrainConfig.min_lr_ratio must be in [0, 1], got {self.min_lr_ratio}")
-        require(self.grad_clip >= 0, f"WAMTrainConfig.grad_clip must be >= 0 (0 disables it), got {self.grad_clip}")
+        super().__post_init__()
         require(self.image_weight >= 0, f"WAMTrainConfig.image_weight must be >= 0, got {self.image_weight}")
         require(self.image_loss in IMAGE_LOSSES,
                 f"WAMTrainConfig.image_loss must be one of {list(IMAGE_LOSSES)}, got {self.image_loss!r}")
         require(isinstance(self.shift_pixels, int) and self.shift_pixels >= 0,
                 f"WAMTrainConfig.shift_pixels must be an int >= 0, got {self.shift_pixels!r}")
         require(0 <= self.val_fraction < 1, f"WAMTrainConfig.val_fraction must be in [0, 1), got {self.val_fraction}")
-        require(self.num_workers >= 0, f"WAMTrainConfig.num_workers must be >= 0, got {self.num_workers}")
-        require(self.save_every_steps >= 0, f"WAMTrainConfig.save_every_steps must be >= 0, got {self.save_every_steps}")
-        require(self.log_every_steps >= 0, f"WAMTrainConfig.log_every_steps must be >= 0, got {self.log_every_steps}")
 
 
 # ----------------------------------------------------------------------------------------------- data

@@ -1,4 +1,4 @@
-"""Configs of the world model: predictor, decoder, and one optimisation config used by both trainers.
+"""Configs of the world model: the predictor and the decoder, and the training of each.
 
 Frozen dataclasses validated in ``__post_init__``; field help strings are the ``--help`` text
 (``wamplan.config.add_arguments``). The ``paper`` and ``mini`` values live in ``wamplan/presets.py``.
@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from wamplan.config import field, require
+from wamplan.train_loop import LoopConfig
 
 
 @dataclass(frozen=True)
@@ -91,54 +92,50 @@ class DecoderConfig:
         return int(round(self.num_patches ** 0.5))
 
 
-@dataclass(frozen=True)
-class TrainConfig:
-    """Optimisation of the predictor (or, with the decoder preset values, of the decoder)."""
+def _require_betas(owner: str, betas: tuple[float, ...]) -> None:
+    require(len(betas) == 2 and all(0 <= b < 1 for b in betas),
+            f"{owner}.betas must be two numbers in [0, 1), got {betas}")
 
+
+@dataclass(frozen=True)
+class DecoderTrainConfig(LoopConfig):
+    """Optimisation of the decoder: the loop's fields (:class:`~wamplan.train_loop.LoopConfig`) and AdamW's
+    betas; none of the predictor's loss, window or sibling fields."""
+
+    betas: tuple[float, ...] = field((0.9, 0.999), "AdamW betas")
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        _require_betas("DecoderTrainConfig", self.betas)
+
+
+@dataclass(frozen=True)
+class TrainConfig(LoopConfig):
+    """Optimisation of the predictor: the loop's fields, AdamW's betas, eq. 2's K-step discounted loss, where
+    an episode's windows end, and the optional sibling loss on counterfactual branch groups."""
+
+    betas: tuple[float, ...] = field((0.9, 0.999), "AdamW betas")
     horizon: int = field(2, "K, autoregressive prediction steps per window (windows hold H_ctx + K frames)")
     gamma: float = field(0.95, "discount of step h's loss: gamma**(h-1)")
-    lr: float = field(5e-5, "peak learning rate (AdamW)")
-    weight_decay: float = field(1e-3, "AdamW weight decay")
-    betas: tuple[float, ...] = field((0.9, 0.999), "AdamW betas")
-    batch_size: int = field(24, "windows per optimisation step")
-    epochs: int = field(24, "passes over the training set")
-    warmup_epochs: float = field(1.0, "linear warm-up length in epochs (then cosine decay)")
-    min_lr_ratio: float = field(0.0, "final learning rate as a fraction of lr")
-    grad_clip: float = field(1.0, "max global gradient norm (0 = no clipping)")
-    seed: int = field(0, "seed of initialisation and data order")
-    num_workers: int = field(0, "DataLoader worker processes")
-    save_every_steps: int = field(0, "also checkpoint every this many steps (0 = at epoch ends only)")
-    log_every_steps: int = field(0, "also log the running training loss to metrics.jsonl every this many steps "
-                                    "(0 = at epoch ends only)")
-    loss_form: str = field("mean", "eq. 2's terms: 'mean' (per-element MSE of z plus that of q; our default) or "
-                                   "'sum' (the paper's squared norms, ||dz||^2 + ||dq||^2, divided by z's size)")
+    loss_form: str = field("mean", "eq. 2's terms: 'mean' (per-element MSE of z plus that of q) or 'sum' (the "
+                                   "paper's squared norms, ||dz||^2 + ||dq||^2, divided by z's size)")
     window_end: str = field("block", "last window of an episode: 'block' (the last frame's action block lies in "
                                      "the episode) or 'frame' (the last frame may be the episode's last Δ-grid frame)")
-    sibling_weight: float = field(0.0, "weight of the sibling loss on counterfactual branch groups (0 = off): the "
+    sibling_weight: float = field(0.0, "weight of the sibling loss on counterfactual branch groups (0: off): the "
                                        "error of each branch's predicted future relative to its siblings' mean")
     sibling_horizon: int = field(4, "frames the sibling windows predict into the branch's chunk (chunk / Δ: the "
                                     "frames the planner's cost looks at)")
     sibling_groups: int = field(8, "branch groups (of --branches siblings each) per optimisation step")
 
     def __post_init__(self) -> None:
+        super().__post_init__()
+        _require_betas("TrainConfig", self.betas)
+        require(self.horizon >= 1, f"TrainConfig.horizon (K) must be >= 1, got {self.horizon}")
+        require(0.0 < self.gamma <= 1.0, f"TrainConfig.gamma must be in (0, 1], got {self.gamma}")
         require(self.loss_form in ("mean", "sum"), f"TrainConfig.loss_form must be mean or sum, got {self.loss_form!r}")
         require(self.window_end in ("block", "frame"),
                 f"TrainConfig.window_end must be block or frame, got {self.window_end!r}")
-        require(self.horizon >= 1, f"TrainConfig.horizon (K) must be >= 1, got {self.horizon}")
-        require(0.0 < self.gamma <= 1.0, f"TrainConfig.gamma must be in (0, 1], got {self.gamma}")
-        require(self.lr > 0, f"TrainConfig.lr must be > 0, got {self.lr}; pass a positive --lr")
-        require(self.weight_decay >= 0, f"TrainConfig.weight_decay must be >= 0, got {self.weight_decay}")
-        require(len(self.betas) == 2 and all(0 <= b < 1 for b in self.betas),
-                f"TrainConfig.betas must be two numbers in [0, 1), got {self.betas}")
-        require(self.batch_size >= 1, f"TrainConfig.batch_size must be >= 1, got {self.batch_size}")
-        require(self.epochs >= 1, f"TrainConfig.epochs must be >= 1, got {self.epochs}")
-        require(0 <= self.warmup_epochs <= self.epochs,
-                f"TrainConfig.warmup_epochs must be in [0, epochs={self.epochs}], got {self.warmup_epochs}")
-        require(0 <= self.min_lr_ratio <= 1, f"TrainConfig.min_lr_ratio must be in [0, 1], got {self.min_lr_ratio}")
-        require(self.grad_clip >= 0, f"TrainConfig.grad_clip must be >= 0, got {self.grad_clip}")
-        require(self.num_workers >= 0, f"TrainConfig.num_workers must be >= 0, got {self.num_workers}")
-        require(self.save_every_steps >= 0, f"TrainConfig.save_every_steps must be >= 0, got {self.save_every_steps}")
         require(self.sibling_weight >= 0, f"TrainConfig.sibling_weight must be >= 0, got {self.sibling_weight}")
         require(self.sibling_horizon >= 1, f"TrainConfig.sibling_horizon must be >= 1, got {self.sibling_horizon}")
         require(self.sibling_groups >= 1, f"TrainConfig.sibling_groups must be >= 1, got {self.sibling_groups}")
-        require(self.log_every_steps >= 0, f"TrainConfig.log_every_steps must be >= 0, got {self.log_every_steps}")
+

@@ -21,13 +21,17 @@ from torch import nn
 from torch.utils.data import DataLoader, Dataset
 
 from wamplan.checkpoint import checkpoint_dir, load_weights, read_config
-from wamplan.config import from_dict, to_dict
+from wamplan.config import from_dict, require, to_dict
 from wamplan.device import resolve_device
 from wamplan.train_loop import DatasetBatches, fit
-from wamplan.worldmodel.config import DecoderConfig, TrainConfig
+from wamplan.worldmodel.config import DecoderConfig, DecoderTrainConfig, TrainConfig
 from wamplan.worldmodel.layers import Block, init_weights
 
 KIND = "wm-decoder"
+# The predictor's training keys a decoder's does not have. Decoder runs made before the decoder had its own training
+# config stored them in their ``train`` section: loading never reads that section, and resuming ignores these keys.
+PREDICTOR_ONLY_TRAIN_KEYS = tuple(sorted(TrainConfig.__dataclass_fields__.keys()
+                                          - DecoderTrainConfig.__dataclass_fields__.keys()))
 
 
 class Decoder(nn.Module):
@@ -92,13 +96,15 @@ def evaluate_decoder(model: Decoder, dataset: Dataset, batch_size: int = 64,
     return {"pixel_mse": mse, "psnr": 10 * math.log10(1.0 / max(mse, 1e-12))}
 
 
-def train_decoder(train_set: Dataset, cfg: DecoderConfig, train: TrainConfig, out_dir: str | Path, *,
+def train_decoder(train_set: Dataset, cfg: DecoderConfig, train: DecoderTrainConfig, out_dir: str | Path, *,
                   val_set: Dataset | None = None, device: str | torch.device = "auto", resume: bool = False,
                   max_steps: int | None = None, progress: bool = True,
                   encoder_info: dict[str, Any] | None = None,
                   data: dict[str, Any] | None = None) -> tuple[Decoder, dict[str, Any]]:
-    """Train (or resume) a decoder on (features, image) pairs; same checkpoint layout as the predictor.
-    ``train.horizon``/``train.gamma`` are not used."""
+    """Train (or resume) a decoder on (features, image) pairs; same checkpoint layout as the predictor."""
+    require(isinstance(train, DecoderTrainConfig),
+            f"train_decoder takes a DecoderTrainConfig, got {type(train).__name__}; build one with the same "
+            f"optimisation values")
     dev = resolve_device(device) if isinstance(device, str) else device
     torch.manual_seed(train.seed)
     model = Decoder(cfg).to(dev)
@@ -109,7 +115,8 @@ def train_decoder(train_set: Dataset, cfg: DecoderConfig, train: TrainConfig, ou
     result = fit(model, DatasetBatches(train_set, train.num_workers, dev.type != "cpu"), decoder_loss, train,
                  run_dir=out_dir, kind=KIND, config=config, data=data, device=dev,
                  evaluate=evaluate if val_set is not None else None, resume=resume, max_steps=max_steps,
-                 betas=train.betas, progress=progress, desc="decoder", log=print if progress else None)
+                 betas=train.betas, progress=progress, desc="decoder", log=print if progress else None,
+                 retired=PREDICTOR_ONLY_TRAIN_KEYS)
     return model.eval(), result.metrics
 
 

@@ -13,7 +13,7 @@ from typing import Any, Sequence
 from wamplan.checkpoint import CKPT_DIR, has_training_state
 from wamplan.data.features import feature_key
 from wamplan.errors import UserError
-from wamplan.worldmodel.config import DecoderConfig, PredictorConfig, TrainConfig
+from wamplan.worldmodel.config import DecoderConfig, DecoderTrainConfig, PredictorConfig, TrainConfig
 
 
 def frozen_encoder(name: str, kwargs: dict[str, Any], path: str | None = None, device: str = "auto"):
@@ -109,7 +109,7 @@ def train_predictor_on_stores(stores: Sequence[str | Path], out: str | Path, pre
 
 
 def train_decoder_on_stores(stores: Sequence[str | Path], out: str | Path, decoder: DecoderConfig,
-                            train: TrainConfig, *, encoder: str, encoder_kwargs: dict[str, Any],
+                            train: DecoderTrainConfig, *, encoder: str, encoder_kwargs: dict[str, Any],
                             encoder_path: str | None = None, val_fraction: float = 0.1, device: str = "auto",
                             max_steps: int | None = None, progress: bool = True) -> dict[str, Any]:
     """Train (or resume) the picture decoder on the (features, image) frames of ``stores``."""

@@ -12,7 +12,7 @@ predictor unrolls K steps autoregressively with the ground-truth actions (its pr
 with MSE the *mean* over elements (``loss_form="mean"``, our default). The paper writes squared norms,
 ||dz||^2 + ||dq||^2, which weight proprio by P / (V·N·D) against the features (10 / 6144 in the mini
 preset, 10 / 602112 in the paper's), i.e. practically not at all; ``loss_form="sum"`` is that form divided
-by V·N·D (the same optimum, a comparable scale). README "Differences from the paper" gives the measurement.
+by V·N·D (the same optimum, a comparable scale).
 
 Normalisation: proprioception and actions are used as they are (roughly unit scale). Visual features
 are normalised per dimension at the predictor's *input* with a mean/std (D,) computed from the training
