@@ -23,7 +23,7 @@ import torch
 from wamplan.device import resolve_device
 from wamplan.planning import PLANNERS, make_cost, make_planner
 from wamplan.planning.dynamics import LearnedDynamics, PlanningContext
-from wamplan.planning.policy import PlanningError, check_replan_every
+from wamplan.worldmodel.config import PredictorConfig
 from wamplan.worldmodel.predictor import WorldModelPredictor
 from wamplan.presets import get_world_model_preset as get_preset
 
@@ -65,6 +65,25 @@ def time_search(dyn, ctx, target, planner, repeats: int, length: int = CHUNK) ->
     return statistics.median(times)
 
 
+def planner_settings(name: str, candidates: int, iterations: int) -> dict:
+    """``make_planner`` settings for a ``candidates`` x ``iterations`` search; planners with elites keep the
+    paper's share (8 of 32)."""
+    settings = dict(num_candidates=candidates, iterations=iterations)
+    if "num_elites" in {f.name for f in dataclasses.fields(PLANNERS.lookup(name).config_cls)}:
+        settings["num_elites"] = max(1, candidates // 4)
+    return settings
+
+
+def search_inputs(cfg: PredictorConfig, dev: torch.device, dtype: torch.dtype
+                  ) -> tuple[PlanningContext, torch.Tensor]:
+    """A random chunk-boundary history (on the CPU, as the policy hands it over) and target (on ``dev``)."""
+    ctx = PlanningContext(z=torch.randn(cfg.context, cfg.num_views, cfg.num_patches, cfg.enc_dim, dtype=dtype),
+                          q=torch.randn(cfg.context, cfg.proprio_dim, dtype=dtype),
+                          a=torch.rand(cfg.context - 1, cfg.action_block_dim, dtype=dtype) * 2 - 1)
+    target = torch.randn(cfg.num_views, cfg.num_patches, cfg.enc_dim, device=dev, dtype=dtype)  # (V, N, D)
+    return ctx, target
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--presets", nargs="+", default=["mini", "paper"])
@@ -83,18 +102,12 @@ def main() -> None:
     print(f"device {dev} ({platform.processor() or platform.machine()}, {torch.get_num_threads()} threads), "
           f"torch {torch.__version__}, {args.dtype}, {args.planner} {args.candidates} candidates x {args.iterations} "
           f"iterations")
-    settings = dict(num_candidates=args.candidates, iterations=args.iterations)
-    if "num_elites" in {f.name for f in dataclasses.fields(PLANNERS.lookup(args.planner).config_cls)}:
-        settings["num_elites"] = max(1, args.candidates // 4)  # the paper's 8 of 32
-    planner = make_planner(args.planner, settings)
+    planner = make_planner(args.planner, planner_settings(args.planner, args.candidates, args.iterations))
     for name in args.presets:
         torch.manual_seed(0)
         cfg = get_preset(name).predictor
         model = WorldModelPredictor(cfg).to(dev, dtype).eval()
-        ctx = PlanningContext(z=torch.randn(cfg.context, cfg.num_views, cfg.num_patches, cfg.enc_dim, dtype=dtype),
-                              q=torch.randn(cfg.context, cfg.proprio_dim, dtype=dtype),
-                              a=torch.rand(cfg.context - 1, cfg.action_block_dim, dtype=dtype) * 2 - 1)
-        target = torch.randn(cfg.num_views, cfg.num_patches, cfg.enc_dim, device=dev, dtype=dtype)
+        ctx, target = search_inputs(cfg, dev, dtype)
         fast = time_search(LearnedDynamics(model), ctx, target, planner, args.repeats)
         slow = time_search(NaiveDynamics(model), ctx, target, planner, args.repeats)
         steps = CHUNK // cfg.frameskip
@@ -104,6 +117,7 @@ def main() -> None:
         k = args.replan_every
         if not k:
             continue
+        from wamplan.planning.policy import PlanningError, check_replan_every  # only re-planning needs the policy
         try:
             check_replan_every(k, CHUNK, cfg.frameskip)  # what `wamplan eval` accepts
         except PlanningError as e:
