@@ -83,7 +83,7 @@ def test_planned_policy_history_and_first_chunk(small_env, encoder):
     # the context of the chunk at step 16: frames 8, 12, 16 and the executed actions 8..15
     ctx = seen[0]
     assert ctx.z.shape == (3, 3, encoder.num_patches, encoder.dim) and ctx.a.shape == (2, 20)
-    np.testing.assert_allclose(ctx.a.numpy().reshape(8, 5), np.asarray(pol._executed[8:16]), atol=0)
+    np.testing.assert_allclose(ctx.a.numpy().reshape(8, 5), np.asarray(pol.history.executed[8:16]), atol=0)
     # frames are rendered only where a chunk boundary's history needs them: t-8, t-4, t
     assert [s for s in range(33) if pol.wants_images(s)] == [0, 8, 12, 16, 24, 28, 32]
 
@@ -187,9 +187,9 @@ def test_frameskip_5_plans_every_chunk_after_the_first(small_env, encoder):
     # the chunk at 32: frames at 22, 27, 32 with the actions executed from 22 to 31
     ctx = seen[1]
     assert ctx.a.shape == (2, 25)
-    np.testing.assert_array_equal(ctx.a.numpy().reshape(10, 5), np.asarray(pol._executed[22:32]))
+    np.testing.assert_array_equal(ctx.a.numpy().reshape(10, 5), np.asarray(pol.history.executed[22:32]))
     small_env.reset(0)
-    for a in pol._executed[:22]:
+    for a in pol.history.executed[:22]:
         small_env.step(a)
     np.testing.assert_allclose(ctx.q[0].numpy(), small_env.proprio(), atol=1e-4)  # frame 0 of it is step 22
     z22 = encoder.encode(torch.from_numpy(np.stack([small_env.render()[c] for c in CAMERAS])))
@@ -214,7 +214,7 @@ def test_a_gap_in_the_history_raises(small_env, encoder):
     obs = small_env.reset(0, with_images=True)
     for t in range(32):
         obs, _ = small_env.step(pol.act(obs), with_images=pol.wants_images(t + 1))
-    del pol._frames[22]  # a gap: the frame at t-10 of the chunk at 32
+    del pol.history.frames[22]  # a gap: the frame at t-10 of the chunk at 32
     with pytest.raises(PlanningError, match=r"steps \[22\] are missing"):
         pol.act(obs)
 
@@ -283,10 +283,10 @@ def test_search_tensors_follow_the_dynamics_device(small_env, encoder):
     pol.reset(0)
     for t in range(16):
         obs, _ = small_env.step(pol.act(obs), with_images=pol.wants_images(t + 1))
-    target = pol._encode(obs.images)  # (V, N, D): the frame at 16 is also the chunk's current frame
-    assert target.device == meta and all(z.device == q.device == meta for z, q in pol._frames.values())
-    pol._frames[16] = (target, torch.as_tensor(obs.proprio, device=meta))  # what act(obs) stores before planning
-    ctx = pol._context(16)
+    target = pol.encode(obs.images)  # (V, N, D): the frame at 16 is also the chunk's current frame
+    assert target.device == meta and all(z.device == q.device == meta for z, q in pol.history.frames.values())
+    pol.history.frames[16] = (target, torch.as_tensor(obs.proprio, device=meta))  # what act(obs) stores before planning
+    ctx = pol.history.planning_context(16)
     assert {ctx.z.device, ctx.q.device, ctx.a.device} == {meta}
     pol.dynamics.prepare(ctx)
     cands = torch.zeros(4, 16, 5, device=meta)
@@ -318,7 +318,7 @@ def test_receding_horizon_replans_the_rest_of_a_planned_chunk(small_env, encoder
     np.testing.assert_allclose(np.stack(executed[17:25]), np.clip(plan16.actions[:8].numpy(), -1, 1), atol=1e-6)
     np.testing.assert_allclose(np.stack(executed[25:33]), np.clip(plan24.actions.numpy(), -1, 1), atol=1e-6)
     ctx24 = contexts[-1]  # frames 16, 20, 24 and the actions executed from 16 to 23
-    np.testing.assert_array_equal(ctx24.a.numpy().reshape(8, 5), np.asarray(pol._executed[16:24]))
+    np.testing.assert_array_equal(ctx24.a.numpy().reshape(8, 5), np.asarray(pol.history.executed[16:24]))
     # views where a boundary's history needs them (8, 12, 16; 24, 28, 32) and, in the planned chunk only, for
     # its re-plan at 24 (20); the open-loop first chunk never re-plans, so step 4 is not rendered
     assert rendered == [0, 8, 12, 16, 20, 24, 28, 32]
@@ -351,22 +351,22 @@ def test_bias_correction_adds_the_models_error_on_the_chunk_just_run(small_env, 
     r = run_episode(small_env, pol, seed=3, max_steps=49, on_obs=lambda e, o, a: executed.append(a))
     chunks = r.policy_info["chunks"]
     assert [c["planned"] for c in chunks] == [False, True, True, True]
-    assert len(pol._executed) == 49  # one entry a step: _executed[16:32] is what ran from frame 16 to frame 32
-    np.testing.assert_allclose(np.stack(pol._executed[16:32]), np.clip(np.stack(executed[17:33]), -1, 1), atol=0)
+    assert len(pol.history.executed) == 49  # one entry a step: [16:32] is what ran from frame 16 to frame 32
+    np.testing.assert_allclose(np.stack(pol.history.executed[16:32]), np.clip(np.stack(executed[17:33]), -1, 1), atol=0)
     assert "bias" not in chunks[1]  # boundary 16: the boundary before it (0) had no history
     assert "bias" in chunks[2] and "bias_left" not in chunks[2] and "bias_left" in chunks[3]
     # the bias at 32: frame 32 minus a fresh rollout of the executed 16..31 from the history at 16
     ref = LearnedDynamics(pol.dynamics.model)
     ref.prepare(contexts[0])
-    acts = torch.from_numpy(np.stack(pol._executed[16:32]))[None]  # (1, 16, 5)
+    acts = torch.from_numpy(np.stack(pol.history.executed[16:32]))[None]  # (1, 16, 5)
     b32, b48 = calls[1][1], calls[2][1]
-    torch.testing.assert_close(b32, pol._frames[32][0] - ref.terminal(acts)[0], rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(b32, pol.history.frames[32][0] - ref.terminal(acts)[0], rtol=1e-5, atol=1e-5)
     assert chunks[2]["bias"] == pytest.approx(float(b32.square().mean()), rel=1e-5)
     assert chunks[3]["bias_left"] == pytest.approx(float((b48 - 0.5 * b32).square().mean()), rel=1e-5)
     # the objective at 48 scores the prediction shifted by half the bias, toward the target (the views at 48)
     cands = torch.rand(4, 16, 5, generator=torch.Generator().manual_seed(0)) * 2 - 1
     costs = calls[2][0](cands)  # the dynamics is still prepared at 48, its last boundary
-    target = pol._frames[48][0]
+    target = pol.history.frames[48][0]
     torch.testing.assert_close(costs, pol.cost(pol.dynamics.terminal(cands) + 0.5 * b48, target))
     assert not torch.allclose(costs, pol.cost(pol.dynamics.terminal(cands), target))
     with pytest.raises(ValueError, match="bias_correction must be in"):

@@ -5,8 +5,9 @@ module imports neither ManiSkill nor torch, so importing it is cheap.
 
 * observation: :class:`Observation` per control step; ``proprio`` is ``PROPRIO_DIM`` = 10 floats
   (gripper width, TCP xyz, TCP 6-D rotation), images come from the ``CAMERAS`` (front, side, wrist);
-* action: ``ACTION_DIM`` = 5 floats in [-1, 1], ``(dx, dy, dz, dyaw, gripper)``, gripper +1 = open,
-  -1 = close (see ``wamplan.envs.agent``);
+* action: ``ACTION_DIM`` = 5 floats in [-1, 1], ``(dx, dy, dz, dyaw, gripper)``: the arm's entries ``ARM``,
+  then the gripper at ``GRIPPER_INDEX``, ``GRIPPER_OPEN`` = +1, ``GRIPPER_CLOSED`` = -1 (see
+  ``wamplan.envs.agent``); ``HOLD_ACTION`` keeps the arm still with the gripper open;
 * report: the furthest of the ``STAGES`` an episode reached, summarised as one of the ``OUTCOMES``.
 """
 
@@ -20,6 +21,11 @@ ENV_ID = "CubeInsertion-v1"
 MAX_EPISODE_STEPS = 300
 CAMERAS = ("front", "side", "wrist")
 ACTION_DIM = 5
+GRIPPER_INDEX = 4  # the gripper's entry of an action; the entries before it move the arm
+ARM = slice(0, GRIPPER_INDEX)  # the arm's entries of an action: (dx, dy, dz, dyaw)
+GRIPPER_OPEN, GRIPPER_CLOSED = 1.0, -1.0
+HOLD_ACTION = np.array([0.0, 0.0, 0.0, 0.0, GRIPPER_OPEN], np.float32)  # (A,) arm still, gripper open
+HOLD_ACTION.setflags(write=False)
 PROPRIO_DIM = 10
 STAGES = ("grasped", "lifted", "aligned", "descended", "seated")
 ALIGN_XY_TOL = 0.004  # metres: "aligned" needs the cube's centre this close to the hole's axis (and the yaw within 0.1 rad)

@@ -6,16 +6,22 @@ the WAM and planning layers because it may load both; lower layers that need a p
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 from wamplan.errors import UserError
 from wamplan.policies import POLICIES, Policy, make_policy
 
+if TYPE_CHECKING:
+    from wamplan.evaluation.config import EvalConfig
+    from wamplan.planning.dynamics import Dynamics
+    from wamplan.planning.policy import PlannedPolicy
+    from wamplan.wam.base import WAM
 
-def planned_policy(cfg: Any, wam: Any, dynamics: Any, encoder: Any, target_wam: Any = None,
-                   world_models: Sequence[str] = ()) -> Policy:
-    """``wam`` refined by planning in ``dynamics`` with the planner, cost and chunk rules of ``cfg`` (an
-    ``EvalConfig``): the one place the evaluation and the planned collection build a planned policy.
+
+def planned_policy(cfg: EvalConfig, wam: WAM, dynamics: Dynamics, encoder: Any, target_wam: WAM | None = None,
+                   world_models: Sequence[str] = ()) -> PlannedPolicy:
+    """``wam`` refined by planning in ``dynamics`` with the planner, cost and chunk rules of ``cfg``: the one
+    place the evaluation, the planned collection and the Python API build a planned policy.
     ``world_models``: the checkpoints behind ``dynamics``, recorded resolved (none for the simulator)."""
     from wamplan.planning import make_planner
     from wamplan.planning.policy import PlannedPolicy
@@ -23,6 +29,18 @@ def planned_policy(cfg: Any, wam: Any, dynamics: Any, encoder: Any, target_wam: 
     return PlannedPolicy(wam, make_planner(cfg.planner, cfg.planner_config), dynamics, encoder, cfg.cost.build(),
                          target_wam=target_wam, config=cfg.policy,
                          world_models=tuple(str(Path(p).resolve()) for p in world_models))
+
+
+def plan_in_world_model(cfg: EvalConfig, wam: WAM | str, paths: Sequence[str]) -> PlannedPolicy:
+    """``wam`` (a WAM, or its checkpoint directory) planned in the world model checkpoints ``paths`` (several:
+    an ensemble), every model loaded onto ``cfg.device``, as condition 7 plans with ``cfg``."""
+    from wamplan.planning.dynamics import learned_dynamics
+    from wamplan.wam import load_wam
+    from wamplan.worldmodel.train import load_world_model
+
+    dyn, enc = learned_dynamics([load_world_model(p, device=cfg.device) for p in paths])
+    wam = load_wam(wam, device=cfg.device) if isinstance(wam, (str, Path)) else wam
+    return planned_policy(cfg, wam, dyn, enc, world_models=paths)
 
 
 def load_policy(spec: str, instruction: str | None = None, plan_with: str = "", **kwargs: Any) -> Policy:
@@ -43,10 +61,6 @@ def load_policy(spec: str, instruction: str | None = None, plan_with: str = "", 
         wam = load_wam(spec)
         return WAMPolicy(wam, instruction=instruction) if instruction else WAMPolicy(wam)
     from wamplan.evaluation.config import EvalConfig
-    from wamplan.planning.dynamics import learned_dynamics
-    from wamplan.worldmodel.train import load_world_model
 
     cfg = EvalConfig(wam=spec, wm_augmented=plan_with)  # on cfg.device, as the evaluation loads them
-    paths = plan_with.split(",")
-    dyn, enc = learned_dynamics([load_world_model(p, device=cfg.device) for p in paths])
-    return planned_policy(cfg, load_wam(spec, device=cfg.device), dyn, enc, world_models=paths)
+    return plan_in_world_model(cfg, spec, plan_with.split(","))

@@ -12,11 +12,18 @@ from wamplan.envs.core import EnvConfig
 from wamplan.evaluation.conditions import CONDITIONS
 from wamplan.planning import PLANNERS, CostConfig
 from wamplan.planning.defaults import DEFAULT_PLANNER
-from wamplan.planning.policy import PlannedPolicyConfig
+from wamplan.planning.policy_config import PlannedPolicyConfig
 
 
 def _env_default() -> EnvConfig:
     return EnvConfig()
+
+
+def _profiles() -> tuple[str, ...]:
+    """``--wam-profile``'s values: the named profiles (left out: the client's defaults)."""
+    from wamplan.wam.cosmos_client import PROFILES
+
+    return tuple(PROFILES)
 
 
 @dataclass(frozen=True)
@@ -28,7 +35,7 @@ class EvalConfig:
     wam_url: str = field("", "a served WAM's /act endpoint (Cosmos Policy protocol) instead of --wam, "
                          "e.g. http://127.0.0.1:8777/act")
     wam_profile: str = field("", "with --wam-url: the server's field mapping and sizes by name "
-                             "(cosmos-robocasa, cosmos-aloha); empty: the client's defaults")
+                             "(cosmos-robocasa, cosmos-aloha); left out: the client's defaults", choices=_profiles)
     wm_plain: str = field("", "plain world model checkpoint (condition 6)")
     wm_augmented: str = field("", "augmented world model checkpoint (condition 7); several comma-separated "
                               "checkpoints form an ensemble (see --disagreement-weight); the same for --wm-plain")

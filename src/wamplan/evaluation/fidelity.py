@@ -38,8 +38,9 @@ from wamplan.config import field, require
 from wamplan.planning.base import IterationStats, PlanResult, candidate_noise
 from wamplan.planning.costs import CostFn, make_cost
 from wamplan.planning.dynamics import Dynamics, SimulatorDynamics
-from wamplan.planning.policy import PlannedPolicy, PlannedPolicyConfig
-from wamplan.envs.contract import Observation
+from wamplan.planning.policy import PlannedPolicy
+from wamplan.planning.policy_config import PlannedPolicyConfig
+from wamplan.envs.contract import ARM, Observation
 from wamplan.policies.base import Policy
 from wamplan.wam.once import OnceWAM
 from wamplan.wam.base import WAM
@@ -235,8 +236,9 @@ class FidelityPolicy(Policy):
                 model = self.scorers[label].costs
                 true = self.scorers["sim:" + self.reference[label]].costs
                 n = self.policies[label].dynamics.covered(self.chunk)  # the steps this model scores
-                shift = (cands - cands[:1])[:, :n].sum(dim=1)[:, :-1]  # (N, A-1): arm end-point shift (gripper last)
-                bias = {k: v for k, v in self.policies[label].chunks[-1].items() if k in ("bias", "bias_left")}
+                shift = (cands - cands[:1])[:, :n].sum(dim=1)[:, ARM]  # (N, A-1): the arm's end-point shift
+                d = self.policies[label].last_decision  # this boundary's
+                bias = {k: v for k, v in (("bias", d.bias), ("bias_left", d.bias_left)) if v is not None}
                 rec["models"][label] = dict(boundary_stats(model, true, self.cfg.top_k, shift), **bias,
                                             model_costs=model.tolist(), true_costs=true.tolist())
             if self.cfg.task_metric:

@@ -57,16 +57,15 @@ def explain_chunk(cfg, decoder: str | Path, seed: int, chunk_index: int) -> Mech
         raise UserError(f"seed {seed} ended ({r.outcome}) at step {r.length}, before chunk {chunk_index}; pick an "
                         f"earlier --chunk")
     obs = env.observe(with_images=True)
-    plan = np.stack([policy.act(obs)] + [policy._queue.pop(0) for _ in range(policy.chunk - 1)])  # (H, A)
-    wam_chunk = once.last.actions  # (H, A)
+    decision = policy.plan_chunk(obs)
     target_views = once.last.images
-    target = policy._encode(target_views)  # (V, N, D)
+    target = decision.target if decision.target is not None else policy.encode(target_views)  # (V, N, D)
     dec = load_decoder(decoder)
-    chunks = {"wam": wam_chunk, "plan": plan}
+    chunks = {"wam": decision.seed, "plan": decision.executed}  # (H, A) each
     cands = torch.as_tensor(np.stack(list(chunks.values())), device=policy.device)  # (2, H, A)
     covered = policy.dynamics.covered(policy.chunk)
-    z = policy.dynamics.terminal(policy._clip(cands[:, :covered]))  # (2, V, N, D), for the pictures
-    model_cost = policy.objective(target)(policy._clip(cands[:, :covered]))  # (2,) what the planner minimised
+    z = policy.dynamics.terminal(policy.clip(cands[:, :covered]))  # (2, V, N, D), for the pictures
+    model_cost = policy.objective(target)(policy.clip(cands[:, :covered]))  # (2,) what the planner minimised
     pics = dec(z.flatten(0, 1).float().to(next(dec.parameters()).device))  # (2V, 3, S, S)
     pics = pics.permute(0, 2, 3, 1).reshape(2, len(CAMERAS), *pics.shape[2:], 3).cpu().numpy()
     snap = env.snapshot()
@@ -77,7 +76,7 @@ def explain_chunk(cfg, decoder: str | Path, seed: int, chunk_index: int) -> Mech
             env.step(a)
         views = env.render()
         real[k] = np.stack([views[c] for c in CAMERAS])
-        true_cost[k] = float(policy.cost(policy._encode(views)[None], target)[0])
+        true_cost[k] = float(policy.cost(policy.encode(views)[None], target)[0])
         s = env.privileged_state()
         xy[k] = float(np.linalg.norm(s["cube_pose"][:2] - s["hole_pos"][:2]) * 1000)
     env.restore(snap)

@@ -36,6 +36,7 @@ import torch
 from torch import Tensor
 
 from wamplan.config import field, require
+from wamplan.envs.contract import GRIPPER_CLOSED, GRIPPER_INDEX, GRIPPER_OPEN
 from wamplan.planning.base import register_planner
 from wamplan.planning.cem import CEMConfig, CEMPlanner
 
@@ -44,9 +45,9 @@ from wamplan.planning.cem import CEMConfig, CEMPlanner
 class CEMGripperConfig(CEMConfig):
     """CEM over the continuous dimensions plus a categorical search over gripper switch times."""
 
-    gripper_dim: int = field(4, "index of the gripper in the action vector (its Gaussian sigma is unused)")
-    gripper_open: float = field(1.0, "the gripper command that means open")
-    gripper_closed: float = field(-1.0, "the gripper command that means closed")
+    gripper_dim: int = field(GRIPPER_INDEX, "index of the gripper in the action vector (its Gaussian sigma is unused)")
+    gripper_open: float = field(GRIPPER_OPEN, "the gripper command that means open")
+    gripper_closed: float = field(GRIPPER_CLOSED, "the gripper command that means closed")
     gripper_prior_steps: float = field(
         16.0, "width of the initial categorical prior: logit = -(steps differing from the WAM's gripper) / this")
     gripper_smoothing: float = field(

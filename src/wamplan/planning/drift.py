@@ -26,6 +26,7 @@ import torch
 from torch import Tensor
 
 from wamplan.config import ConfigError, field, require
+from wamplan.envs.contract import ARM
 from wamplan.planning.base import SamplingConfig, SamplingPlanner, register_planner
 
 
@@ -37,7 +38,7 @@ class DriftConfig(SamplingConfig):
     iterations: int = field(2, "response-surface fits, each around the previous step's centre")
     init_std: float = field(0.025, "std of the per-step drift for every searched action dimension")
     search_dims: tuple[int, ...] = field(
-        (0, 1, 2, 3), "action dimensions whose drift is searched (default x, y, z, yaw); the others, the gripper "
+        tuple(range(ARM.start, ARM.stop)), "action dimensions whose drift is searched (default x, y, z, yaw); the others, the gripper "
         "among them, stay the WAM's. init_std_per_dim, if given, sets their stds (a 0 also leaves one out)")
     step_radius: float = field(1.0, "farthest step from the current centre, in units of sigma (a trust region: "
                                     "1 = no farther than the samples the surface was fitted on reach)")

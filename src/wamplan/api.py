@@ -1,0 +1,65 @@
+"""wamplan's Python API: load a WAM and a world model, plan a chunk, run an episode with planning.
+
+    import wamplan
+    wam = wamplan.load_wam("checkpoints/mini/tinywam")
+    policy = wamplan.planned_policy(wam, world_model="checkpoints/mini/wm_augmented")
+    env = wamplan.make_env()
+    obs = env.reset(seed=0, with_images=True)
+    decision = policy.plan_chunk(obs)      # ChunkDecision: .executed (H, A), .reason, .costs
+    result = wamplan.run_episode(env, policy, seed=0)
+
+Every name of ``__all__`` is also an attribute of ``wamplan`` itself, imported on first use (so that
+``import wamplan`` and the command line stay fast). The settings and their defaults are the evaluation's
+(``wamplan eval``, condition 7): one code path builds the policy for both.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Sequence
+
+from wamplan.config import from_dict
+from wamplan.errors import require_paths
+from wamplan.envs.contract import Observation
+from wamplan.envs.core import EnvConfig, InsertionEnv
+from wamplan.evaluation.build import plan_in_world_model
+from wamplan.evaluation.config import EvalConfig
+from wamplan.planning import CostConfig
+from wamplan.planning.decision import ChunkDecision
+from wamplan.planning.policy import PlannedPolicy
+from wamplan.planning.policy_config import PlannedPolicyConfig
+from wamplan.policies.rollout import EpisodeResult, run_episode
+from wamplan.wam.base import WAM, WAMOutput, load_wam
+
+__all__ = ["ChunkDecision", "EpisodeResult", "Observation", "PlannedPolicy", "PlannedPolicyConfig", "WAM",
+           "WAMOutput", "load_wam", "make_env", "planned_policy", "run_episode"]
+
+
+def planned_policy(wam: WAM | str | Path, world_model: str | Path | Sequence[str | Path], *,
+                   planner: str | None = None, planner_config: Any = None, cost: CostConfig | None = None,
+                   device: str = "auto", **settings: Any) -> PlannedPolicy:
+    """``wam`` (a :class:`WAM`, or its checkpoint directory) whose chunks are planned in ``world_model`` (a
+    checkpoint directory; several, as a list or comma-separated, form an ensemble), as ``wamplan eval`` plans
+    condition 7.
+
+    ``planner``: a registered planner name (``wamplan.planning.PLANNERS``; default: the evaluation's);
+    ``planner_config``: its config, or a dict of overrides of its fields; ``cost``: a ``CostConfig``;
+    ``settings``: fields of :class:`PlannedPolicyConfig` (e.g. ``first_chunk="rest-history"``). The models go
+    to ``device`` ("auto", "cpu", "cuda", ...). The policy acts on :class:`Observation` s with (H, W, 3) uint8
+    views and returns (5,) actions; ``policy.plan_chunk(obs)`` decides one chunk -> :class:`ChunkDecision`.
+    """
+    parts = [world_model] if isinstance(world_model, (str, Path)) else list(world_model)
+    paths = [p for part in parts for p in str(part).split(",") if p]
+    choice = {} if planner is None else {"planner": planner}
+    cfg = EvalConfig(wam=str(wam) if isinstance(wam, (str, Path)) else "", wm_augmented=",".join(paths),
+                     device=device, planner_config=planner_config, cost=cost or CostConfig(),
+                     policy=from_dict(PlannedPolicyConfig, settings), **choice)
+    require_paths(paths or [""], "world_model", "pass a world model checkpoint (from `wamplan wm train`)")
+    return plan_in_world_model(cfg, wam, paths)
+
+
+def make_env(**settings: Any) -> InsertionEnv:
+    """The task ``CubeInsertion-v1``, rendered on the CPU; ``settings``: fields of ``EnvConfig`` (e.g.
+    ``camera_size=224``, ``max_episode_steps=300``). ``env.reset(seed, with_images=True)`` -> :class:`Observation`
+    (proprio (10,), images camera -> (S, S, 3) uint8); ``env.step(action (5,))`` -> (observation, info)."""
+    return InsertionEnv(from_dict(EnvConfig, settings))

@@ -1,0 +1,107 @@
+"""The history a learned world model conditions on: which frames of an episode to keep, and the context
+(frames and the actions executed between them) it gets at a planning point.
+
+At planning point t (a chunk boundary, or a re-planning step) the history is the frames at
+t-(Tc-1)Δ, ..., t-Δ, t with the actions executed between them, anchored to t whether or not Δ divides the
+chunk (Δ=5, H=16: frames t-10, t-5, t). Before step 0 the robot rested: with ``rest_state`` the first frame
+stands in for the earlier ones, with :data:`~wamplan.envs.contract.HOLD_ACTION` between them; without it, a
+history reaching before step 0 is no history (None). A frame that should exist but was never shown is a
+:class:`PlanningError`, never a silently unplanned chunk.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+import torch
+
+from wamplan.envs.contract import HOLD_ACTION, Observation
+from wamplan.errors import UserError
+from wamplan.planning.dynamics import Dynamics, PlanningContext
+
+Encode = Callable[[dict[str, np.ndarray]], torch.Tensor]  # camera -> (H, W, 3) uint8 views -> (V, N, D)
+
+
+class PlanningError(UserError):
+    """The planned policy cannot plan as driven or configured: a history frame it never saw, or settings that
+    do not fit its dynamics or planner."""
+
+
+class FrameHistory:
+    """The frames and executed actions of one episode, kept for a dynamics backend's planning contexts.
+
+    ``frameskip`` Δ and ``context`` Tc are the dynamics' (a learned world model's stride and number of frames);
+    ``chunk`` H is the WAM's. ``keeps_frames`` is False for a backend that needs no history (the simulator):
+    then only the executed actions are kept. Frames are encoded with ``encode`` and kept on ``device``.
+    """
+
+    def __init__(self, chunk: int, frameskip: int, context: int, encode: Encode, device: torch.device, *,
+                 keeps_frames: bool = True, rest_state: bool = False):
+        self.chunk, self.frameskip, self.context = chunk, frameskip, context
+        self.encode, self.device = encode, device
+        self.keeps_frames, self.rest_state = keeps_frames, rest_state
+        self.reset()
+
+    @classmethod
+    def for_dynamics(cls, dynamics: Dynamics, chunk: int, encode: Encode, rest_state: bool = False) -> FrameHistory:
+        """The history ``dynamics`` needs (its frameskip and context; none for a backend without history)."""
+        return cls(chunk, getattr(dynamics, "frameskip", chunk), getattr(dynamics, "context", 1), encode,
+                   dynamics.device, keeps_frames=dynamics.needs_history, rest_state=rest_state)
+
+    def reset(self) -> None:
+        """Start a new episode."""
+        self.frames: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}  # step -> (z (V, N, D), q (P,)) on device
+        self.executed: list[np.ndarray] = []  # (A,) per step, clipped to [-1, 1]: the action run at that step
+
+    def steps(self, t: int) -> list[int]:
+        """The steps of the history frames for the planning point t, oldest first."""
+        return [t - i * self.frameskip for i in range(self.context - 1, -1, -1)]
+
+    def real(self, t: int) -> bool:
+        """Whether the history of planning point t lies inside the episode (none of it synthesised)."""
+        return self.steps(t)[0] >= 0
+
+    def wants(self, step: int, period: int) -> bool:
+        """Whether ``step`` is a history frame: t - iΔ (0 <= i < Tc) for some planning point t >= step, the
+        planning points being the multiples of ``period`` (the chunk, or the re-planning period of a chunk
+        that re-plans)."""
+        return self.keeps_frames and any((step + i * self.frameskip) % period == 0 for i in range(self.context))
+
+    def observe(self, obs: Observation, period: int) -> None:
+        """Encode and keep the frame of ``obs`` if it is a history frame (see :meth:`wants`) not kept yet, and
+        forget the frames no planning point needs any more."""
+        t = obs.step
+        if not self.wants(t, period) or t in self.frames:
+            return
+        if obs.images is None:
+            raise PlanningError(f"the planned policy needs the views at step {t} (a history frame) but "
+                                f"got none; drive it with run_episode or render when wants_images(t) is true")
+        self.frames[t] = (self.encode(obs.images), torch.as_tensor(obs.proprio, device=self.device))
+        oldest = t - (self.context - 1) * self.frameskip - self.chunk  # nothing older is needed again
+        self.frames = {s: f for s, f in self.frames.items() if s >= oldest}
+
+    def record_action(self, action: np.ndarray) -> None:
+        """Keep the (A,) action executed at the next step, clipped to [-1, 1] as the env runs it."""
+        self.executed.append(np.clip(action, -1, 1))
+
+    def actions(self, start: int, stop: int) -> torch.Tensor:
+        """The actions executed from step ``start`` to ``stop`` (exclusive) -> (L, A) float32 on the device."""
+        return torch.from_numpy(np.stack(self.executed[start:stop]).astype(np.float32)).to(self.device)  # (L, A)
+
+    def planning_context(self, t: int) -> PlanningContext | None:
+        """History frames at t-(Tc-1)Δ .. t and the action blocks between them; None when the history reaches
+        before step 0 (the chunk then runs open loop), or a rest-state history with ``rest_state``."""
+        steps = self.steps(t)
+        if steps[0] < 0 and not self.rest_state:
+            return None
+        missing = [s for s in steps if s >= 0 and s not in self.frames]
+        if missing:
+            raise PlanningError(f"history frames at steps {missing} are missing for the chunk at step {t}; the "
+                                f"policy must see every step from the episode start (reset it before each episode)")
+        # Before step 0 the robot rested: the first frame again, with hold-still actions (arm still, gripper open).
+        z = torch.stack([self.frames[max(s, 0)][0] for s in steps])  # (Tc, V, N, D)
+        q = torch.stack([self.frames[max(s, 0)][1] for s in steps])  # (Tc, P)
+        acts = np.stack([self.executed[s] if s >= 0 else HOLD_ACTION for s in range(steps[0], t)])  # ((Tc-1)Δ, A)
+        a = torch.from_numpy(acts.reshape(self.context - 1, -1).astype(np.float32)).to(self.device)  # (Tc-1, Δ·A)
+        return PlanningContext(z, q, a)
