@@ -21,15 +21,12 @@ from wamplan.worldmodel.synthetic import SyntheticWindows
 PRESETS = {name: p.world_model for name, p in ALL_PRESETS.items()}
 TINY = PredictorConfig(num_views=2, num_patches=4, enc_dim=8, proprio_dim=10, action_dim=5, frameskip=2, context=3,
                        depth=2, heads=2, head_dim=8, mlp_dim=32, proprio_emb=16, action_emb=16)
+# the model variants (PredictorConfig options, off by default): each must keep causality and the KV cache exact
+VARIANTS = {"default": {}, "adaln": dict(action_conditioning="adaln"), "tokens": dict(action_tokens=True),
+            "adaln+tokens+direct": dict(action_conditioning="adaln", action_tokens=True, predict_delta=False)}
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Tiny tensors run faster on one thread (and a busy 2-core box thrashes with two)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _model(cfg: PredictorConfig = TINY, seed: int = 0) -> WorldModelPredictor:
@@ -116,9 +113,10 @@ def test_forward_shapes_and_input_checks():
         m(z, q, a[..., :3])
 
 
+@pytest.mark.parametrize("variant", VARIANTS)
 @torch.no_grad()
-def test_block_causal_a_later_frame_never_changes_earlier_outputs():
-    m = _model()
+def test_block_causal_a_later_frame_never_changes_earlier_outputs(variant):
+    m = _model(dataclasses.replace(TINY, **VARIANTS[variant]))
     z, q, a = _frames(TINY, 2, 6)
     zp, qp = m(z, q, a)
     for name, idx in (("z", 0), ("q", 1), ("a", 2)):
@@ -145,10 +143,11 @@ def test_frames_outside_the_window_have_no_effect():
     assert not torch.allclose(zp2[:, 4], zp[:, 4]) and torch.equal(zp2[:, 5], zp[:, 5])
 
 
+@pytest.mark.parametrize("variant", VARIANTS)
 @pytest.mark.parametrize("context", [1, 2, 3])
 @torch.no_grad()
-def test_kv_cached_rollout_equals_naive(context):
-    cfg = dataclasses.replace(TINY, context=context)
+def test_kv_cached_rollout_equals_naive(context, variant):
+    cfg = dataclasses.replace(TINY, context=context, **VARIANTS[variant])
     m = _model(cfg)
     b, s = 5, 4  # more steps than the window: the cache must slide
     z, q, a = _frames(cfg, b, context)
@@ -166,9 +165,10 @@ def test_kv_cached_rollout_equals_naive(context):
     assert torch.allclose(cached[1][:, 0], qf[:, -1], atol=1e-5)
 
 
+@pytest.mark.parametrize("variant", VARIANTS)
 @torch.no_grad()
-def test_broadcast_prefix_equals_per_candidate_context_and_is_reusable():
-    m = _model()
+def test_broadcast_prefix_equals_per_candidate_context_and_is_reusable(variant):
+    m = _model(dataclasses.replace(TINY, **VARIANTS[variant]))
     b, s = 6, 3
     z, q, a = _frames(TINY, 1, 3)  # one shared context
     a_future = _frames(TINY, b, s, seed=2)[2]  # (B, S, Delta*A)

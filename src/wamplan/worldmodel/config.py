@@ -6,15 +6,34 @@ Frozen dataclasses validated in ``__post_init__``; field help strings are the ``
 
 from __future__ import annotations
 
+import dataclasses
+import typing
 from dataclasses import dataclass
+from typing import Any
 
-from wamplan.config import field, require
+from wamplan.config import add_field_argument, field, require
 from wamplan.train_loop import LoopConfig
+
+ACTION_CONDITIONING = ("input", "adaln")  # PredictorConfig.action_conditioning
 
 
 @dataclass(frozen=True)
 class PredictorConfig:
-    """Block-causal ViT over the patch tokens of V views x H_ctx frames (paper §3.2, Table 3)."""
+    """Block-causal ViT over the patch tokens of V views x H_ctx frames (paper §3.2, Table 3).
+
+    Width (heads x head_dim), depth and the MLP are options (``wamplan wm train --depth/--heads/--head-dim/
+    --mlp-dim``, :data:`ARCHITECTURE_FIELDS`), and so are the variants ``action_conditioning`` and
+    ``action_tokens``; every default is the model the shipped checkpoints are.
+
+    Not an option: a token grid per view (finer wrist tokens, coarser front and side). One N for all V views is
+    the (V, N, D) contract that the encoders' output, the feature caches, ``z`` here, the planning costs, the
+    WAM's encoded target and the decoder all share. Mixed grids would make that layout ragged in each of them
+    (or need the predictor to pool some views and unpool its predictions, which blurs the planner's target on
+    those views), not one change here. The cheap route is a finer grid for every view: an encoder with
+    ``patch_size`` 8 (``wm probe --encoder-kwargs '{"patch_size": 8}'`` measures what it sees) gives N = 64, four
+    times the tokens and 6 times the planning time at this width (7.8 s against 1.3 s a chunk, measured side by
+    side on one shared core): past the 1 s budget unless the model or the search shrinks.
+    """
 
     encoder: str = field("patch-pixels", "registry name of the frozen encoder whose features this predicts")
     num_views: int = field(3, "V, camera views per frame (front, side, wrist)")
@@ -33,6 +52,14 @@ class PredictorConfig:
     rope_base: float = field(100.0, "base of the temporal rotary embedding (frequencies base^-i, i in [0,1))")
     predict_delta: bool = field(True, "predict the change from the current frame (True) or the next frame itself")
     dropout: float = field(0.0, "dropout in attention output and MLP")
+    action_conditioning: str = field("input", "where the action block enters: 'input' (its embedding joins every "
+                                              "token of its frame at the input, once) or 'adaln' (also an adaptive "
+                                              "layer norm in every block: shift, scale and gate of the attention and "
+                                              "MLP branches from the frame's action embedding, zero-initialised as in "
+                                              "DiT's adaLN-Zero, so every block starts as the identity)")
+    action_tokens: bool = field(False, "also give each frame Delta tokens of its own, one per control step of its "
+                                       "action block (that step's action through an MLP plus a learned step "
+                                       "embedding), which its visual tokens attend to; nothing reads them out")
 
     def __post_init__(self) -> None:
         for name in ("num_views", "num_patches", "enc_dim", "proprio_dim", "action_dim", "frameskip",
@@ -43,6 +70,9 @@ class PredictorConfig:
         require(self.rope_base > 1.0, f"PredictorConfig.rope_base must be > 1, got {self.rope_base}")
         require(0.0 <= self.dropout < 1.0, f"PredictorConfig.dropout must be in [0, 1), got {self.dropout}")
         require(bool(self.encoder), "PredictorConfig.encoder must name the encoder (e.g. patch-pixels)")
+        require(self.action_conditioning in ACTION_CONDITIONING,
+                f"PredictorConfig.action_conditioning must be one of {list(ACTION_CONDITIONING)}, "
+                f"got {self.action_conditioning!r}")
 
     @property
     def width(self) -> int:
@@ -58,6 +88,31 @@ class PredictorConfig:
     def action_block_dim(self) -> int:
         """Delta * A, the size of one frame's action block."""
         return self.frameskip * self.action_dim
+
+    @property
+    def frame_tokens(self) -> int:
+        """M' = M visual tokens (+ Delta action tokens with ``action_tokens``): one frame's tokens in the sequence."""
+        return self.tokens_per_frame + (self.frameskip if self.action_tokens else 0)
+
+
+# The predictor's architecture fields that `wamplan wm train` may override on top of a preset (the rest, the
+# encoder's token layout, the frameskip and the window, are fixed by the preset's encoder and data).
+ARCHITECTURE_FIELDS = ("depth", "heads", "head_dim", "mlp_dim", "proprio_emb", "action_emb", "dropout",
+                       "predict_delta", "action_conditioning", "action_tokens")
+
+
+def add_architecture_arguments(parser: Any) -> None:
+    """One ``--<field>`` option per :data:`ARCHITECTURE_FIELDS` entry (default None: keep the preset's)."""
+    hints = typing.get_type_hints(PredictorConfig)
+    fields = {f.name: f for f in dataclasses.fields(PredictorConfig)}
+    for name in ARCHITECTURE_FIELDS:
+        add_field_argument(parser, "--" + name.replace("_", "-"), name, fields[name], hints[name])
+
+
+def architecture_from_args(args: Any, base: PredictorConfig) -> PredictorConfig:
+    """``base`` with the architecture options the user passed (those not None)."""
+    changes = {k: getattr(args, k) for k in ARCHITECTURE_FIELDS if getattr(args, k, None) is not None}
+    return dataclasses.replace(base, **changes)
 
 
 @dataclass(frozen=True)
@@ -126,6 +181,10 @@ class TrainConfig(LoopConfig):
     sibling_horizon: int = field(4, "frames the sibling windows predict into the branch's chunk (chunk / Δ: the "
                                     "frames the planner's cost looks at)")
     sibling_groups: int = field(8, "branch groups (of --branches siblings each) per optimisation step")
+    change_weight: float = field(0.0, "weigh each token's latent error by how much that token changes: weight "
+                                      "1 + W * (its squared change from the current frame) / (the mean of that "
+                                      "over the window's tokens), divided by 1 + W so the loss keeps its scale "
+                                      "(0: off, every token weighs the same)")
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -138,4 +197,5 @@ class TrainConfig(LoopConfig):
         require(self.sibling_weight >= 0, f"TrainConfig.sibling_weight must be >= 0, got {self.sibling_weight}")
         require(self.sibling_horizon >= 1, f"TrainConfig.sibling_horizon must be >= 1, got {self.sibling_horizon}")
         require(self.sibling_groups >= 1, f"TrainConfig.sibling_groups must be >= 1, got {self.sibling_groups}")
+        require(self.change_weight >= 0, f"TrainConfig.change_weight must be >= 0 (0: off), got {self.change_weight}")
 

@@ -102,6 +102,39 @@ class Block(nn.Module):
         return x + self.mlp(self.norm2(x)), kv  # (B, L, d)
 
 
+class AdaLNBlock(Block):
+    """A :class:`Block` whose two branches a per-frame condition c modulates (adaLN-Zero, DiT):
+    x + g1 * attn(ln(x) * (1 + s1) + b1), then x + g2 * mlp(ln(x) * (1 + s2) + b2), with (b, s, g) from one
+    linear map of c. ``zero_init`` zeroes that map, so the block starts as the identity (DiT's adaLN-Zero)."""
+
+    def __init__(self, dim: int, heads: int, head_dim: int, mlp_dim: int, cond_dim: int, dropout: float = 0.0) -> None:
+        super().__init__(dim, heads, head_dim, mlp_dim, dropout)
+        self.ada = nn.Sequential(nn.SiLU(), nn.Linear(cond_dim, 6 * dim))
+
+    def zero_init(self) -> None:
+        nn.init.zeros_(self.ada[-1].weight)
+        nn.init.zeros_(self.ada[-1].bias)
+
+    def forward(self, x: torch.Tensor, rope: tuple[torch.Tensor, torch.Tensor] | None = None,
+                mask: torch.Tensor | None = None, past: list[KV] | None = None,
+                ring: tuple[KVRing, int, int] | None = None, cond: torch.Tensor | None = None
+                ) -> tuple[torch.Tensor, KV]:
+        """x (B, T M', d): T frames of M' tokens each; cond (B or 1, T, C), one condition per frame."""
+        if cond is None:
+            raise ValueError("AdaLNBlock needs cond (B, T, C): the per-frame condition")
+        b, n, d = x.shape
+        t = cond.shape[1]
+        b1, s1, g1, b2, s2, g2 = self.ada(cond)[:, :, None].chunk(6, dim=-1)  # (B or 1, T, 1, d) each
+
+        def frames(h: torch.Tensor) -> torch.Tensor:  # (B, T M', d) -> (B, T, M', d)
+            return h.view(b, t, n // t, d)
+
+        a, kv = self.attn((frames(self.norm1(x)) * (1 + s1) + b1).view(b, n, d), rope, mask, past, ring)
+        x = x + (frames(a) * g1).view(b, n, d)  # (B, T M', d)
+        h = self.mlp((frames(self.norm2(x)) * (1 + s2) + b2).view(b, n, d))  # (B, T M', d)
+        return x + (frames(h) * g2).view(b, n, d), kv
+
+
 def init_weights(module: nn.Module) -> None:
     """ViT-style init: truncated normal(0.02) linears, zero biases, unit LayerNorms."""
     for m in module.modules():

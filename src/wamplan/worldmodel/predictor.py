@@ -7,6 +7,17 @@ one linear maps the concatenation to the model width, and a learned spatial embe
 (view, patch) is added. The output at frame t predicts frame t+1 (Delta control steps later): tokens
 (V, N, D) and proprioception (P,) (by default as a change from frame t: ``predict_delta``).
 
+Variants (``PredictorConfig``; the defaults are the model above, which the shipped checkpoints are):
+
+* ``action_conditioning="adaln"``: every block is an :class:`~wamplan.worldmodel.layers.AdaLNBlock`, its
+  attention and MLP branches shifted, scaled and gated per frame by a linear map of the frame's action
+  embedding proj(a_t) (zero-initialised: DiT's adaLN-Zero). The input path above stays.
+* ``action_tokens=True``: each frame also carries Delta tokens, one per control step of its action block
+  (MLP(a_{t,k}) + a learned step embedding), so M' = M + Delta tokens a frame run through the blocks; only
+  the M visual tokens are read out.
+* ``predict_delta`` (readout as a change) and the width/depth fields. Both variants keep a frame's keys and
+  values a function of that frame's own inputs and the frames before it, so the KV cache below holds for all.
+
 Planning use (one chunk; context frames t-2, t-1 and the current frame t, candidates a (C, S, Delta*A)):
 
     prefix = wm.encode_prefix(z[:, :2], q[:, :2], a_past)   # (1, 2, ...): once per chunk, batch 1
@@ -40,7 +51,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from wamplan.worldmodel.config import PredictorConfig
-from wamplan.worldmodel.layers import KV, Block, KVRing, init_weights, rope_angles
+from wamplan.worldmodel.layers import KV, AdaLNBlock, Block, KVRing, init_weights, rope_angles
 
 
 def action_blocks(actions: torch.Tensor, frameskip: int) -> torch.Tensor:
@@ -79,7 +90,7 @@ class WorldModelPredictor(nn.Module):
                                          nn.Linear(cfg.action_emb, cfg.action_emb))
         self.in_proj = nn.Linear(cfg.enc_dim + cfg.proprio_emb + cfg.action_emb, d)  # over [z, q_emb, a_emb]
         self.pos = nn.Parameter(torch.zeros(cfg.tokens_per_frame, d))  # (M, d), one per (view, patch)
-        self.blocks = nn.ModuleList(Block(d, cfg.heads, e, cfg.mlp_dim, cfg.dropout) for _ in range(cfg.depth))
+        self.blocks = nn.ModuleList(self._block() for _ in range(cfg.depth))
         self.norm = nn.LayerNorm(d)
         self.z_head = nn.Linear(d, cfg.enc_dim)
         self.q_head = nn.Linear(d, cfg.proprio_dim)
@@ -88,10 +99,24 @@ class WorldModelPredictor(nn.Module):
         self.register_buffer("z_std", torch.ones(cfg.enc_dim))  # (D,)
         inv_freq = cfg.rope_base ** -(torch.arange(0, e, 2, dtype=torch.float32) / e)  # (e/2,) 1 .. base^-1
         self.register_buffer("inv_freq", inv_freq, persistent=False)
+        if cfg.action_tokens:  # one token per control step of the action block
+            self.action_token = nn.Sequential(nn.Linear(cfg.action_dim, d), nn.GELU(), nn.Linear(d, d))
+            self.action_pos = nn.Parameter(torch.zeros(cfg.frameskip, d))  # (Delta, d), one per step of the block
         init_weights(self)
         nn.init.trunc_normal_(self.pos, std=0.02)
+        if cfg.action_tokens:
+            nn.init.trunc_normal_(self.action_pos, std=0.02)
+        for blk in self.blocks:
+            if isinstance(blk, AdaLNBlock):
+                blk.zero_init()  # adaLN-Zero: every block starts as the identity
         # The heads keep the small random init: zero-initialised delta heads (an exact copy-last start)
         # made training stall on a plateau in 3 of 4 seeds on the synthetic task.
+
+    def _block(self) -> Block:
+        cfg = self.cfg
+        if cfg.action_conditioning == "adaln":
+            return AdaLNBlock(cfg.width, cfg.heads, cfg.head_dim, cfg.mlp_dim, cfg.action_emb, cfg.dropout)
+        return Block(cfg.width, cfg.heads, cfg.head_dim, cfg.mlp_dim, cfg.dropout)
 
     # -- pieces --------------------------------------------------------------------------------------
     def set_feature_stats(self, mean: torch.Tensor, std: torch.Tensor) -> None:
@@ -99,8 +124,10 @@ class WorldModelPredictor(nn.Module):
         self.z_mean.copy_(mean.to(self.z_mean))
         self.z_std.copy_(std.to(self.z_std).clamp_min(1e-4))
 
-    def _embed(self, z: torch.Tensor, q: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
-        """z (Bz, T, V, N, D), q (Bq, T, P), a (Ba, T, Delta*A) -> tokens (B, T, M, d), B = max batch.
+    def _embed(self, z: torch.Tensor, q: torch.Tensor, a: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """z (Bz, T, V, N, D), q (Bq, T, P), a (Ba, T, Delta*A) -> tokens (B, T, M', d), B = max batch, and the
+        blocks' per-frame condition: the action embedding (Ba, T, Ea) with ``action_conditioning="adaln"``, else
+        None. M' = M visual tokens, then (``action_tokens``) Delta action tokens.
 
         in_proj(concat(z, proj(q), proj(a))) is computed block by block (same linear map), so a visual
         part with batch 1 is broadcast against per-candidate actions without being copied.
@@ -112,15 +139,23 @@ class WorldModelPredictor(nn.Module):
         zn = (z.to(dt) - self.z_mean) / self.z_std  # (Bz, T, V, N, D)
         xz = F.linear(zn.flatten(2, 3), w[:, :i_q])  # (Bz, T, M, d)
         xq = F.linear(self.proprio_proj(q.to(dt)), w[:, i_q:i_a])  # (Bq, T, d)
-        xa = F.linear(self.action_proj(a.to(dt)), w[:, i_a:], b)  # (Ba, T, d)
-        return xz + (xq + xa)[:, :, None] + self.pos  # (B, T, M, d)
+        a_emb = self.action_proj(a.to(dt))  # (Ba, T, Ea)
+        xa = F.linear(a_emb, w[:, i_a:], b)  # (Ba, T, d)
+        x = xz + (xq + xa)[:, :, None] + self.pos  # (B, T, M, d)
+        if cfg.action_tokens:
+            steps = a.to(dt).unflatten(-1, (cfg.frameskip, cfg.action_dim))  # (Ba, T, Delta, A)
+            xt = self.action_token(steps) + self.action_pos  # (Ba, T, Delta, d)
+            x = torch.cat([x, xt.expand(x.shape[0], -1, -1, -1)], dim=2)  # (B, T, M + Delta, d)
+        return x, (a_emb if cfg.action_conditioning == "adaln" else None)
 
     def _blocks(self, x: torch.Tensor, t0: int, past: list[list[KV]],
-                ring: tuple[list[KVRing], int, int] | None = None) -> tuple[torch.Tensor, list[KV]]:
-        """Run frames t0 .. t0+T-1 (x (B, T, M, d)) attending to ``past`` frames t0-len(past) .. t0-1 and
-        to each other, within the H_ctx window. Returns hidden (B, T, M, d) and per-layer (k, v) of
-        the new frames, each (B, heads, T*M, e). ``ring`` = (per-layer KVRing, slot, valid frames)
-        replaces ``past`` for one-frame inference steps."""
+                ring: tuple[list[KVRing], int, int] | None = None,
+                cond: torch.Tensor | None = None) -> tuple[torch.Tensor, list[KV]]:
+        """Run frames t0 .. t0+T-1 (x (B, T, M, d), M tokens a frame) attending to ``past`` frames
+        t0-len(past) .. t0-1 and to each other, within the H_ctx window. Returns hidden (B, T, M, d) and
+        per-layer (k, v) of the new frames, each (B, heads, T*M, e). ``ring`` = (per-layer KVRing, slot,
+        valid frames) replaces ``past`` for one-frame inference steps. ``cond`` (B or 1, T, Ea): the frames'
+        condition for adaLN blocks (None for plain blocks)."""
         b, t, m, d = x.shape
         n_past = len(past) if ring is None else ring[2] - 1
         fq = torch.arange(t0, t0 + t, device=x.device)  # (T,) query frame indices
@@ -132,20 +167,21 @@ class WorldModelPredictor(nn.Module):
             mask = allowed.repeat_interleave(m, 0).repeat_interleave(m, 1)  # (T M, (P + T) M), True = attend
         rope = rope_angles(fq.repeat_interleave(m).float(), self.inv_freq)  # cos, sin (T M, e)
         h = x.reshape(b, t * m, d)  # (B, T M, d)
+        extra = {} if cond is None else {"cond": cond}
         kvs = []
         for layer, blk in enumerate(self.blocks):
             if ring is not None:
-                h, kv = blk(h, rope, None, None, (ring[0][layer], ring[1], ring[2]))
+                h, kv = blk(h, rope, None, None, (ring[0][layer], ring[1], ring[2]), **extra)
             else:
-                h, kv = blk(h, rope, mask, [frame[layer] for frame in past])
+                h, kv = blk(h, rope, mask, [frame[layer] for frame in past], **extra)
             kvs.append(kv)
         return h.view(b, t, m, d), kvs
 
     def _readout(self, h: torch.Tensor, z: torch.Tensor, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """hidden (B, T, M, d) and the inputs z (Bz, T, V, N, D), q (Bq, T, P) of the same frames ->
-        next-frame predictions z (B, T, V, N, D), q (B, T, P)."""
+        """hidden (B, T, M', d) and the inputs z (Bz, T, V, N, D), q (Bq, T, P) of the same frames ->
+        next-frame predictions z (B, T, V, N, D), q (B, T, P), read from the M visual tokens."""
         cfg = self.cfg
-        h = self.norm(h)
+        h = self.norm(h[:, :, :cfg.tokens_per_frame])  # (B, T, M, d): action tokens are not read out
         dz = self.z_head(h).unflatten(2, (cfg.num_views, cfg.num_patches)) * self.z_std  # (B, T, V, N, D)
         dq = self.q_head(h.mean(dim=2))  # (B, T, P), pooled over the frame's tokens
         if cfg.predict_delta:
@@ -170,7 +206,8 @@ class WorldModelPredictor(nn.Module):
         """Teacher-forced: z (B, T, V, N, D), q (B, T, P), a (B, T, Delta*A) -> predictions of frames
         1..T: z (B, T, V, N, D), q (B, T, P) (output t is the prediction of frame t+1)."""
         self._check(z, q, a)
-        h, _ = self._blocks(self._embed(z, q, a), 0, [])  # (B, T, M, d)
+        x, cond = self._embed(z, q, a)  # (B, T, M', d), (B, T, Ea) or None
+        h, _ = self._blocks(x, 0, [], cond=cond)  # (B, T, M', d)
         return self._readout(h, z, q)
 
     def encode_prefix(self, z: torch.Tensor, q: torch.Tensor, a: torch.Tensor) -> PrefixCache:
@@ -178,11 +215,12 @@ class WorldModelPredictor(nn.Module):
         a (Bp, Tp, Delta*A) (a[:, i] executed from frame i). Bp = 1 to share them among candidates.
         Reuse the result for every CEM iteration of a chunk (it is never modified)."""
         self._check(z, q, a)
-        tp, m = z.shape[1], self.cfg.tokens_per_frame
+        tp, m = z.shape[1], self.cfg.frame_tokens
         keep = self.cfg.context - 1
         if tp == 0 or keep == 0:
             return PrefixCache([], tp)
-        _, kvs = self._blocks(self._embed(z, q, a), 0, [])  # per layer (Bp, heads, Tp M, e)
+        x, cond = self._embed(z, q, a)  # (Bp, Tp, M', d), (Bp, Tp, Ea) or None
+        _, kvs = self._blocks(x, 0, [], cond=cond)  # per layer (Bp, heads, Tp M', e)
         frames = [[(k[:, :, i * m:(i + 1) * m], v[:, :, i * m:(i + 1) * m]) for k, v in kvs]
                   for i in range(max(0, tp - keep), tp)]
         return PrefixCache(frames, tp)
@@ -202,12 +240,12 @@ class WorldModelPredictor(nn.Module):
         z_t, q_t = z_cur[:, None], q_cur[:, None]  # (Bc, 1, V, N, D), (Bc, 1, P)
         zs, qs = [], []
         for s in range(a_future.shape[1]):
-            x = self._embed(z_t, q_t, a_future[:, s:s + 1])  # (B, 1, M, d)
+            x, cond = self._embed(z_t, q_t, a_future[:, s:s + 1])  # (B, 1, M', d), (B, 1, Ea) or None
             if rings is not None:
                 n = len(window) + s  # frames already in the rings' history
-                h, _ = self._blocks(x, t, [], (rings, n % h_ctx, min(n + 1, h_ctx)))  # (B, 1, M, d)
+                h, _ = self._blocks(x, t, [], (rings, n % h_ctx, min(n + 1, h_ctx)), cond)  # (B, 1, M', d)
             else:
-                h, kv = self._blocks(x, t, window)  # (B, 1, M, d); per layer (B, heads, M, e)
+                h, kv = self._blocks(x, t, window, cond=cond)  # (B, 1, M', d); per layer (B, heads, M', e)
                 window = (window + [kv])[-keep:] if keep > 0 else []  # the last H_ctx-1 frames
             z_t, q_t = self._readout(h, z_t, q_t)  # (B, 1, V, N, D), (B, 1, P)
             zs.append(z_t)

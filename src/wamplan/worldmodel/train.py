@@ -14,6 +14,10 @@ with MSE the *mean* over elements (``loss_form="mean"``, our default). The paper
 preset, 10 / 602112 in the paper's), i.e. practically not at all; ``loss_form="sum"`` is that form divided
 by V·N·D (the same optimum, a comparable scale).
 
+``change_weight`` W > 0 (``TrainConfig``; 0 by default) weighs each visual token's squared error by how much
+that token changes from the current frame (:func:`change_weights`: mean 1 over a window's tokens), so the few
+tokens where the arm and the cube move are not drowned by the many static ones; logged as ``z_wmse_h1``.
+
 Normalisation: proprioception and actions are used as they are (roughly unit scale). Visual features
 are normalised per dimension at the predictor's *input* with a mean/std (D,) computed from the training
 set (``compute_feature_stats``) and kept as buffers in the checkpoint; outputs are scaled back, so the
@@ -56,17 +60,33 @@ def per_horizon_mse(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return (pred - target).pow(2).flatten(2).mean(dim=-1)
 
 
+def change_weights(z_cur: torch.Tensor, z_target: torch.Tensor, change_weight: float) -> torch.Tensor:
+    """Per-token loss weights from how much each token changes: z_cur (B, V, N, D) the current frame, z_target
+    (B, K, V, N, D) the K targets -> (B, K, V, N, 1) = (1 + W * c / mean_tokens(c)) / (1 + W), with c a token's
+    mean squared change from the current frame; they average to 1 over the tokens of each window and step."""
+    c = (z_target - z_cur[:, None]).pow(2).mean(dim=-1, keepdim=True)  # (B, K, V, N, 1)
+    rel = c / c.mean(dim=(2, 3), keepdim=True).clamp_min(1e-12)  # (B, K, V, N, 1), mean 1 over (V, N)
+    return (1 + change_weight * rel) / (1 + change_weight)
+
+
 def window_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int,
-                gamma: float, loss_form: str = "mean") -> tuple[torch.Tensor, dict[str, float]]:
-    """Eq. 2: the discounted K-step autoregressive loss of a batch of windows."""
+                gamma: float, loss_form: str = "mean", change_weight: float = 0.0
+                ) -> tuple[torch.Tensor, dict[str, float]]:
+    """Eq. 2: the discounted K-step autoregressive loss of a batch of windows. ``change_weight`` W > 0 weighs
+    each token's squared error by :func:`change_weights` (the tokens that change count more); 0 is eq. 2."""
     (zc, qc, ac), a_future, (zt, qt) = _split(model, batch, horizon)
     zp, qp = model.rollout(zc, qc, ac, a_future)  # (B, K, V, N, D), (B, K, P)
     ez = per_horizon_mse(zp, zt).mean(dim=0)  # (K,)
     eq = per_horizon_mse(qp, qt).mean(dim=0)  # (K,)
+    logs = {"z_mse_h1": float(ez[0].detach()), "q_mse_h1": float(eq[0].detach())}
+    if change_weight > 0:
+        w_tok = change_weights(zc[:, -1], zt, change_weight)  # (B, K, V, N, 1)
+        ez = ((zp - zt).pow(2) * w_tok).flatten(2).mean(dim=-1).mean(dim=0)  # (K,) the weighted MSE
+        logs["z_wmse_h1"] = float(ez[0].detach())
     q_weight = 1.0 if loss_form == "mean" else qt[0, 0].numel() / zt[0, 0].numel()  # sum form: P / (V·N·D)
     w = gamma ** torch.arange(horizon, device=ez.device, dtype=ez.dtype)  # (K,)
     loss = (w * (ez + q_weight * eq)).sum()
-    return loss, {"z_mse_h1": float(ez[0].detach()), "q_mse_h1": float(eq[0].detach())}
+    return loss, logs
 
 
 def _sibling_errors(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int
@@ -212,7 +232,7 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
         groups = _group_batches(group_set, train, start=done)
 
     def step(m: WorldModelPredictor, b: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, float]]:
-        loss, logs = window_loss(m, b, train.horizon, train.gamma, train.loss_form)
+        loss, logs = window_loss(m, b, train.horizon, train.gamma, train.loss_form, train.change_weight)
         if groups is not None:
             sib, sib_logs = sibling_loss(m, {k: v.to(dev) for k, v in next(groups).items()}, train.sibling_horizon,
                                          train.gamma)
@@ -244,8 +264,9 @@ def _group_batches(groups: Dataset, train: TrainConfig, start: int = 0):
 def _check_init(init: str | Path, cfg: PredictorConfig, encoder_info: dict[str, Any] | None) -> None:
     """A fine-tuning start must be a predictor of the same architecture over the same encoder's tokens."""
     saved = read_config(checkpoint_dir(init), KIND)
-    if saved["predictor"] != to_dict(cfg):
-        diff = {k: (saved["predictor"].get(k), v) for k, v in to_dict(cfg).items() if saved["predictor"].get(k) != v}
+    theirs = to_dict(from_dict(PredictorConfig, saved["predictor"]))  # fields added since it was saved: their defaults
+    if theirs != to_dict(cfg):
+        diff = {k: (theirs.get(k), v) for k, v in to_dict(cfg).items() if theirs.get(k) != v}
         raise UserError(f"--init {init} is another predictor {diff} (its, this run's); fine-tune with the preset "
                         f"it was trained with")
     theirs = {k: v for k, v in (saved.get("encoder") or {}).items() if k != "path"}

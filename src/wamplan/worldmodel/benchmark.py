@@ -1,0 +1,174 @@
+"""The offline world-model benchmark: sibling statistics and latent errors per phase of the task.
+
+A benchmark store holds counterfactual branch groups (``wamplan.data.branch``) at every chunk boundary of
+held-out episodes (``scripts/wm_benchmark_store.py`` makes it). Each group is labelled with the phase of the
+task at its boundary, read from the parent's record at that step (the last context frame):
+
+* ``descent``: the stage flag ``aligned``, ``descended`` or ``seated`` is set (the cube is on the hole's axis
+  above the mount, or already in the hole): the chunk decides the insertion;
+* ``alignment``: ``lifted`` and over the mount (the cube's centre within ``data.alignment.NEAR`` = 30 mm of
+  the hole's axis, its bottom above the mount's top less 2 mm, as ``wamplan data alignment`` counts it);
+  the stage flags alone cannot tell this from carrying, hence the one geometric test;
+* ``carry``: ``lifted`` anywhere else;
+* ``grasp``: not ``lifted`` (approach, closing, lift-off; also a cube dropped back on the table).
+
+Per phase (and over all groups) :func:`phase_table` pools, as ``train.evaluate_siblings`` does over groups:
+``sib_rel_hK`` (the share of the between-sibling variation of outcomes K frames on that the model misses),
+``sib_gain_hK`` (the slope of its predicted sibling differences on the true ones) and the latent error of
+the siblings' windows, ``z_mse_h1`` / ``z_mse_hK`` (per-element MSE of the features, as ``wm eval``'s
+``z_mse``) with ``copy_z_mse_hK`` (copying the current frame) for scale.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import h5py
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, Dataset
+
+from wamplan.data.alignment import NEAR, hole_position
+from wamplan.data.readers import BranchGroups
+from wamplan.data.store import EpisodeStore
+from wamplan.envs.contract import STAGES
+from wamplan.worldmodel.predictor import WorldModelPredictor
+from wamplan.worldmodel.train import _split
+
+PHASES = ("grasp", "carry", "alignment", "descent")
+ALL = "all"
+_FLAG = {s: i for i, s in enumerate(STAGES)}
+
+
+def phase_of(stages: np.ndarray, cube_pose: np.ndarray, hole: np.ndarray, cube_half: float) -> str:
+    """The phase (module docstring) of one state: ``stages`` (5,) bool as ``STAGES``, ``cube_pose`` (7,) xyz +
+    wxyz, ``hole`` (3,) the hole's top centre (x, y, mount height), ``cube_half`` metres."""
+    if any(stages[_FLAG[s]] for s in ("aligned", "descended", "seated")):
+        return "descent"
+    if not stages[_FLAG["lifted"]]:
+        return "grasp"
+    xy = float(np.linalg.norm(cube_pose[:2] - hole[:2]))
+    over = xy < NEAR and cube_pose[2] - cube_half > hole[2] - 0.002
+    return "alignment" if over else "carry"
+
+
+def group_phases(groups: BranchGroups) -> list[str]:
+    """The phase of every group of ``groups`` at its boundary, read from its first sibling's record."""
+    places: dict[str, tuple[np.ndarray, float]] = {}  # store -> (the hole's top centre (3,), the cube's half side)
+    out = []
+    for members in groups.items:
+        e = groups.episodes[members[0][0]]
+        boundary, start = e.branch_at  # type: ignore[misc]  # the parent's boundary, and its step at the branch's 0
+        root = str(Path(e.path).parent.parent)  # DIR/episodes/<file>.h5 -> DIR
+        if root not in places:
+            env = EpisodeStore(root).env
+            places[root] = hole_position(env), float(env.get("cube_half_size", 0.02))
+        with h5py.File(e.path, "r") as f:
+            out.append(phase_of(f["stages"][boundary - start], f["cube_pose"][boundary - start], *places[root]))
+    return out
+
+
+def store_fingerprint(root: str | Path) -> str:
+    """A sha1 of a store's recorded trajectories (every episode's source, seed, actions, proprio, stage flags and
+    poses, in file order), not of its files (they carry creation times): two collections that recorded the same
+    episodes share it. Images are left out (hashing gigabytes); they are rendered from these states."""
+    import hashlib
+
+    h = hashlib.sha1()
+    store = EpisodeStore(root)
+    for path in store.episode_paths():
+        with h5py.File(path, "r") as f:
+            h.update(f"{f.attrs['source']}:{int(f.attrs['seed'])};".encode())
+            for key in ("actions", "proprio", "stages", "cube_pose", "tcp_pose", "image_steps"):
+                h.update(np.ascontiguousarray(f[key][:]).tobytes())
+    return h.hexdigest()
+
+
+def phase_counts(root: str | Path, frameskip: int = 4, history: int = 3, horizon: int = 4) -> dict[str, int]:
+    """Branch groups per phase in a store (of ``wm eval --horizon`` ``horizon`` with the mini predictor's window)."""
+    groups = BranchGroups([root], frameskip=frameskip, history=history, horizon=horizon, split="all")
+    labels = group_phases(groups)
+    return {p: labels.count(p) for p in PHASES} | {ALL: len(labels), "siblings": groups.group}
+
+
+def _group_stats(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int) -> dict[str, torch.Tensor]:
+    """Per group of a batch (z (B, G, T, V, N, D), ...): each (B, K), means over the siblings and elements."""
+    b, g = batch["z"].shape[:2]
+    flat = {k: batch[k].flatten(0, 1) for k in ("z", "q", "a")}  # (B G, T, ...)
+    (zc, qc, ac), a_future, (zt, _) = _split(model, flat, horizon)
+    zp, _ = model.rollout(zc, qc, ac, a_future)  # (B G, K, V, N, D)
+    copy = zc[:, -1:].expand_as(zt)  # (B G, K, V, N, D)
+    zp, zt, copy = (x.unflatten(0, (b, g)) for x in (zp, zt, copy))  # (B, G, K, V, N, D)
+    dp, dt = zp - zp.mean(dim=1, keepdim=True), zt - zt.mean(dim=1, keepdim=True)  # relative to the group mean
+
+    def per_group(x: torch.Tensor) -> torch.Tensor:  # (B, G, K, V, N, D) -> (B, K)
+        return x.flatten(3).mean(dim=-1).mean(dim=1)
+
+    return {"err": per_group((dp - dt).pow(2)), "spread": per_group(dt.pow(2)), "cross": per_group(dp * dt),
+            "z_mse": per_group((zp - zt).pow(2)), "copy_z_mse": per_group((copy - zt).pow(2))}
+
+
+@torch.no_grad()
+def _sums(model: WorldModelPredictor, groups: Dataset, horizon: int, batch_size: int,
+          device: torch.device) -> dict[str, torch.Tensor]:
+    """Each statistic of :func:`_group_stats` for every group of ``groups``, (G_total, K) float64."""
+    parts: dict[str, list[torch.Tensor]] = {}
+    for batch in DataLoader(groups, batch_size=batch_size, shuffle=False):
+        for k, v in _group_stats(model, {k: v.to(device) for k, v in batch.items()}, horizon).items():
+            parts.setdefault(k, []).append(v.double().cpu())
+    return {k: torch.cat(v) for k, v in parts.items()}
+
+
+def _row(s: dict[str, torch.Tensor], horizon: int) -> dict[str, float]:
+    """Pooled statistics of some groups' per-group values s (n, K)."""
+    spread = max(float(s["spread"][:, -1].sum()), 1e-12)
+    k = horizon
+    return {"groups": len(s["err"]), f"sib_rel_h{k}": float(s["err"][:, -1].sum()) / spread,
+            f"sib_gain_h{k}": float(s["cross"][:, -1].sum()) / spread,
+            "z_mse_h1": float(s["z_mse"][:, 0].mean()), f"z_mse_h{k}": float(s["z_mse"][:, -1].mean()),
+            f"copy_z_mse_h{k}": float(s["copy_z_mse"][:, -1].mean())}
+
+
+def phase_table(model: WorldModelPredictor, groups: BranchGroups, horizon: int, batch_size: int = 8,
+                phases: Sequence[str] | None = None, device: torch.device | None = None) -> dict[str, dict[str, float]]:
+    """Phase (then ``"all"``) -> pooled statistics (module docstring) of ``groups``; phases without groups are
+    left out. ``phases``: the groups' labels (default: :func:`group_phases`)."""
+    device = device or next(model.parameters()).device
+    labels = list(phases) if phases is not None else group_phases(groups)
+    if len(labels) != len(groups):
+        raise ValueError(f"{len(labels)} phase labels for {len(groups)} groups")
+    was_training = model.training
+    model.eval()
+    s = _sums(model, groups, horizon, batch_size, device)
+    model.train(was_training)
+    out = {}
+    for phase in PHASES:
+        idx = torch.tensor([i for i, p in enumerate(labels) if p == phase], dtype=torch.long)
+        if len(idx):
+            out[phase] = _row({k: v[idx] for k, v in s.items()}, horizon)
+    out[ALL] = _row(s, horizon)
+    return out
+
+
+def format_phase_table(table: dict[str, dict[str, float]], horizon: int, plan_seconds: float | None = None,
+                       title: str = "") -> str:
+    """The table as text: one row per phase and ``all``; the planning time per chunk on the ``all`` row."""
+    k = horizon
+    cols = ("groups", f"sib_rel_h{k}", f"sib_gain_h{k}", "z_mse_h1", f"z_mse_h{k}", f"copy_z_mse_h{k}")
+    head = f"{'phase':10s}" + "".join(f"{c:>14s}" for c in cols) + f"{'plan s/chunk':>14s}"
+    lines = ([title] if title else []) + [head]
+    for phase, row in table.items():
+        cells = [f"{row['groups']:14d}"] + [f"{row[c]:14.4f}" for c in cols[1:]]
+        plan = f"{plan_seconds:14.3f}" if phase == ALL and plan_seconds is not None else f"{'':14s}"
+        lines.append(f"{phase:10s}" + "".join(cells) + plan)
+    return "\n".join(lines)
+
+
+def context_of(groups: Dataset, history: int, index: int = 0
+               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A real planning context from group ``index``'s first sibling, for timing a search: z (H_ctx, V, N, D),
+    q (H_ctx, P), a (H_ctx - 1, Δ·A) with H_ctx = ``history``, and its last frame (V, N, D) as a target."""
+    item = groups[index]
+    z, q, a = item["z"][0].float(), item["q"][0].float(), item["a"][0].float()  # (T, ...) of sibling 0
+    return z[:history], q[:history], a[:history - 1], z[-1]
