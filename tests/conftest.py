@@ -15,6 +15,27 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(skip)
 
 
+@pytest.fixture(scope="module")
+def one_thread():
+    """Tiny tensors run faster on one torch thread (and a busy 2-core box thrashes with two); a module opts in with
+    ``pytestmark = pytest.mark.usefixtures("one_thread")``."""
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _help_cache_in_tmp(tmp_path_factory):
+    """`wamplan CMD --help` caches its text (wamplan.cli.main): the tests keep that cache out of the user's home."""
+    mp = pytest.MonkeyPatch()
+    mp.setenv("WAMPLAN_CACHE_DIR", str(tmp_path_factory.mktemp("wamplan_cache")))
+    yield
+    mp.undo()
+
+
 @pytest.fixture(scope="session")
 def env():
     """One CubeInsertion-v1 instance for the whole session (creating one costs seconds)."""

@@ -91,12 +91,14 @@ def test_request_size_limit(guarded):
     big = make_obs(2)
     big.images = {c: np.zeros((128, 128, 3), np.uint8) for c in CAMERAS}  # ~200 KB of json_numpy
     r = client(guarded.act_url, secret=SECRET)
-    with pytest.raises(WAMServerError, match=r"too large \(HTTP 413\).*--wam-send-image-size"):
+    with pytest.raises(WAMServerError, match=r"too large \(HTTP 413\).*send_image_size.*--max-request-mb") as e:
         r.predict(big, "insert")
+    assert "--wam-send-image-size" not in str(e.value)  # no command has that flag
     payload = b" " * (64 * 1024 + 1)
     for data in (payload, iter([payload[:40000], payload[40000:]])):  # with a Content-Length, and chunked
         resp = post(guarded.act_url, data, **{protocol.SECRET_HEADER: SECRET})
         assert resp.status_code == 413 and "over the server's limit of 65536 bytes" in resp.json()["error"]
+        assert "--max-request-mb" in resp.json()["error"] and "--wam-send-image-size" not in resp.json()["error"]
     assert post(guarded.act_url, body(0), **{protocol.SECRET_HEADER: SECRET}).status_code == 200  # ~10 KB: fine
 
 

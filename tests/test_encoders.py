@@ -11,13 +11,7 @@ from wamplan.encoders import (DINOV3_ENV, FrozenEncoder, PatchPixelEncoder, enco
 from wamplan.errors import UserError
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Tiny tensors run faster on one thread (and a busy 2-core box thrashes with two)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _images(b: int = 2, size: int = 64, seed: int = 0) -> torch.Tensor:

@@ -152,7 +152,7 @@ def test_bad_actions(env):
 def test_env_config_validation():
     with pytest.raises(ConfigError, match="clearance"):
         EnvConfig(clearance=0.05)
-    with pytest.raises(ConfigError, match="camera_size"):
+    with pytest.raises(ConfigError, match="--camera-size"):
         EnvConfig(camera_size=4)
 
 

@@ -20,13 +20,7 @@ TINY_ARGS = ["--image-size", "32", "--channels", "8", "16", "--latent-dim", "32"
 TRAIN = WAMTrainConfig(epochs=2, batch_size=8, shift_pixels=2, device="cpu")
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """These networks are tiny: one intra-op thread is as fast, and on a busy 2-core machine two threads spin."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")

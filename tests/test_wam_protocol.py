@@ -430,9 +430,15 @@ def test_server_down_is_a_clear_error():
     assert url in str(e.value) and "\n" not in str(e.value)
 
 
-def test_error_reply_from_our_server(failing):
-    with pytest.raises(WAMServerError, match=r'answered "error".*traceback'):
+def test_a_failing_wam_is_reported_with_its_reason(failing):
+    """Our server says why it failed (HTTP 500 and the WAM's error); with --bare-errors it answers as Cosmos
+    Policy's does, HTTP 200 and "error", which the client reports too."""
+    with pytest.raises(WAMServerError, match=r"answered HTTP 500 \(the WAM 'test-echo' failed on this request "
+                                             r"\(RuntimeError: the model blew up\); the server's log has the traceback"):
         client(failing.act_url).predict(make_obs(), "t")
+    with BackgroundServer(create_app(EchoWAM(fail=True), bare_errors=True)) as srv:
+        with pytest.raises(WAMServerError, match=r'answered "error".*traceback'):
+            client(srv.act_url).predict(make_obs(), "t")
 
 
 def test_error_reply_from_fake_server(fake):
@@ -441,13 +447,18 @@ def test_error_reply_from_fake_server(fake):
         client(srv.url + "/error/act").predict(make_obs(), "t")
 
 
-def test_server_answers_error_to_malformed_request(echo):
+def test_server_answers_a_malformed_request_with_its_reason(echo):
     srv, _ = echo
     body = json_numpy.dumps({"primary_image": np.zeros((4, 4, 3), np.uint8), "proprio": np.zeros(10, np.float32),
                              "task_description": "t"})  # both wrist images missing
     r = requests.post(srv.act_url, data=body, headers=protocol.JSON_HEADERS, timeout=10)
-    assert r.status_code == 200 and r.json() == "error"
+    assert r.status_code == 400
+    assert r.json() == {"error": "bad /act request: the request lacks field(s) ['left_wrist_image', "
+                                 "'right_wrist_image']"}
     assert requests.get(srv.url + "/health", timeout=10).json()["ok"] is True  # ours adds one (issue 17)
+    with BackgroundServer(create_app(EchoWAM(), bare_errors=True)) as bare:  # as Cosmos Policy's deploy.py
+        r = requests.post(bare.act_url, data=body, headers=protocol.JSON_HEADERS, timeout=10)
+        assert r.status_code == 200 and r.json() == "error"
 
 
 @pytest.mark.parametrize("case", sorted(BAD_ANSWERS))

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
 from wamplan.errors import UserError
@@ -99,21 +100,59 @@ def checkpoint_dir(path: str | Path) -> Path:
     return p if (p / CONFIG_FILE).is_file() or not (p / CKPT_DIR / CONFIG_FILE).is_file() else p / CKPT_DIR
 
 
+def read_json(path: str | Path, what: str = "checkpoint") -> Any:
+    """A JSON file a checkpoint holds; a damaged one (not UTF-8, not JSON) is a one-line error naming it."""
+    path = Path(path)
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise CheckpointError(f"{path} is damaged, not a JSON file ({type(e).__name__}: {e}); restore the {what} "
+                              f"from a copy or train it again") from None
+
+
+def read_meta(path: str | Path) -> dict[str, Any]:
+    """The whole ``config.json`` of the checkpoint directory ``path`` (kind, config, provenance)."""
+    p = Path(path)
+    if not (p / CONFIG_FILE).is_file() or not (p / MODEL_FILE).is_file():
+        raise CheckpointError(f"{p} is not a wamplan checkpoint (needs {CONFIG_FILE} and {MODEL_FILE}); "
+                              f"train one first or fix the path")
+    meta = read_json(p / CONFIG_FILE)
+    if not isinstance(meta, dict) or not isinstance(meta.get("config", {}), dict):
+        raise CheckpointError(f"{p / CONFIG_FILE} is not a wamplan checkpoint config (a JSON object with 'kind' and "
+                              f"'config'); restore the checkpoint from a copy or train it again")
+    return meta
+
+
 def read_config(path: str | Path, kind: str) -> dict[str, Any]:
     """The ``config`` section of a checkpoint of ``kind``; a clear error for anything else."""
     p = Path(path)
-    cfg = p / CONFIG_FILE
-    if not cfg.is_file() or not (p / MODEL_FILE).is_file():
-        raise CheckpointError(f"{p} is not a wamplan checkpoint (needs {CONFIG_FILE} and {MODEL_FILE}); "
-                              f"train one first or pass the right --ckpt")
-    meta = json.loads(cfg.read_text())
-    if meta.get("kind") != kind:
+    meta = read_meta(p)
+    if meta.get("kind") != kind or "config" not in meta:
         raise CheckpointError(f"{p} holds a '{meta.get('kind')}' checkpoint, not '{kind}'; pass a {kind} checkpoint")
     return meta["config"]
 
 
+def load_tensors(path: str | Path, device: str | torch.device = "cpu") -> dict[str, torch.Tensor]:
+    """The tensors of a safetensors file; a truncated or damaged one is a one-line error naming it."""
+    try:
+        return load_file(str(path), device=str(device))
+    except SafetensorError as e:
+        raise CheckpointError(f"{path} is damaged or incomplete ({e}); restore it from a copy or train the "
+                              f"checkpoint again") from None
+
+
 def load_weights(path: str | Path, model: torch.nn.Module, device: str | torch.device = "cpu") -> None:
-    model.load_state_dict(load_file(str(Path(path) / MODEL_FILE), device=str(device)))
+    """Load ``path``'s weights into ``model`` (built from the same checkpoint's config.json); weights that do not
+    fit the model are a one-line error naming the checkpoint."""
+    weights = load_tensors(Path(path) / MODEL_FILE, device)
+    try:
+        model.load_state_dict(weights)
+    except RuntimeError as e:  # size mismatch, missing or unexpected keys: the config no longer fits the weights
+        details = [line.strip() for line in str(e).splitlines()[1:] if line.strip()]
+        first = (details[0] if details else str(e).splitlines()[0]).rstrip(".")
+        more = f" and {len(details) - 1} more" if len(details) > 1 else ""
+        raise CheckpointError(f"{path}: this checkpoint's weights do not match its {CONFIG_FILE}: {first}{more}; "
+                              f"restore the {CONFIG_FILE} it was saved with, or train it again") from None
 
 
 def has_training_state(path: str | Path) -> bool:
@@ -123,8 +162,8 @@ def has_training_state(path: str | Path) -> bool:
 def load_training_state(path: str | Path, optimizer: torch.optim.Optimizer, scheduler: Any = None) -> dict[str, Any]:
     """Restore optimizer (and scheduler) state in place; return the saved ``train_state`` dict."""
     sdir = Path(path) / STATE_DIR
-    extra = json.loads((sdir / "state.json").read_text())
-    _restore_optimizer_state(optimizer, load_file(str(sdir / "optimizer.safetensors")), extra["optimizer"])
+    extra = read_json(sdir / "state.json", "training run")
+    _restore_optimizer_state(optimizer, load_tensors(sdir / "optimizer.safetensors"), extra["optimizer"])
     if scheduler is not None and extra.get("scheduler") is not None:
         scheduler.load_state_dict(extra["scheduler"])
     return extra["train_state"]
@@ -136,10 +175,10 @@ def export_for_inference(src: str | Path, dst: str | Path, dtype: torch.dtype = 
     src, final = Path(src), Path(dst)
     if not (src / MODEL_FILE).is_file():
         raise CheckpointError(f"{src} is not a checkpoint directory (no {MODEL_FILE})")
+    weights = {k: (v.to(dtype) if v.is_floating_point() else v) for k, v in load_tensors(src / MODEL_FILE).items()}
+    meta = read_meta(src)
     tmp = _atomic_dir(final)
-    weights = {k: (v.to(dtype) if v.is_floating_point() else v) for k, v in load_file(str(src / MODEL_FILE)).items()}
     save_file(weights, str(tmp / MODEL_FILE))
-    meta = json.loads((src / CONFIG_FILE).read_text())
     meta["exported"] = {"from": str(src), "dtype": str(dtype).removeprefix("torch."), **provenance()}
     (tmp / CONFIG_FILE).write_text(json.dumps(meta, indent=2) + "\n")
     _swap_in(tmp, final)

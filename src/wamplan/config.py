@@ -27,10 +27,13 @@ class ConfigError(UserError, ValueError):
     """A config value is wrong; the message says which and how to fix it."""
 
 
-def field(default: Any = dataclasses.MISSING, help: str = "", cli: bool = True, **kw: Any) -> Any:
+def field(default: Any = dataclasses.MISSING, help: str = "", cli: bool = True, choices: Any = None,
+          **kw: Any) -> Any:
     """A dataclass field with a help string (used for ``--help``). Mutable defaults: pass a tuple, or
-    ``default_factory=``. ``cli=False`` keeps the field out of :func:`add_arguments` (set it otherwise)."""
-    return dataclasses.field(default=default, metadata={"help": help, "cli": cli}, **kw)
+    ``default_factory=``. ``cli=False`` keeps the field out of :func:`add_arguments` (set it otherwise).
+    ``choices``: the values its option accepts (argparse refuses others and lists them in ``--help``), or a
+    function returning them (e.g. a registry's names, read when the option is built)."""
+    return dataclasses.field(default=default, metadata={"help": help, "cli": cli, "choices": choices}, **kw)
 
 
 def with_default(cls: type, name: str, default: Any) -> Any:
@@ -107,13 +110,18 @@ def add_field_argument(parser: Any, flag: str, dest: str, f: dataclasses.Field, 
         help_ = f"{help_} (default: {default})" if help_ else f"(default: {default})"
     st = _scalar_type(t)
     metavar = flag.lstrip("-").replace("-", "_").upper()
+    choices = f.metadata.get("choices")
+    choices = tuple(choices()) if callable(choices) else choices
+    if choices is not None:
+        metavar = "{" + ",".join(str(c) for c in choices if c != "") + "}"
     if st is bool:
         parser.add_argument(flag, dest=dest, default=None, action=argparse.BooleanOptionalAction, help=help_)
     elif typing.get_origin(t) is tuple:
-        parser.add_argument(flag, dest=dest, default=None, nargs="+", type=st, metavar=metavar, help=help_)
+        parser.add_argument(flag, dest=dest, default=None, nargs="+", type=st, metavar=metavar, help=help_,
+                            choices=choices)
     else:
         parser.add_argument(flag, dest=dest, default=None, type=st if st in (int, float, str) else str,
-                            metavar=metavar, help=help_)
+                            metavar=metavar, help=help_, choices=choices)
 
 
 def add_arguments(parser: Any, cls: type, prefix: str = "") -> None:

@@ -15,3 +15,38 @@ def require_paths(paths: Iterable[str], flag: str, fix: str) -> None:
     for path in paths:
         if not path or not Path(path).exists():
             raise UserError(f"{flag} {path or '(empty)'} does not exist; {fix}")
+
+
+SEED_LIMIT = 2**32  # episode seeds seed NumPy and ManiSkill, which take 32-bit unsigned seeds
+
+
+def require_seeds(first: int, count: int = 1, flag: str = "--seed-start") -> None:
+    """One line unless the episode seeds ``first .. first + count - 1`` all lie in [0, 2**32)."""
+    if first < 0 or first + max(count, 1) - 1 >= SEED_LIMIT:
+        last = f" .. {first + count - 1}" if count > 1 else ""
+        raise UserError(f"{flag} {first}: episode seeds must lie in 0 .. {SEED_LIMIT - 1} (got {first}{last}); "
+                        f"pass a seed in that range")
+
+
+def require_dir(path: str | Path, flag: str = "--out") -> Path:
+    """``path`` as a directory to write into (created later if missing); one line if it is an existing file."""
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise UserError(f"{flag} {p} is a file, not a directory; pass a directory (a new one is created)")
+    return p
+
+
+def require_file(path: str | Path | None, flag: str) -> Path | None:
+    """``path`` as a file to write (None: not asked for); one line, before any work, if it is a directory."""
+    if path is None:
+        return None
+    p = Path(path)
+    if p.is_dir():
+        raise UserError(f"{flag} {p} is a directory, not a file; pass a file name")
+    return p
+
+
+def reason(e: BaseException) -> str:
+    """``TypeName: the first line of its message``: a library's exception, quoted inside one line for people."""
+    text = str(e).strip()
+    return f"{type(e).__name__}: {text.splitlines()[0]}" if text else type(e).__name__

@@ -69,17 +69,30 @@ def add_backend_argument(p) -> None:
                         "(needs pip install 'wamplan[ray]')")
 
 
+@dataclass(frozen=True)
+class _Refused:
+    """A worker process's :class:`~wamplan.errors.UserError` (a bad checkpoint, a damaged file), sent to the
+    driver, which raises it: one line for people, as in a run without workers, not a worker's traceback."""
+
+    error: Exception
+
+
 def _serve(make_worker: Callable[[], Callable[[T], R]], items: "mp.Queue", results: "mp.Queue", parent: int,
            threads: int) -> None:
     import torch
 
+    from wamplan.errors import UserError
+
     torch.set_num_threads(threads)  # oversubscribed cores make torch's thread pools collapse (~50x slower)
-    work = make_worker()
-    while os.getppid() == parent:
-        item = items.get()
-        if item is None:
-            break
-        results.put(work(item))
+    try:
+        work = make_worker()
+        while os.getppid() == parent:
+            item = items.get()
+            if item is None:
+                break
+            results.put(work(item))
+    except UserError as e:
+        results.put(_Refused(e))
 
 
 def imap_workers(make_worker: Callable[[], Callable[[T], R]], items: list[T], workers: int = 1,
@@ -111,7 +124,10 @@ def imap_workers(make_worker: Callable[[], Callable[[T], R]], items: list[T], wo
         done = 0
         while done < len(items):
             try:
-                yield res_q.get(timeout=1.0)
+                result = res_q.get(timeout=1.0)
+                if isinstance(result, _Refused):
+                    raise result.error
+                yield result
                 done += 1
             except queue.Empty:
                 dead = [p for p in procs if not p.is_alive() and p.exitcode not in (0, None)]

@@ -78,6 +78,8 @@ class LoopConfig:
                 f"{name}.warmup_epochs must be in [0, epochs={self.epochs}], got {self.warmup_epochs}")
         require(0 <= self.min_lr_ratio <= 1, f"{name}.min_lr_ratio must be in [0, 1], got {self.min_lr_ratio}")
         require(self.grad_clip >= 0, f"{name}.grad_clip must be >= 0 (0 disables it), got {self.grad_clip}")
+        require(0 <= self.seed < 2**32, f"--seed {self.seed}: seeds must lie in 0 .. {2**32 - 1}; pass one in "
+                                        f"that range")
         for k in ("num_workers", "save_every_steps", "log_every_steps"):
             require(getattr(self, k) >= 0, f"{name}.{k} must be >= 0, got {getattr(self, k)}")
 

@@ -8,8 +8,8 @@ from collections import Counter, defaultdict
 from pathlib import Path
 
 from wamplan.config import add_arguments, from_args
-from wamplan.errors import UserError
-from wamplan.cli.main import register_command
+from wamplan.errors import UserError, require_dir, require_file, require_seeds
+from wamplan.cli.main import add_command, add_group, register_command
 
 SOURCES = ("expert", "noisy-expert", "pink", "policy")
 EXPERT_PREFIX, NOISY_PREFIX = "expert_", "noisy_"  # collect's --expert-<field> and --noisy-<field> options
@@ -17,16 +17,22 @@ EXPERT_PREFIX, NOISY_PREFIX = "expert_", "noisy_"  # collect's --expert-<field> 
 
 @register_command("data")
 def register(sub: argparse._SubParsersAction) -> None:
-    from wamplan.envs.core import EnvConfig
+    add_command(sub, "collect", _collect_options, help="collect episodes into an episode store (parallel, resumable)")
+    add_group(sub, "data", _data_commands, help="inspect episode stores: info, check, alignment, view, export")
+
+
+def _collect_options(p: argparse.ArgumentParser) -> None:
+    from wamplan.envs.config import EnvConfig
     from wamplan.parallel import add_backend_argument
     from wamplan.policies.expert import ExpertConfig
     from wamplan.policies.noise import NoisyExpertConfig
 
-    p = sub.add_parser("collect", help="collect episodes into an episode store (parallel, resumable)")
-    p.add_argument("--source", required=True, choices=SOURCES)
+    p.add_argument("--source", required=True, choices=SOURCES,
+                   help="who acts: the scripted expert, the noisy expert, pink-noise exploration, or a WAM "
+                        "checkpoint (policy, with --policy)")
     p.add_argument("--episodes", type=int, required=True, help="number of seeds, from --seed-start")
     p.add_argument("--out", type=Path, required=True, help="the store directory (created or resumed)")
-    p.add_argument("--seed-start", type=int, default=0)
+    p.add_argument("--seed-start", type=int, default=0, help="the first episode seed (default: 0)")
     p.add_argument("--workers", type=int, default=1,
                    help="worker processes (one simulator each), or Ray actors with --ray")
     add_backend_argument(p)
@@ -54,33 +60,56 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_arguments(g, NoisyExpertConfig, prefix=NOISY_PREFIX)
     p.set_defaults(func=cmd_collect)
 
-    d = sub.add_parser("data", help="inspect episode stores")
+
+def _data_commands(d: argparse.ArgumentParser) -> None:
     dsub = d.add_subparsers(dest="data_command", metavar="DATA_COMMAND")
-    p = dsub.add_parser("info", help="episodes, frames, size; per source: success rate and outcomes")
-    p.add_argument("dir", type=Path)
+    add_command(dsub, "info", _info_options, help="episodes, frames, size; per source: success rate and outcomes")
+    add_command(dsub, "check", _check_options,
+                help="read every byte of every episode, verifying its checksums; names each damaged file")
+    add_command(dsub, "alignment", _alignment_options,
+                help="per episode: how close the cube came to the hole (xy, yaw, in-hand offset) while carried over "
+                     "the mount, from the privileged poses")
+    add_command(dsub, "view", _view_options, help="a contact sheet of the three views over one episode")
+    add_command(dsub, "export", _export_options,
+                help="write a store in another project's training layout (Cosmos Policy HDF5)",
+                description="Write the store DIR under OUT in the HDF5 layout Cosmos Policy's post-training reads "
+                            "(OUT/demos/*.hdf5 RoboCasa-style demos, OUT/rollouts/*.hdf5 on-policy episodes). The "
+                            "store must be collected with --image-every 1.")
+
+
+def _info_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("dir", type=Path, help="an episode store directory (`wamplan collect --out`)")
     p.add_argument("--json", action="store_true", help="print JSON instead of text")
     p.set_defaults(func=cmd_info)
-    p = dsub.add_parser("alignment", help="per episode: how close the cube came to the hole (xy, yaw, in-hand "
-                                          "offset) while carried over the mount, from the privileged poses")
-    p.add_argument("dir", type=Path)
+
+
+def _check_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("dir", type=Path, help="an episode store directory (`wamplan collect --out`)")
+    p.add_argument("--json", action="store_true", help="print JSON (every damaged file and the counts) instead of text")
+    p.set_defaults(func=cmd_check)
+
+
+def _alignment_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("dir", type=Path, help="an episode store directory (`wamplan collect --out`)")
     p.add_argument("--json", action="store_true", help="print JSON (every episode and the summary) instead of text")
     p.add_argument("--quiet", action="store_true", help="text: the per-outcome summary only")
     p.set_defaults(func=cmd_alignment)
-    p = dsub.add_parser("view", help="a contact sheet of the three views over one episode")
-    p.add_argument("dir", type=Path)
+
+
+def _view_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("dir", type=Path, help="an episode store directory (`wamplan collect --out`)")
     p.add_argument("--episode", type=int, default=0, help="index in the store's sorted episode list")
-    p.add_argument("--out", type=Path, default=Path("sheet.png"))
+    p.add_argument("--out", type=Path, default=Path("sheet.png"), help="PNG to write (default: sheet.png)")
     p.add_argument("--frames", type=int, default=8, help="frames across the episode")
     p.set_defaults(func=cmd_view)
+
+
+def _export_options(p: argparse.ArgumentParser) -> None:
     from wamplan.data.export import FORMATS, CosmosExportConfig
 
-    p = dsub.add_parser("export", help="write a store in another project's training layout (Cosmos Policy HDF5)",
-                        description="Write the store DIR under OUT in the HDF5 layout Cosmos Policy's post-training "
-                                    "reads (OUT/demos/*.hdf5 RoboCasa-style demos, OUT/rollouts/*.hdf5 on-policy "
-                                    "episodes). The store must be collected with --image-every 1.")
-    p.add_argument("dir", type=Path)
-    p.add_argument("out", type=Path)
-    p.add_argument("--format", required=True, choices=FORMATS)
+    p.add_argument("dir", type=Path, help="the episode store to export")
+    p.add_argument("out", type=Path, help="the directory to write the exported files under (created)")
+    p.add_argument("--format", required=True, choices=FORMATS, help="the target layout")
     add_arguments(p, CosmosExportConfig)
     p.set_defaults(func=cmd_export)
 
@@ -91,6 +120,8 @@ def cmd_collect(args: argparse.Namespace) -> int:
     from wamplan.evaluation.build import load_policy
     from wamplan.parallel import Backend
 
+    require_seeds(args.seed_start, args.episodes)
+    require_dir(args.out)
     branch = None
     if args.branch_steps and not args.branches:
         raise UserError("--branch-steps chooses where to branch: add --branches N (branches per boundary)")
@@ -132,11 +163,20 @@ def expert_kwargs(args: argparse.Namespace) -> dict:
 
 
 def store_info(root: Path) -> dict:
-    from wamplan.data.store import EpisodeStore
+    """Episodes, steps, frames and bytes of the store ``root``, per source; files that cannot be read (their
+    header or attributes damaged) are listed under ``damaged``, not counted. Reads no arrays: damage inside
+    them is found by :func:`wamplan.data.store.verify_episode` (``wamplan data check``)."""
+    from wamplan.data.store import EpisodeStore, StoreError
 
     store = EpisodeStore(root)
     per: dict[str, dict] = defaultdict(lambda: dict(episodes=0, steps=0, frames=0, outcomes=Counter()))
-    for m in store.iter_meta():
+    damaged = []
+    for path in store.episode_paths():
+        try:
+            m = store.meta(path)
+        except StoreError as e:
+            damaged.append(dict(path=str(path), problem=str(e)))
+            continue
         s = per[m["source"]]
         s["episodes"] += 1
         s["steps"] += m["length"]
@@ -149,7 +189,7 @@ def store_info(root: Path) -> dict:
     return dict(dir=str(root), episodes=n, steps=sum(v["steps"] for v in sources.values()),
                 image_frames=sum(v["frames"] for v in sources.values()), bytes=size,
                 bytes_per_episode=size // n if n else None, image_every=store.image_every, env=store.env,
-                sources=sources)
+                sources=sources, damaged=damaged)
 
 
 def cmd_info(args: argparse.Namespace) -> int:
@@ -162,6 +202,47 @@ def cmd_info(args: argparse.Namespace) -> int:
     for src, s in info["sources"].items():
         outs = ", ".join(f"{k} {v}" for k, v in sorted(s["outcomes"].items()))
         print(f"  {src:20s} {s['episodes']:5d} episodes  success {100 * s['success_rate']:5.1f}%  ({outs})")
+    for d in info["damaged"]:
+        print(f"  damaged: {d['problem']}")
+    print(f"  integrity: {len(info['damaged'])} damaged file(s) found by reading headers; `wamplan data check "
+          f"{args.dir}` reads every byte and verifies the checksums")
+    _refuse_damaged(args.dir, info["damaged"], len(info["damaged"]) + info["episodes"])
+    return 0
+
+
+def _refuse_damaged(root: Path, damaged: list[dict], total: int) -> None:
+    """One line (exit status 2) when ``damaged`` (listed above it) is not empty."""
+    from wamplan.data.store import RECOLLECT
+
+    if damaged:
+        names = [Path(d["path"]).name for d in damaged]
+        shown = ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
+        raise UserError(f"{len(damaged)} of {total} episode files in {root} are damaged ({shown}; listed above); "
+                        f"for each, {RECOLLECT}")
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    from wamplan.data.store import EpisodeStore, verify_episode
+    from wamplan.progress import progress_bar
+
+    store = EpisodeStore(args.dir)
+    paths = store.episode_paths()
+    damaged, unchecked = [], 0
+    for path in progress_bar(paths, desc="check", unit="ep", disable=args.json):
+        problem, checksummed = verify_episode(path)
+        unchecked += not checksummed
+        if problem is not None:
+            damaged.append(dict(path=str(path), problem=problem))
+    if args.json:
+        print(json.dumps(dict(dir=str(args.dir), episodes=len(paths), damaged=damaged,
+                              without_checksums=unchecked), indent=1))
+    else:
+        for d in damaged:
+            print(f"damaged: {d['path']} ({d['problem']})")
+        print(f"{args.dir}: {len(paths)} episodes read, {len(damaged)} damaged"
+              + (f"; {unchecked} written before checksums (only damage that breaks decompression or the file's "
+                 f"structure shows in those)" if unchecked else ""))
+    _refuse_damaged(args.dir, damaged, len(paths))
     return 0
 
 
@@ -196,6 +277,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     from wamplan.data.export import CosmosExportConfig, export_cosmos_policy
     from wamplan.wam.base import DEFAULT_INSTRUCTION
 
+    require_dir(args.out, "OUT")
     base = CosmosExportConfig(instruction=DEFAULT_INSTRUCTION)  # what WAMPolicy sends when given no instruction
     cfg = from_args(CosmosExportConfig, args, base=base)
     cfg = dataclasses.replace(cfg, sources=tuple(s for x in cfg.sources for s in x.split(",") if s))
@@ -210,14 +292,15 @@ def cmd_view(args: argparse.Namespace) -> int:
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from wamplan.data.store import EpisodeStore
+    from wamplan.data.store import EpisodeStore, reading
     from wamplan.envs.contract import CAMERAS
 
+    require_file(args.out, "--out")
     store = EpisodeStore(args.dir)
     paths = store.episode_paths()
     if not 0 <= args.episode < len(paths):
         raise UserError(f"--episode {args.episode} is out of range: {args.dir} holds {len(paths)} episodes (0..{len(paths) - 1})")
-    with store.open_episode(paths[args.episode]) as f:
+    with store.open_episode(paths[args.episode]) as f, reading(paths[args.episode]):
         steps = f["image_steps"][:]
         idx = np.unique(np.linspace(0, len(steps) - 1, min(args.frames, len(steps))).round().astype(int))
         imgs = {c: f["images"][c][idx] for c in CAMERAS}  # (F, H, W, 3) each

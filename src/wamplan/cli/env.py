@@ -10,31 +10,43 @@ from collections import Counter
 from pathlib import Path
 
 from wamplan.config import add_arguments, from_args
-from wamplan.errors import UserError
-from wamplan.cli.main import register_command
+from wamplan.errors import UserError, require_dir, require_file, require_seeds
+from wamplan.cli.main import add_command, add_group, register_command
 
 
 @register_command("env")
 def register(sub: argparse._SubParsersAction) -> None:
-    from wamplan.envs.core import EnvConfig
+    add_group(sub, "env", _env_commands,
+              help="the CubeInsertion-v1 task: check the renderer, render views, roll out policies")
 
-    env = sub.add_parser("env", help="the CubeInsertion-v1 task: check the renderer, render views, roll out policies")
+
+def _env_commands(env: argparse.ArgumentParser) -> None:
     esub = env.add_subparsers(dest="env_command", metavar="ENV_COMMAND")
+    add_command(esub, "check", _check_options, help="is rendering possible here? timings of physics and cameras")
+    add_command(esub, "render", _render_options, help="render the three views of one seed side by side")
+    add_command(esub, "rollout", _rollout_options, help="run a policy for N episodes and summarise the outcomes")
 
-    p = esub.add_parser("check", help="is rendering possible here? timings of physics and cameras")
+
+def _check_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--steps", type=int, default=20, help="steps to time (default 20)")
     p.set_defaults(func=cmd_check)
 
-    p = esub.add_parser("render", help="render the three views of one seed side by side")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", type=Path, default=Path("views.png"))
+
+def _render_options(p: argparse.ArgumentParser) -> None:
+    from wamplan.envs.config import EnvConfig
+
+    p.add_argument("--seed", type=int, default=0, help="episode seed (default: 0)")
+    p.add_argument("--out", type=Path, default=Path("views.png"), help="PNG to write (default: views.png)")
     add_arguments(p, EnvConfig)
     p.set_defaults(func=cmd_render)
 
-    p = esub.add_parser("rollout", help="run a policy for N episodes and summarise the outcomes")
+
+def _rollout_options(p: argparse.ArgumentParser) -> None:
+    from wamplan.envs.config import EnvConfig
+
     p.add_argument("--policy", default="expert", help="expert | noisy-expert | pink | a WAM checkpoint directory")
-    p.add_argument("--episodes", type=int, default=10)
-    p.add_argument("--seed-start", type=int, default=0)
+    p.add_argument("--episodes", type=int, default=10, help="number of episodes, seeds --seed-start .. (default: 10)")
+    p.add_argument("--seed-start", type=int, default=0, help="the first episode seed (default: 0)")
     p.add_argument("--json", type=Path, default=None, help="write per-episode records and the summary here")
     p.add_argument("--video", type=Path, default=None, help="write one MP4 per episode (three views) here")
     p.add_argument("--instruction", default=None, help="language instruction for WAM policies")
@@ -86,6 +98,8 @@ def cmd_render(args: argparse.Namespace) -> int:
     from wamplan.envs.core import EnvConfig, InsertionEnv
     from wamplan.envs.media import save_views
 
+    require_seeds(args.seed, flag="--seed")
+    require_file(args.out, "--out")
     env = InsertionEnv(from_args(EnvConfig, args))
     obs = env.reset(args.seed, with_images=True)
     save_views(obs.images, args.out)
@@ -105,6 +119,10 @@ def cmd_rollout(args: argparse.Namespace) -> int:
 
     if args.episodes <= 0:
         raise UserError(f"--episodes must be > 0, got {args.episodes}")
+    require_seeds(args.seed_start, args.episodes)
+    require_file(args.json, "--json")
+    if args.video is not None:
+        require_dir(args.video, "--video")
     cfg = from_args(EnvConfig, args)
     policy = load_policy(args.policy, args.instruction)
     env = InsertionEnv(cfg)

@@ -7,49 +7,73 @@ import json
 from collections import Counter
 from pathlib import Path
 
-from wamplan.cli.main import register_command
+from wamplan.cli.main import add_command, register_command
 
 
 @register_command("evaluation")
 def register(sub: argparse._SubParsersAction) -> None:
+    add_command(sub, "eval", _eval_options, help="run the paper's evaluation conditions (resumable, parallel)")
+    add_command(sub, "reproduce", _reproduce_options,
+                help="the whole pipeline: data, TinyWAM, world models, evaluation, report")
+    add_command(sub, "gate-calibrate", _gate_calibrate_options,
+                help="seed-cost quantiles of an always-planning evaluation, to choose --gate-threshold on held-out "
+                     "episodes")
+    add_command(sub, "explain", _explain_options,
+                help="one planned chunk in pictures: the WAM's target, the world model's prediction under the WAM's "
+                     "chunk and under the plan, and the real frames after each")
+    add_command(sub, "report", _report_options,
+                help="Table 1, Figure 3 (and Table 2, timings) from an evaluation directory")
+
+
+def _eval_options(p: argparse.ArgumentParser) -> None:
     from wamplan.cli.eval_options import add_eval_arguments
     from wamplan.parallel import add_backend_argument
 
-    p = sub.add_parser("eval", help="run the paper's evaluation conditions (resumable, parallel)")
-    p.add_argument("--conditions", default="1,6,7", help="e.g. 1,6,7 or 1-7 (paper §4)")
-    p.add_argument("--episodes", type=int, default=50)
-    p.add_argument("--seed-start", type=int, default=0)
-    p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--workers", type=int, default=1, help="worker processes, or Ray actors with --ray")
+    p.add_argument("--conditions", default="1,6,7", help="e.g. 1,6,7 or 1-7 (paper §4; default: 1,6,7)")
+    p.add_argument("--episodes", type=int, default=50, help="episodes per condition: seeds --seed-start .. "
+                                                           "--seed-start + N - 1 (default: 50)")
+    p.add_argument("--seed-start", type=int, default=0, help="the first episode seed (default: 0; the test seeds "
+                                                            "start at 0, keep validation seeds apart)")
+    p.add_argument("--out", type=Path, required=True, help="evaluation directory: records.jsonl and eval_config.json "
+                                                          "(created; re-running the same command resumes it)")
+    p.add_argument("--workers", type=int, default=1, help="worker processes, or Ray actors with --ray (default: 1)")
     add_backend_argument(p)
     add_eval_arguments(p)
     p.set_defaults(func=cmd_eval)
 
-    p = sub.add_parser("reproduce", help="the whole pipeline: data, TinyWAM, world models, evaluation, report")
-    p.add_argument("--preset", default="mini", help="mini (this CPU machine) or paper")
-    p.add_argument("--out", type=Path, required=True)
+
+def _reproduce_options(p: argparse.ArgumentParser) -> None:
+    from wamplan.presets import PRESETS
+
+    p.add_argument("--preset", default="mini", choices=sorted(PRESETS),
+                   help="mini (this CPU machine) or paper (default: mini)")
+    p.add_argument("--out", type=Path, required=True, help="directory for every stage's outputs (re-running resumes)")
     p.add_argument("--wam", default=None, help="use this WAM checkpoint instead of training TinyWAM")
-    p.add_argument("--workers", type=int, default=1)
+    p.add_argument("--workers", type=int, default=1, help="worker processes for collection and evaluation (default: 1)")
     p.add_argument("--sim-episodes", type=int, default=None,
                    help="episodes for the simulator conditions 2-5 (default: the preset's; 0 skips them)")
     p.set_defaults(func=cmd_reproduce)
 
-    p = sub.add_parser("gate-calibrate", help="seed-cost quantiles of an always-planning evaluation, to choose "
-                       "--gate-threshold on held-out episodes")
-    p.add_argument("dir", type=Path)
-    p.add_argument("--quantiles", type=float, nargs="+", default=[0.1, 0.25, 0.4, 0.5, 0.6, 0.75, 0.9])
+
+def _gate_calibrate_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("dir", type=Path, help="an evaluation directory of always-planning runs (`wamplan eval --out`)")
+    p.add_argument("--quantiles", type=float, nargs="+", default=[0.1, 0.25, 0.4, 0.5, 0.6, 0.75, 0.9],
+                   help="quantiles of the per-chunk seed cost to print (default: 0.1 0.25 0.4 0.5 0.6 0.75 0.9)")
     p.set_defaults(func=cmd_gate_calibrate)
 
-    p = sub.add_parser("explain", help="one planned chunk in pictures: the WAM's target, the world model's "
-                       "prediction under the WAM's chunk and under the plan, and the real frames after each")
+
+def _explain_options(p: argparse.ArgumentParser) -> None:
+    from wamplan.cli.eval_options import add_eval_arguments
+
     p.add_argument("--seed", type=int, default=0, help="episode seed (condition 7 runs up to the chunk)")
     p.add_argument("--chunk", type=int, default=4, help="chunk index to explain (>= 1; chunk k starts at step 16k)")
     p.add_argument("--decoder", required=True, help="picture decoder checkpoint (`wamplan wm train-decoder`)")
-    p.add_argument("--out", type=Path, default=Path("mechanism.png"))
+    p.add_argument("--out", type=Path, default=Path("mechanism.png"), help="PNG to write (default: mechanism.png)")
     add_eval_arguments(p)
     p.set_defaults(func=cmd_explain)
 
-    p = sub.add_parser("report", help="Table 1, Figure 3 (and Table 2, timings) from an evaluation directory")
+
+def _report_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("dir", type=Path, help="evaluation directory; the report is written there")
     p.add_argument("more", nargs="*", metavar="RUN", help="further evaluation directories whose records join DIR's "
                    "(e.g. conditions run apart on the same seeds), each DIR or DIR:C[,C...] for only those "
@@ -58,13 +82,17 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_explain(args: argparse.Namespace) -> int:
-    from wamplan.errors import require_paths
+    from wamplan.device import resolve_device
+    from wamplan.errors import require_file, require_paths, require_seeds
     from wamplan.evaluation.mechanism import explain_chunk, mechanism_figure
     from wamplan.cli.eval_options import eval_config_from_args
 
+    require_seeds(args.seed, flag="--seed")
     cfg = eval_config_from_args(args)
+    resolve_device(cfg.device)
     cfg.check_for([7])
     require_paths([args.decoder], "--decoder", "train one with `wamplan wm train-decoder`")
+    require_file(args.out, "--out")
     m = explain_chunk(cfg, args.decoder, args.seed, args.chunk)
     title = (f"seed {args.seed}, chunk {args.chunk}: WAM {Path(cfg.wam).name}, world model "
              f"{Path(cfg.wm_augmented).name}, planner {cfg.planner}")
@@ -77,7 +105,8 @@ def cmd_explain(args: argparse.Namespace) -> int:
 def cmd_eval(args: argparse.Namespace) -> int:
     from wamplan.progress import progress_bar
 
-    from wamplan.errors import UserError
+    from wamplan.device import resolve_device
+    from wamplan.errors import UserError, require_dir, require_seeds
     from wamplan.evaluation.conditions import parse_conditions
     from wamplan.cli.eval_options import eval_config_from_args
     from wamplan.evaluation.records import read_records, record_key
@@ -89,7 +118,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
     conds = parse_conditions(args.conditions)
     if args.episodes <= 0 or args.workers <= 0:
         raise UserError("--episodes and --workers must be positive")
-    cfg = eval_config_from_args(args)
+    require_seeds(args.seed_start, args.episodes)
+    require_dir(args.out)
+    cfg = eval_config_from_args(args)  # the env's settings (backends) are checked here, before any work
+    resolve_device(cfg.device)
     cfg.check_for(conds)
     seeds = list(range(args.seed_start, args.seed_start + args.episodes))
     done = {record_key(r) for r in read_records(args.out)}
@@ -98,8 +130,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if have:
         print(f"resuming: {have} of {total} episodes already recorded in {args.out}")
     counts: dict[int, Counter] = {c: Counter() for c in conds}
+    records = run_evaluation(cfg, conds, seeds, args.out, workers=args.workers, backend=backend)  # checks inputs
     bar = progress_bar(total=total, initial=have, desc="eval", unit="ep")
-    for rec in run_evaluation(cfg, conds, seeds, args.out, workers=args.workers, backend=backend):
+    for rec in records:
         counts[rec["condition"]][rec["outcome"]] += 1
         bar.update(1)
         bar.write(f"cond {rec['condition']} seed {rec['seed']:4d} {rec['outcome']:22s} len {rec['length']:3d} "
@@ -134,7 +167,9 @@ def cmd_gate_calibrate(args: argparse.Namespace) -> int:
 
 
 def cmd_reproduce(args: argparse.Namespace) -> int:
+    from wamplan.errors import require_dir
     from wamplan.evaluation.reproduce import reproduce
 
+    require_dir(args.out)
     reproduce(args.preset, args.out, wam=args.wam, workers=args.workers, sim_episodes=args.sim_episodes)
     return 0

@@ -3,13 +3,26 @@
 Each command family registers its sub-commands from its module in ``wamplan/cli/`` (``env``, ``data``, ``wm``,
 ``wam``, ``eval``, ``plot``): a function ``register(subparsers)`` decorated with
 ``@register_command(name)`` (the ``COMMANDS`` registry below, which lists those modules);
-a handler is a function ``(args) -> int``. Imports are lazy so that ``wamplan --help`` stays fast.
+a handler is a function ``(args) -> int``.
+
+``wamplan --help`` and every ``--help`` stay fast (well under a second): a command module imports nothing heavy
+at its top (the standard library, ``wamplan.config``) and adds each command with :func:`add_command`, whose
+options (generated from config classes that may import torch or ManiSkill) are built only when that command is
+chosen. The help of such a command is kept in a cache (``$XDG_CACHE_HOME/wamplan/help``, or
+``$WAMPLAN_CACHE_DIR/help``; keyed by the sources of this package) once built, so asking again needs none of
+those imports.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
+import json
+import os
+import shutil
 import sys
+from pathlib import Path
+from typing import Any, Callable, Iterator
 
 from wamplan.registry import Registry
 
@@ -23,9 +36,186 @@ COMMANDS = Registry("command", modules=(
 ))
 register_command = COMMANDS.register  # decorator on a command module's ``register(subparsers)``
 
+HELP_FLAGS = ("-h", "--help")
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse, with sub-commands built on demand (:func:`add_command`) and one short usage line on errors
+    (argparse prints the whole usage, ~40 lines for ``eval``, before the line that matters)."""
+
+    def __init__(self, *args: Any, **kwargs: Any):
+        super().__init__(*args, **kwargs)
+        self.register("action", "parsers", _LazySubParsers)
+
+    def error(self, message: str):  # type: ignore[override]
+        self.exit(2, f"{self.short_usage()}\n{self.prog}: error: {message}\n")
+
+    def short_usage(self) -> str:
+        """``usage: PROG [options] POSITIONALS  (PROG --help lists the options)``."""
+        formatter = self._get_formatter()
+        formatter.add_usage(None, self._get_positional_actions(), [], prefix="")
+        positionals = formatter.format_help().strip()[len(self.prog):].strip()
+        return f"usage: {self.prog} [options] {positionals}".rstrip() + f"   (`{self.prog} --help` lists the options)"
+
+
+class _LazySubParsers(argparse._SubParsersAction):
+    """Sub-commands whose options are added by a builder the first time the command is chosen."""
+
+    def __init__(self, *args: Any, **kwargs: Any):
+        super().__init__(*args, **kwargs)
+        self._builders: dict[str, tuple[Callable[[argparse.ArgumentParser], None], bool]] = {}
+
+    def add_lazy(self, name: str, build: Callable[[argparse.ArgumentParser], None], cache_help: bool, **kwargs: Any):
+        p = self.add_parser(name, **kwargs)
+        self._builders[name] = (build, cache_help)
+        return p
+
+    def build(self, name: str) -> argparse.ArgumentParser:
+        """The parser of sub-command ``name``, its options added (once)."""
+        if name in self._builders:
+            build, _ = self._builders.pop(name)
+            build(self._name_parser_map[name])
+        return self._name_parser_map[name]
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        name, rest = values[0], values[1:]
+        if name in self._builders:
+            sub = self._name_parser_map[name]
+            build, cache_help = self._builders.pop(name)
+            asks_help = cache_help and _asks_help(rest)
+            if asks_help and _print_cached_help(sub.prog):
+                sub.exit(0)
+            build(sub)
+            if asks_help:
+                _cache_help(sub.prog, sub.format_help())
+        sub = self._name_parser_map.get(name)
+        if sub is None:  # argparse's "invalid choice" error
+            return super().__call__(parser, namespace, values, option_string)
+        if self.dest is not argparse.SUPPRESS:
+            setattr(namespace, self.dest, name)
+        subnamespace, extras = sub.parse_known_args(rest, None)
+        for key, value in vars(subnamespace).items():
+            setattr(namespace, key, value)
+        if extras:  # argparse would pass them up to ``wamplan``'s usage; they belong to this command
+            sub.error(f"unrecognized arguments: {' '.join(extras)}")
+
+
+def add_command(sub: argparse._SubParsersAction, name: str, build: Callable[[argparse.ArgumentParser], None],
+                **kwargs: Any) -> argparse.ArgumentParser:
+    """Add the command ``name`` (``help=``, ``description=`` ...) whose options ``build(parser)`` adds when it is
+    chosen; ``build`` may import anything (config classes, torch). Returns the (still empty) parser."""
+    return _add(sub, name, build, True, **kwargs)
+
+
+def add_group(sub: argparse._SubParsersAction, name: str, build: Callable[[argparse.ArgumentParser], None],
+              **kwargs: Any) -> argparse.ArgumentParser:
+    """Add the command family ``name`` (e.g. ``wm``) whose ``build(parser)`` adds its sub-commands (with
+    :func:`add_command`) when it is chosen; ``build`` itself must stay cheap (its help is not cached)."""
+    return _add(sub, name, build, False, **kwargs)
+
+
+def _add(sub: argparse._SubParsersAction, name: str, build: Callable[[argparse.ArgumentParser], None],
+         cache_help: bool, **kwargs: Any) -> argparse.ArgumentParser:
+    if isinstance(sub, _LazySubParsers):
+        return sub.add_lazy(name, build, cache_help, **kwargs)
+    p = sub.add_parser(name, **kwargs)  # a plain argparse parent: build now
+    build(p)
+    return p
+
+
+def _asks_help(args: list[str]) -> bool:
+    """Help is asked of this command (not of a sub-command below it, and not after ``--``)."""
+    for a in args:
+        if a == "--":
+            return False
+        if a in HELP_FLAGS:
+            return True
+    return False
+
+
+# ---------------------------------------------------------------------------------------------- help cache
+def _help_cache() -> Path:
+    """The help cache of these sources: ``$WAMPLAN_CACHE_DIR`` (default ``$XDG_CACHE_HOME/wamplan``)/help/KEY.json."""
+    root = Path(os.environ.get("WAMPLAN_CACHE_DIR") or
+                Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "wamplan")
+    src = Path(__file__).resolve().parents[1]  # the wamplan package
+    stamp = [sys.version, str(src)] + [f"{p.relative_to(src)}:{p.stat().st_mtime_ns}:{p.stat().st_size}"
+                                       for p in sorted(src.rglob("*.py"))]
+    key = hashlib.sha1("\n".join(stamp).encode()).hexdigest()[:16]
+    return root / "help" / f"{key}.json"
+
+
+def _help_key(prog: str) -> str:
+    return f"{prog}@{shutil.get_terminal_size().columns}"  # argparse wraps the help to the terminal's width
+
+
+def _print_cached_help(prog: str) -> bool:
+    try:
+        text = json.loads(_help_cache().read_text()).get(_help_key(prog))
+    except (OSError, ValueError):
+        return False
+    if text is None:
+        return False
+    sys.stdout.write(text)
+    return True
+
+
+def _cache_help(prog: str, text: str) -> None:
+    """Remember ``prog``'s help for this version of the sources; a cache that cannot be written is skipped."""
+    path = _help_cache()
+    try:
+        cached = json.loads(path.read_text()) if path.is_file() else {}
+        cached[_help_key(prog)] = text
+        path.parent.mkdir(parents=True, exist_ok=True)
+        for old in path.parent.glob("*.json"):  # help of older sources
+            if old != path:
+                old.unlink(missing_ok=True)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}")
+        tmp.write_text(json.dumps(cached))
+        os.replace(tmp, path)
+    except (OSError, ValueError):
+        pass  # a read-only or damaged cache only costs speed
+
+
+class _Version(argparse.Action):
+    """``--version``: the installed package's version, looked up only when asked."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        from importlib.metadata import PackageNotFoundError, version
+
+        try:
+            v = version("wamplan")
+        except PackageNotFoundError:
+            v = "unknown (not installed; run `pip install -e .`)"
+        print(f"wamplan {v} (python {sys.version.split()[0]}, {Path(__file__).resolve().parents[1]})")
+        parser.exit(0)
+
+
+def iter_commands(parser: argparse.ArgumentParser | None = None) -> Iterator[argparse.ArgumentParser]:
+    """Every command's parser, its options built (imports everything): for checks over the whole CLI."""
+    parser = parser or build_parser()
+    yield parser
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name in list(action.choices):
+                sub = action.build(name) if isinstance(action, _LazySubParsers) else action.choices[name]
+                yield from iter_commands(sub)
+
+
+def _end_progress_lines() -> None:
+    """Close the progress bars a failure left open, so that its one line starts a line of its own."""
+    tqdm = sys.modules.get("tqdm")
+    for bar in list(getattr(getattr(tqdm, "tqdm", None), "_instances", ())):
+        bar.close()
+
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="wamplan", description=__doc__.splitlines()[0])
+    parser = Parser(prog="wamplan", description="wamplan: world-model feedback planning for world action models "
+                                                "(WAMs). `wamplan COMMAND --help` lists a command's options.")
+    parser.add_argument("--version", action=_Version, help="print the version of wamplan and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for register in COMMANDS.values():
         register(sub)
@@ -43,6 +233,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except UserError as e:
+        _end_progress_lines()
         print(f"wamplan: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

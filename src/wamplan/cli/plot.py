@@ -5,19 +5,25 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from wamplan.cli.main import register_command
+from wamplan.cli.main import add_command, register_command
 
 
 @register_command("plot")
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("plot", help="draw a training run's curves (losses, validation, lr) from its metrics.jsonl")
+    add_command(sub, "plot", _plot_options,
+                help="draw a training run's curves (losses, validation, lr) from its metrics.jsonl")
+
+
+def _plot_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("run", type=Path, help="run directory of `wamplan wm train` / `wamplan wam train` (or a metrics.jsonl)")
     p.add_argument("--out", type=Path, default=None, help="PNG to write (default: RUN/curves.png)")
     p.set_defaults(func=cmd_plot)
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
+    from wamplan.errors import require_file
     from wamplan.plot import plot_training_curves
 
+    require_file(args.out, "--out")
     print(f"wrote {plot_training_curves(args.run, args.out)}")
     return 0

@@ -6,16 +6,28 @@ import argparse
 from pathlib import Path
 
 from wamplan.errors import UserError
-from wamplan.cli.main import register_command
+from wamplan.cli.main import add_command, add_group, register_command
 
 
 @register_command("wam")
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser("wam", help="world action models: train TinyWAM, serve one over the /act protocol")
+    add_group(subparsers, "wam", _wam_commands,
+              help="world action models: train TinyWAM, serve one over the /act protocol")
+
+
+def _wam_commands(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="wam_command", metavar="WAM_COMMAND")
     parser.set_defaults(func=lambda args: (parser.print_help(), 2)[1])
+    add_command(sub, "serve", _serve_options,
+                help="serve a WAM checkpoint at http://HOST:PORT/act (Cosmos Policy protocol)")
+    add_command(sub, "viz", _viz_options, help="a WAM's predicted t+H views beside the real ones, on a stored episode")
+    add_command(sub, "train", _train_options,
+                help="train TinyWAM on episode stores (re-run the same command to resume)",
+                description="Train TinyWAM (actions + t+H images) into the run directory --out. If --out holds an "
+                            "unfinished run, it is resumed; options left out keep the saved values.")
 
-    serve = sub.add_parser("serve", help="serve a WAM checkpoint at http://HOST:PORT/act (Cosmos Policy protocol)")
+
+def _serve_options(serve: argparse.ArgumentParser) -> None:
     serve.add_argument("--ckpt", required=True, help="WAM checkpoint directory (model.safetensors + config.json)")
     serve.add_argument("--host", default="127.0.0.1",
                        help="address to listen on (default: 127.0.0.1, this machine only; 0.0.0.0: every interface)")
@@ -29,26 +41,30 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     serve.add_argument("--instruction", default=None,
                        help="instruction used when a request's task_description is empty "
                             "(default: the WAM's own default instruction)")
+    serve.add_argument("--bare-errors", action="store_true",
+                       help="answer a bad /act request as Cosmos Policy's reference server does: HTTP 200 and the "
+                            "JSON string \"error\" (default: a 4xx status and a JSON body saying what is wrong)")
+    serve.add_argument("--device", default="auto", help="torch device for the WAM: auto, cpu, cuda, cuda:1, ... "
+                                                        "(default: auto)")
     serve.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"],
                        help="uvicorn log level (default: info)")
     serve.set_defaults(func=_serve)
 
-    viz = sub.add_parser("viz", help="a WAM's predicted t+H views beside the real ones, on a stored episode")
+
+def _viz_options(viz: argparse.ArgumentParser) -> None:
     viz.add_argument("--ckpt", required=True, help="WAM checkpoint directory")
     viz.add_argument("--data", required=True, help="episode store")
     viz.add_argument("--episode", type=int, default=0, help="index in the store's sorted episode list")
     viz.add_argument("--starts", type=int, nargs="+", default=[16, 48, 80], help="chunk start steps (rows)")
-    viz.add_argument("--out", type=Path, default=Path("wam_pred.png"))
+    viz.add_argument("--out", type=Path, default=Path("wam_pred.png"), help="PNG to write (default: wam_pred.png)")
     viz.set_defaults(func=_viz)
 
+
+def _train_options(train: argparse.ArgumentParser) -> None:
     from wamplan.config import add_arguments
     from wamplan.wam.tinywam import TinyWAMConfig
     from wamplan.wam.train import WAMTrainConfig
 
-    train = sub.add_parser("train", help="train TinyWAM on episode stores (re-run the same command to resume)",
-                           description="Train TinyWAM (actions + t+H images) into the run directory --out. "
-                                       "If --out holds an unfinished run, it is resumed; options left out keep "
-                                       "the saved values.")
     train.add_argument("--data", required=True, help="episode store directory, or several separated by commas")
     train.add_argument("--out", type=Path, required=True,
                        help="run directory: checkpoint/ + metrics.jsonl (created, or resumed)")
@@ -72,15 +88,20 @@ def _serve(args: argparse.Namespace) -> int:
     from wamplan.wam import protocol
     from wamplan.wam.base import load_wam
 
+    from wamplan.device import resolve_device
+
     secret = args.secret if args.secret is not None else os.environ.get(protocol.SECRET_ENV) or None
-    wam = load_wam(args.ckpt)
+    resolve_device(args.device)  # before loading anything
+    wam = load_wam(args.ckpt, device=args.device)
     from wamplan.wam.server import serve
 
+    failures = 'failures answered "error" (Cosmos Policy style)' if args.bare_errors else \
+        "failures answered 4xx/5xx with a reason"
     print(f"serving WAM '{wam.name}' from {args.ckpt} at http://{args.host}:{args.port}/act "
-          f"({'shared secret required' if secret else 'no shared secret'}; health: /health)", flush=True)
+          f"({'shared secret required' if secret else 'no shared secret'}; {failures}; health: /health)", flush=True)
     try:
         serve(wam, host=args.host, port=args.port, instruction_default=args.instruction, log_level=args.log_level,
-              secret=secret, max_request_bytes=int(args.max_request_mb * 2**20))
+              secret=secret, max_request_bytes=int(args.max_request_mb * 2**20), bare_errors=args.bare_errors)
     finally:
         wam.close()
     return 0
@@ -92,6 +113,9 @@ def _train(args: argparse.Namespace) -> int:
     from wamplan.wam.tinywam import TinyWAMConfig
     from wamplan.wam.train import WAMTrainConfig, saved_configs, train_tinywam
 
+    from wamplan.errors import require_dir
+
+    require_dir(args.out)
     stores = [s.strip() for s in args.data.split(",") if s.strip()]
     if not stores:
         raise UserError("--data is empty; pass an episode store directory (several: DIR1,DIR2)")
@@ -105,6 +129,9 @@ def _train(args: argparse.Namespace) -> int:
     saved = saved_configs(args.out) if args.out.is_dir() else None
     model_cfg = from_args(TinyWAMConfig, args, base=saved[0] if saved else None)
     train_cfg = from_args(WAMTrainConfig, args, base=saved[1] if saved else None)
+    from wamplan.device import resolve_device
+
+    resolve_device(train_cfg.device)  # before reading any data
     result = train_tinywam(stores, args.out, model_cfg, train_cfg, sources=sources, max_steps=args.max_steps,
                            progress=not args.no_progress)
     if not result.finished_before:
@@ -116,9 +143,11 @@ def _train(args: argparse.Namespace) -> int:
 def _viz(args: argparse.Namespace) -> int:
     import json
 
+    from wamplan.errors import require_file
     from wamplan.wam import load_wam
     from wamplan.wam.viz import prediction_figure
 
+    require_file(args.out, "--out")
     errs = prediction_figure(load_wam(args.ckpt), args.data, args.episode, tuple(args.starts), args.out)
     print(json.dumps(errs))
     print(f"wrote {args.out}")

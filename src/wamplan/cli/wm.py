@@ -8,10 +8,15 @@ from collections import Counter
 from pathlib import Path
 
 from wamplan.config import add_arguments, from_args
-from wamplan.envs.contract import CAMERAS
-from wamplan.errors import UserError, require_paths
-from wamplan.cli.main import register_command
-from wamplan.worldmodel.config import TrainConfig
+from wamplan.errors import UserError, require_dir, require_file, require_paths, require_seeds
+from wamplan.cli.main import add_command, add_group, register_command
+
+
+def resolve_device(name: str):
+    """``--device`` checked before any work (a device this machine lacks is one line); imports torch."""
+    from wamplan.device import resolve_device as resolve
+
+    return resolve(name)
 
 
 def _stores(spec: str) -> list[Path]:
@@ -23,47 +28,78 @@ def _stores(spec: str) -> list[Path]:
 
 @register_command("wm")
 def register(sub: argparse._SubParsersAction) -> None:
+    add_group(sub, "wm", _wm_commands, help="the world model: encode features, train, evaluate, visualise")
+
+
+def _wm_commands(wm: argparse.ArgumentParser) -> None:
+    s = wm.add_subparsers(dest="wm_command", metavar="WM_COMMAND")
+    add_command(s, "encode", _encode_options,
+                help="encode the stores' images once with the preset's frozen encoder (cached)")
+    add_command(s, "train", _train_options("train"), help="train the predictor (paper eq. 2); re-running resumes")
+    add_command(s, "train-decoder", _train_options("train-decoder"),
+                help="train the decoder (pixels, for pictures only); re-running resumes")
+    add_command(s, "eval", _eval_options, help="held-out latent errors per horizon against copying the last frame, "
+                "and on counterfactual branch groups the share of sibling differences missed (JSON)")
+    add_command(s, "viz", _viz_options, help="ground truth vs autoregressive rollout(s), decoded (paper Figure 4)")
+    add_command(s, "probe", _probe_options,
+                help="ridge probe from an encoder's frozen tokens to the cube's position (held-out mm)")
+    add_command(s, "fidelity", _fidelity_options,
+                help="rank agreement of world models with the simulator on the same candidates")
+
+
+DEVICE_HELP = "torch device: auto, cpu, cuda, cuda:1, mps, ... (default: %(default)s)"
+
+
+def _encode_options(p: argparse.ArgumentParser) -> None:
     from wamplan.presets import PRESETS
 
-    wm = sub.add_parser("wm", help="the world model: encode features, train, evaluate, visualise")
-    s = wm.add_subparsers(dest="wm_command", metavar="WM_COMMAND")
-
-    p = s.add_parser("encode", help="encode the stores' images once with the preset's frozen encoder (cached)")
     p.add_argument("--data", required=True, help="episode stores, comma separated")
     p.add_argument("--preset", default="mini", choices=sorted(PRESETS), help="which encoder (wamplan/presets.py)")
     p.add_argument("--encoder-path", default=None, help="local weights directory for DINOv2/DINOv3 encoders")
-    p.add_argument("--device", default="auto")
+    p.add_argument("--device", default="auto", help=DEVICE_HELP)
     p.set_defaults(func=cmd_encode)
 
-    for name, func, what in (("train", cmd_train, "the predictor (paper eq. 2)"),
-                             ("train-decoder", cmd_train_decoder, "the decoder (pixels, for pictures only)")):
-        p = s.add_parser(name, help=f"train {what}; re-running resumes")
+
+def _train_options(name: str):
+    def build(p: argparse.ArgumentParser) -> None:
+        from wamplan.presets import PRESETS
+        from wamplan.worldmodel.config import TrainConfig, add_architecture_arguments
+
         p.add_argument("--data", required=True, help="episode stores, comma separated")
         p.add_argument("--out", type=Path, required=True, help="run directory (checkpoint/, metrics.jsonl)")
         p.add_argument("--preset", default="mini", choices=sorted(PRESETS),
                        help="model and training sizes (wamplan/presets.py); options below override them")
-        p.add_argument("--encoder-path", default=None)
-        p.add_argument("--val-fraction", type=float, default=0.1)
+        p.add_argument("--encoder-path", default=None, help="local weights directory for DINOv2/DINOv3 encoders")
+        p.add_argument("--val-fraction", type=float, default=0.1,
+                       help="fraction of episodes held out for validation (default: 0.1)")
         p.add_argument("--max-steps", type=int, default=None, help="stop after this many steps (resumable)")
-        p.add_argument("--device", default="auto")
+        p.add_argument("--device", default="auto", help=DEVICE_HELP)
         if name == "train":
             p.add_argument("--init", type=Path, default=None,
                            help="fine-tune: start from this predictor checkpoint's weights and feature statistics "
                                 "(same preset and encoder)")
+            add_architecture_arguments(p.add_argument_group("predictor", "the preset's predictor, overridden"))
         add_arguments(p, TrainConfig)
-        p.set_defaults(func=func)
+        p.set_defaults(func=cmd_train if name == "train" else cmd_train_decoder)
 
-    p = s.add_parser("eval", help="held-out latent errors per horizon against copying the last frame, and on "
-                                  "counterfactual branch groups the share of sibling differences missed (JSON)")
-    p.add_argument("--ckpt", type=Path, required=True)
-    p.add_argument("--data", required=True)
+    return build
+
+
+def _eval_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--ckpt", type=Path, required=True, help="predictor checkpoint or run directory")
+    p.add_argument("--data", required=True, help="episode stores, comma separated")
     p.add_argument("--horizon", type=int, default=4, help="autoregressive steps to score")
-    p.add_argument("--split", default="val", choices=("train", "val", "all"))
-    p.add_argument("--val-fraction", type=float, default=0.1)
-    p.add_argument("--json", type=Path, default=None)
+    p.add_argument("--split", default="val", choices=("train", "val", "all"),
+                   help="which episodes to score: the held-out ones (val, default), the training ones, or all")
+    p.add_argument("--val-fraction", type=float, default=0.1,
+                   help="the held-out fraction the model was trained with (default: 0.1)")
+    p.add_argument("--json", type=Path, default=None, help="also write the figures to this JSON file")
     p.set_defaults(func=cmd_eval)
 
-    p = s.add_parser("viz", help="ground truth vs autoregressive rollout(s), decoded (paper Figure 4)")
+
+def _viz_options(p: argparse.ArgumentParser) -> None:
+    from wamplan.envs.contract import CAMERAS
+
     p.add_argument("--ckpt", type=Path, required=True, help="predictor run directory")
     p.add_argument("--compare", type=Path, default=None, help="a second predictor to show as another row")
     p.add_argument("--decoder", type=Path, required=True, help="decoder run directory")
@@ -71,13 +107,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--episode", type=int, default=0, help="index in the store's sorted episode list")
     p.add_argument("--start", type=int, default=0, help="step of the first context frame")
     p.add_argument("--steps", type=int, default=12, help="rollout steps h (columns at 0, steps/4, ..., steps)")
-    p.add_argument("--camera", default="front", choices=CAMERAS)
-    p.add_argument("--out", type=Path, default=Path("wm_viz.png"))
+    p.add_argument("--camera", default="front", choices=CAMERAS, help="which view to show (default: front)")
+    p.add_argument("--out", type=Path, default=Path("wm_viz.png"), help="PNG to write (default: wm_viz.png)")
     p.set_defaults(func=cmd_viz)
 
-    p = s.add_parser("probe", help="ridge probe from an encoder's frozen tokens to the cube's position (held-out mm)")
+
+def _probe_options(p: argparse.ArgumentParser) -> None:
+    from wamplan.presets import PRESETS
+
     p.add_argument("--data", required=True, help="episode stores, comma separated")
-    p.add_argument("--preset", default="mini", help="mini | paper: the preset's encoder (unless --encoder)")
+    p.add_argument("--preset", default="mini", choices=sorted(PRESETS),
+                   help="mini | paper: the preset's encoder (unless --encoder)")
     p.add_argument("--encoder", default=None, help="a registered encoder name, e.g. patch-pixels")
     p.add_argument("--encoder-kwargs", action="append", default=None, metavar="JSON",
                    help='encoder settings as JSON, e.g. \'{"input_size": 64, "patch_size": 8}\'; repeat to '
@@ -86,20 +126,23 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--val-fraction", type=float, default=0.25, help="fraction of episodes held out")
     p.add_argument("--folds", type=int, default=4, help="episode folds for choosing the ridge strength")
     p.add_argument("--near-mm", type=float, default=20.0, help="also score frames with the cube this close to the hole")
-    p.add_argument("--device", default="auto")
-    p.add_argument("--json", type=Path, default=None)
+    p.add_argument("--device", default="auto", help=DEVICE_HELP)
+    p.add_argument("--json", type=Path, default=None, help="also write the report(s) to this JSON file")
     p.set_defaults(func=cmd_probe)
 
-    p = s.add_parser("fidelity", help="rank agreement of world models with the simulator on the same candidates")
+
+def _fidelity_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--wam", required=True, help="WAM checkpoint (e.g. checkpoints/mini/tinywam)")
     p.add_argument("--wm", required=True, help="world-model checkpoints, comma separated; LABEL=PATH to name one; "
                                                "A+B+C: an ensemble (the cost of its members' mean prediction)")
     p.add_argument("--seeds", required=True, help="episode seeds, e.g. 500-503 or 500,510 (keep test seeds out)")
     p.add_argument("--candidates", type=int, default=32, help="the WAM's chunk + N-1 samples")
-    p.add_argument("--sigma", type=float, default=0.10)
+    p.add_argument("--sigma", type=float, default=0.10, help="std of the candidates' noise around the WAM's chunk "
+                                                             "(default: 0.1, the search's first spread)")
     p.add_argument("--noise-beta", type=float, default=0.0,
                    help="temporal colour of the samples' noise (0 = white; 2 = smooth drifts), as `eval --noise-beta`")
-    p.add_argument("--top-k", type=int, default=8)
+    p.add_argument("--top-k", type=int, default=8, help="score how many of the simulator's k best candidates the "
+                                                        "model also ranks in its k best (default: 8)")
     p.add_argument("--boundaries", default="1-4", help="chunk boundaries to score, as chunk indices (1 = step H), "
                                                        "e.g. 1-4 or 1,3,5,7")
     p.add_argument("--sample-seed", type=int, default=0, help="seed of the candidate samples")
@@ -110,8 +153,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--bias-correction", type=float, default=None, metavar="A",
                    help="also score every model with `eval --bias-correction A` (its error on the chunk just run "
                         "added to its predictions), as LABEL+bias; the same candidates, dynamics and references")
-    p.add_argument("--device", default="cpu")
-    p.add_argument("--json", type=Path, default=None)
+    p.add_argument("--device", default="cpu", help=DEVICE_HELP)
+    p.add_argument("--json", type=Path, default=None, help="also write every boundary's scores to this JSON file")
     p.set_defaults(func=cmd_fidelity)
 
 
@@ -120,6 +163,7 @@ def cmd_encode(args: argparse.Namespace) -> int:
     from wamplan.presets import get_world_model_preset
     from wamplan.worldmodel.stores import encode_stores, frozen_encoder
 
+    resolve_device(args.device)
     preset = get_world_model_preset(args.preset)
     enc = frozen_encoder(preset.encoder, preset.encoder_kwargs, args.encoder_path, args.device)
     encode_stores(_stores(args.data), enc)
@@ -129,10 +173,14 @@ def cmd_encode(args: argparse.Namespace) -> int:
 
 def cmd_train(args: argparse.Namespace) -> int:
     from wamplan.presets import get_world_model_preset
+    from wamplan.worldmodel.config import TrainConfig, architecture_from_args
     from wamplan.worldmodel.stores import train_predictor_on_stores
 
+    require_dir(args.out)
+    resolve_device(args.device)
     p = get_world_model_preset(args.preset)
-    metrics = train_predictor_on_stores(_stores(args.data), args.out, p.predictor, from_args(TrainConfig, args, p.train),
+    metrics = train_predictor_on_stores(_stores(args.data), args.out, architecture_from_args(args, p.predictor),
+                                        from_args(TrainConfig, args, p.train),
                                         encoder=p.encoder, encoder_kwargs=p.encoder_kwargs,
                                         encoder_path=args.encoder_path, val_fraction=args.val_fraction,
                                         device=args.device, max_steps=args.max_steps, init=args.init)
@@ -142,8 +190,11 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 def cmd_train_decoder(args: argparse.Namespace) -> int:
     from wamplan.presets import get_world_model_preset
+    from wamplan.worldmodel.config import TrainConfig
     from wamplan.worldmodel.stores import train_decoder_on_stores
 
+    require_dir(args.out)
+    resolve_device(args.device)
     p = get_world_model_preset(args.preset)
     metrics = train_decoder_on_stores(_stores(args.data), args.out, p.decoder,
                                       from_args(TrainConfig, args, p.decoder_train), encoder=p.encoder,
@@ -159,6 +210,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from wamplan.worldmodel.stores import encode_stores
     from wamplan.worldmodel.train import evaluate_predictor, evaluate_siblings, load_world_model
 
+    require_file(args.json, "--json")
     model, enc = load_world_model(args.ckpt)
     stores = _stores(args.data)
     encode_stores(stores, enc)
@@ -172,6 +224,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
                           val_fraction=args.val_fraction, features=feature_key(enc.config_dict()))
     if len(groups):  # the data has counterfactual branches: how well the model tells sibling chunks apart
         m.update(evaluate_siblings(model, groups, args.horizon), sibling_groups=len(groups))
+        m.update(_phase_report(model, groups, args))
     out = dict(ckpt=str(args.ckpt), data=args.data, split=args.split, windows=len(ds), horizon=args.horizon,
                frameskip=model.cfg.frameskip, **m)
     print(json.dumps(out, indent=1))
@@ -180,9 +233,26 @@ def cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _phase_report(model, groups, args: argparse.Namespace) -> dict:
+    """Print the benchmark table (worldmodel/benchmark.py) and return its figures for the JSON."""
+    import torch
+
+    from wamplan.planning.dynamics import PlanningContext
+    from wamplan.planning.timing import plan_seconds
+    from wamplan.worldmodel.benchmark import context_of, format_phase_table, phase_table
+
+    table = phase_table(model, groups, args.horizon)
+    z, q, a, target = context_of(groups, model.cfg.context)
+    secs = plan_seconds(model, PlanningContext(z=z, q=q, a=a), target)
+    print(format_phase_table(table, args.horizon, secs, title=f"{args.ckpt} on {args.data} ({args.split}; "
+                             f"{torch.get_num_threads()} threads)"))
+    return dict(phases=table, plan_s_per_chunk=secs)
+
+
 def cmd_viz(args: argparse.Namespace) -> int:
     from wamplan.worldmodel.viz import rollout_figure
 
+    require_file(args.out, "--out")
     rollout_figure(args.ckpt, args.decoder, args.data, episode=args.episode, start=args.start, steps=args.steps,
                    camera=args.camera, out=args.out, compare=args.compare)
     print(f"wrote {args.out}")
@@ -215,6 +285,8 @@ def _probe_encoders(args: argparse.Namespace) -> list:
 def cmd_probe(args: argparse.Namespace) -> int:
     from wamplan.encoders.probe import ProbeConfig, format_probe, probe_stores
 
+    require_file(args.json, "--json")
+    resolve_device(args.device)
     cfg = ProbeConfig(val_fraction=args.val_fraction, folds=args.folds, near_mm=args.near_mm)
     reports = probe_stores(_stores(args.data), _probe_encoders(args), cfg, progress=True)
     for rep in reports:
@@ -250,6 +322,10 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
                          top_k=args.top_k,
                          boundaries=tuple(_seed_list(args.boundaries, "--boundaries")), seed=args.sample_seed)
     seeds = _seed_list(args.seeds)
+    for seed in (min(seeds), max(seeds)):
+        require_seeds(seed, flag="--seeds")
+    require_file(args.json, "--json")
+    resolve_device(args.device)
     specs = []
     for spec in (s for s in args.wm.split(",") if s):
         label, _, paths = spec.rpartition("=")

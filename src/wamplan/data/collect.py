@@ -21,7 +21,7 @@ from typing import Any, Callable, Iterator
 from wamplan.data.record import collect_one
 from wamplan.data.store import EpisodeData, EpisodeStore
 from wamplan.envs.core import EnvConfig, InsertionEnv
-from wamplan.errors import UserError, require_paths
+from wamplan.errors import UserError, require_paths, require_seeds
 from wamplan.parallel import Backend, imap_workers
 from wamplan.policies.base import Policy, make_policy
 from wamplan.provenance import provenance
@@ -118,6 +118,7 @@ def collect(source: str, episodes: int, out: str | Path, *, seed_start: int = 0,
     backend.check()
     if episodes <= 0 or workers <= 0 or image_every <= 0:
         raise UserError("--episodes, --workers and --image-every must be positive")
+    require_seeds(seed_start, episodes)
     if source == "policy":
         if not policy:
             raise UserError("--source policy needs --policy CKPT (a WAM checkpoint directory)")
@@ -150,6 +151,8 @@ def collect(source: str, episodes: int, out: str | Path, *, seed_start: int = 0,
     job = CollectJob(store=str(out), source=tag, policy_spec=spec, env=env, image_every=image_every,
                      max_steps=max_steps, loader=loader, branch=branch,
                      policy_kwargs=dict(policy_kwargs or {}))
+    if source == "policy" and len(have) < len(seeds):
+        loader(spec, **job.policy_kwargs)  # a damaged or foreign checkpoint: one line now, not in a worker
     counts: Counter = Counter()
     start, n = time.perf_counter(), 0
     bar = progress_bar(total=len(seeds), initial=len(have), desc=f"collect {tag}", unit="ep", disable=not progress)

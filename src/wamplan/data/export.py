@@ -62,7 +62,8 @@ class CosmosExportConfig:
 
     instruction: str = field("insert the cube into the square hole", "task_description written with every episode")
     image_size: int = field(224, "square size of the exported views (Cosmos Policy trains at 224); 0 keeps the store's")
-    split: str = field("auto", "auto: successful expert episodes are demos, the rest rollouts; or demos / rollouts")
+    split: str = field("auto", "auto: successful expert episodes are demos, the rest rollouts; or demos / rollouts",
+                       choices=SPLITS)
     sources: tuple[str, ...] = field((), "export only these sources (e.g. expert); empty: every episode")
 
     def __post_init__(self) -> None:

@@ -21,7 +21,7 @@ from typing import Any, Iterator
 
 import torch
 
-from wamplan.data.store import TMP_PREFIX, EpisodeStore, StoreError, atomic_h5
+from wamplan.data.store import CHECKSUMMED_FORMAT, TMP_PREFIX, EpisodeStore, StoreError, atomic_h5, reading
 from wamplan.envs.contract import CAMERAS
 
 
@@ -40,8 +40,9 @@ def check_features(path: str | Path, key: str) -> None:
     """Raise a one-line StoreError if the cached features in ``path`` were not made by the encoder of ``key``."""
     import h5py
 
-    with h5py.File(path, "r") as f:
-        made = json.loads(f.attrs["encoder"])
+    with reading(path, fix="delete it and run `wamplan wm encode` again to re-encode that episode"):
+        with h5py.File(path, "r") as f:
+            made = json.loads(f.attrs["encoder"])
     if feature_key(made) != key:
         raise StoreError(f"{path} holds features of encoder {made}, not of '{key}'; delete {Path(path).parent} "
                          f"and run `wamplan wm encode` again")
@@ -62,9 +63,11 @@ def encode_store(root: str | Path, encoder, batch_size: int = 64) -> Iterator[st
             check_features(final, key)
             continue
         with store.open_episode(path) as f:
-            views = [encoder.encode_batched(f["images"][c][:], batch_size) for c in CAMERAS]  # V x (K, N, D)
+            with reading(path):
+                frames = {c: f["images"][c][:] for c in CAMERAS}  # (K, H, W, 3) each
+            views = [encoder.encode_batched(frames[c], batch_size) for c in CAMERAS]  # V x (K, N, D)
         z = torch.stack(views, dim=1).to(torch.float16).numpy()  # (K, V, N, D)
-        with atomic_h5(final) as g:
-            g.create_dataset("z", data=z, chunks=(1, *z.shape[1:]))
+        with atomic_h5(final, libver=CHECKSUMMED_FORMAT) as g:
+            g.create_dataset("z", data=z, chunks=(1, *z.shape[1:]), fletcher32=True)
             g.attrs["encoder"] = cfg
         yield path.stem

@@ -26,8 +26,9 @@ import torch
 from torch.utils.data import Dataset
 
 from wamplan.data.features import check_features, feature_dir
-from wamplan.data.store import EpisodeStore, StoreError, parent_episode
+from wamplan.data.store import EpisodeStore, StoreError, parent_episode, reading
 from wamplan.envs.contract import CAMERAS
+from wamplan.errors import reason
 
 
 def split_of(source: str, seed: int, val_fraction: float) -> str:
@@ -69,7 +70,7 @@ def index_episodes(stores: Sequence[str | Path], split: str = "all", val_fractio
                     raise StoreError(f"{root} has no '{features}' features for {p.name}; run `wamplan wm encode "
                                      f"--data {root}` with the same encoder settings first")
                 check_features(feat, features)
-            with store.open_episode(p) as f:
+            with store.open_episode(p) as f, reading(p):
                 src, seed = str(f.attrs["source"]), int(f.attrs["seed"])
                 if sources is not None and src not in sources:
                     continue
@@ -122,6 +123,23 @@ class _EpisodeDataset(Dataset):
     def __len__(self) -> int:
         return len(self.items)
 
+    def __getitem__(self, idx: int) -> dict[str, torch.Tensor]:
+        try:
+            return self._read(idx)
+        except (OSError, KeyError, RuntimeError) as e:  # a damaged chunk (checksum) or file: name the files
+            files = ", ".join(self._files(idx))
+            raise StoreError(f"reading {files} failed ({reason(e)}): a damaged file; `wamplan data check STORE` names "
+                             f"every damaged episode: delete those and re-run the `wamplan collect` (or `wamplan wm "
+                             f"encode`) that wrote them") from None
+
+    def _read(self, idx: int) -> dict[str, torch.Tensor]:
+        raise NotImplementedError
+
+    def _files(self, idx: int) -> list[str]:
+        """The files item ``idx`` reads (its episode, and its features where used)."""
+        e = self.episodes[self.items[idx][0]]
+        return [e.path] + ([e.features] if e.features else [])
+
     def _item(self, idx: int) -> tuple[EpisodeRef, h5py.File, tuple[int, ...]]:
         """The episode of item ``idx``, its open episode file, and the rest of the item tuple."""
         i, *rest = self.items[idx]
@@ -141,7 +159,7 @@ class WAMSamples(_EpisodeDataset):
         # every stored step before the end can start a chunk
         self.items = [(i, k) for i, e in enumerate(self.episodes) for k, t in enumerate(e.image_steps) if t < e.length]
 
-    def __getitem__(self, idx: int) -> dict[str, torch.Tensor]:
+    def _read(self, idx: int) -> dict[str, torch.Tensor]:
         e, f, (k,) = self._item(idx)
         t = e.image_steps[k]
         t_end = min(t + self.chunk, e.length)
@@ -180,7 +198,7 @@ class WorldModelWindows(_EpisodeDataset):
         self.items = [(i, k) for i, e in enumerate(self.episodes) for k, s in enumerate(e.image_steps)
                       if s % e.image_every == 0 and s + span <= e.length]
 
-    def __getitem__(self, idx: int) -> dict[str, torch.Tensor]:
+    def _read(self, idx: int) -> dict[str, torch.Tensor]:
         e, f, (k,) = self._item(idx)
         return self._window(e, f, k)
 
@@ -214,7 +232,7 @@ class FeatureFrames(_EpisodeDataset):
         self.items = [(i, k, v) for i, e in enumerate(self.episodes) for k in range(len(e.image_steps))
                       for v, c in enumerate(CAMERAS) if c in self.cameras]
 
-    def __getitem__(self, idx: int) -> dict[str, torch.Tensor]:
+    def _read(self, idx: int) -> dict[str, torch.Tensor]:
         e, f, (k, v) = self._item(idx)
         z = self._h5.get(e.features)["z"][k, v]  # (N, D)
         img = f["images"][CAMERAS[v]][k]  # (H, W, 3)
@@ -253,6 +271,9 @@ class BranchGroups(WorldModelWindows):
         self.group = group or (sizes.most_common(1)[0][0] if sizes else 0)  # default: the collection's --branches
         self.items = [tuple(m[:self.group]) for _, m in sorted(groups.items()) if len(m) >= self.group]
 
-    def __getitem__(self, idx: int) -> dict[str, torch.Tensor]:
+    def _read(self, idx: int) -> dict[str, torch.Tensor]:
         members = [self._window(self.episodes[i], self._h5.get(self.episodes[i].path), k) for i, k in self.items[idx]]
         return {k: torch.stack([m[k] for m in members]) for k in members[0]}  # each (G, T, ...)
+
+    def _files(self, idx: int) -> list[str]:
+        return [f for i, _ in self.items[idx] for f in [self.episodes[i].path, self.episodes[i].features] if f]

@@ -40,7 +40,7 @@ import torch
 
 from wamplan.config import field, require
 from wamplan.data.alignment import hole_position
-from wamplan.data.store import EpisodeStore
+from wamplan.data.store import EpisodeStore, reading
 from wamplan.errors import UserError
 from wamplan.envs.contract import CAMERAS
 
@@ -93,16 +93,16 @@ def load_probe_data(stores: Sequence[str | Path], encoders: Sequence[Any], batch
                         f"collect more with `wamplan collect`")
     for i, (store, path) in enumerate(paths):
         hole = hole_position(store.env)
-        with store.open_episode(path) as f:
+        with store.open_episode(path) as f, reading(path):
             steps = f["image_steps"][:]  # (K,)
             cube = f["cube_pose"][:][steps, :3]  # (K, 3)
             tcp = f["tcp_pose"][:][steps, :3]  # (K, 3)
             names.append(f"{f.attrs['source']}:{int(f.attrs['seed'])}")
-            for c in CAMERAS:
-                imgs = f["images"][c][:]  # (K, H, W, 3) uint8
-                for e, enc in enumerate(encoders):
-                    z = enc.encode_batched(torch.from_numpy(imgs), batch_size)  # (K, N, D) on the CPU
-                    feats[e][c].append(z.flatten(1).numpy().astype(np.float32))  # (K, N*D)
+            frames = {c: f["images"][c][:] for c in CAMERAS}  # (K, H, W, 3) uint8 each
+        for c in CAMERAS:
+            for e, enc in enumerate(encoders):
+                z = enc.encode_batched(torch.from_numpy(frames[c]), batch_size)  # (K, N, D) on the CPU
+                feats[e][c].append(z.flatten(1).numpy().astype(np.float32))  # (K, N*D)
         targets["cube-rel-tcp"].append(cube - tcp)
         targets["cube-rel-hole"].append(cube - hole[None])
         episode.append(np.full(len(steps), i))

@@ -8,9 +8,9 @@ import numpy as np
 from mani_skill.agents.registration import register_agent
 from mani_skill.agents.robots.panda.panda import Panda
 
+from wamplan.envs.config import CONTROL_MODE  # noqa: F401  (the control mode this module builds)
 from wamplan.envs.controller import EEDeltaXYZYawControllerConfig
 
-CONTROL_MODE = "pd_ee_delta_xyzyaw"
 # Joint angles of the rest pose: the TCP points straight down above the table centre.
 REST_QPOS = np.array([0.0, np.pi / 8, 0.0, -np.pi * 5 / 8, 0.0, np.pi * 3 / 4, np.pi / 4, 0.04, 0.04])
 

@@ -145,8 +145,17 @@ def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
 
 
 def _check_same_settings(out: Path, cfg: EvalConfig) -> None:
+    """Check ``cfg`` against the settings ``out`` holds (:func:`_settings_to_store`), then store them."""
+    _store_settings(out, _settings_to_store(out, cfg))
+
+
+def _store_settings(out: Path, now: dict[str, Any]) -> None:
+    (out / "eval_config.json").write_text(json.dumps(now, indent=1, sort_keys=True) + "\n")
+
+
+def _settings_to_store(out: Path, cfg: EvalConfig) -> dict[str, Any]:
     """Records of one directory must come from one configuration (see :func:`settings`); a world model
-    or simulator encoder not given before may be added later."""
+    or simulator encoder not given before may be added later. Returns the settings to store (nothing is written)."""
     from wamplan.errors import UserError
 
     path = out / "eval_config.json"
@@ -167,21 +176,49 @@ def _check_same_settings(out: Path, cfg: EvalConfig) -> None:
             raise UserError(f"{out} holds an evaluation with other settings {diff} (stored, requested); "
                             f"use another --out or the same settings")
         now = {k: before.get(k) or now.get(k) for k in set(before) | set(now)}
-    path.write_text(json.dumps(now, indent=1, sort_keys=True) + "\n")
+    return now
+
+
+def _check_inputs(cfg: EvalConfig, conditions: list[int]) -> None:
+    """Load the WAM and the world models the conditions need once, here, on the CPU: a damaged or foreign
+    checkpoint stops the run (in one line) before it stores its settings, so a failed start never locks its
+    output directory. The workers load their own copies."""
+    from wamplan.worldmodel.train import load_world_model
+
+    if cfg.wam:
+        from wamplan.wam import load_wam
+
+        load_wam(cfg.wam, device="cpu").close()
+    for c in sorted(set(conditions)):
+        dyn = CONDITIONS[c].dynamics
+        paths = cfg.wm_plain if dyn == "learned-plain" else cfg.wm_augmented if dyn == "learned-augmented" else ""
+        for path in filter(None, paths.split(",")):
+            load_world_model(path, device="cpu")  # the predictor and its encoder
 
 
 def run_evaluation(cfg: EvalConfig, conditions: list[int], seeds: list[int], out_dir: str | Path,
                    workers: int = 1, backend: Backend = Backend()) -> Iterator[dict[str, Any]]:
     """Run the missing (condition, seed) jobs on ``backend``, appending each record as it finishes (here, in the
-    driver, whatever runs the episodes); yields the records."""
+    driver, whatever runs the episodes); yields the records. The checks (settings, inputs) run when this is
+    called, before the first record is asked for."""
+    from wamplan.errors import require_dir
+
     backend.check()
-    out = Path(out_dir)
+    out = require_dir(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     done = {record_key(r) for r in read_records(out, repair=True)}
     # Seed-major order: a run stopped early (or fanned out and cut short) has every condition on the same
     # seeds, so its partial table still compares like with like.
     jobs = [(c, s) for s in seeds for c in conditions if (c, s, cfg.policy.first_chunk) not in done]
-    _check_same_settings(out, cfg)
+    now = _settings_to_store(out, cfg)
+    if jobs:
+        _check_inputs(cfg, conditions)
+    _store_settings(out, now)  # only now that the inputs loaded: a failed start leaves the directory free
+    return _run_jobs(cfg, jobs, out, workers, backend)
+
+
+def _run_jobs(cfg: EvalConfig, jobs: list[tuple[int, int]], out: Path, workers: int,
+              backend: Backend) -> Iterator[dict[str, Any]]:
     for rec in imap_workers(partial(EvalWorker, cfg), jobs, workers, backend):
         append_record(out, rec)
         yield rec

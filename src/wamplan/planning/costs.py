@@ -80,7 +80,7 @@ def make_cost(name: str = "patch", view_weights: Sequence[float] | None = None) 
 class CostConfig:
     """Which planning cost to use (paper: the patch cost over all three cameras)."""
 
-    name: str = field("patch", "planning cost: 'patch' (eq. 3) or 'cls' (class tokens)")
+    name: str = field("patch", "planning cost: 'patch' (eq. 3) or 'cls' (class tokens)", choices=lambda: sorted(COSTS))
     view_weights: tuple[float, ...] = field((), "per-camera weights (empty = uniform, the paper)")
 
     def __post_init__(self) -> None:

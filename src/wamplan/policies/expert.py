@@ -68,7 +68,7 @@ class ExpertConfig:
     align_yaw_tol: float = field(0.05, "cube yaw error to the hole (mod 90°) below which insertion starts, radians")
     turn_in: str = field("descend", "phase in which the fingers turn to the cube's yaw: 'descend' (hovering "
                          "above the cube, where the wrist camera sees it, then down) or 'approach' (from the "
-                         "first step, while moving)")
+                         "first step, while moving)", choices=TURN_PHASES)
 
     def __post_init__(self):
         require(self.turn_in in TURN_PHASES, f"turn_in must be one of {list(TURN_PHASES)}, got {self.turn_in!r}")

@@ -16,7 +16,6 @@ loop and re-queries the WAM every H steps: the no-planning baseline.
 from __future__ import annotations
 
 import abc
-import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -146,21 +145,14 @@ def make_wam(name: str, **kwargs: Any) -> WAM:
 def load_wam(path: str | Path, device: str | Any = "auto") -> WAM:
     """Load a WAM checkpoint directory (or a training run holding one in ``checkpoint/``) onto ``device``
     ('auto', 'cpu', 'cuda', a torch.device), dispatching on its kind (see ``register_wam_loader``)."""
-    from wamplan.checkpoint import CONFIG_FILE, MODEL_FILE, CheckpointError, checkpoint_dir  # imports torch
+    from wamplan.checkpoint import CheckpointError, checkpoint_dir, read_meta  # imports torch
 
     p = checkpoint_dir(path)
-    if not (p / CONFIG_FILE).is_file() or not (p / MODEL_FILE).is_file():
-        raise CheckpointError(f"{p} is not a wamplan checkpoint (needs {CONFIG_FILE} and {MODEL_FILE}); "
-                              f"train a WAM first or pass the right --ckpt")
-    try:
-        kind = json.loads((p / CONFIG_FILE).read_text()).get("kind")
-    except (json.JSONDecodeError, AttributeError) as e:
-        raise CheckpointError(f"{p / CONFIG_FILE} is not a valid checkpoint config ({e}); "
-                              f"re-save the checkpoint or pass the right --ckpt") from e
+    kind = read_meta(p).get("kind")  # one line for a missing, damaged or foreign config.json
     if kind not in WAM_LOADERS:
         known = sorted(WAM_LOADERS) or "none registered yet"
         raise CheckpointError(f"{p} holds a '{kind}' checkpoint, which is not a WAM (WAM kinds: {known}); "
-                              f"pass a WAM checkpoint to --ckpt")
+                              f"pass a WAM checkpoint directory instead (e.g. from `wamplan wam train`)")
     return WAM_LOADERS[kind](p, device=device)
 
 

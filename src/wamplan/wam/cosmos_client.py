@@ -176,6 +176,16 @@ def _short_reason(e: requests.exceptions.ConnectionError, connect_timeout_s: flo
     return text[:160]
 
 
+def _reason(resp: requests.Response) -> str:
+    """The one-line reason of a wamplan server's refusal (``{"error": "..."}``), or "" for any other body."""
+    try:
+        body = resp.json()
+    except ValueError:
+        return ""
+    reason = body.get("error") if isinstance(body, dict) else None
+    return " ".join(str(reason).split())[:400] if reason else ""
+
+
 @register_wam("cosmos")
 class CosmosPolicyClient(WAM):
     """A WAM served over the Cosmos Policy /act protocol. ``profile`` (a name in ``PROFILES``) gives the
@@ -266,6 +276,7 @@ class CosmosPolicyClient(WAM):
 
     # -- answer --------------------------------------------------------------------------------------
     def _decode(self, resp: requests.Response, sent_proprio: int) -> protocol.ActResponse:
+        reason = _reason(resp)  # a wamplan server says what was wrong: {"error": "..."}
         if resp.status_code == 404:
             raise WAMServerError(f"{self._where} has no such route (HTTP 404); Cosmos Policy serves POST "
                                  f"{protocol.ROUTE}: check {_flag('url')}")
@@ -274,9 +285,15 @@ class CosmosPolicyClient(WAM):
                                  f"set ${protocol.SECRET_ENV} to the secret the server was started with")
         if resp.status_code == 413:
             raise WAMServerError(f"{self._where} refused the request as too large (HTTP 413); send smaller "
-                                 f"images with {_flag('send_image_size')} or raise the server's --max-request-mb")
+                                 f"images (this client's send_image_size, now {self.config.send_image_size}; the "
+                                 f"--wam-profile presets send 224 px) or raise the server's --max-request-mb")
+        if resp.status_code in (400, 422) and reason:
+            raise WAMServerError(f"{self._where} refused the request (HTTP {resp.status_code}: {reason}); check that "
+                                 f"it serves this task: these cameras, {sent_proprio}-D proprio (see "
+                                 f"{_flag('profile')})")
         if resp.status_code != 200:
-            raise WAMServerError(f"{self._where} answered HTTP {resp.status_code} ({resp.text[:120]!r}); "
+            said = reason or repr(resp.text[:120])
+            raise WAMServerError(f"{self._where} answered HTTP {resp.status_code} ({said}); "
                                  f"check the server's log and {_flag('url')}")
         try:
             return protocol.decode_response(resp.content)

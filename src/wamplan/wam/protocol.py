@@ -16,7 +16,9 @@ It follows NVlabs/cosmos-policy ``cosmos_policy/experiments/robot/aloha/deploy.p
 
 wamplan's own server adds what a real deployment needs, outside the protocol: an optional shared secret
 (``SECRET_HEADER``, or ``Authorization: Bearer``; the client reads it from ``SECRET_ENV``), a request size
-limit (HTTP 413) and ``GET /health``; those refusals are HTTP 401 / 413 with a one-line ``{"error": ...}``.
+limit (HTTP 413) and ``GET /health``; those refusals are HTTP 401 / 413 with a one-line ``{"error": ...}``, and
+so are its failures unless started with ``bare_errors`` (400 a malformed request, 422 one the WAM refuses, 500
+a failure of the WAM; see ``wamplan.wam.server``).
 
 Decoders raise :class:`ProtocolError` (malformed message) or :class:`ErrorReply` (the ``"error"`` answer);
 callers turn those into errors for people, naming the server.

@@ -1,8 +1,13 @@
 """Serve any WAM over the Cosmos Policy ``/act`` protocol (``wamplan wam serve``).
 
-The server behaves like Cosmos Policy's ``deploy.py``: ``POST /act``, json_numpy bodies, and on any
-failure the JSON string ``"error"`` with HTTP 200 (the traceback goes to the server's log). So
-:class:`~wamplan.wam.cosmos_client.CosmosPolicyClient` talks to either one unchanged. For real use it adds:
+The server speaks Cosmos Policy's ``deploy.py`` protocol: ``POST /act`` with json_numpy bodies, so
+:class:`~wamplan.wam.cosmos_client.CosmosPolicyClient` talks to either one unchanged. Where it fails it says why:
+a malformed request (bad JSON, a missing field, an image of the wrong shape or dtype, non-finite proprio) is
+answered HTTP 400, a request the WAM refuses (e.g. a proprio of the wrong length) HTTP 422, and a failure of the
+WAM itself HTTP 500, each with a one-line ``{"error": "..."}`` (the wamplan client prints it). Cosmos Policy's
+own server answers every failure with HTTP 200 and the bare JSON string ``"error"``; a client written for that
+(one that checks for ``"error"`` and reads any other answer as a prediction) gets exactly that with
+``bare_errors=True`` (``wamplan wam serve --bare-errors``). For real use it adds:
 
 * it listens on 127.0.0.1 unless told otherwise;
 * an optional shared secret: with one, ``/act`` needs it in the ``X-WAMplan-Secret`` header (or
@@ -31,9 +36,9 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse, Response
 
 from wamplan.envs.contract import Observation
-from wamplan.errors import UserError
+from wamplan.errors import UserError, reason
 from wamplan.wam import protocol
-from wamplan.wam.base import WAM
+from wamplan.wam.base import WAM, WAMOutputError
 
 log = logging.getLogger(__name__)
 
@@ -60,8 +65,9 @@ def _presented_secret(request: Request) -> str | None:
 
 async def _read_body(request: Request, limit: int) -> bytes:
     """The request body, or _Refused(413) as soon as it is known to pass ``limit`` bytes."""
-    too_big = f"request body over the server's limit of {limit} bytes; send smaller images " \
-              f"(--wam-send-image-size) or restart the server with a larger --max-request-mb"
+    too_big = f"request body over the server's limit of {limit} bytes; send smaller images (the client's " \
+              f"send_image_size; wamplan's --wam-profile presets send 224 px) or restart the server with a larger " \
+              f"--max-request-mb"
     declared = request.headers.get("content-length")
     if declared is not None and declared.isdigit() and int(declared) > limit:
         raise _Refused(413, too_big.replace("request body", f"request body of {int(declared)} bytes", 1))
@@ -75,13 +81,14 @@ async def _read_body(request: Request, limit: int) -> bytes:
 
 def create_app(wam: WAM, instruction_default: str | None = None, request_map: dict[str, str] | None = None,
                response_map: dict[str, str] | None = None, secret: str | None = None,
-               max_request_bytes: int = protocol.DEFAULT_MAX_REQUEST_BYTES) -> FastAPI:
+               max_request_bytes: int = protocol.DEFAULT_MAX_REQUEST_BYTES, bare_errors: bool = False) -> FastAPI:
     """A FastAPI app answering ``POST /act`` with ``wam``'s predictions, and ``GET /health``.
 
     ``instruction_default`` (default: the WAM's ``default_instruction``) is used when a request's
     ``task_description`` is empty. ``secret`` (None or empty: none) must come with every ``/act`` request;
     bodies over ``max_request_bytes`` are refused (413). Queries are serialised (one at a time), since a WAM
-    may keep state and hold a single model.
+    may keep state and hold a single model. A request that fails is answered 400 / 422 / 500 with
+    ``{"error": reason}`` (module docstring), or, with ``bare_errors``, as Cosmos Policy does: HTTP 200, ``"error"``.
     """
     if max_request_bytes < 1:
         raise UserError(f"the request size limit must be >= 1 byte, got {max_request_bytes}")
@@ -132,10 +139,25 @@ def create_app(wam: WAM, instruction_default: str | None = None, request_map: di
             return JSONResponse({"error": r.message}, status_code=r.status)
         try:
             content = await run_in_threadpool(handle, body)
-        except Exception:  # any failure answers "error" (HTTP 200), exactly like Cosmos Policy
-            log.exception("/act failed; answering \"error\"")
-            content = protocol.error_reply()
+        except protocol.ProtocolError as e:  # the request is malformed: the caller's to fix
+            return failed(400, f"bad /act request: {e}")
+        except WAMOutputError as e:  # the WAM broke its own contract
+            log.warning("/act failed: %s", e)
+            return failed(500, str(e))
+        except UserError as e:  # a well-formed request the WAM refuses (e.g. its proprio length)
+            return failed(422, f"the WAM '{wam.name}' cannot answer this request: {e}")
+        except Exception as e:  # the WAM itself failed; the traceback is for the server's log
+            log.exception("/act failed")
+            return failed(500, f"the WAM '{wam.name}' failed on this request ({reason(e)}); the server's log has "
+                               f"the traceback")
         return Response(content=content, media_type="application/json")
+
+    def failed(status: int, reason: str) -> Response:
+        if status < 500:
+            log.warning("/act refused (HTTP %d): %s", status, reason)
+        if bare_errors:  # Cosmos Policy's answer to any failure
+            return Response(content=protocol.error_reply(), media_type="application/json")
+        return JSONResponse({"error": reason}, status_code=status)
 
     return app
 
@@ -165,9 +187,10 @@ def is_loopback(host: str) -> bool:
 
 def serve(wam: WAM, host: str = DEFAULT_HOST, port: int = protocol.DEFAULT_PORT,
           instruction_default: str | None = None, log_level: str = "info", secret: str | None = None,
-          max_request_bytes: int = protocol.DEFAULT_MAX_REQUEST_BYTES) -> None:
+          max_request_bytes: int = protocol.DEFAULT_MAX_REQUEST_BYTES, bare_errors: bool = False) -> None:
     """Serve ``wam`` until interrupted (blocking)."""
-    app = create_app(wam, instruction_default, secret=secret, max_request_bytes=max_request_bytes)
+    app = create_app(wam, instruction_default, secret=secret, max_request_bytes=max_request_bytes,
+                     bare_errors=bare_errors)
     if not is_loopback(host) and not secret:
         log.warning("listening on %s without a shared secret: anyone who reaches this port can query the WAM; "
                     "set $%s (or --secret)", host, protocol.SECRET_ENV)

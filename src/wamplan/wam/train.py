@@ -47,7 +47,7 @@ class WAMTrainConfig(LoopConfig):
     min_lr_ratio: float = with_default(LoopConfig, "min_lr_ratio", 0.05)
     log_every_steps: int = with_default(LoopConfig, "log_every_steps", 10)
     image_weight: float = field(10.0, "lambda, weight of the image loss against the action MSE")
-    image_loss: str = field("mse", "image loss: mse or l1 (on pixels in [0, 1])")
+    image_loss: str = field("mse", "image loss: mse or l1 (on pixels in [0, 1])", choices=IMAGE_LOSSES)
     shift_pixels: int = field(4, "augmentation: random shift of each view by up to this many pixels (0: off)")
     val_fraction: float = field(0.1, "fraction of episodes held out for validation (by a hash of source and seed)")
     device: str = field("auto", "torch device: auto, cpu, cuda, cuda:1, mps, ...")

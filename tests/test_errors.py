@@ -1,0 +1,334 @@
+"""Every failure a user can cause ends in one line that names the flag or file they gave and the fix, exit status
+2 and no traceback (issue 39's battery): damaged checkpoints, bad seeds, devices and backends, output paths that
+are files, damaged episode files, a failed evaluation start, bad /act requests, and argparse's own errors.
+
+Each case runs ``wamplan`` in-process and stops before any episode runs, so the battery takes seconds."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import shutil
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import requests
+
+from wamplan.cli import main
+
+MINI = Path(__file__).resolve().parents[1] / "checkpoints" / "mini"
+
+
+def refused(capsys, argv: list, *named: object) -> str:
+    """Run ``wamplan argv``: exit status 2, no traceback, one error line naming each of ``named`` -> that line."""
+    try:
+        code = main([str(a) for a in argv])
+    except SystemExit as e:  # argparse's own errors
+        code = e.code
+    out, err = capsys.readouterr()
+    refused.out = out  # what it printed before the error (e.g. data check's list of damaged files)
+    assert code == 2, err
+    assert "Traceback" not in err
+    lines = [line for line in err.splitlines() if re.match(r"wamplan( [\w-]+)*: error: ", line)]
+    assert len(lines) == 1, err
+    for n in named:
+        assert str(n) in lines[0], (n, lines[0])
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def ckpts(tmp_path_factory) -> Path:
+    """Copies of the shipped mini checkpoints (the cases below damage copies of these copies)."""
+    root = tmp_path_factory.mktemp("ckpts")
+    for name in ("tinywam", "wm_augmented"):
+        shutil.copytree(MINI / name, root / name)
+    return root
+
+
+def _copy(ckpts: Path, name: str, tmp_path: Path) -> Path:
+    return Path(shutil.copytree(ckpts / name, tmp_path / f"bad_{name}"))
+
+
+def _truncate(path: Path, keep: int) -> None:
+    path.write_bytes(path.read_bytes()[:keep])
+
+
+# ------------------------------------------------------------------------------------------------ checkpoints
+def test_truncated_or_empty_weights(ckpts, tmp_path, capsys):
+    wam = _copy(ckpts, "tinywam", tmp_path)
+    weights = wam / "model.safetensors"
+    _truncate(weights, 1000)
+    out = tmp_path / "eval"
+    line = refused(capsys, ["eval", "--conditions", "1", "--episodes", "1", "--out", out, "--wam", wam], weights)
+    assert "damaged or incomplete" in line and "restore it" in line
+    assert not (out / "eval_config.json").exists()  # a failed start stores no settings
+    refused(capsys, ["env", "rollout", "--policy", wam, "--episodes", "1"], weights)
+    weights.write_bytes(b"")
+    refused(capsys, ["wam", "serve", "--ckpt", wam], weights)
+
+
+@pytest.mark.parametrize("damage", [b"{not json", b"\xff\xfe\x00garbage"])
+def test_garbage_or_non_utf8_config(ckpts, tmp_path, capsys, damage):
+    wm = _copy(ckpts, "wm_augmented", tmp_path)
+    (wm / "config.json").write_bytes(damage)
+    line = refused(capsys, ["eval", "--conditions", "7", "--episodes", "1", "--out", tmp_path / "eval",
+                            "--wam", ckpts / "tinywam", "--wm-augmented", wm], wm / "config.json")
+    assert "not a JSON file" in line
+    wam = _copy(ckpts, "tinywam", tmp_path)
+    (wam / "config.json").write_bytes(damage)
+    refused(capsys, ["wam", "serve", "--ckpt", wam], wam / "config.json")
+
+
+def test_config_that_no_longer_fits_the_weights(ckpts, tmp_path, capsys):
+    wm = _copy(ckpts, "wm_augmented", tmp_path)
+    meta = json.loads((wm / "config.json").read_text())
+    meta["config"]["predictor"]["mlp_dim"] = 256  # the weights were trained with 384
+    (wm / "config.json").write_text(json.dumps(meta))
+    line = refused(capsys, ["eval", "--conditions", "7", "--episodes", "1", "--out", tmp_path / "eval",
+                            "--wam", ckpts / "tinywam", "--wm-augmented", wm], wm)
+    assert "this checkpoint's weights do not match its config.json: size mismatch" in line
+
+
+def test_a_world_model_where_a_wam_belongs(ckpts, tmp_path, capsys):
+    wm = ckpts / "wm_augmented"
+    for argv in (["eval", "--conditions", "1", "--episodes", "1", "--out", tmp_path / "eval", "--wam", wm],
+                 ["collect", "--source", "policy", "--policy", wm, "--episodes", "1", "--out", tmp_path / "store",
+                  "--camera-size", "64"]):
+        line = refused(capsys, argv, wm, "not a WAM")
+        assert "--ckpt" not in line  # a flag the user did not type
+
+
+# ------------------------------------------------------------------------------- seeds, devices, backends, paths
+@pytest.mark.parametrize("argv, flag", [
+    (["eval", "--seed-start", "-1", "--episodes", "1", "--wam", "x"], "--seed-start -1"),
+    (["eval", "--seed-start", str(2**32 - 1), "--episodes", "2", "--wam", "x"], "--seed-start 4294967295"),
+    (["collect", "--source", "expert", "--seed-start", "-1", "--episodes", "1"], "--seed-start -1"),
+    (["env", "render", "--seed", "-3"], "--seed -3"),
+])
+def test_seeds_outside_32_bits(tmp_path, capsys, argv, flag):
+    out = tmp_path / "out"
+    refused(capsys, [*argv, "--out", out], flag, "0 .. 4294967295")
+    assert not out.exists()
+
+
+@pytest.mark.skipif(__import__("torch").cuda.is_available(), reason="this machine has CUDA")
+def test_cuda_where_torch_has_none(ckpts, tmp_path, capsys):
+    for argv in (["eval", "--conditions", "1", "--episodes", "1", "--out", tmp_path / "e", "--wam",
+                  ckpts / "tinywam", "--device", "cuda"],
+                 ["wam", "serve", "--ckpt", ckpts / "tinywam", "--device", "cuda"],
+                 ["wm", "probe", "--data", tmp_path, "--device", "cuda"]):
+        refused(capsys, argv, "--device cuda", "--device cpu")
+    refused(capsys, ["wam", "serve", "--ckpt", ckpts / "tinywam", "--device", "cuda:x"], "is not a torch device")
+
+
+@pytest.mark.parametrize("argv", [
+    ["eval", "--conditions", "1", "--episodes", "1", "--wam", "x"],
+    ["collect", "--source", "expert", "--episodes", "1"],
+    ["env", "render"],
+])
+def test_bogus_render_backend_before_any_work(tmp_path, capsys, argv):
+    out = tmp_path / ("v.png" if argv[0] == "env" else "out")
+    refused(capsys, [*argv, "--out", out, "--render-backend", "bogus"], "--render-backend 'bogus'", "cpu, gpu")
+    assert not out.exists()
+
+
+def test_out_that_is_a_file(tmp_path, capsys):
+    f = tmp_path / "a_file"
+    f.write_text("x")
+    refused(capsys, ["collect", "--source", "expert", "--episodes", "1", "--out", f], f"--out {f} is a file")
+    refused(capsys, ["eval", "--conditions", "1", "--episodes", "1", "--out", f, "--wam", MINI / "tinywam"],
+            f"--out {f} is a file")
+    refused(capsys, ["data", "info", f], f, "is a file")
+
+
+# ------------------------------------------------------------------------------------------- damaged episodes
+def _damage_image_chunk(path: Path) -> None:
+    """Overwrite 8 bytes in the middle of one stored image (a chunk of the data, not the file's structure)."""
+    with h5py.File(path, "r") as f:
+        info = f["images/front"].id.get_chunk_info(0)  # the first frame, which every reader reads
+    data = bytearray(path.read_bytes())
+    mid = info.byte_offset + info.size // 2
+    data[mid:mid + 8] = bytes(255 - b for b in data[mid:mid + 8])
+    path.write_bytes(bytes(data))
+
+
+def test_damaged_episode_is_named_by_check_view_and_encode(expert_store, tmp_path, capsys):
+    store = Path(shutil.copytree(expert_store, tmp_path / "store"))
+    bad = sorted((store / "episodes").glob("*.h5"))[1]
+    _damage_image_chunk(bad)
+    assert main(["data", "info", str(store)]) == 0  # headers intact: counted, and it says how to read every byte
+    assert "wamplan data check" in capsys.readouterr().out
+    refused(capsys, ["data", "check", store], "1 of 2 episode files", "re-run the same `wamplan collect`")
+    assert f"damaged: {bad} (OSError" in refused.out  # listed above the error line, with HDF5's reason
+    refused(capsys, ["data", "view", store, "--episode", "1", "--out", tmp_path / "s.png"], bad, "damaged")
+    refused(capsys, ["wm", "encode", "--data", store], bad, "damaged")
+
+
+def test_data_check_lists_each_damaged_file(expert_store, tmp_path, capsys):
+    store = Path(shutil.copytree(expert_store, tmp_path / "store"))
+    first, second = sorted((store / "episodes").glob("*.h5"))
+    _damage_image_chunk(first)
+    second.write_bytes(b"\x00" * 512 + second.read_bytes()[512:])  # its header: even opening it fails
+    refused(capsys, ["data", "check", store], "2 of 2 episode files")
+    assert f"damaged: {first}" in refused.out and f"damaged: {second}" in refused.out
+    refused(capsys, ["data", "info", store], "1 of 2 episode files", second.name)  # info counts the readable one
+    assert f"damaged: episode file {second}" in refused.out
+
+
+def test_an_old_store_without_checksums_still_reads(expert_store, tmp_path, capsys):
+    """Stores written before checksums (h5py's default format, no fletcher32) read as before."""
+    from wamplan.data.readers import WAMSamples
+    from wamplan.data.store import EpisodeStore
+
+    store = Path(shutil.copytree(expert_store, tmp_path / "store"))
+    for path in (store / "episodes").glob("*.h5"):
+        old = path.with_suffix(".old")
+        with h5py.File(path, "r") as src, h5py.File(old, "w") as dst:
+            dst.attrs.update(dict(src.attrs))
+            names: list[str] = []
+            src.visititems(lambda name, obj: names.append(name) if isinstance(obj, h5py.Dataset) else None)
+            for name in names:
+                dst.create_dataset(name, data=src[name][()], chunks=src[name].chunks,
+                                   compression=src[name].compression)
+        old.replace(path)
+        with h5py.File(path, "r") as f:
+            assert not f["actions"].fletcher32
+    assert main(["data", "check", str(store)]) == 0
+    assert "2 written before checksums" in capsys.readouterr().out
+    s = EpisodeStore(store)
+    assert len(s.load(s.episode_paths()[0]).actions) > 0 and len(WAMSamples([store], split="all")[0]) > 0
+
+
+def test_collect_refuses_a_store_of_another_source(expert_store, tmp_path, capsys):
+    """The store's files under the expert's names hold another source's episodes: collect must not mix them."""
+    store = Path(shutil.copytree(expert_store, tmp_path / "store"))
+    for path in (store / "episodes").glob("*.h5"):
+        with h5py.File(path, "r+") as f:
+            f.attrs["source"] = "policy:expert"
+    before = sorted(p.name for p in (store / "episodes").iterdir())
+    refused(capsys, ["collect", "--source", "expert", "--episodes", "3", "--out", store, "--camera-size", "64"],
+            store, "holds episodes of source 'policy:expert'")
+    assert sorted(p.name for p in (store / "episodes").iterdir()) == before
+
+
+# ---------------------------------------------------------------------------------------- a failed start
+def test_a_failed_eval_start_does_not_lock_its_folder(ckpts, tmp_path, capsys):
+    wam = _copy(ckpts, "tinywam", tmp_path)
+    weights = (wam / "model.safetensors").read_bytes()
+    _truncate(wam / "model.safetensors", 100)
+    out = tmp_path / "eval"
+    argv = ["eval", "--conditions", "1", "--episodes", "1", "--out", out, "--wam", wam, "--camera-size", "64",
+            "--max-steps", "2"]
+    refused(capsys, argv, wam)
+    assert not (out / "eval_config.json").exists()
+    (wam / "model.safetensors").write_bytes(weights)  # the mistake fixed, the same command again
+    assert main([str(a) for a in argv]) == 0
+    assert json.loads((out / "eval_config.json").read_text())["wam"] == str(wam)
+
+
+# --------------------------------------------------------------------------------------------- /act requests
+@pytest.fixture(scope="module")
+def act_server():
+    from wamplan.envs.contract import CAMERAS
+    from wamplan.wam.base import WAM, WAMError, WAMOutput
+    from wamplan.wam.server import BackgroundServer, create_app
+
+    class StrictWAM(WAM):
+        """Refuses a proprio of the wrong length: a well-formed request the server answers with 422."""
+
+        name = "strict"
+
+        def predict(self, obs, instruction):
+            if obs.proprio.shape != (10,):
+                raise WAMError(f"expects 10-D proprio, got {obs.proprio.shape}")
+            return WAMOutput(actions=np.zeros((16, 5), np.float32), images={c: obs.images[c] for c in CAMERAS})
+
+    with BackgroundServer(create_app(StrictWAM())) as srv:
+        yield srv
+
+
+def _body(**changes) -> str:
+    import json_numpy
+
+    img = np.zeros((8, 8, 3), np.uint8)
+    payload = dict(primary_image=img, left_wrist_image=img, right_wrist_image=img,
+                   proprio=np.zeros(10, np.float32), task_description="t")
+    payload.update(changes)
+    return json_numpy.dumps(payload)
+
+
+@pytest.mark.parametrize("body, status, reason", [
+    ("{not json", 400, "not valid json_numpy JSON"),
+    (_body(primary_image=np.zeros((8, 8), np.uint8)), 400, "has shape (8, 8), expected (h, w, 3)"),
+    (_body(primary_image=np.zeros((8, 8, 3), np.float32)), 400, "has dtype float32, expected uint8"),
+    (_body(proprio=np.array([np.nan] * 10, np.float32)), 400, "non-finite values"),
+    (_body(proprio=np.zeros(7, np.float32)), 422, "expects 10-D proprio"),
+])
+def test_bad_act_requests_get_a_4xx_and_the_reason(act_server, body, status, reason):
+    r = requests.post(act_server.act_url, data=body, headers={"Content-Type": "application/json"}, timeout=10)
+    assert r.status_code == status and reason in r.json()["error"]
+
+
+def test_the_client_prints_the_servers_reason(act_server):
+    from wamplan.envs.contract import CAMERAS, Observation
+    from wamplan.wam.base import WAMServerError
+    from wamplan.wam.cosmos_client import CosmosPolicyClient
+
+    client = CosmosPolicyClient(url=act_server.act_url, proprio_dim=7)  # the server's WAM expects 10
+    obs = Observation(step=0, proprio=np.zeros(10, np.float32), images={c: np.zeros((8, 8, 3), np.uint8)
+                                                                        for c in CAMERAS})
+    with pytest.raises(WAMServerError, match=r"refused the request \(HTTP 422: the WAM 'strict' cannot answer this "
+                                             r"request: expects 10-D proprio, got \(7,\)\)"):
+        client.predict(obs, "t")
+
+
+# --------------------------------------------------------------------------------------------- the parser
+def test_argparse_errors_print_one_short_usage_line(capsys):
+    for argv, said in ((["eval", "--out", "x", "--bogus"], "unrecognized arguments: --bogus"),
+                       (["eval", "--first-chunk", "nope"], "invalid choice: 'nope'"),
+                       (["eval", "--cost-name", "nope"], "invalid choice: 'nope'"),
+                       (["eval", "--wam-profile", "nope"], "cosmos-robocasa"),
+                       (["collect", "--source", "expert"], "required: --episodes, --out")):
+        with pytest.raises(SystemExit) as e:
+            main(argv)
+        err = capsys.readouterr().err
+        assert e.value.code == 2 and said in err
+        assert len(err.strip().splitlines()) == 2  # usage: wamplan eval [options] ..., then the error
+        assert err.startswith("usage: wamplan ") and "[options]" in err and "--help" in err.splitlines()[0]
+
+
+def test_every_option_has_help_and_the_cli_has_a_version(capsys):
+    from wamplan.cli.main import iter_commands
+
+    bare = []
+    for parser in iter_commands():
+        for a in parser._actions:
+            if isinstance(a, (argparse._HelpAction, argparse._SubParsersAction)) or a.help == argparse.SUPPRESS:
+                continue
+            text = (a.help or "").strip()
+            if not text or re.fullmatch(r"\(default: .*\)", text):
+                bare.append(f"{parser.prog} {'/'.join(a.option_strings) or a.dest}")
+    assert not bare
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0 and capsys.readouterr().out.startswith("wamplan 0.")
+
+
+def test_help_is_cached_and_matches_argparse(tmp_path, monkeypatch, capsys):
+    """`wamplan eval --help` is built once (imports torch and the planners) and then read from the cache."""
+    from wamplan.cli import build_parser
+
+    monkeypatch.setenv("WAMPLAN_CACHE_DIR", str(tmp_path))
+    monkeypatch.setenv("COLUMNS", "100")
+    for _ in range(2):
+        with pytest.raises(SystemExit):
+            main(["eval", "--help"])
+        text = capsys.readouterr().out
+        assert list(tmp_path.glob("help/*.json"))
+        assert "--first-chunk {open-loop,rest-history}" in text and "--render-backend" in text
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["report", "--help"])
+    assert "evaluation directory" in capsys.readouterr().out
