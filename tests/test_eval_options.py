@@ -120,7 +120,7 @@ def test_a_directory_from_before_a_new_setting_resumes_at_its_default(tmp_path):
 
 
 def test_a_directory_of_another_planner_names_the_flag_that_resumes_it(tmp_path):
-    """Directories from before stop 14 ran the then-default CEM; the new default refuses them in one line that
+    """Directories written when CEM was the default ran it; the new default refuses them in one line that
     names --planner cem, which resumes them."""
     _check_same_settings(tmp_path, _cfg("--planner", "cem"))
     with pytest.raises(UserError, match=r"holds an evaluation with --planner cem .* add --planner cem to resume it"):

@@ -18,22 +18,12 @@ from wamplan.planning.policy import PlannedPolicyConfig
 def add_eval_arguments(p: argparse.ArgumentParser) -> None:
     add_arguments(p, EvalConfig)  # checkpoints, device; --planner comes with the planner options
     add_arguments(p.add_argument_group("planned policy"), PlannedPolicyConfig)
-    _fixed_values(p, first_chunk=("open-loop", "rest-history"), warm_start=("none", "residual"))
     add_arguments(p.add_argument_group("cost"), CostConfig, prefix="cost_")
     env = p.add_argument_group("task")
     add_arguments(env, EnvConfig)
     env.add_argument("--max-steps", dest="max_episode_steps", type=int, default=None,
                      help="the same as --max-episode-steps")
     add_planner_arguments(p, default=EvalConfig.planner)
-
-
-def _fixed_values(p: argparse.ArgumentParser, **values: tuple[str, ...]) -> None:
-    """Offer the fixed values of options generated from a config whose fields do not declare them (``choices=``
-    in the field, wamplan.config, is the better home): argparse then refuses others and lists them in --help."""
-    for action in p._actions:
-        if action.dest in values:
-            action.choices = values[action.dest]
-            action.metavar = "{" + ",".join(values[action.dest]) + "}"
 
 
 def eval_config_from_args(args: argparse.Namespace) -> EvalConfig:

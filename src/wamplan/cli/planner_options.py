@@ -32,8 +32,8 @@ def add_planner_arguments(parser: argparse.ArgumentParser, default: str = DEFAUL
     """Add ``--planner`` and one option per planner config field (see the module docstring)."""
     names = sorted(PLANNERS)
     parser.add_argument("--planner", default=None, choices=names,
-                        help=f"planner by registry name (default: {default}); wamplan: MPPI at the settings wamplan "
-                             f"tuned on validation seeds (planning/defaults.py); cem: the paper's CEM")
+                        help=f"planner by registry name (default: {default}); wamplan: MPPI at wamplan's default settings "
+                             f"(planning/defaults.py); cem: the paper's CEM")
     parser.set_defaults(planner_default=default)
     group = parser.add_argument_group(
         "planner options", "settings of the planner's config; each applies to the planners listed in brackets")

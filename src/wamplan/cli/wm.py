@@ -63,7 +63,7 @@ def _encode_options(p: argparse.ArgumentParser) -> None:
 def _train_options(name: str):
     def build(p: argparse.ArgumentParser) -> None:
         from wamplan.presets import PRESETS
-        from wamplan.worldmodel.config import TrainConfig, add_architecture_arguments
+        from wamplan.worldmodel.config import DecoderTrainConfig, TrainConfig, add_architecture_arguments
 
         p.add_argument("--data", required=True, help="episode stores, comma separated")
         p.add_argument("--out", type=Path, required=True, help="run directory (checkpoint/, metrics.jsonl)")
@@ -79,7 +79,7 @@ def _train_options(name: str):
                            help="fine-tune: start from this predictor checkpoint's weights and feature statistics "
                                 "(same preset and encoder)")
             add_architecture_arguments(p.add_argument_group("predictor", "the preset's predictor, overridden"))
-        add_arguments(p, TrainConfig)
+        add_arguments(p, TrainConfig if name == "train" else DecoderTrainConfig)
         p.set_defaults(func=cmd_train if name == "train" else cmd_train_decoder)
 
     return build
@@ -190,14 +190,14 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 def cmd_train_decoder(args: argparse.Namespace) -> int:
     from wamplan.presets import get_world_model_preset
-    from wamplan.worldmodel.config import TrainConfig
+    from wamplan.worldmodel.config import DecoderTrainConfig
     from wamplan.worldmodel.stores import train_decoder_on_stores
 
     require_dir(args.out)
     resolve_device(args.device)
     p = get_world_model_preset(args.preset)
     metrics = train_decoder_on_stores(_stores(args.data), args.out, p.decoder,
-                                      from_args(TrainConfig, args, p.decoder_train), encoder=p.encoder,
+                                      from_args(DecoderTrainConfig, args, p.decoder_train), encoder=p.encoder,
                                       encoder_kwargs=p.encoder_kwargs, encoder_path=args.encoder_path,
                                       val_fraction=args.val_fraction, device=args.device, max_steps=args.max_steps)
     print(json.dumps(metrics))

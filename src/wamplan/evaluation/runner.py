@@ -162,10 +162,10 @@ def _settings_to_store(out: Path, cfg: EvalConfig) -> dict[str, Any]:
     now = settings(cfg)
     if path.is_file():
         before = json.loads(path.read_text())
-        ran = before.get("planner", "cem")  # "cem" was eval's default before stop 14
+        ran = before.get("planner", "cem")  # a directory that names no planner was written when cem was the default
         if ran != now["planner"]:
             raise UserError(f"{out} holds an evaluation with --planner {ran} (eval's default is {DEFAULT_PLANNER} "
-                            f"since stop 14, cem before); add --planner {ran} to resume it, or use another --out")
+                            f"now, cem in older versions); add --planner {ran} to resume it, or use another --out")
         addable = ("wm_plain", "wm_augmented", "sim_encoder")
         # a setting newer than the directory, requested at its default, is what the older version ran with
         default = settings(EvalConfig(planner=cfg.planner))

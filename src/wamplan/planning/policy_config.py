@@ -12,6 +12,7 @@ from wamplan.planning.gates import Gates
 from wamplan.planning.history import PlanningError
 
 WARM_STARTS = ("none", "residual")
+FIRST_CHUNKS = ("open-loop", "rest-history")
 
 
 @dataclass(frozen=True)
@@ -30,14 +31,14 @@ class PlannedPolicyConfig:
     """
 
     first_chunk: str = field("open-loop", "chunk 1: open-loop (the paper) or rest-history (planned from a "
-                             "synthesised rest-state history)")
+                             "synthesised rest-state history)", choices=FIRST_CHUNKS)
     plan_seed: int = field(0, "base seed of the planner's sampling (plus 1000 x the episode seed plus the step)")
     gate_threshold: float | None = field(None, "run the WAM's chunk without a search when its cost is at most this "
                                          "(see `wamplan gate-calibrate`); None = off")
     gate_above: float | None = field(None, "run the WAM's chunk without a search when its cost is above this; "
                                      "None = off")
     warm_start: str = field("none", "the search's initial mean: none (the WAM's chunk) or residual (plus "
-                            "warm_weight x the previous planned chunk's correction, arm only)")
+                            "warm_weight x the previous planned chunk's correction, arm only)", choices=WARM_STARTS)
     warm_weight: float = field(0.5, "with warm_start=residual: the share of the previous correction carried over")
     disagreement_weight: float = field(0.0, "add this times the ensemble's disagreement to the cost (needs several "
                                        "world models); 0 = off")
@@ -53,8 +54,7 @@ class PlannedPolicyConfig:
                                    "clipped to the action bounds; 1 = the plan")
 
     def __post_init__(self):
-        require(self.first_chunk in ("open-loop", "rest-history"),
-                f"first_chunk must be open-loop or rest-history, got {self.first_chunk!r}")
+        require(self.first_chunk in FIRST_CHUNKS, f"first_chunk must be one of {FIRST_CHUNKS}, got {self.first_chunk!r}")
         require(self.warm_start in WARM_STARTS, f"warm_start must be one of {WARM_STARTS}, got {self.warm_start!r}")
         require(0.0 <= self.warm_weight <= 1.0, f"warm_weight must be in [0, 1], got {self.warm_weight}")
         require(self.disagreement_weight >= 0, f"disagreement_weight must be >= 0, got {self.disagreement_weight}")
