@@ -36,6 +36,6 @@ if [ -f "$CK/tinywam/model.safetensors" ]; then
       --seed "${DEMO_EXPLAIN_SEED:-7}" --chunk "${DEMO_EXPLAIN_CHUNK:-9}" --out "$OUT/mechanism.png"
   fi
 else
-  echo "no demo checkpoints in $CK: see README 'Demo checkpoints' for the command that makes them"
+  echo "no demo checkpoints in $CK: docs/results.md, 'The shipped checkpoints and the commands that made them', has the commands that make them"
 fi
 echo "demo outputs in $OUT: views.png, expert_rollout.json, videos/, eval/report.md, eval/figure3.png, mechanism.png"
