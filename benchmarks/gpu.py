@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
-import statistics
 import sys
 import time
 import traceback
@@ -36,6 +35,7 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from gpu_report import Row, error_row, machine_info, write_outputs
 from wamplan.device import resolve_device
+from wamplan.planning.timing import median_time
 from wamplan.presets import get_world_model_preset
 from wamplan.provenance import provenance
 
@@ -80,25 +80,6 @@ class Settings:
 
 
 # ------------------------------------------------------------------------------------------------ helpers
-def sync(dev: torch.device) -> None:
-    if dev.type != "cpu":
-        torch.accelerator.synchronize()
-
-
-def median_time(fn: Callable[[], Any], repeats: int, dev: torch.device, warmup: int = 1) -> float:
-    """Median wall seconds of ``fn()`` over ``repeats`` calls after ``warmup`` calls, the device synchronised."""
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(repeats):
-        sync(dev)
-        t0 = time.perf_counter()
-        fn()
-        sync(dev)
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
-
-
 def count_flops(fn: Callable[[], Any]) -> int:
     with FlopCounterMode(display=False) as counter:
         fn()

@@ -21,7 +21,8 @@ import time
 import numpy as np
 import torch
 
-from wamplan.envs.core import EnvConfig, InsertionEnv
+from wamplan.envs.config import EnvConfig
+from wamplan.envs.core import InsertionEnv
 from wamplan.planning import CEMConfig, make_cost, make_planner
 from wamplan.planning.dynamics import SimulatorDynamics
 from wamplan.planning.policy import PlannedPolicy

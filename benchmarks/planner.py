@@ -13,16 +13,15 @@ one line per preset and the speed-up ratio.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import platform
 import statistics
-import time
 
 import torch
 
 from wamplan.device import resolve_device
 from wamplan.planning import PLANNERS, make_cost, make_planner
 from wamplan.planning.dynamics import LearnedDynamics, PlanningContext
+from wamplan.planning.timing import planner_settings, timed
 from wamplan.worldmodel.config import PredictorConfig
 from wamplan.worldmodel.predictor import WorldModelPredictor
 from wamplan.presets import get_world_model_preset as get_preset
@@ -51,27 +50,12 @@ def time_search(dyn, ctx, target, planner, repeats: int, length: int = CHUNK) ->
     cost = make_cost("patch")
     covered = dyn.covered(length)
     seed = torch.zeros(covered, 5)
-    times = []
-    for i in range(repeats + 1):
-        if dyn.device.type != "cpu":
-            torch.accelerator.synchronize()
-        t0 = time.perf_counter()
+
+    def search(i: int) -> None:
         dyn.prepare(ctx)
         planner.plan(seed, lambda c: cost(dyn.terminal(c), target), seed=i)
-        if dyn.device.type != "cpu":
-            torch.accelerator.synchronize()
-        if i:  # the first is a warm-up
-            times.append(time.perf_counter() - t0)
-    return statistics.median(times)
 
-
-def planner_settings(name: str, candidates: int, iterations: int) -> dict:
-    """``make_planner`` settings for a ``candidates`` x ``iterations`` search; planners with elites keep the
-    paper's share (8 of 32)."""
-    settings = dict(num_candidates=candidates, iterations=iterations)
-    if "num_elites" in {f.name for f in dataclasses.fields(PLANNERS.lookup(name).config_cls)}:
-        settings["num_elites"] = max(1, candidates // 4)
-    return settings
+    return statistics.median([timed(lambda: search(i), dyn.device) for i in range(repeats + 1)][1:])  # 0: warm-up
 
 
 def search_inputs(cfg: PredictorConfig, dev: torch.device, dtype: torch.dtype
@@ -117,7 +101,8 @@ def main() -> None:
         k = args.replan_every
         if not k:
             continue
-        from wamplan.planning.policy import PlanningError, check_replan_every  # only re-planning needs the policy
+        from wamplan.planning.history import PlanningError  # only re-planning needs these
+        from wamplan.planning.policy_config import check_replan_every
         try:
             check_replan_every(k, CHUNK, cfg.frameskip)  # what `wamplan eval` accepts
         except PlanningError as e:

@@ -17,6 +17,7 @@ from typing import Any
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
+from wamplan.planning.timing import sync
 from wamplan.worldmodel.decoder import Decoder
 from wamplan.worldmodel.predictor import WorldModelPredictor
 from wamplan.presets import PRESETS, get_world_model_preset as get_preset
@@ -91,12 +92,10 @@ def time_plan(model: WorldModelPredictor, candidates: int = 32, iterations: int 
     walls, cpus = [], []
     with torch.inference_mode():
         for i in range(repeats + 1):
-            if dev.type != "cpu":
-                torch.accelerator.synchronize()
+            sync(dev)
             t0, c0 = time.perf_counter(), time.process_time()
             plan_once(model, z, q, a, candidates, iterations, CHUNK // c.frameskip, naive)
-            if dev.type != "cpu":
-                torch.accelerator.synchronize()
+            sync(dev)
             if i:
                 walls.append(time.perf_counter() - t0)
                 cpus.append(time.process_time() - c0)

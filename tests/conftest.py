@@ -49,7 +49,8 @@ def env():
 @pytest.fixture(scope="session")
 def small_env():
     """The same task rendered at 64 px, for tests where the resolution does not matter (renders cost less)."""
-    from wamplan.envs.core import EnvConfig, InsertionEnv
+    from wamplan.envs.config import EnvConfig
+    from wamplan.envs.core import InsertionEnv
 
     e = InsertionEnv(EnvConfig(camera_size=64))
     yield e

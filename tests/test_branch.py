@@ -11,7 +11,7 @@ from wamplan.data.branch import BranchSpec, collect_branched, drop_unfinished_br
 from wamplan.data.collect import collect
 from wamplan.data.readers import WorldModelWindows
 from wamplan.data.store import EpisodeStore
-from wamplan.envs.core import EnvConfig
+from wamplan.envs.config import EnvConfig
 from wamplan.envs.contract import CAMERAS
 from wamplan.errors import UserError
 from wamplan.policies.base import make_policy

@@ -8,7 +8,7 @@ import pytest
 
 from wamplan.config import ConfigError
 from wamplan.envs.contract import CAMERAS
-from wamplan.envs.core import EnvConfig
+from wamplan.envs.config import EnvConfig
 from wamplan.policies import make_policy
 from wamplan.policies.expert import ExpertConfig, ExpertPolicy, quat_yaw, wrap_quarter
 from wamplan.policies.rollout import run_episode

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from wamplan.envs.core import EnvConfig, InsertionEnv
+from wamplan.envs.config import EnvConfig
+from wamplan.envs.core import InsertionEnv
 from wamplan.evaluation.trace import CubeTrace
 from wamplan.policies import make_policy
 from wamplan.policies.rollout import run_episode

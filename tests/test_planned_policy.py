@@ -201,7 +201,7 @@ def test_frameskip_5_plans_every_chunk_after_the_first(small_env, encoder):
 
 def test_a_gap_in_the_history_raises(small_env, encoder):
     """A history frame the policy never saw is an error, never a silently unplanned chunk."""
-    from wamplan.planning.policy import PlanningError
+    from wamplan.planning.history import PlanningError
 
     pol = PlannedPolicy(EchoWAM(), _cem(4, 1), LearnedDynamics(_delta5_predictor(encoder)), encoder, make_cost("patch"))
     pol.reset(0)
@@ -328,7 +328,7 @@ def test_receding_horizon_replans_the_rest_of_a_planned_chunk(small_env, encoder
                                            (2, "multiple of the world model's frameskip", None),
                                            (8, "drop --num-optimized", 12)])
 def test_a_replan_period_that_does_not_fit_the_chunk_or_frameskip_is_refused(encoder, k, match, opt):
-    from wamplan.planning.policy import PlanningError
+    from wamplan.planning.history import PlanningError
 
     planner = make_planner("cem", CEMConfig(num_candidates=8, num_elites=2, iterations=1, num_optimized=opt))
     with pytest.raises(PlanningError, match=match):
@@ -371,7 +371,7 @@ def test_bias_correction_adds_the_models_error_on_the_chunk_just_run(small_env, 
     assert not torch.allclose(costs, pol.cost(pol.dynamics.terminal(cands), target))
     with pytest.raises(ValueError, match="bias_correction must be in"):
         PlannedPolicyConfig(bias_correction=1.5)
-    from wamplan.planning.policy import PlanningError
+    from wamplan.planning.history import PlanningError
 
     for dyn, cfg, match in ((LearnedDynamics(_delta5_predictor(encoder)), {}, "frameskip 5 does not divide"),
                             (LearnedDynamics(_predictor(encoder)), dict(replan_every=8), "drop --replan-every")):

@@ -6,7 +6,8 @@ import torch
 
 from wamplan.planning import CEMConfig, make_cost, make_planner
 from wamplan.planning.dynamics import Dynamics, EnsembleDynamics, LearnedDynamics, PlanningContext, learned_dynamics
-from wamplan.planning.policy import PlannedPolicy, PlannedPolicyConfig, PlanningError
+from wamplan.planning.history import PlanningError
+from wamplan.planning.policy import PlannedPolicy, PlannedPolicyConfig
 from wamplan.policies.rollout import run_episode
 from wamplan.worldmodel.predictor import WorldModelPredictor
 from test_planned_policy import EchoWAM, _predictor, encoder  # noqa: F401 (fixture; small_env is in conftest)

@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from wamplan.encoders import make_encoder
-from wamplan.envs.core import EnvConfig, InsertionEnv
+from wamplan.envs.config import EnvConfig
+from wamplan.envs.core import InsertionEnv
 from wamplan.planning.dynamics import SimulatorDynamics
 from wamplan.envs.contract import CAMERAS
 from wamplan.policies.expert import ExpertPolicy

@@ -145,6 +145,42 @@ def test_trainer_configs_share_one_base_and_read_the_shipped_checkpoints():
     assert from_args(TrainConfig, parser.parse_args(["--lr", "0.01"]), DecoderTrainConfig()) == \
         DecoderTrainConfig(lr=0.01)
 
+
+def test_adamw_betas_are_declared_once_and_fit_reads_them(tmp_path, monkeypatch):
+    """The predictor's and the decoder's configs share AdamWConfig's betas (and its check); fit uses cfg.betas,
+    and AdamW's default for a config without them."""
+    import torch
+
+    import wamplan.train_loop as loop
+    from wamplan.config import ConfigError
+    from wamplan.wam.train import WAMTrainConfig
+    from wamplan.worldmodel.config import DecoderTrainConfig, TrainConfig
+
+    assert issubclass(TrainConfig, loop.AdamWConfig) and issubclass(DecoderTrainConfig, loop.AdamWConfig)
+    assert not issubclass(TrainConfig, DecoderTrainConfig) and not issubclass(WAMTrainConfig, loop.AdamWConfig)
+    for cls in (TrainConfig, DecoderTrainConfig):
+        with pytest.raises(ConfigError, match=f"{cls.__name__}.betas must be two numbers in"):
+            cls(betas=(0.9, 1.0))
+    with pytest.raises(ConfigError, match="seeds must lie in 0 .. 4294967295"):
+        TrainConfig(seed=2**32)
+    seen = []
+
+    def spy(model, lr, weight_decay, **kw):
+        seen.append(kw.get("betas"))
+        return torch.optim.AdamW(model.parameters(), lr=lr, **kw)
+
+    monkeypatch.setattr(loop, "make_adamw", spy)
+    data = torch.utils.data.TensorDataset(torch.randn(4, 3))
+
+    def step(m, b):
+        return m(b[0]).pow(2).mean(), {}
+
+    for i, cfg in enumerate((DecoderTrainConfig(epochs=1, batch_size=2, betas=(0.5, 0.6)),
+                             WAMTrainConfig(epochs=1, batch_size=2))):
+        loop.fit(torch.nn.Linear(3, 1), loop.DatasetBatches(data), step, cfg, run_dir=tmp_path / str(i),
+                 kind="test", config={}, progress=False, log=None)
+    assert seen == [(0.5, 0.6), None]
+
 def test_preset_sizes_agree():
     from wamplan.encoders import make_encoder
     from wamplan.presets import PRESETS

@@ -121,6 +121,8 @@ def test_wm_eval_prints_the_per_phase_table(bench_store, tmp_path, capsys):
     assert model.cfg.action_conditioning == "adaln" and model.cfg.action_tokens and model.cfg.depth == 1
     groups = BranchGroups([out], 4, 3, 4, split="all", features=feature_key(enc.config_dict()))
     labels = group_phases(groups)
+    pooled = evaluate_siblings(model, groups, 4)  # the "all" row is this, computed once by `wm eval`
+    assert {k: table[ALL][k] for k in pooled} == pytest.approx(pooled, rel=1e-6, abs=1e-9)
     with torch.no_grad():
         for phase in ("grasp", "carry", "descent"):  # a phase's row is the plain statistics of its groups alone
             mine = [groups[i] for i, p in enumerate(labels) if p == phase]

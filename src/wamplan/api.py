@@ -21,7 +21,8 @@ from typing import Any, Sequence
 from wamplan.config import from_dict
 from wamplan.errors import require_paths
 from wamplan.envs.contract import Observation
-from wamplan.envs.core import EnvConfig, InsertionEnv
+from wamplan.envs.config import EnvConfig
+from wamplan.envs.core import InsertionEnv
 from wamplan.evaluation.build import plan_in_world_model
 from wamplan.evaluation.config import EvalConfig
 from wamplan.planning import CostConfig

@@ -37,7 +37,7 @@ from torch.utils.data import DataLoader, Dataset
 from wamplan.checkpoint import (CKPT_DIR, CONFIG_FILE, STATE_DIR, has_training_state, load_training_state,
                                 load_weights, read_config, save_checkpoint)
 from wamplan.config import field, require
-from wamplan.errors import UserError
+from wamplan.errors import SEED_LIMIT, UserError
 from wamplan.optim import make_adamw, optimizer_step, warmup_cosine
 from wamplan.progress import progress_bar
 
@@ -51,8 +51,8 @@ StepFn = Callable[[nn.Module, Any], tuple[torch.Tensor, dict[str, float]]]
 @dataclass(frozen=True)
 class LoopConfig:
     """The optimisation fields every trainer shares and the loop reads. The trainers' configs extend it
-    (``wam.train.WAMTrainConfig``, ``worldmodel.config.TrainConfig`` and ``DecoderTrainConfig``), redeclaring
-    a default with :func:`wamplan.config.with_default` where theirs differs."""
+    (``wam.train.WAMTrainConfig``; ``worldmodel.config.TrainConfig`` and ``DecoderTrainConfig`` through
+    :class:`AdamWConfig`), redeclaring a default with :func:`wamplan.config.with_default` where theirs differs."""
 
     epochs: int = field(24, "passes over the training set (raise it and re-run to train a finished run longer)")
     batch_size: int = field(24, "items per optimisation step")
@@ -78,10 +78,23 @@ class LoopConfig:
                 f"{name}.warmup_epochs must be in [0, epochs={self.epochs}], got {self.warmup_epochs}")
         require(0 <= self.min_lr_ratio <= 1, f"{name}.min_lr_ratio must be in [0, 1], got {self.min_lr_ratio}")
         require(self.grad_clip >= 0, f"{name}.grad_clip must be >= 0 (0 disables it), got {self.grad_clip}")
-        require(0 <= self.seed < 2**32, f"--seed {self.seed}: seeds must lie in 0 .. {2**32 - 1}; pass one in "
-                                        f"that range")
+        require(0 <= self.seed < SEED_LIMIT, f"--seed {self.seed}: seeds must lie in 0 .. {SEED_LIMIT - 1}; pass "
+                                             f"one in that range")
         for k in ("num_workers", "save_every_steps", "log_every_steps"):
             require(getattr(self, k) >= 0, f"{name}.{k} must be >= 0, got {getattr(self, k)}")
+
+
+@dataclass(frozen=True)
+class AdamWConfig(LoopConfig):
+    """:class:`LoopConfig` with AdamW's betas as an option (``worldmodel.config.TrainConfig`` and
+    ``DecoderTrainConfig`` extend it); :func:`fit` uses them (other configs: ``optim.make_adamw``'s default)."""
+
+    betas: tuple[float, ...] = field((0.9, 0.999), "AdamW betas")
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        require(len(self.betas) == 2 and all(0 <= b < 1 for b in self.betas),
+                f"{type(self).__name__}.betas must be two numbers in [0, 1), got {self.betas}")
 
 
 class Batches(Protocol):
@@ -214,7 +227,7 @@ def fit(model: nn.Module, batches: Batches, step_fn: StepFn, cfg: LoopConfig, *,
         config: dict[str, Any], data: dict[str, Any] | None = None, device: torch.device | None = None,
         evaluate: Callable[[nn.Module], dict[str, float]] | None = None,
         on_fresh_start: Callable[[], None] | None = None, resume: bool = False, max_steps: int | None = None,
-        betas: Sequence[float] = (0.9, 0.999), progress: bool = True, desc: str = "train",
+        progress: bool = True, desc: str = "train",
         log: Callable[[str], None] | None = print, retired: Sequence[str] = ()) -> FitResult:
     """Train ``model`` (already on ``device``) into ``run_dir`` with ``step_fn(model, batch) -> (loss, logs)``.
 
@@ -238,7 +251,8 @@ def fit(model: nn.Module, batches: Batches, step_fn: StepFn, cfg: LoopConfig, *,
                         f"--batch-size")
     if data is not None:
         config = dict(config, data={**(config.get("data") or {}), **data})
-    opt = make_adamw(model, cfg.lr, cfg.weight_decay, betas)
+    betas = {"betas": cfg.betas} if isinstance(cfg, AdamWConfig) else {}
+    opt = make_adamw(model, cfg.lr, cfg.weight_decay, **betas)
     sched = warmup_cosine(opt, round(cfg.warmup_epochs * steps_per_epoch), steps_per_epoch * cfg.epochs,
                           cfg.min_lr_ratio)
     state = {"epoch": 0, "step_in_epoch": 0, "global_step": 0}

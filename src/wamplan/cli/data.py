@@ -116,7 +116,7 @@ def _export_options(p: argparse.ArgumentParser) -> None:
 
 def cmd_collect(args: argparse.Namespace) -> int:
     from wamplan.data.collect import collect
-    from wamplan.envs.core import EnvConfig
+    from wamplan.envs.config import EnvConfig
     from wamplan.evaluation.build import load_policy
     from wamplan.parallel import Backend
 
@@ -292,7 +292,7 @@ def cmd_view(args: argparse.Namespace) -> int:
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from wamplan.data.store import EpisodeStore, reading
+    from wamplan.data.store import EpisodeStore
     from wamplan.envs.contract import CAMERAS
 
     require_file(args.out, "--out")
@@ -300,7 +300,7 @@ def cmd_view(args: argparse.Namespace) -> int:
     paths = store.episode_paths()
     if not 0 <= args.episode < len(paths):
         raise UserError(f"--episode {args.episode} is out of range: {args.dir} holds {len(paths)} episodes (0..{len(paths) - 1})")
-    with store.open_episode(paths[args.episode]) as f, reading(paths[args.episode]):
+    with store.open_episode(paths[args.episode]) as f:
         steps = f["image_steps"][:]
         idx = np.unique(np.linspace(0, len(steps) - 1, min(args.frames, len(steps))).round().astype(int))
         imgs = {c: f["images"][c][idx] for c in CAMERAS}  # (F, H, W, 3) each

@@ -95,7 +95,8 @@ def cmd_check(args: argparse.Namespace) -> int:
 
 # ---------------------------------------------------------------------- render
 def cmd_render(args: argparse.Namespace) -> int:
-    from wamplan.envs.core import EnvConfig, InsertionEnv
+    from wamplan.envs.config import EnvConfig
+    from wamplan.envs.core import InsertionEnv
     from wamplan.envs.media import save_views
 
     require_seeds(args.seed, flag="--seed")
@@ -111,7 +112,8 @@ def cmd_render(args: argparse.Namespace) -> int:
 def cmd_rollout(args: argparse.Namespace) -> int:
     from wamplan.progress import progress_bar
 
-    from wamplan.envs.core import EnvConfig, InsertionEnv
+    from wamplan.envs.config import EnvConfig
+    from wamplan.envs.core import InsertionEnv
     from wamplan.envs.media import write_video
     from wamplan.policies.rollout import run_episode
     from wamplan.evaluation.build import load_policy

@@ -8,7 +8,7 @@ import argparse
 import dataclasses
 
 from wamplan.config import add_arguments, from_args
-from wamplan.envs.core import EnvConfig
+from wamplan.envs.config import EnvConfig
 from wamplan.evaluation.config import EvalConfig
 from wamplan.planning import CostConfig
 from wamplan.cli.planner_options import add_planner_arguments, planner_config_from_args

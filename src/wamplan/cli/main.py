@@ -9,8 +9,8 @@ a handler is a function ``(args) -> int``.
 at its top (the standard library, ``wamplan.config``) and adds each command with :func:`add_command`, whose
 options (generated from config classes that may import torch or ManiSkill) are built only when that command is
 chosen. The help of such a command is kept in a cache (``$XDG_CACHE_HOME/wamplan/help``, or
-``$WAMPLAN_CACHE_DIR/help``; keyed by the sources of this package) once built, so asking again needs none of
-those imports.
+``$WAMPLAN_CACHE_DIR/help``; one file per checkout, refreshed when its sources change) once built, so asking
+again needs none of those imports.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ import json
 import os
 import shutil
 import sys
+from functools import partial
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
@@ -70,27 +71,25 @@ class _LazySubParsers(argparse._SubParsersAction):
         self._builders[name] = (build, cache_help)
         return p
 
-    def build(self, name: str) -> argparse.ArgumentParser:
-        """The parser of sub-command ``name``, its options added (once)."""
+    def build(self, name: str, asks_help: bool = False) -> argparse.ArgumentParser:
+        """The parser of sub-command ``name``, its options added (once). ``asks_help``: the command line asks for
+        this command's help, which a cached copy answers (and exits) without building; once built, it is cached."""
+        sub = self._name_parser_map[name]
         if name in self._builders:
-            build, _ = self._builders.pop(name)
-            build(self._name_parser_map[name])
-        return self._name_parser_map[name]
-
-    def __call__(self, parser, namespace, values, option_string=None):
-        name, rest = values[0], values[1:]
-        if name in self._builders:
-            sub = self._name_parser_map[name]
             build, cache_help = self._builders.pop(name)
-            asks_help = cache_help and _asks_help(rest)
+            asks_help = cache_help and asks_help
             if asks_help and _print_cached_help(sub.prog):
                 sub.exit(0)
             build(sub)
             if asks_help:
                 _cache_help(sub.prog, sub.format_help())
-        sub = self._name_parser_map.get(name)
-        if sub is None:  # argparse's "invalid choice" error
+        return sub
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        name, rest = values[0], values[1:]
+        if name not in self._name_parser_map:  # argparse's "invalid choice" error
             return super().__call__(parser, namespace, values, option_string)
+        sub = self.build(name, asks_help=_asks_help(rest))
         if self.dest is not argparse.SUPPRESS:
             setattr(namespace, self.dest, name)
         subnamespace, extras = sub.parse_known_args(rest, None)
@@ -110,8 +109,18 @@ def add_command(sub: argparse._SubParsersAction, name: str, build: Callable[[arg
 def add_group(sub: argparse._SubParsersAction, name: str, build: Callable[[argparse.ArgumentParser], None],
               **kwargs: Any) -> argparse.ArgumentParser:
     """Add the command family ``name`` (e.g. ``wm``) whose ``build(parser)`` adds its sub-commands (with
-    :func:`add_command`) when it is chosen; ``build`` itself must stay cheap (its help is not cached)."""
-    return _add(sub, name, build, False, **kwargs)
+    :func:`add_command`) when it is chosen; ``build`` itself must stay cheap (its help is not cached). The family
+    alone (``wamplan wm``) prints its help."""
+    def build_group(parser: argparse.ArgumentParser) -> None:
+        parser.set_defaults(func=partial(_print_help, parser))  # a chosen sub-command sets its own func
+        build(parser)
+
+    return _add(sub, name, build_group, False, **kwargs)
+
+
+def _print_help(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    parser.print_help()
+    return 2
 
 
 def _add(sub: argparse._SubParsersAction, name: str, build: Callable[[argparse.ArgumentParser], None],
@@ -134,15 +143,26 @@ def _asks_help(args: list[str]) -> bool:
 
 
 # ---------------------------------------------------------------------------------------------- help cache
-def _help_cache() -> Path:
-    """The help cache of these sources: ``$WAMPLAN_CACHE_DIR`` (default ``$XDG_CACHE_HOME/wamplan``)/help/KEY.json."""
+def _help_cache() -> tuple[Path, str]:
+    """This checkout's help cache, ``$WAMPLAN_CACHE_DIR`` (default ``$XDG_CACHE_HOME/wamplan``)/help/PLACE.json
+    (PLACE: a hash of the package's path and the Python version), and the stamp of its sources now. One file per
+    checkout: checkouts that share the cache never touch each other's file."""
     root = Path(os.environ.get("WAMPLAN_CACHE_DIR") or
                 Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "wamplan")
     src = Path(__file__).resolve().parents[1]  # the wamplan package
-    stamp = [sys.version, str(src)] + [f"{p.relative_to(src)}:{p.stat().st_mtime_ns}:{p.stat().st_size}"
-                                       for p in sorted(src.rglob("*.py"))]
-    key = hashlib.sha1("\n".join(stamp).encode()).hexdigest()[:16]
-    return root / "help" / f"{key}.json"
+    place = hashlib.sha1(f"{sys.version}\n{src}".encode()).hexdigest()[:16]
+    files = [f"{p.relative_to(src)}:{p.stat().st_mtime_ns}:{p.stat().st_size}" for p in sorted(src.rglob("*.py"))]
+    return root / "help" / f"{place}.json", hashlib.sha1("\n".join(files).encode()).hexdigest()[:16]
+
+
+def _cached_help(path: Path, stamp: str) -> dict[str, str]:
+    """The help texts cached in ``path`` for the sources of ``stamp`` (none when the sources have changed)."""
+    try:
+        cached = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+    texts = cached.get("help") if isinstance(cached, dict) and cached.get("stamp") == stamp else None
+    return texts if isinstance(texts, dict) else {}
 
 
 def _help_key(prog: str) -> str:
@@ -150,10 +170,7 @@ def _help_key(prog: str) -> str:
 
 
 def _print_cached_help(prog: str) -> bool:
-    try:
-        text = json.loads(_help_cache().read_text()).get(_help_key(prog))
-    except (OSError, ValueError):
-        return False
+    text = _cached_help(*_help_cache()).get(_help_key(prog))
     if text is None:
         return False
     sys.stdout.write(text)
@@ -162,16 +179,13 @@ def _print_cached_help(prog: str) -> bool:
 
 def _cache_help(prog: str, text: str) -> None:
     """Remember ``prog``'s help for this version of the sources; a cache that cannot be written is skipped."""
-    path = _help_cache()
+    path, stamp = _help_cache()
+    cached = _cached_help(path, stamp)  # the help of older sources is dropped
+    cached[_help_key(prog)] = text
     try:
-        cached = json.loads(path.read_text()) if path.is_file() else {}
-        cached[_help_key(prog)] = text
         path.parent.mkdir(parents=True, exist_ok=True)
-        for old in path.parent.glob("*.json"):  # help of older sources
-            if old != path:
-                old.unlink(missing_ok=True)
         tmp = path.with_name(f".{path.name}.{os.getpid()}")
-        tmp.write_text(json.dumps(cached))
+        tmp.write_text(json.dumps({"stamp": stamp, "help": cached}))
         os.replace(tmp, path)
     except (OSError, ValueError):
         pass  # a read-only or damaged cache only costs speed

@@ -17,7 +17,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def _wam_commands(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="wam_command", metavar="WAM_COMMAND")
-    parser.set_defaults(func=lambda args: (parser.print_help(), 2)[1])
     add_command(sub, "serve", _serve_options,
                 help="serve a WAM checkpoint at http://HOST:PORT/act (Cosmos Policy protocol)")
     add_command(sub, "viz", _viz_options, help="a WAM's predicted t+H views beside the real ones, on a stored episode")

@@ -209,7 +209,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from wamplan.data.features import feature_key
     from wamplan.data.readers import BranchGroups, WorldModelWindows
     from wamplan.worldmodel.stores import encode_stores
-    from wamplan.worldmodel.train import evaluate_predictor, evaluate_siblings, load_world_model
+    from wamplan.worldmodel.train import evaluate_predictor, load_world_model
 
     require_file(args.json, "--json")
     model, enc = load_world_model(args.ckpt)
@@ -224,8 +224,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
     groups = BranchGroups(stores, model.cfg.frameskip, model.cfg.context, args.horizon, split=args.split,
                           val_fraction=args.val_fraction, features=feature_key(enc.config_dict()))
     if len(groups):  # the data has counterfactual branches: how well the model tells sibling chunks apart
-        m.update(evaluate_siblings(model, groups, args.horizon), sibling_groups=len(groups))
-        m.update(_phase_report(model, groups, args))
+        report = _phase_report(model, groups, args)
+        pooled = report["phases"]["all"]  # train.evaluate_siblings's figures
+        m.update({k: pooled[k] for k in (f"sib_mse_h{args.horizon}", f"sib_rel_h{args.horizon}",
+                                         f"sib_gain_h{args.horizon}")}, sibling_groups=pooled["groups"])
+        m.update(report)
     out = dict(ckpt=str(args.ckpt), data=args.data, split=args.split, windows=len(ds), horizon=args.horizon,
                frameskip=model.cfg.frameskip, **m)
     print(json.dumps(out, indent=1))
@@ -312,7 +315,8 @@ def _seed_list(spec: str, flag: str = "--seeds") -> list[int]:
 
 
 def cmd_fidelity(args: argparse.Namespace) -> int:
-    from wamplan.envs.core import EnvConfig, InsertionEnv
+    from wamplan.envs.config import EnvConfig
+    from wamplan.envs.core import InsertionEnv
     from wamplan.planning.dynamics import learned_dynamics
     from wamplan.evaluation.fidelity import FidelityConfig, Scored, format_fidelity, run_fidelity
     from wamplan.planning.policy import PlannedPolicyConfig

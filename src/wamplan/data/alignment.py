@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from wamplan.data.store import EpisodeStore, reading
+from wamplan.data.store import EpisodeStore
 from wamplan.policies.expert import quat_yaw, wrap_quarter  # the expert's yaw of a wxyz quaternion, mod 90°
 
 NEAR = 0.03  # m: "over the mount" = cube centre within this of the hole's axis
@@ -67,10 +67,10 @@ def store_alignment(root: str | Path, near: float = NEAR) -> list[EpisodeAlignme
     hole, cube_half = hole_position(store.env), float(store.env.get("cube_half_size", 0.02))
     out = []
     for p in store.episode_paths():
-        with store.open_episode(p) as f, reading(p):
-            out.append(episode_alignment(f["cube_pose"][:], f["tcp_pose"][:], hole, cube_half, near,
-                                         source=str(f.attrs["source"]), seed=int(f.attrs["seed"]),
-                                         outcome=str(f.attrs["outcome"])))
+        with store.open_episode(p) as f:
+            cube, tcp = f["cube_pose"][:], f["tcp_pose"][:]  # (T+1, 7) each
+            source, seed, outcome = str(f.attrs["source"]), int(f.attrs["seed"]), str(f.attrs["outcome"])
+        out.append(episode_alignment(cube, tcp, hole, cube_half, near, source=source, seed=seed, outcome=outcome))
     return out
 
 

@@ -20,7 +20,8 @@ from typing import Any, Callable, Iterator
 
 from wamplan.data.record import collect_one
 from wamplan.data.store import EpisodeData, EpisodeStore
-from wamplan.envs.core import EnvConfig, InsertionEnv
+from wamplan.envs.config import EnvConfig
+from wamplan.envs.core import InsertionEnv
 from wamplan.errors import UserError, require_paths, require_seeds
 from wamplan.parallel import Backend, imap_workers
 from wamplan.policies.base import Policy, make_policy

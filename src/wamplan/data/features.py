@@ -63,9 +63,8 @@ def encode_store(root: str | Path, encoder, batch_size: int = 64) -> Iterator[st
             check_features(final, key)
             continue
         with store.open_episode(path) as f:
-            with reading(path):
-                frames = {c: f["images"][c][:] for c in CAMERAS}  # (K, H, W, 3) each
-            views = [encoder.encode_batched(frames[c], batch_size) for c in CAMERAS]  # V x (K, N, D)
+            frames = {c: f["images"][c][:] for c in CAMERAS}  # (K, H, W, 3) each
+        views = [encoder.encode_batched(frames[c], batch_size) for c in CAMERAS]  # V x (K, N, D)
         z = torch.stack(views, dim=1).to(torch.float16).numpy()  # (K, V, N, D)
         with atomic_h5(final, libver=CHECKSUMMED_FORMAT) as g:
             g.create_dataset("z", data=z, chunks=(1, *z.shape[1:]), fletcher32=True)

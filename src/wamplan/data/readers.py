@@ -28,7 +28,6 @@ from torch.utils.data import Dataset
 from wamplan.data.features import check_features, feature_dir
 from wamplan.data.store import EpisodeStore, StoreError, parent_episode, reading
 from wamplan.envs.contract import CAMERAS
-from wamplan.errors import reason
 
 
 def split_of(source: str, seed: int, val_fraction: float) -> str:
@@ -70,7 +69,7 @@ def index_episodes(stores: Sequence[str | Path], split: str = "all", val_fractio
                     raise StoreError(f"{root} has no '{features}' features for {p.name}; run `wamplan wm encode "
                                      f"--data {root}` with the same encoder settings first")
                 check_features(feat, features)
-            with store.open_episode(p) as f, reading(p):
+            with store.open_episode(p) as f:
                 src, seed = str(f.attrs["source"]), int(f.attrs["seed"])
                 if sources is not None and src not in sources:
                     continue
@@ -104,6 +103,10 @@ class _H5Cache:
         return {"_files": {}}
 
 
+_ITEM_FIX = ("`wamplan data check STORE` names every damaged episode: delete those and re-run the `wamplan collect` "
+             "(or `wamplan wm encode`) that wrote them")
+
+
 class _EpisodeDataset(Dataset):
     """The body every reader shares: the indexed episodes of ``stores``, a flat list of items (each a tuple
     whose first entry is the episode index), and HDF5 files opened lazily per process."""
@@ -124,13 +127,8 @@ class _EpisodeDataset(Dataset):
         return len(self.items)
 
     def __getitem__(self, idx: int) -> dict[str, torch.Tensor]:
-        try:
+        with reading(" or ".join(self._files(idx)), fix=_ITEM_FIX):  # a damaged chunk (checksum) or file
             return self._read(idx)
-        except (OSError, KeyError, RuntimeError) as e:  # a damaged chunk (checksum) or file: name the files
-            files = ", ".join(self._files(idx))
-            raise StoreError(f"reading {files} failed ({reason(e)}): a damaged file; `wamplan data check STORE` names "
-                             f"every damaged episode: delete those and re-run the `wamplan collect` (or `wamplan wm "
-                             f"encode`) that wrote them") from None
 
     def _read(self, idx: int) -> dict[str, torch.Tensor]:
         raise NotImplementedError

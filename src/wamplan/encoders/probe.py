@@ -40,7 +40,7 @@ import torch
 
 from wamplan.config import field, require
 from wamplan.data.alignment import hole_position
-from wamplan.data.store import EpisodeStore, reading
+from wamplan.data.store import EpisodeStore
 from wamplan.errors import UserError
 from wamplan.envs.contract import CAMERAS
 
@@ -93,7 +93,7 @@ def load_probe_data(stores: Sequence[str | Path], encoders: Sequence[Any], batch
                         f"collect more with `wamplan collect`")
     for i, (store, path) in enumerate(paths):
         hole = hole_position(store.env)
-        with store.open_episode(path) as f, reading(path):
+        with store.open_episode(path) as f:
             steps = f["image_steps"][:]  # (K,)
             cube = f["cube_pose"][:][steps, :3]  # (K, 3)
             tcp = f["tcp_pose"][:][steps, :3]  # (K, 3)

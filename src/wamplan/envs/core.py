@@ -1,27 +1,22 @@
 """``InsertionEnv``: wamplan's wrapper around one ``CubeInsertion-v1`` instance (CPU simulator).
 
 It speaks numpy and :class:`~wamplan.envs.contract.Observation`, renders cameras only on demand
-(physics ≈ 4 ms a step, three cameras ≈ 150 ms), tracks the furthest stage an episode reached, and
+(physics is cheap, a camera picture costs tens of milliseconds), tracks the furthest stage an episode reached, and
 saves/restores complete snapshots, including what ManiSkill's ``get_state_dict`` leaves out
 (controller targets, joint drive targets, the step counter). ``reset`` starts every episode as in a fresh
 process, so an episode's record depends only on its seed and its policy.
 
 ``simulate`` is a planner's fast path (the simulator oracle): it rolls candidate chunks out from a
 snapshot with the controller and physics only (ManiSkill's ``_step_action``: no per-step evaluation,
-observation or reward; ~2.5x cheaper than ``step``) and renders only the final frame, skipping for each
+observation or reward) and renders only the final frame, skipping for each
 camera the bodies that lie wholly outside its view frustum. Its terminal states and pictures are
 bit-identical to ``restore``, ``step`` and ``render``. One restore is as exact as several: PhysX's hidden
 state carries over from the previous rollout (cached contacts, we believe), and no number of
 ``set_state_dict`` calls clears it.
 
-Rendering, measured here (``benchmarks/oracle.py --profile``): lavapipe spends most of a picture shading
-the Panda's 150k triangles on the calling thread, whatever the resolution (3 cameras: ~60 ms of CPU at
-224 px, ~40 ms at 64 px), so culling is what pays (~35 % less at 224 px; the wrist camera skips 8–9 of
-the 15 bodies). What did not: ``LP_NUM_THREADS`` (0, 1, 2 or the default) leaves the CPU per picture
-unchanged, and fewer threads were not faster in wall time (slower in most rounds), with one worker or
-with two workers on the two cores; capturing all cameras before reading any back, and one
-``update_render`` for several captures (it costs 0.06 ms), change nothing measurable. The ``minimal``
-shader already writes only colour and one position/segmentation target.
+Rendering cost is dominated by shading the robot's meshes on the calling thread, whatever the resolution, so
+culling bodies outside a camera's frustum is what pays (profile: ``benchmarks/oracle.py --profile``; figures in
+docs/results.md).
 """
 
 from __future__ import annotations
@@ -35,7 +30,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from wamplan.envs.config import EnvConfig  # (its home before: many modules import it from here)
+from wamplan.envs.config import EnvConfig
 from wamplan.envs.contract import ACTION_DIM, CAMERAS, CUBE_METRICS, ENV_ID, STAGES, Observation
 
 _CORNERS = np.array(list(itertools.product((0, 1), repeat=3)))  # (8, 3): min (0) or max (1) per axis
@@ -91,7 +86,7 @@ class InsertionEnv:
         """Start the episode of ``seed``, as a fresh process would: its outcome depends only on the seed and the
         policy, never on what ran before. Once physics has stepped, the scene is rebuilt (ManiSkill's
         reconfigure, ~0.2 s): resetting poses, controllers and drive targets is not enough, as PhysX keeps
-        hidden solver state across ``reset`` (measured: 5 of 12 noisy-expert seeds ran differently after others)."""
+        hidden solver state across ``reset`` (an episode run after others could run differently; docs/results.md)."""
         self.seed = int(seed)
         self.base.reset(seed=self.seed, options=dict(reconfigure=self._stepped))
         if self._stepped:

@@ -8,11 +8,15 @@ from dataclasses import dataclass
 from typing import Any
 
 from wamplan.config import field, from_dict, require
-from wamplan.envs.core import EnvConfig
+from wamplan.envs.config import EnvConfig
 from wamplan.evaluation.conditions import CONDITIONS
 from wamplan.planning import PLANNERS, CostConfig
 from wamplan.planning.defaults import DEFAULT_PLANNER
 from wamplan.planning.policy_config import PlannedPolicyConfig
+
+
+# A learned condition's dynamics -> the EvalConfig field holding its world-model checkpoints.
+_WORLD_MODEL_FIELDS = {"learned-plain": "wm_plain", "learned-augmented": "wm_augmented"}
 
 
 def _env_default() -> EnvConfig:
@@ -62,6 +66,20 @@ class EvalConfig:
         require(0.0 <= self.oracle_blend <= 1.0, f"--oracle-blend {self.oracle_blend} is outside [0, 1]; 0 plans in "
                 "the world model alone, 1 with the simulator's dynamics")
 
+    @staticmethod
+    def world_model_flag(condition: int) -> str | None:
+        """The option naming the world model(s) ``condition`` plans in (``--wm-plain``, ``--wm-augmented``);
+        None when it plans in none."""
+        attr = _WORLD_MODEL_FIELDS.get(CONDITIONS[condition].dynamics)
+        return None if attr is None else "--" + attr.replace("_", "-")
+
+    def world_models(self, condition: int) -> list[str]:
+        """The world-model checkpoints ``condition`` plans in (several: an ensemble); [] when it plans in none
+        or none was given."""
+        attr = _WORLD_MODEL_FIELDS.get(CONDITIONS[condition].dynamics)
+        paths = getattr(self, attr) if attr else ""
+        return paths.split(",") if paths else []
+
     def check_for(self, conditions: list[int]) -> None:
         from wamplan.errors import UserError, require_paths
 
@@ -80,11 +98,12 @@ class EvalConfig:
             raise UserError(f"--oracle-blend blends a world model's predictions, but conditions {conditions} plan in "
                             "none; add condition 6 or 7, or drop --oracle-blend")
         for c in conditions:
-            need = {"learned-plain": ("wm_plain", "--wm-plain"), "learned-augmented": ("wm_augmented", "--wm-augmented")}
-            if CONDITIONS[c].dynamics in need:
-                attr, flag = need[CONDITIONS[c].dynamics]
-                if not getattr(self, attr):
-                    raise UserError(f"condition {c} needs {flag} CKPT (a world model from `wamplan wm train`)")
-                require_paths(getattr(self, attr).split(","), flag, "train it or fix the path")
+            flag = self.world_model_flag(c)
+            if flag is None:
+                continue
+            paths = self.world_models(c)
+            if not paths:
+                raise UserError(f"condition {c} needs {flag} CKPT (a world model from `wamplan wm train`)")
+            require_paths(paths, flag, "train it or fix the path")
         if self.wam:
             require_paths([self.wam], "--wam", "train one with `wamplan wam train` or fix the path")

@@ -25,7 +25,7 @@ from wamplan.evaluation.conditions import CONDITIONS
 from wamplan.evaluation.config import EvalConfig
 from wamplan.evaluation.records import append_record, read_records, record_key
 from wamplan.parallel import Backend, imap_workers
-from wamplan.planning.policy import DISCARDED
+from wamplan.planning.gates import DISCARDED
 from wamplan.planning.defaults import DEFAULT_PLANNER
 
 TRACE_EVERY = 4  # steps between the cube's privileged samples in a record's "trace" (evaluation/trace.py)
@@ -82,7 +82,7 @@ class EvalWorker:
                 enc = self._sim_encoder()
                 dyn, paths = SimulatorDynamics(self.env, enc), []
             else:
-                paths = (cfg.wm_plain if c.dynamics == "learned-plain" else cfg.wm_augmented).split(",")
+                paths = cfg.world_models(cid)
                 dyn, enc = learned_dynamics([self._world_model(p) for p in paths])  # several: an ensemble
                 if cfg.oracle_blend > 0:  # the simulator encodes with the model's encoder: one embedding space
                     dyn = BlendedDynamics(dyn, SimulatorDynamics(self.env, enc), cfg.oracle_blend)
@@ -190,9 +190,7 @@ def _check_inputs(cfg: EvalConfig, conditions: list[int]) -> None:
 
         load_wam(cfg.wam, device="cpu").close()
     for c in sorted(set(conditions)):
-        dyn = CONDITIONS[c].dynamics
-        paths = cfg.wm_plain if dyn == "learned-plain" else cfg.wm_augmented if dyn == "learned-augmented" else ""
-        for path in filter(None, paths.split(",")):
+        for path in cfg.world_models(c):
             load_world_model(path, device="cpu")  # the predictor and its encoder
 
 

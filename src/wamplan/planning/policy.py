@@ -34,16 +34,14 @@ from wamplan.config import to_dict
 from wamplan.envs.contract import ARM, CAMERAS, Observation
 from wamplan.planning.base import Planner
 from wamplan.planning.costs import CostFn
-from wamplan.planning.decision import OPEN_LOOP, ChunkCosts, ChunkDecision, ChunkTimings
+from wamplan.planning.decision import ChunkCosts, ChunkDecision, ChunkTimings
 from wamplan.planning.dynamics import Dynamics, PlanningContext
-from wamplan.planning.gates import DISCARDED
 from wamplan.planning.history import FrameHistory, PlanningError
-from wamplan.planning.policy_config import PlannedPolicyConfig, check_fits, check_replan_every
+from wamplan.planning.policy_config import PlannedPolicyConfig, check_fits
 from wamplan.policies.base import Policy
 from wamplan.wam.base import WAM, WAMOutput
 
-__all__ = ["DISCARDED", "OPEN_LOOP", "ChunkCosts", "ChunkDecision", "ChunkTimings", "PlannedPolicy",
-           "PlannedPolicyConfig", "PlanningError", "check_replan_every"]
+__all__ = ["PlannedPolicy", "PlannedPolicyConfig"]  # the policy and its config, which most callers import with it
 
 
 class PlannedPolicy(Policy):
@@ -198,7 +196,7 @@ class PlannedPolicy(Policy):
         if self.config.warm_start == "residual" and correction is not None:
             init = seed.clone()  # (H_opt, A)
             init[:, ARM] += self.config.warm_weight * correction[:, ARM]  # arm only: the gripper stays the WAM's
-        result = self.planner.plan(init, objective, seed=self.config.plan_seed + self._episode_seed * 1000 + obs.step)
+        result = self.planner.plan(init, objective, seed=self._plan_seed(obs.step))
         self.last_plan = result
         planned = self._damped(result.actions[:covered], seed)  # (H_opt, A) what is executed of the plan
         if self.config.warm_start != "none":
@@ -208,7 +206,7 @@ class PlannedPolicy(Policy):
                                                     lambda: float(objective(self.clip(planned)[None])[0]))
         if reason is not None:
             self._correction = None  # the WAM's chunk ran: nothing of this plan carries over
-        init_cost = float(result.seed_cost) if result.seed_cost is not None else float("nan")
+        init_cost = float(result.seed_cost)  # NaN without include_mean
         costs = ChunkCosts(seed=init_cost if wam_cost is None else wam_cost, best=float(result.best_cost),
                            plan=plan_cost, init=None if init is seed else init_cost)
         change = (plan[:covered] - seed_out.actions[:covered]).mean(0)  # (A,) what planning changed, per action dim
@@ -224,8 +222,7 @@ class PlannedPolicy(Policy):
         self.dynamics.prepare(self.history.planning_context(obs.step) if self.dynamics.needs_history else None)
         covered = self.dynamics.covered(len(rest))
         init = torch.as_tensor(rest[:covered], device=self.device)  # (R_opt, A)
-        result = self.planner.plan(init, self._replan["objective"],
-                                   seed=self.config.plan_seed + self._episode_seed * 1000 + obs.step)
+        result = self.planner.plan(init, self._replan["objective"], seed=self._plan_seed(obs.step))
         planned = self._damped(result.actions[:covered], init)  # (R_opt, A)
         plan = np.concatenate([planned.cpu().numpy(), rest[covered:]]).astype(np.float32)  # (R, A)
         offset = obs.step % self.chunk
@@ -286,6 +283,10 @@ class PlannedPolicy(Policy):
         if bias_prev is not None:
             left = float((self._bias - self.config.bias_correction * bias_prev).square().mean())
         return self._bias, float(self._bias.square().mean()), left
+
+    def _plan_seed(self, step: int) -> int:
+        """The planner's random seed for a search at ``step`` of this episode: reproducible per episode and step."""
+        return self.config.plan_seed + self._episode_seed * 1000 + step
 
     def _damped(self, actions: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
         """(L, A) planned actions -> (L, A): ``ref`` (the WAM's chunk, or the plan a re-plan refines) plus

@@ -31,9 +31,26 @@ def planner_settings(name: str = DEFAULT_PLANNER, candidates: int = 32, iteratio
     return settings
 
 
-def _sync(device: torch.device) -> None:
+def sync(device: torch.device) -> None:
+    """Wait for the work queued on ``device`` (an accelerator's; a CPU runs synchronously)."""
     if device.type != "cpu":
-        torch.accelerator.synchronize()
+        torch.accelerator.synchronize(device)
+
+
+def timed(fn: Callable[[], Any], device: torch.device) -> float:
+    """Wall seconds of ``fn()``, ``device`` synchronised before and after."""
+    sync(device)
+    t0 = time.perf_counter()
+    fn()
+    sync(device)
+    return time.perf_counter() - t0
+
+
+def median_time(fn: Callable[[], Any], repeats: int, device: torch.device, warmup: int = 1) -> float:
+    """Median wall seconds of ``fn()`` over ``repeats`` calls (:func:`timed`) after ``warmup`` untimed calls."""
+    for _ in range(warmup):
+        fn()
+    return statistics.median(timed(fn, device) for _ in range(repeats))
 
 
 def make_search(model, context: PlanningContext, target: torch.Tensor, planner: str = DEFAULT_PLANNER,
@@ -46,13 +63,12 @@ def make_search(model, context: PlanningContext, target: torch.Tensor, planner: 
     target = target.to(dyn.device, next(model.parameters()).dtype)
     seed_actions = torch.zeros(dyn.covered(chunk), model.cfg.action_dim, device=dyn.device)  # (L, A)
 
-    def search(seed: int) -> float:
-        _sync(dyn.device)
-        t0 = time.perf_counter()
+    def run(seed: int) -> None:
         dyn.prepare(context)
         optimiser.plan(seed_actions, lambda c: cost(dyn.terminal(c), target), seed=seed)
-        _sync(dyn.device)
-        return time.perf_counter() - t0
+
+    def search(seed: int) -> float:
+        return timed(lambda: run(seed), dyn.device)
 
     return search
 

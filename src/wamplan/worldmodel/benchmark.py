@@ -12,11 +12,11 @@ task at its boundary, read from the parent's record at that step (the last conte
 * ``carry``: ``lifted`` anywhere else;
 * ``grasp``: not ``lifted`` (approach, closing, lift-off; also a cube dropped back on the table).
 
-Per phase (and over all groups) :func:`phase_table` pools, as ``train.evaluate_siblings`` does over groups:
-``sib_rel_hK`` (the share of the between-sibling variation of outcomes K frames on that the model misses),
-``sib_gain_hK`` (the slope of its predicted sibling differences on the true ones) and the latent error of
-the siblings' windows, ``z_mse_h1`` / ``z_mse_hK`` (per-element MSE of the features, as ``wm eval``'s
-``z_mse``) with ``copy_z_mse_hK`` (copying the current frame) for scale.
+Per phase (and over all groups) :func:`phase_table` pools with ``train.pool_siblings`` (the ``all`` row is
+``train.evaluate_siblings``'s): ``sib_rel_hK`` (the share of the between-sibling variation of outcomes K frames
+on that the model misses), ``sib_gain_hK`` (the slope of its predicted sibling differences on the true ones)
+and the latent error of the siblings' windows, ``z_mse_h1`` / ``z_mse_hK`` (per-element MSE of the features,
+as ``wm eval``'s ``z_mse``) with ``copy_z_mse_hK`` (copying the current frame) for scale.
 """
 
 from __future__ import annotations
@@ -27,14 +27,14 @@ from pathlib import Path
 import h5py
 import numpy as np
 import torch
-from torch.utils.data import DataLoader, Dataset
+from torch.utils.data import Dataset
 
 from wamplan.data.alignment import NEAR, hole_position
 from wamplan.data.readers import BranchGroups
 from wamplan.data.store import EpisodeStore
 from wamplan.envs.contract import STAGES
 from wamplan.worldmodel.predictor import WorldModelPredictor
-from wamplan.worldmodel.train import _split
+from wamplan.worldmodel.train import pool_siblings, sibling_statistics
 
 PHASES = ("grasp", "carry", "alignment", "descent")
 ALL = "all"
@@ -92,62 +92,20 @@ def phase_counts(root: str | Path, frameskip: int = 4, history: int = 3, horizon
     return {p: labels.count(p) for p in PHASES} | {ALL: len(labels), "siblings": groups.group}
 
 
-def _group_stats(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int) -> dict[str, torch.Tensor]:
-    """Per group of a batch (z (B, G, T, V, N, D), ...): each (B, K), means over the siblings and elements."""
-    b, g = batch["z"].shape[:2]
-    flat = {k: batch[k].flatten(0, 1) for k in ("z", "q", "a")}  # (B G, T, ...)
-    (zc, qc, ac), a_future, (zt, _) = _split(model, flat, horizon)
-    zp, _ = model.rollout(zc, qc, ac, a_future)  # (B G, K, V, N, D)
-    copy = zc[:, -1:].expand_as(zt)  # (B G, K, V, N, D)
-    zp, zt, copy = (x.unflatten(0, (b, g)) for x in (zp, zt, copy))  # (B, G, K, V, N, D)
-    dp, dt = zp - zp.mean(dim=1, keepdim=True), zt - zt.mean(dim=1, keepdim=True)  # relative to the group mean
-
-    def per_group(x: torch.Tensor) -> torch.Tensor:  # (B, G, K, V, N, D) -> (B, K)
-        return x.flatten(3).mean(dim=-1).mean(dim=1)
-
-    return {"err": per_group((dp - dt).pow(2)), "spread": per_group(dt.pow(2)), "cross": per_group(dp * dt),
-            "z_mse": per_group((zp - zt).pow(2)), "copy_z_mse": per_group((copy - zt).pow(2))}
-
-
-@torch.no_grad()
-def _sums(model: WorldModelPredictor, groups: Dataset, horizon: int, batch_size: int,
-          device: torch.device) -> dict[str, torch.Tensor]:
-    """Each statistic of :func:`_group_stats` for every group of ``groups``, (G_total, K) float64."""
-    parts: dict[str, list[torch.Tensor]] = {}
-    for batch in DataLoader(groups, batch_size=batch_size, shuffle=False):
-        for k, v in _group_stats(model, {k: v.to(device) for k, v in batch.items()}, horizon).items():
-            parts.setdefault(k, []).append(v.double().cpu())
-    return {k: torch.cat(v) for k, v in parts.items()}
-
-
-def _row(s: dict[str, torch.Tensor], horizon: int) -> dict[str, float]:
-    """Pooled statistics of some groups' per-group values s (n, K)."""
-    spread = max(float(s["spread"][:, -1].sum()), 1e-12)
-    k = horizon
-    return {"groups": len(s["err"]), f"sib_rel_h{k}": float(s["err"][:, -1].sum()) / spread,
-            f"sib_gain_h{k}": float(s["cross"][:, -1].sum()) / spread,
-            "z_mse_h1": float(s["z_mse"][:, 0].mean()), f"z_mse_h{k}": float(s["z_mse"][:, -1].mean()),
-            f"copy_z_mse_h{k}": float(s["copy_z_mse"][:, -1].mean())}
-
-
 def phase_table(model: WorldModelPredictor, groups: BranchGroups, horizon: int, batch_size: int = 8,
                 phases: Sequence[str] | None = None, device: torch.device | None = None) -> dict[str, dict[str, float]]:
     """Phase (then ``"all"``) -> pooled statistics (module docstring) of ``groups``; phases without groups are
     left out. ``phases``: the groups' labels (default: :func:`group_phases`)."""
-    device = device or next(model.parameters()).device
     labels = list(phases) if phases is not None else group_phases(groups)
     if len(labels) != len(groups):
         raise ValueError(f"{len(labels)} phase labels for {len(groups)} groups")
-    was_training = model.training
-    model.eval()
-    s = _sums(model, groups, horizon, batch_size, device)
-    model.train(was_training)
+    s = sibling_statistics(model, groups, horizon, batch_size, device)  # each (G_total, K)
     out = {}
     for phase in PHASES:
         idx = torch.tensor([i for i, p in enumerate(labels) if p == phase], dtype=torch.long)
         if len(idx):
-            out[phase] = _row({k: v[idx] for k, v in s.items()}, horizon)
-    out[ALL] = _row(s, horizon)
+            out[phase] = pool_siblings({k: v[idx] for k, v in s.items()}, horizon)
+    out[ALL] = pool_siblings(s, horizon)
     return out
 
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from wamplan.config import add_field_argument, field, require
-from wamplan.train_loop import LoopConfig
+from wamplan.train_loop import AdamWConfig
 
 ACTION_CONDITIONING = ("input", "adaln")  # PredictorConfig.action_conditioning
 
@@ -25,14 +25,8 @@ class PredictorConfig:
     --mlp-dim``, :data:`ARCHITECTURE_FIELDS`), and so are the variants ``action_conditioning`` and
     ``action_tokens``; every default is the model the shipped checkpoints are.
 
-    Not an option: a token grid per view (finer wrist tokens, coarser front and side). One N for all V views is
-    the (V, N, D) contract that the encoders' output, the feature caches, ``z`` here, the planning costs, the
-    WAM's encoded target and the decoder all share. Mixed grids would make that layout ragged in each of them
-    (or need the predictor to pool some views and unpool its predictions, which blurs the planner's target on
-    those views), not one change here. The cheap route is a finer grid for every view: an encoder with
-    ``patch_size`` 8 (``wm probe --encoder-kwargs '{"patch_size": 8}'`` measures what it sees) gives N = 64, four
-    times the tokens and 6 times the planning time at this width (7.8 s against 1.3 s a chunk, measured side by
-    side on one shared core): past the 1 s budget unless the model or the search shrinks.
+    One token grid (N) for all V views, not one per view: the (V, N, D) layout that the encoders, feature caches,
+    costs, WAM and decoder share would turn ragged.
     """
 
     encoder: str = field("patch-pixels", "registry name of the frozen encoder whose features this predicts")
@@ -147,29 +141,18 @@ class DecoderConfig:
         return int(round(self.num_patches ** 0.5))
 
 
-def _require_betas(owner: str, betas: tuple[float, ...]) -> None:
-    require(len(betas) == 2 and all(0 <= b < 1 for b in betas),
-            f"{owner}.betas must be two numbers in [0, 1), got {betas}")
+@dataclass(frozen=True)
+class DecoderTrainConfig(AdamWConfig):
+    """Optimisation of the decoder: the loop's fields and AdamW's betas (:class:`~wamplan.train_loop.AdamWConfig`);
+    none of the predictor's loss, window or sibling fields."""
 
 
 @dataclass(frozen=True)
-class DecoderTrainConfig(LoopConfig):
-    """Optimisation of the decoder: the loop's fields (:class:`~wamplan.train_loop.LoopConfig`) and AdamW's
-    betas; none of the predictor's loss, window or sibling fields."""
+class TrainConfig(AdamWConfig):
+    """Optimisation of the predictor: the loop's fields and AdamW's betas (:class:`~wamplan.train_loop.AdamWConfig`),
+    eq. 2's K-step discounted loss, where an episode's windows end, and the optional sibling loss on
+    counterfactual branch groups."""
 
-    betas: tuple[float, ...] = field((0.9, 0.999), "AdamW betas")
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        _require_betas("DecoderTrainConfig", self.betas)
-
-
-@dataclass(frozen=True)
-class TrainConfig(LoopConfig):
-    """Optimisation of the predictor: the loop's fields, AdamW's betas, eq. 2's K-step discounted loss, where
-    an episode's windows end, and the optional sibling loss on counterfactual branch groups."""
-
-    betas: tuple[float, ...] = field((0.9, 0.999), "AdamW betas")
     horizon: int = field(2, "K, autoregressive prediction steps per window (windows hold H_ctx + K frames)")
     gamma: float = field(0.95, "discount of step h's loss: gamma**(h-1)")
     loss_form: str = field("mean", "eq. 2's terms: 'mean' (per-element MSE of z plus that of q) or 'sum' (the "
@@ -188,7 +171,6 @@ class TrainConfig(LoopConfig):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        _require_betas("TrainConfig", self.betas)
         require(self.horizon >= 1, f"TrainConfig.horizon (K) must be >= 1, got {self.horizon}")
         require(0.0 < self.gamma <= 1.0, f"TrainConfig.gamma must be in (0, 1], got {self.gamma}")
         require(self.loss_form in ("mean", "sum"), f"TrainConfig.loss_form must be mean or sum, got {self.loss_form!r}")

@@ -115,7 +115,7 @@ def train_decoder(train_set: Dataset, cfg: DecoderConfig, train: DecoderTrainCon
     result = fit(model, DatasetBatches(train_set, train.num_workers, dev.type != "cpu"), decoder_loss, train,
                  run_dir=out_dir, kind=KIND, config=config, data=data, device=dev,
                  evaluate=evaluate if val_set is not None else None, resume=resume, max_steps=max_steps,
-                 betas=train.betas, progress=progress, desc="decoder", log=print if progress else None,
+                 progress=progress, desc="decoder", log=print if progress else None,
                  retired=PREDICTOR_ONLY_TRAIN_KEYS)
     return model.eval(), result.metrics
 

@@ -90,20 +90,24 @@ def window_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], hori
 
 
 def _sibling_errors(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int
-                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Per-step squared errors (K,) of the sibling-relative prediction, of predicting no difference, and the
-    mean product (K,) of the predicted and true sibling differences (for the gain: cross / spread)."""
+                    ) -> dict[str, torch.Tensor]:
+    """Per group of a batch of branch groups (z (B, G, T, V, N, D), ...), each (B, K), a mean over the siblings
+    and elements: ``err`` the squared error of the sibling-relative prediction, ``spread`` that of predicting no
+    difference, ``cross`` the product of the predicted and true sibling differences (the gain: cross / spread),
+    ``z_mse`` the siblings' plain latent error and ``copy_z_mse`` that of copying the current frame."""
     b, g = batch["z"].shape[:2]
     flat = {k: batch[k].flatten(0, 1) for k in ("z", "q", "a")}  # (B G, T, ...)
     (zc, qc, ac), a_future, (zt, _) = _split(model, flat, horizon)
     zp, _ = model.rollout(zc, qc, ac, a_future)  # (B G, K, V, N, D)
-    zp, zt = zp.unflatten(0, (b, g)), zt.unflatten(0, (b, g))  # (B, G, K, V, N, D)
+    copy = zc[:, -1:].expand_as(zt)  # (B G, K, V, N, D)
+    zp, zt, copy = (x.unflatten(0, (b, g)) for x in (zp, zt, copy))  # (B, G, K, V, N, D)
     dp, dt = zp - zp.mean(dim=1, keepdim=True), zt - zt.mean(dim=1, keepdim=True)  # relative to the group mean
 
-    def per_step(x: torch.Tensor) -> torch.Tensor:  # (B, G, K, V, N, D) -> (K,)
-        return x.flatten(3).mean(dim=-1).mean(dim=(0, 1))
+    def per_group(x: torch.Tensor) -> torch.Tensor:  # (B, G, K, V, N, D) -> (B, K)
+        return x.flatten(3).mean(dim=-1).mean(dim=1)
 
-    return per_step((dp - dt).pow(2)), per_step(dt.pow(2)), per_step(dp * dt)
+    return {"err": per_group((dp - dt).pow(2)), "spread": per_group(dt.pow(2)), "cross": per_group(dp * dt),
+            "z_mse": per_group((zp - zt).pow(2)), "copy_z_mse": per_group((copy - zt).pow(2))}
 
 
 def sibling_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int,
@@ -114,32 +118,50 @@ def sibling_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], hor
     moves with the chunk, which is all that ranking CEM's candidates uses. Visual features only, like the
     planner's cost. Logs at step K: ``sib_mse`` and ``sib_rel`` (that error over the error of predicting no
     difference: 0 exact, 1 no better than predicting none; in training, a mean of per-step ratios)."""
-    err, spread, _ = _sibling_errors(model, batch, horizon)
+    s = _sibling_errors(model, batch, horizon)
+    err, spread = s["err"].mean(dim=0), s["spread"].mean(dim=0)  # (K,)
     w = gamma ** torch.arange(horizon, device=err.device, dtype=err.dtype)  # (K,)
     return (w * err).sum(), {f"sib_mse_h{horizon}": float(err[-1].detach()),
                              f"sib_rel_h{horizon}": float((err[-1] / spread[-1].clamp_min(1e-12)).detach())}
 
 
 @torch.no_grad()
-def evaluate_siblings(model: WorldModelPredictor, groups: Dataset, horizon: int, batch_size: int = 8,
-                      device: torch.device | None = None) -> dict[str, float]:
-    """:func:`sibling_loss`'s error at step K on held-out branch groups, pooled over them: ``sib_rel_hK`` is the
-    share of how sibling chunks' outcomes differ that the model misses (1 = no better than predicting no
-    difference); ``sib_gain_hK`` the least-squares slope of the predicted sibling differences on the true ones
-    (1 = the model moves its prediction with the chunk as much as the world does; below 1 it predicts only that
-    share of a chunk's effect)."""
+def sibling_statistics(model: WorldModelPredictor, groups: Dataset, horizon: int, batch_size: int = 8,
+                       device: torch.device | None = None) -> dict[str, torch.Tensor]:
+    """Each statistic of :func:`_sibling_errors` for every group of ``groups``, (G_total, K) float64 on the CPU."""
     device = device or next(model.parameters()).device
     was_training = model.training
     model.eval()
-    err = spread = cross = 0.0
+    parts: dict[str, list[torch.Tensor]] = {}
     for batch in DataLoader(groups, batch_size=batch_size, shuffle=False):
-        e, s, c = _sibling_errors(model, {k: v.to(device) for k, v in batch.items()}, horizon)
-        n = len(batch["z"])
-        err, spread, cross = err + float(e[-1]) * n, spread + float(s[-1]) * n, cross + float(c[-1]) * n
+        for k, v in _sibling_errors(model, {k: v.to(device) for k, v in batch.items()}, horizon).items():
+            parts.setdefault(k, []).append(v.double().cpu())  # (B, K)
     model.train(was_training)
-    spread = max(spread, 1e-12)
-    return {f"sib_mse_h{horizon}": err / len(groups), f"sib_rel_h{horizon}": err / spread,  # type: ignore[arg-type]
-            f"sib_gain_h{horizon}": cross / spread}
+    return {k: torch.cat(v) for k, v in parts.items()}
+
+
+def pool_siblings(s: dict[str, torch.Tensor], horizon: int) -> dict[str, float]:
+    """Pooled statistics of some groups from their :func:`sibling_statistics` ``s`` (each (n, K)): ``groups``;
+    ``sib_mse_hK`` and ``sib_rel_hK``, the share of how sibling chunks' outcomes differ that the model misses
+    (1 = no better than predicting no difference); ``sib_gain_hK``, the least-squares slope of the predicted
+    sibling differences on the true ones (1 = the model moves its prediction with the chunk as much as the world
+    does; below 1 it predicts only that share of a chunk's effect); the siblings' latent errors ``z_mse_h1``,
+    ``z_mse_hK`` and, for scale, ``copy_z_mse_hK``."""
+    k = horizon
+    spread = max(float(s["spread"][:, -1].sum()), 1e-12)
+    return {"groups": len(s["err"]), f"sib_mse_h{k}": float(s["err"][:, -1].mean()),
+            f"sib_rel_h{k}": float(s["err"][:, -1].sum()) / spread,
+            f"sib_gain_h{k}": float(s["cross"][:, -1].sum()) / spread,
+            "z_mse_h1": float(s["z_mse"][:, 0].mean()), f"z_mse_h{k}": float(s["z_mse"][:, -1].mean()),
+            f"copy_z_mse_h{k}": float(s["copy_z_mse"][:, -1].mean())}
+
+
+def evaluate_siblings(model: WorldModelPredictor, groups: Dataset, horizon: int, batch_size: int = 8,
+                      device: torch.device | None = None) -> dict[str, float]:
+    """:func:`sibling_loss`'s error at step K on held-out branch groups, pooled over them (:func:`pool_siblings`):
+    ``sib_mse_hK``, ``sib_rel_hK`` and ``sib_gain_hK``."""
+    row = pool_siblings(sibling_statistics(model, groups, horizon, batch_size, device), horizon)
+    return {k: row[k] for k in (f"sib_mse_h{horizon}", f"sib_rel_h{horizon}", f"sib_gain_h{horizon}")}
 
 
 @torch.no_grad()
@@ -242,7 +264,7 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
     result = fit(model, DatasetBatches(train_set, train.num_workers, dev.type != "cpu"),
                  step, train, run_dir=out_dir, kind=KIND,
                  config=config, data=data, device=dev, evaluate=evaluate if val_set is not None else None,
-                 on_fresh_start=fresh_stats, resume=resume, max_steps=max_steps, betas=train.betas,
+                 on_fresh_start=fresh_stats, resume=resume, max_steps=max_steps,
                  progress=progress, desc="predictor", log=print if progress else None)
     return model.eval(), result.metrics
 
