@@ -12,7 +12,7 @@ import colorednoise
 import numpy as np
 
 from wamplan.config import field, require, to_dict
-from wamplan.envs.contract import ACTION_DIM, Observation
+from wamplan.envs.contract import ACTION_DIM, ARM, GRIPPER_INDEX, Observation
 from wamplan.policies.base import Policy, register_policy
 from wamplan.policies.expert import ExpertConfig, ExpertPolicy
 
@@ -44,9 +44,9 @@ class NoisyExpertPolicy(Policy):
 
     def act(self, obs: Observation) -> np.ndarray:
         a = self.expert.act(obs).copy()
-        a[:4] += self.rng.normal(0.0, self.config.noise_std, 4)
+        a[ARM] += self.rng.normal(0.0, self.config.noise_std, GRIPPER_INDEX)  # (4,) the arm's entries
         if self.rng.random() < self.config.gripper_flip_prob:
-            a[4] = -a[4]
+            a[GRIPPER_INDEX] = -a[GRIPPER_INDEX]
         return np.clip(a, -1, 1).astype(np.float32)
 
     def config_dict(self) -> dict[str, Any]:
@@ -81,7 +81,7 @@ class PinkNoisePolicy(Policy):
         n = colorednoise.powerlaw_psd_gaussian(c.exponent, (ACTION_DIM, c.horizon), random_state=rng)  # (5, T)
         a = n.T * c.scale  # (T, 5)
         a[:, 2] -= c.down_bias
-        a[:, 4] = np.sign(n[4]) + (n[4] == 0)
+        a[:, GRIPPER_INDEX] = np.sign(n[GRIPPER_INDEX]) + (n[GRIPPER_INDEX] == 0)
         self.noise = np.clip(a, -1, 1).astype(np.float32)
 
     def act(self, obs: Observation) -> np.ndarray:
