@@ -1,5 +1,5 @@
-"""One simulator-oracle-planned chunk, the old way (full ``InsertionEnv.step`` per action, two restores,
-unculled render) against the shipped fast rollout (``InsertionEnv.simulate``), side by side in one run.
+"""One simulator-oracle-planned chunk, the old way (full ``TaskEnv.step`` per action, two restores,
+unculled render) against the shipped fast rollout (``TaskEnv.simulate``), side by side in one run.
 
 The real cost path: TinyWAM (``checkpoints/mini/tinywam``) gives the seed chunk and the target views, the
 world model's patch-pixels encoder encodes them, CEM (32 candidates x 4 iterations, 16 actions) searches
@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from wamplan.envs.config import EnvConfig
-from wamplan.envs.core import InsertionEnv
+from wamplan.envs.core import TaskEnv
 from wamplan.planning import CEMConfig, make_cost, make_planner
 from wamplan.planning.dynamics import SimulatorDynamics
 from wamplan.planning.policy import PlannedPolicy
@@ -31,7 +31,7 @@ from wamplan.worldmodel.train import load_world_model
 
 
 class FullStepDynamics(SimulatorDynamics):
-    """The oracle before the fast rollout: every action through ``InsertionEnv.step`` (ManiSkill's step with
+    """The oracle before the fast rollout: every action through ``TaskEnv.step`` (ManiSkill's step with
     its observation and evaluation, then ours), restores in pairs, every body drawn."""
 
     @torch.inference_mode()
@@ -54,7 +54,7 @@ class FullStepDynamics(SimulatorDynamics):
 def profile(sizes: tuple[int, ...], repeats: int) -> None:
     """ms per call (median and min over repeats), the pieces interleaved so that load from other processes hits
     all alike. Steps are timed as 16 in a row after a restore (one candidate's worth) and divided by 16."""
-    envs = {s: InsertionEnv(EnvConfig(camera_size=s)) for s in sizes}
+    envs = {s: TaskEnv(EnvConfig(camera_size=s)) for s in sizes}
     a = np.array([0.1, 0, 0, 0, 1], np.float32)
     calls = {}
     for s, env in envs.items():
@@ -64,7 +64,7 @@ def profile(sizes: tuple[int, ...], repeats: int) -> None:
         snap = env.snapshot()
         if s == sizes[0]:
             calls.update({
-                "InsertionEnv.step": (env, snap, 16, lambda e=env: e.step(a)),
+                "TaskEnv.step": (env, snap, 16, lambda e=env: e.step(a)),
                 "base.step (ManiSkill: + observation, evaluation)": (
                     env, snap, 16, lambda e=env: e.base.step(torch.from_numpy(a[None]))),
                 "_step_action (controller + physics)": (
@@ -106,7 +106,7 @@ def main() -> None:
     if args.profile:
         profile((224, 64), args.profile_repeats)
 
-    env = InsertionEnv(EnvConfig(camera_size=args.camera_size))
+    env = TaskEnv(EnvConfig(camera_size=args.camera_size))
     wam = load_wam(args.wam)
     _, enc = load_world_model(args.wm)
     planner = make_planner("cem", CEMConfig(num_candidates=32, num_elites=8, iterations=4))

@@ -39,9 +39,9 @@ def _help_cache_in_tmp(tmp_path_factory):
 @pytest.fixture(scope="session")
 def env():
     """One CubeInsertion-v1 instance for the whole session (creating one costs seconds)."""
-    from wamplan.envs.core import InsertionEnv
+    from wamplan.envs.core import TaskEnv
 
-    e = InsertionEnv()
+    e = TaskEnv()
     yield e
     e.close()
 
@@ -50,9 +50,9 @@ def env():
 def small_env():
     """The same task rendered at 64 px, for tests where the resolution does not matter (renders cost less)."""
     from wamplan.envs.config import EnvConfig
-    from wamplan.envs.core import InsertionEnv
+    from wamplan.envs.core import TaskEnv
 
-    e = InsertionEnv(EnvConfig(camera_size=64))
+    e = TaskEnv(EnvConfig(camera_size=64))
     yield e
     e.close()
 

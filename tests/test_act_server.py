@@ -23,7 +23,8 @@ from wamplan.wam.tinywam import KIND as TINYWAM_KIND
 from wamplan.wam.tinywam import TinyWAMConfig, TinyWAMNet
 
 SECRET = "correct horse battery staple"
-TINY = TinyWAMConfig(image_size=32, channels=(8, 16), latent_dim=32, trunk_dim=64, residual=False)
+TINY = TinyWAMConfig(image_size=32, channels=(8, 16), latent_dim=32, trunk_dim=64,
+                     residual=False).for_task("cube-insertion")
 
 
 @pytest.fixture(scope="module")
@@ -105,7 +106,8 @@ def test_request_size_limit(guarded):
 def test_health_needs_no_secret(guarded):
     r = requests.get(guarded.health_url, timeout=10)
     assert r.status_code == 200
-    assert r.json() == {"ok": True, "wam": "tinywam", "chunk_length": 16, "cameras": list(CAMERAS)}
+    assert r.json() == {"ok": True, "wam": "tinywam", "task": "cube-insertion", "chunk_length": 16,
+                        "cameras": list(CAMERAS)}
 
 
 def test_default_host_is_loopback():

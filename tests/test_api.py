@@ -70,3 +70,13 @@ def test_plan_one_chunk_of_the_shipped_wam(env):
     assert d.target.shape[0] == 3 and d.costs.best <= d.costs.seed
     np.testing.assert_array_equal(d.executed, d.plan)
     assert rest.info()["planned_chunks"] == 1
+
+
+def test_the_tasks_are_part_of_the_api():
+    assert {"cube-insertion", "peg-insertion-side", "push-cube"} <= set(wamplan.tasks())
+    assert wamplan.tasks() == sorted(wamplan.tasks())
+    cube = wamplan.get_task("cube-insertion")
+    assert isinstance(cube, wamplan.TaskSpec) and (cube.action_dim, cube.proprio_dim) == (5, 10)
+    assert wamplan.register_task is __import__("wamplan.envs.spec", fromlist=["x"]).register_task
+    with pytest.raises(UserError, match="unknown task 'nope'; choose one of"):
+        wamplan.make_env(task="nope")

@@ -151,7 +151,7 @@ def test_a_decision_checks_itself():
 # ------------------------------------------------------------------ FrameHistory
 def _history(rest_state=False) -> FrameHistory:
     encode = (lambda views: torch.full((len(CAMERAS), 1, 1), float(views["front"][0, 0, 0])))  # (V, 1, 1)
-    return FrameHistory(H, 4, 3, encode, torch.device("cpu"), rest_state=rest_state)
+    return FrameHistory(H, 4, 3, encode, torch.device("cpu"), rest_state=rest_state, hold_action=HOLD_ACTION)
 
 
 def test_history_keeps_the_frames_of_each_boundary_and_hands_them_with_the_actions_between():
@@ -228,3 +228,32 @@ def test_gates_decide_before_and_after_the_search():
 def test_gates_refuse_settings_that_cannot_work(kw, match):
     with pytest.raises(ConfigError, match=match):
         Gates(**kw)
+
+
+# ------------------------------------------------------------------ the task
+def test_the_policy_plans_for_its_wams_task_and_refuses_models_made_for_another():
+    from wamplan.envs.spec import get_task
+    from wamplan.errors import UserError
+
+    peg = get_task("peg-insertion-side")
+    pol = PlannedPolicy(ToyWAM(0.2), make_planner("cem-gripper"), ToyDynamics(), ToyEncoder(), make_cost("patch"))
+    assert pol.task.name == "cube-insertion" and pol.planner.config.gripper_dim == 4  # filled from the WAM's task
+    assert pol.cameras == CAMERAS  # the dynamics names none: the task's
+    other = ToyDynamics(frameskip=4)  # a learned model's
+    other.task = peg
+    with pytest.raises(UserError, match="checkpoint of the world model was made for task 'peg-insertion-side', but "
+                                        "this run uses task 'cube-insertion'"):
+        PlannedPolicy(ToyWAM(0.2), make_planner("cem"), other, ToyEncoder(), make_cost("patch"))
+    target = ToyWAM(0.2)
+    target.task = peg
+    with pytest.raises(UserError, match=r"WAM toy \(the target\) was made for task 'peg-insertion-side'"):
+        PlannedPolicy(ToyWAM(0.2), make_planner("cem"), ToyDynamics(), ToyEncoder(), make_cost("patch"),
+                      target_wam=target)
+
+
+def test_views_are_stacked_in_the_dynamics_camera_order():
+    dyn = ToyDynamics()
+    dyn.cameras = ("wrist", "front", "side")
+    pol = PlannedPolicy(ToyWAM(0.2), make_planner("cem"), dyn, ToyEncoder(), make_cost("patch"))
+    views = {c: np.full((4, 4, 3), v, np.uint8) for c, v in (("front", 0), ("side", 51), ("wrist", 102))}
+    assert pol.encode(views)[:, 0, 0].tolist() == pytest.approx([0.4, 0.0, 0.2])

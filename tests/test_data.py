@@ -14,7 +14,7 @@ import pytest
 from wamplan.cli import main
 from wamplan.data.readers import WAMSamples, WorldModelWindows, split_of
 from wamplan.data.store import EpisodeStore, StoreError
-from wamplan.envs.contract import CAMERAS
+from wamplan.envs.contract import CAMERAS, CUBE_INSERTION
 
 SMALL = ["--camera-size", "64"]
 
@@ -77,6 +77,50 @@ def test_incompatible_settings_rejected(store, capsys):
     assert rc == 2 and "other env settings" in err and "camera_size" in err
     rc = main(["collect", "--source", "expert", "--episodes", "1", "--out", str(store), "--image-every", "2", *SMALL])
     assert rc == 2 and "images every 4 steps" in capsys.readouterr().err
+
+
+def test_store_records_its_task(store):
+    s = EpisodeStore(store)
+    assert s.manifest["task"] == CUBE_INSERTION.describe() and s.task == CUBE_INSERTION
+    assert s.cameras == CUBE_INSERTION.cameras and s.env["task"] == "cube-insertion"
+
+
+def test_a_store_that_records_no_task_is_the_cube_tasks(expert_store, tmp_path, capsys):
+    """A store written before tasks (no ``task`` in its manifest or env settings) holds cube-insertion episodes:
+    collecting resumes it, and another task's collection is refused in one line naming both tasks."""
+    legacy = tmp_path / "legacy"
+    shutil.copytree(expert_store, legacy)
+    man = json.loads((legacy / "store.json").read_text())
+    del man["task"], man["env"]["task"]
+    (legacy / "store.json").write_text(json.dumps(man))
+    s = EpisodeStore(legacy)
+    assert s.task == CUBE_INSERTION and s.cameras == CUBE_INSERTION.cameras
+    assert s.env == EpisodeStore(expert_store).env
+    assert main(["collect", "--source", "expert", "--episodes", "2", "--out", str(legacy), *SMALL]) == 0
+    assert '"collected": 0' in capsys.readouterr().out
+    rc = main(["collect", "--source", "pink", "--episodes", "1", "--out", str(legacy), "--task", "push-cube", *SMALL])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1 and "'cube-insertion'" in err and "'push-cube'" in err
+
+
+def test_a_policy_that_cannot_act_in_the_task_writes_nothing(tmp_path, capsys):
+    out = tmp_path / "peg"
+    rc = main(["collect", "--source", "expert", "--episodes", "1", "--out", str(out), "--task", "peg-insertion-side"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1 and "no scripted expert" in err and not out.exists()
+
+
+def test_collect_given_seeds_resumes_by_seed(tmp_path):
+    from wamplan.data.collect import collect
+    from wamplan.envs.config import EnvConfig
+
+    out = tmp_path / "pink"
+    kw = dict(max_steps=4, env=EnvConfig(camera_size=64), progress=False, log=lambda *a: None)
+    assert collect("pink", 2, out, seeds=[7, 3], **kw)["collected"] == 2
+    assert EpisodeStore(out).finished_seeds("pink") == {3, 7}
+    s = collect("pink", 2, out, seeds=[3, 12], **kw)
+    assert (s["collected"], s["skipped"]) == (1, 1) and EpisodeStore(out).finished_seeds("pink") == {3, 7, 12}
+    assert collect("pink", 0, out, seeds=[], **kw)["collected"] == 0
 
 
 def test_collect_passes_expert_settings(tmp_path, capsys):

@@ -179,9 +179,9 @@ def test_cli_render_and_rollout(tmp_path, capsys):
 def test_gpu_render_backend_returns_numpy_frames():
     """With ManiSkill's GPU renderer the camera buffers are CUDA tensors; ``render`` hands back host uint8 arrays
     like the CPU renderer (before, it called ``.numpy()`` on the CUDA tensor and every evaluation worker died)."""
-    from wamplan.envs.core import InsertionEnv
+    from wamplan.envs.core import TaskEnv
 
-    env = InsertionEnv(EnvConfig(camera_size=64, render_backend="gpu"))
+    env = TaskEnv(EnvConfig(camera_size=64, render_backend="gpu"))
     try:
         obs = env.reset(0, with_images=True)
         for name in CAMERAS:

@@ -213,3 +213,86 @@ def test_progress_bars_refresh_rarely_when_written_to_a_log(tmp_path):
             return True
 
     assert progress_bar(total=1, file=Terminal()).mininterval == 0.1  # tqdm's own default on a terminal
+
+
+# ------------------------------------------------------------------ the task (--task)
+@pytest.fixture
+def gripperless_task():
+    """A registered task without a gripper (and without a scripted expert), removed afterwards."""
+    from wamplan.envs.maniskill import maniskill_task
+    from wamplan.envs.spec import TASKS, register_task
+
+    spec = register_task(maniskill_task("Toy-v1", name="toy-no-gripper", cameras=("base_camera",), action_dim=6,
+                                        proprio_dim=13, max_episode_steps=20, instruction="", gripper_index=None))
+    yield spec
+    TASKS.pop(spec.name)
+
+
+def test_the_task_reaches_the_env_and_the_planner(gripperless_task):
+    cfg = _cfg("--task", "peg-insertion-side", "--planner", "cem-gripper", "--wam", "w")
+    assert cfg.env.task == "peg-insertion-side" and cfg.planner_config.gripper_dim is None  # left to the task
+    assert cfg.task_planner_config.gripper_dim == 6  # the peg task's gripper entry
+    from wamplan.evaluation.runner import settings
+
+    stored = settings(_cfg("--planner", "cem-gripper"))  # what the directory records: as it ran
+    assert (stored["env.task"], stored["env.max_episode_steps"], stored["planner_config.gripper_dim"]) == \
+        ("cube-insertion", 300, 4)
+    with pytest.raises(SystemExit):  # argparse lists the registered tasks
+        _cfg("--task", "nope")
+    with pytest.raises(UserError, match="task 'toy-no-gripper' has no gripper; use --planner cem"):
+        _cfg("--task", "toy-no-gripper", "--planner", "cem-gripper", "--wam", "w").check_for([5])
+    with pytest.raises(UserError, match=r"conditions \[2, 4\] seed or aim the search with the scripted expert, but "
+                                        r"task 'toy-no-gripper' has none"):
+        _cfg("--task", "toy-no-gripper", "--wam", "w").check_for([1, 2, 4, 5])
+
+
+def test_a_directory_from_before_tasks_resumes_as_the_cube_task(tmp_path):
+    """Directories written before --task recorded no task and their episode length as a number: they resume."""
+    _check_same_settings(tmp_path, _cfg("--planner", "cem-gripper"))
+    path = tmp_path / "eval_config.json"
+    stored = json.loads(path.read_text())
+    del stored["env.task"]
+    path.write_text(json.dumps(stored))
+    _check_same_settings(tmp_path, _cfg("--planner", "cem-gripper"))
+    with pytest.raises(UserError, match="other settings.*env.task"):
+        _check_same_settings(tmp_path, _cfg("--planner", "cem-gripper", "--task", "peg-insertion-side"))
+
+
+def test_eval_refuses_a_wam_of_another_task_before_it_stores_its_settings(tmp_path, capsys):
+    from types import SimpleNamespace
+
+    from wamplan.envs.spec import get_task
+    from wamplan.evaluation.runner import check_wam_task, check_world_model_task
+
+    cfg = _cfg("--task", "push-cube", "--wam", "w")
+    with pytest.raises(UserError, match="WAM w was made for task 'cube-insertion', but this run uses task "
+                                        "'push-cube'; pass --task cube-insertion"):
+        check_wam_task(cfg, SimpleNamespace(task=get_task("cube-insertion")))
+    with pytest.raises(UserError, match="world-model checkpoint m was made for task 'cube-insertion'"):
+        check_world_model_task(cfg, "m", SimpleNamespace(task=get_task("cube-insertion")))
+    check_world_model_task(cfg, "m", SimpleNamespace(task=None))  # a model that records no task is not checked
+    wam = "checkpoints/mini/tinywam"  # the shipped TinyWAM: made before tasks, so for cube-insertion
+    assert main(["eval", "--conditions", "1", "--episodes", "1", "--out", str(tmp_path), "--wam", wam,
+                 "--task", "push-cube"]) == 2
+    assert f"WAM {wam} was made for task 'cube-insertion'" in capsys.readouterr().err
+    assert not (tmp_path / "eval_config.json").exists()
+
+
+def test_every_command_that_makes_an_env_takes_the_task(capsys):
+    from wamplan.cli.main import iter_commands
+
+    # the commands offering EnvConfig's generated options (--clearance is one) offer --task with them
+    env_commands = [p.prog for p in iter_commands() if "--clearance" in p._option_string_actions]
+    assert {"wamplan eval", "wamplan collect", "wamplan env rollout", "wamplan env render"} <= set(env_commands)
+    assert all("--task" in p._option_string_actions for p in iter_commands()
+               if p.prog in env_commands or p.prog in ("wamplan reproduce", "wamplan env check"))
+    assert main(["tasks"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    from wamplan.envs.spec import TASKS
+
+    assert len(lines) == len(TASKS) and [line.split()[0] for line in lines] == sorted(TASKS)
+    cube = next(line for line in lines if line.startswith("cube-insertion "))
+    assert "env CubeInsertion-v1" in cube and "cameras front,side,wrist" in cube and "action 5" in cube
+    assert "proprio 10" in cube and "controller pd_ee_delta_xyzyaw" in cube and "episode 300 steps" in cube
+    assert "scripted expert expert" in cube
+    assert "scripted expert none" in next(line for line in lines if line.startswith("peg-insertion-side "))

@@ -159,6 +159,9 @@ def test_reproduce_stages_wire_the_pipeline(tmp_path):
     assert ev[ev.index("--planner") + 1] == "cem"  # the paper's experiment with the paper's planner
     given = dict(stages(PRESETS["mini"], tmp_path, "/ckpt/wam", 1))
     assert "train TinyWAM" not in given and "/ckpt/wam" in given["evaluate"][0]
+    assert not any("--task" in cmd for cmds in st.values() for cmd in cmds)  # the default task: as before tasks
+    with pytest.raises(UserError, match="task 'peg-insertion-side' has no scripted expert"):
+        stages(PRESETS["mini"], tmp_path, None, 1, task="peg-insertion-side")
 
 
 def test_report_merges_runs_of_different_conditions(tmp_path, capsys):
@@ -264,3 +267,40 @@ def test_a_blended_run_is_labelled_as_such_in_table1():
     rows = table1([_rec(1, 0, "success"), dict(_rec(7, 0, "success"), oracle_blend=0.25)])
     assert [r["dynamics"] for r in rows] == ["None (open loop)", "Augmented WM 0.75 + simulator 0.25"]
     assert table1([_rec(7, 0, "success")])[0]["dynamics"] == "Augmented WM"
+
+
+def test_the_report_of_a_task_without_stages_leaves_the_cube_readings_out(tmp_path, capsys):
+    """push-cube has no stages, metrics or alignment tolerance: its outcomes are success and failure, and the
+    insertion columns and the release table are left out; runs of two tasks are not merged."""
+    from wamplan.envs.config import EnvConfig
+    from wamplan.envs.spec import get_task
+    from wamplan.evaluation.config import EvalConfig
+    from wamplan.evaluation.report import markdown_table2, outcome_colors
+    from wamplan.evaluation.runner import _check_same_settings
+
+    push = get_task("push-cube")
+    assert outcome_colors(push) == {"success": "#2e7d32", "failure": "#d32f2f"}
+    assert list(outcome_colors(get_task("cube-insertion"))) == ["success", "never_lifted", "lifted_not_aligned",
+                                                                "aligned_not_descended", "descended_not_seated"]
+    run = tmp_path / "push"
+    run.mkdir()
+    _check_same_settings(run, EvalConfig(env=EnvConfig(task="push-cube")))
+    for s in range(4):
+        append_record(run, dict(_rec(1, s, "success" if s < 1 else "failure"), reached={}))
+        append_record(run, dict(_rec(7, s, "success" if s < 3 else "failure"), reached={}))
+        append_record(run, dict(_rec(7, s, "failure", variant="rest-history"), reached={}))
+    assert main(["report", str(run)]) == 0
+    md = (run / "report.md").read_text()
+    assert "| Condition | First chunk | Episodes | Success | Failure |" in md
+    assert "| 7 | planned | 4 | 0% | 100% |" in md
+    assert "| 7 | 4 | 2 | 0 | 0.50 |\n" in md + "\n" and "Inserted" not in md and "let go" not in md
+    assert (run / "table1.csv").read_text().splitlines()[0].endswith(",success,failure")
+    recs = read_records(run)
+    assert markdown_release([dict(r, release=None) for r in recs], push) is None  # no tolerance to read against
+    assert markdown_table2(recs, push).splitlines()[0].endswith("| Success | Failure |")
+    cube = tmp_path / "cube"
+    cube.mkdir()
+    _check_same_settings(cube, EvalConfig())
+    append_record(cube, _rec(1, 9, "success"))
+    assert main(["report", str(tmp_path / "both"), str(run), str(cube)]) == 2
+    assert "the runs evaluated different tasks" in capsys.readouterr().err

@@ -10,10 +10,13 @@ import numpy as np
 import pytest
 
 from wamplan.cli import main
-from wamplan.data.export import DEMO_CAMERAS, ROLLOUT_CAMERAS, CosmosExportConfig
+from wamplan.data.export import DEMO_VIEWS, ROLLOUT_VIEWS, CosmosExportConfig, view_names
 from wamplan.data.store import EpisodeStore
-from wamplan.envs.contract import CAMERAS
-from wamplan.wam.base import DEFAULT_INSTRUCTION
+from wamplan.envs.contract import CUBE_INSERTION
+from wamplan.errors import UserError
+
+DEMO_CAMERAS = dict(zip(CUBE_INSERTION.cameras, DEMO_VIEWS))  # front, side, wrist -> RoboCasa's left, right, wrist
+ROLLOUT_CAMERAS = dict(zip(CUBE_INSERTION.cameras, ROLLOUT_VIEWS))
 from wamplan.wam.cosmos_client import resize_image
 
 STEPS = 12  # a truncated episode is enough for the layout: 13 frames with every step's views
@@ -54,13 +57,13 @@ def test_demos_read_back_equal_the_store(dense_store, tmp_path, capsys):
         assert f["data"].attrs["total"] == 2 * n
         for i, ep in enumerate(eps):
             g = f[f"data/demo_{i}"]
-            assert dict(g.attrs) == dict(task_description=DEFAULT_INSTRUCTION, num_samples=n, wamplan_seed=ep.seed,
-                                         wamplan_source="expert", success=ep.success, outcome=ep.outcome,
-                                         wamplan_padded_actions=1)
+            assert dict(g.attrs) == dict(task_description=CUBE_INSERTION.instruction, num_samples=n,
+                                         wamplan_seed=ep.seed, wamplan_source="expert", success=ep.success,
+                                         outcome=ep.outcome, wamplan_padded_actions=1)
             np.testing.assert_array_equal(g["actions"][:STEPS], ep.actions)
             np.testing.assert_array_equal(g["actions"][STEPS], [0, 0, 0, 0, ep.actions[-1, 4]])  # the no-op pad
             np.testing.assert_array_equal(g["robot_states"][:], ep.proprio)
-            for cam in CAMERAS:
+            for cam in store.cameras:
                 np.testing.assert_array_equal(g["obs"][DEMO_CAMERAS[cam]][:], ep.images[cam])
 
 
@@ -77,10 +80,10 @@ def test_rollouts_read_back_at_224_px_as_the_client_sends_them(dense_store, tmp_
             assert _tree(f) == {"actions": ((n, 5), np.float32), "proprio": ((n, 10), np.float32),
                                 **{k: ((n, 224, 224, 3), np.uint8) for k in ROLLOUT_CAMERAS.values()}}
             assert (f.attrs["task_description"], bool(f.attrs["success"]), f.attrs["wamplan_seed"]) == \
-                (DEFAULT_INSTRUCTION, False, ep.seed)
+                (CUBE_INSERTION.instruction, False, ep.seed)
             np.testing.assert_array_equal(f["actions"][:STEPS], ep.actions)
             np.testing.assert_array_equal(f["proprio"][:], ep.proprio)
-            for cam in CAMERAS:
+            for cam in store.cameras:
                 got = f[ROLLOUT_CAMERAS[cam]][:]
                 for t in (0, STEPS):  # the frames the /act client would send for the same views
                     np.testing.assert_array_equal(got[t], resize_image(ep.images[cam][t], 224))
@@ -102,6 +105,9 @@ def test_an_existing_export_is_not_overwritten(dense_store, tmp_path, capsys):
 
 
 def test_export_defaults_match_the_client():
-    assert CosmosExportConfig().instruction == DEFAULT_INSTRUCTION  # what WAMPolicy sends unless told otherwise
+    assert CosmosExportConfig().instruction == ""  # the store's task's instruction (what a WAM of the task is sent)
     with pytest.raises(ValueError, match="--split"):
         CosmosExportConfig(split="train")
+    assert view_names(CUBE_INSERTION.cameras, ROLLOUT_VIEWS) == ROLLOUT_CAMERAS
+    with pytest.raises(UserError, match="holds 3 views"):
+        view_names(("base_camera", "hand_camera"), DEMO_VIEWS)

@@ -65,7 +65,8 @@ def _seeded(module: torch.nn.Module, seed: int) -> torch.nn.Module:
 
 def test_tinywam_forward(store):
     torch.manual_seed(0)
-    net = _seeded(TinyWAMNet(TinyWAMConfig(image_size=16, channels=(8, 16), latent_dim=16, trunk_dim=32)), 1)
+    cfg = TinyWAMConfig(image_size=16, channels=(8, 16), latent_dim=16, trunk_dim=32).for_task("cube-insertion")
+    net = _seeded(TinyWAMNet(cfg), 1)
     gen = torch.Generator().manual_seed(2)
     images = torch.rand(2, 3, 3, 16, 16, generator=gen)  # (B, V, 3, S, S)
     proprio = torch.randn(2, 10, generator=gen)  # (B, P)

@@ -1,8 +1,10 @@
 """The layers of docs/design.md, checked on the code: envs -> policies -> data -> encoders/worldmodel/wam ->
 planning -> evaluation -> api -> cli. An import may only point down (or stay in its folder), between
-modules and between folders, and no modules import each other in a circle. Every import in src/wamplan
-counts, lazy ones inside functions too. Run as a script (``python tests/test_layers.py``) it prints the
-map between layers, the upward imports and the circles (modules and folders)."""
+modules and between folders, and no modules import each other in a circle; the cube task's own modules
+(``ENV_ONLY``) are read by the env layer alone, every layer above it takes a task spec. Every import in
+src/wamplan counts, lazy ones inside functions too. Run as a script (``python tests/test_layers.py``) it prints
+the map between layers, the upward imports, the circles (modules and folders) and the reads of the cube task's
+modules above the env layer."""
 
 from __future__ import annotations
 
@@ -23,6 +25,8 @@ NAMES = {0: "foundation", 1: "envs", 2: "policies", 3: "data", 4: "encoders/worl
          6: "evaluation", 7: "api", 8: "cli"}
 # the package's face re-exports the API lazily (PEP 562 __getattr__), so it counts as the API layer's for its imports
 FACE = "wamplan"
+# the cube task's constants and its ManiSkill env: only modules in envs/ may import them (the others read a TaskSpec)
+ENV_ONLY = ("wamplan.envs.contract", "wamplan.envs.task")
 
 
 def layer(module: str) -> int:
@@ -123,6 +127,12 @@ def circles() -> list[list[str]]:
     return out
 
 
+def task_internals_above_envs() -> list[str]:
+    """Imports of the cube task's own modules (``ENV_ONLY``) from outside envs/, the package's face included."""
+    return [f"{m} imports {t}" for m, targets in imports().items() if folder(m) != "envs"
+            for t in sorted(targets) if t in ENV_ONLY]
+
+
 def test_no_import_points_up_the_layers():
     up = upward_modules()
     assert not up, "upward imports:\n" + "\n".join(up)
@@ -143,16 +153,27 @@ def test_nothing_below_the_cli_imports_it():
     assert not users, "the command line is an entry point, not a library:\n" + "\n".join(users)
 
 
-def test_the_task_contract_is_imported_from_envs_only():
-    moved = {"CAMERAS", "ACTION_DIM", "PROPRIO_DIM", "Observation", "STAGES", "OUTCOMES"}
+def test_only_the_env_layer_reads_the_cube_tasks_modules():
+    found = task_internals_above_envs()
+    assert not found, ("modules above envs/ take the task from a TaskSpec (env.task, a store's or checkpoint's "
+                       "task), not from the cube task's modules:\n" + "\n".join(found))
+
+
+def test_task_names_are_imported_from_their_home():
+    """The cube's constants come from wamplan.envs.contract (tests and benchmarks may read them), the task types from
+    wamplan.envs.spec (or the envs package, or the contract that re-exports them), never through another module."""
+    constants = ("CAMERAS", "ACTION_DIM", "PROPRIO_DIM", "STAGES", "OUTCOMES")
+    homes = {name: ("wamplan.envs.contract",) for name in constants}
+    homes.update({name: ("wamplan.envs.spec", "wamplan.envs", "wamplan.envs.contract")
+                  for name in ("Observation", "TaskSpec")})
     wrong = []
     for path in sorted([*SRC.rglob("*.py"), *SRC.parents[1].joinpath("tests").glob("*.py"),
                         *SRC.parents[1].joinpath("benchmarks").glob("*.py")]):
         for node in ast.walk(ast.parse(path.read_text())):
-            if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("wamplan.") and \
-                    node.module != "wamplan.envs.contract" and node.module != "wamplan.envs":
-                wrong += [f"{path.name}: {a.name} from {node.module}" for a in node.names if a.name in moved]
-    assert not wrong, "import the task's contract from wamplan.envs.contract:\n" + "\n".join(wrong)
+            if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("wamplan."):
+                wrong += [f"{path.name}: {a.name} from {node.module} (its home: {homes[a.name][0]})"
+                          for a in node.names if a.name in homes and node.module not in homes[a.name]]
+    assert not wrong, "import the task's names from their home:\n" + "\n".join(wrong)
 
 
 if __name__ == "__main__":
@@ -162,8 +183,9 @@ if __name__ == "__main__":
             by_layer[m].add(t)
     for m in sorted(by_layer, key=lambda m: (layer(m), m)):
         print(f"[{NAMES[layer(m)]}] {m} -> {', '.join(sorted(by_layer[m]))}")
-    up, fup, circ = upward_modules(), upward_folders(), circles()
+    up, fup, circ, cube = upward_modules(), upward_folders(), circles(), task_internals_above_envs()
     print(f"\nupward imports between modules: {len(up)}", *up, sep="\n  ")
     print(f"folders importing up or both ways: {len(fup)}", *fup, sep="\n  ")
     print(f"circles of modules: {len(circ)}", *(" <-> ".join(c) for c in circ), sep="\n  ")
+    print(f"the cube task's modules read above envs/: {len(cube)}", *cube, sep="\n  ")
     sys.exit(0)

@@ -66,9 +66,20 @@ def test_resynchronised_oracle_keeps_the_expert_succeeding(env, seed):
 
 
 def test_oracle_rejects_misuse(env):
-    with pytest.raises(WAMError, match="live InsertionEnv"):
+    from types import SimpleNamespace
+
+    from wamplan.envs.spec import get_task
+
+    with pytest.raises(WAMError, match="live TaskEnv"):
         ExpertOracleWAM(object())
+    push = SimpleNamespace(snapshot=None, restore=None, render=None, task=get_task("push-cube"))
+    with pytest.raises(WAMError, match="task push-cube has none"):
+        ExpertOracleWAM(push)  # the scripted expert is the cube's
+    with pytest.raises(WAMError, match="among task cube-insertion's"):
+        ExpertOracleWAM(env, cameras=("base_camera",))
     oracle = ExpertOracleWAM(env, chunk=4, image_size=16)
+    assert oracle.task is env.task and oracle.cameras == CAMERAS and oracle.action_dim == 5
+    assert ExpertOracleWAM(env, cameras=("wrist",)).cameras == ("wrist",)
     obs = env.reset(1)
     out = oracle.validate(oracle.predict(obs, ""))
     assert out.actions.shape == (4, 5) and out.images["wrist"].shape == (16, 16, 3)

@@ -1,15 +1,25 @@
-"""Gripper-aware CEM on toy costs: it can delay, advance or cancel the WAM's grasp, and keeps it otherwise."""
+"""Gripper-aware CEM on toy costs: it can delay, advance or cancel the WAM's grasp, and keeps it otherwise; its
+gripper settings come from the task it plans for."""
 
 import argparse
 
 import pytest
 import torch
 
+from wamplan.config import ConfigError
+from wamplan.envs.maniskill import maniskill_task
+from wamplan.envs.spec import get_task
 from wamplan.planning import PLANNERS, CEMGripperConfig, make_planner
 from wamplan.planning.cem_gripper import gripper_categories
 from wamplan.cli.planner_options import add_planner_arguments, planner_config_from_args
 
 H, A = 16, 5
+CUBE = get_task("cube-insertion")  # 5-D actions, the gripper last: +1 open, -1 closed
+
+
+def planner(cfg: CEMGripperConfig | None = None):
+    """cem-gripper built for the cube task (as the planned policy builds it)."""
+    return make_planner("cem-gripper", cfg).for_task(CUBE)
 
 
 def step_gripper(close_at: int, n: int = H) -> torch.Tensor:
@@ -39,9 +49,8 @@ def test_categories_are_every_single_switch_sequence():
 
 
 def test_prior_centres_on_the_wam():
-    planner = make_planner("cem-gripper", CEMGripperConfig(gripper_prior_steps=2.0))
     cats, names = gripper_categories(step_gripper(8), 1.0, -1.0)
-    p = planner.prior(cats)
+    p = planner(CEMGripperConfig(gripper_prior_steps=2.0)).prior(cats)
     assert p.sum().item() == pytest.approx(1.0)
     assert p[0] == p[names.index("close@8")] == p.max()  # keep and its binarised twin
     ratio = (p[names.index("close@12")] / p[0]).item()
@@ -52,13 +61,13 @@ def test_prior_centres_on_the_wam():
 def test_moves_the_grasp(target, label):
     want = step_gripper(target)  # the WAM closes at step 8; the cost wants the switch at ``target``
     for s in range(5):
-        res = make_planner("cem-gripper").plan(grasp_seed(8), toy_cost(want), seed=s)
+        res = planner().plan(grasp_seed(8), toy_cost(want), seed=s)
         assert torch.equal(res.actions[:, 4], want), (label, s, res.actions[:, 4])
 
 
 def test_closes_at_once_in_most_seeds():
     want = step_gripper(0)  # the farthest change besides cancelling (8 steps from the WAM's)
-    hits = sum(torch.equal(make_planner("cem-gripper").plan(grasp_seed(8), toy_cost(want), seed=s).actions[:, 4], want)
+    hits = sum(torch.equal(planner().plan(grasp_seed(8), toy_cost(want), seed=s).actions[:, 4], want)
                for s in range(20))
     assert hits >= 16  # 17 of 20 with the defaults; plain categorical sampling without the stratification: 9
 
@@ -80,7 +89,7 @@ def test_plain_cem_cannot_delay_the_grasp():
 def test_keeps_the_wams_values_when_they_are_best():
     seed = grasp_seed(8)
     seed[:, 4] = torch.linspace(0.8, -0.7, H)  # a continuous WAM gripper no step sequence matches
-    res = make_planner("cem-gripper").plan(seed, toy_cost(seed[:, 4].clone()), seed=0)
+    res = planner().plan(seed, toy_cost(seed[:, 4].clone()), seed=0)
     assert torch.equal(res.actions[:, 4], seed[:, 4])
     assert res.actions[:, :4].square().sum() < seed[:, :4].square().sum()  # the arm is searched as in CEM
 
@@ -93,7 +102,7 @@ def test_candidates_use_only_the_categories_and_a_frozen_gripper_sigma():
         return toy_cost(step_gripper(12, 15))(c)
 
     seed = grasp_seed(8)
-    res = make_planner("cem-gripper", CEMGripperConfig(num_optimized=15)).plan(seed, cost, seed=1)
+    res = planner(CEMGripperConfig(num_optimized=15)).plan(seed, cost, seed=1)
     cats = {tuple(r.tolist()) for r in gripper_categories(seed[:15, 4], 1.0, -1.0)[0]}
     assert all(tuple(r.tolist()) in cats for g in seen for r in g)
     assert torch.all(res.std[:, 4] == 0) and res.actions[15, 4] == seed[15, 4]  # trailing action kept
@@ -101,8 +110,8 @@ def test_candidates_use_only_the_categories_and_a_frozen_gripper_sigma():
 
 
 def test_reproducible_and_registered_with_cli_options():
-    a = make_planner("cem-gripper").plan(grasp_seed(), toy_cost(step_gripper(12)), seed=3)
-    b = make_planner("cem-gripper").plan(grasp_seed(), toy_cost(step_gripper(12)), seed=3)
+    a = planner().plan(grasp_seed(), toy_cost(step_gripper(12)), seed=3)
+    b = planner().plan(grasp_seed(), toy_cost(step_gripper(12)), seed=3)
     assert torch.equal(a.actions, b.actions)
     assert "cem-gripper" in PLANNERS and "cem" in PLANNERS
     p = argparse.ArgumentParser()
@@ -120,3 +129,21 @@ def test_reproducible_and_registered_with_cli_options():
 def test_bad_configs(kwargs, match):
     with pytest.raises(ValueError, match=match):
         CEMGripperConfig(**kwargs)
+
+
+def test_the_gripper_settings_come_from_the_task():
+    assert planner().config == CEMGripperConfig(gripper_dim=4, gripper_open=1.0, gripper_closed=-1.0)
+    seven = maniskill_task("Toy-v1", name="toy", cameras=("c",), action_dim=7, proprio_dim=3, max_episode_steps=9,
+                           instruction="", gripper_closed=-0.5)  # the gripper last, at index 6
+    cfg = CEMGripperConfig().for_task(seven)
+    assert (cfg.gripper_dim, cfg.gripper_open, cfg.gripper_closed) == (6, 1.0, -0.5)
+    mine = CEMGripperConfig(gripper_dim=2, gripper_open=0.5, gripper_closed=-1.0)
+    assert mine.for_task(seven) is mine  # settings given stay as given
+    p = make_planner("cem-gripper")
+    assert p.for_task(CUBE) is not p and planner(mine).for_task(seven).config is mine
+    with pytest.raises(ConfigError, match="build the planned policy for a task"):
+        p.plan(grasp_seed(), toy_cost(step_gripper(8)), seed=0)  # nothing filled it
+    no_gripper = maniskill_task("Toy-v1", name="toy", cameras=("c",), action_dim=6, proprio_dim=3,
+                                max_episode_steps=9, instruction="", gripper_index=None)
+    with pytest.raises(ConfigError, match="task 'toy' has no gripper; use --planner cem"):
+        p.for_task(no_gripper)

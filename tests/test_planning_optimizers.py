@@ -11,10 +11,12 @@ import pytest
 import torch
 
 from wamplan.config import ConfigError, add_arguments, from_args, from_dict, to_dict
+from wamplan.envs.spec import get_task
 from wamplan.errors import UserError
 from wamplan.planning import CEMConfig, MPPIConfig, MPPIPlanner, PlanResult, make_planner
 
 H, A = 16, 5  # chunk length, action dim
+CUBE = get_task("cube-insertion")  # the task a planner that needs one (cem-gripper's gripper) is built for
 # the accelerator case is marked `gpu`: on a CPU-only machine it shows as skipped, not silently absent
 DEVICES = ["cpu", pytest.param("accelerator", marks=pytest.mark.gpu)]
 
@@ -200,14 +202,15 @@ def test_seed_rank_is_the_share_of_first_samples_scored_below_the_seed(name):
     for seed, expect in ((torch.zeros(H, A), 0.0), (None, None)):
         seed = torch.full((H, A), 0.9) if seed is None else seed
         rec = Recorder(lambda c: c[..., :4].square().sum((1, 2)))  # optimum: zero arm actions
-        res = make_planner(name).plan(seed, rec, seed=1)
+        res = make_planner(name).for_task(CUBE).plan(seed, rec, seed=1)
         costs = rec.calls[0][1]  # (B,) of iteration 0, candidate 0 the seed
         assert res.seed_rank == pytest.approx(float((costs[1:] < costs[0]).float().mean()))
         assert res.stats()["seed_rank"] == res.seed_rank
         if expect is not None:
             assert res.seed_rank == expect  # at the optimum nothing beats the seed
     assert res.seed_rank > 0.3  # far from the optimum (by the bound, clipping pulls samples inward) many beat it
-    no_mean = make_planner(name, make_planner(name).config_cls(include_mean=False)).plan(seed, rec, seed=1)
+    no_mean = make_planner(name, make_planner(name).config_cls(include_mean=False)).for_task(CUBE).plan(seed, rec,
+                                                                                                        seed=1)
     assert math.isnan(no_mean.seed_rank)
 
 

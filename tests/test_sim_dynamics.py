@@ -1,4 +1,4 @@
-"""The simulator oracle's fast candidate rollout (``InsertionEnv.simulate``) against the full step path.
+"""The simulator oracle's fast candidate rollout (``TaskEnv.simulate``) against the full step path.
 
 PhysX keeps hidden state from the previous rollout, which no restore clears, so two
 rollouts are compared only after the same predecessor: each is preceded by a warm-up run of the same
@@ -11,7 +11,7 @@ import torch
 
 from wamplan.encoders import make_encoder
 from wamplan.envs.config import EnvConfig
-from wamplan.envs.core import InsertionEnv
+from wamplan.envs.core import TaskEnv
 from wamplan.planning.dynamics import SimulatorDynamics
 from wamplan.envs.contract import CAMERAS
 from wamplan.policies.expert import ExpertPolicy
@@ -19,7 +19,7 @@ from wamplan.policies.expert import ExpertPolicy
 
 @pytest.fixture(scope="module")
 def env():
-    e = InsertionEnv(EnvConfig(camera_size=64))
+    e = TaskEnv(EnvConfig(camera_size=64))
     yield e
     e.close()
 

@@ -10,11 +10,13 @@ import torch
 from wamplan.cli import main
 from wamplan.config import ConfigError
 from wamplan.envs.contract import CAMERAS, Observation
+from wamplan.errors import UserError
 from wamplan.wam import WAMPolicy, load_wam, make_wam
 from wamplan.wam.tinywam import TinyWAM, TinyWAMConfig, TinyWAMNet
 from wamplan.wam.train import WAMTrainConfig, load_items, make_batch, train_tinywam, wam_loss
 
-TINY = TinyWAMConfig(image_size=32, channels=(8, 16), latent_dim=32, trunk_dim=64)
+TINY = TinyWAMConfig(image_size=32, channels=(8, 16), latent_dim=32, trunk_dim=64)  # sizes from the task
+CUBE_TINY = TINY.for_task("cube-insertion")  # A = 5, P = 10, front side wrist
 TINY_ARGS = ["--image-size", "32", "--channels", "8", "16", "--latent-dim", "32", "--trunk-dim", "64"]
 # seeds 0 and 1 of the expert: seed 0 lands in the training split, seed 1 in validation (val_fraction 0.1)
 TRAIN = WAMTrainConfig(epochs=2, batch_size=8, shift_pixels=2, device="cpu")
@@ -35,7 +37,10 @@ def _obs(size: int = 48, step: int = 0) -> Observation:
 
 
 def test_forward_shapes_and_predict_contract():
-    net = TinyWAMNet(TINY)
+    assert (CUBE_TINY.action_dim, CUBE_TINY.proprio_dim, CUBE_TINY.cameras) == (5, 10, CAMERAS)
+    with pytest.raises(ConfigError, match="for_task"):
+        TinyWAMNet(TINY)  # the task's sizes are not filled in
+    net = TinyWAMNet(CUBE_TINY)
     actions, future = net(torch.rand(2, 3, 3, 32, 32), torch.randn(2, 10))
     assert actions.shape == (2, 16, 5) and future.shape == (2, 3, 3, 32, 32)
     assert actions.abs().max() <= 1.0
@@ -53,7 +58,12 @@ def test_configs_reject_bad_values_with_the_fix():
     with pytest.raises(ConfigError, match="multiple of 2"):
         TinyWAMConfig(image_size=30, channels=(8, 16))
     with pytest.raises(ConfigError, match="cameras"):
-        TinyWAMConfig(cameras=("front", "top"))
+        TinyWAMConfig(cameras=("front", "front"))
+    with pytest.raises(ConfigError, match="cameras"):
+        TinyWAMConfig(cameras=("front", "top")).for_task("cube-insertion")
+    with pytest.raises(ConfigError, match="action_dim is 7 but task cube-insertion has 5"):
+        TinyWAMConfig(action_dim=7).for_task("cube-insertion")
+    assert TinyWAMConfig(cameras=("wrist",)).for_task("cube-insertion").cameras == ("wrist",)
     with pytest.raises(ConfigError, match="image_loss"):
         WAMTrainConfig(image_loss="l2")
     with pytest.raises(ConfigError, match="batch_size"):
@@ -64,7 +74,7 @@ def test_training_steps_reduce_the_loss_on_a_fixed_batch(store):
     items = load_items([store], TINY, "train", 0.1)
     assert len(items) > 8 and items.frames.shape[1:] == (3, 3, 32, 32)
     torch.manual_seed(0)
-    net = TinyWAMNet(TINY)
+    net = TinyWAMNet(CUBE_TINY)
     opt = torch.optim.AdamW(net.parameters(), lr=3e-3)
     batch = make_batch(items, torch.arange(8), torch.device("cpu"))
     losses = []
@@ -98,7 +108,7 @@ def test_checkpoint_round_trip_and_exact_resume(store, tmp_path):
 
     # save -> load_wam -> identical predictions
     wam = load_wam(tmp_path / "full")
-    assert isinstance(wam, TinyWAM) and wam.config == TINY
+    assert isinstance(wam, TinyWAM) and wam.config == CUBE_TINY and wam.task.name == "cube-insertion"
     ref = TinyWAM(net=full.net, device="cpu").predict(_obs(64), "")
     out = wam.predict(_obs(64), "")
     np.testing.assert_array_equal(out.actions, ref.actions)
@@ -109,6 +119,27 @@ def test_checkpoint_round_trip_and_exact_resume(store, tmp_path):
         wam.predict(_obs(48), "")
     saved = json.loads((tmp_path / "full" / "checkpoint" / "config.json").read_text())
     assert saved["kind"] == "tinywam" and saved["config"]["data"]["train_items"] == len(load_items([store], TINY, "train", 0.1))
+    assert saved["config"]["data"]["task"] == "cube-insertion" and saved["config"]["model"]["action_dim"] == 5
+
+
+def test_shipped_checkpoint_without_a_task_is_the_cube_and_policies_check_the_task():
+    wam = load_wam("checkpoints/mini/tinywam", device="cpu")  # recorded no task: made before tasks
+    assert wam.task.name == "cube-insertion" and wam.action_dim == 5 and wam.cameras == CAMERAS
+    assert wam.default_instruction == wam.task.instruction
+    WAMPolicy(wam, task="cube-insertion")
+    with pytest.raises(UserError, match="made for task 'cube-insertion', but this run uses task 'push-cube'"):
+        WAMPolicy(wam, task="push-cube")
+
+
+def test_stores_of_different_tasks_are_refused_in_one_line(store, tmp_path):
+    from wamplan.data.store import EpisodeStore
+    from wamplan.envs.config import EnvConfig
+
+    other = tmp_path / "push"
+    EpisodeStore(other, create=True, env=EnvConfig(task="push-cube", camera_size=64).task_kwargs(), image_every=4)
+    with pytest.raises(UserError, match="mixes tasks") as e:
+        train_tinywam([store, other], tmp_path / "run", TINY, TRAIN, progress=False)
+    assert "push-cube" in str(e.value) and "cube-insertion" in str(e.value) and "\n" not in str(e.value)
 
 
 def test_cli_train_resume_and_errors(store, tmp_path, capsys):

@@ -188,7 +188,7 @@ def test_preset_sizes_agree():
     from wamplan.wam.train import WAMTrainConfig
 
     for p in PRESETS.values():
-        wm, tw = p.world_model, p.tinywam
+        wm, tw = p.world_model, p.tinywam.for_task("cube-insertion")  # the sizes of the cube task's stores
         side = wm.encoder_kwargs["input_size"] // wm.encoder_kwargs.get("patch_size", 16)
         assert wm.predictor.num_patches == side * side == wm.decoder.num_patches, p.name
         assert wm.predictor.enc_dim == wm.decoder.enc_dim and wm.predictor.encoder == wm.encoder

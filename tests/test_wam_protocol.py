@@ -17,6 +17,7 @@ from fastapi.responses import Response
 from wamplan.checkpoint import CheckpointError, save_checkpoint
 from wamplan.config import ConfigError, to_dict
 from wamplan.envs.contract import CAMERAS, Observation
+from wamplan.errors import UserError
 from wamplan.wam import protocol
 from wamplan.wam.base import (
     DEFAULT_INSTRUCTION,
@@ -89,7 +90,8 @@ def echo():
 
 
 # residual=False: the untrained model's images are its own (sigmoid of a random decoder), not the input views
-TINY = TinyWAMConfig(image_size=32, channels=(8, 16), latent_dim=32, trunk_dim=64, residual=False)
+TINY = TinyWAMConfig(image_size=32, channels=(8, 16), latent_dim=32, trunk_dim=64,
+                     residual=False).for_task("cube-insertion")
 
 
 @pytest.fixture(scope="module")
@@ -533,6 +535,45 @@ def test_retry_recovers_from_a_transient_failure(echo):
 def test_client_config_is_validated(kw, match):
     with pytest.raises(ConfigError, match=match):
         CosmosClientConfig(**kw)
+
+
+def test_client_maps_the_cameras_of_its_task():
+    c = CosmosPolicyClient(CosmosClientConfig())
+    assert c.task.name == "cube-insertion" and c.cameras == CAMERAS and c.action_dim == 5
+    fields = dict(request_fields=("base_camera=primary_image", "hand_camera=left_wrist_image",
+                                  "hand_camera=right_wrist_image"),
+                  response_fields=("base_camera=future_image", "hand_camera=future_wrist_image"),
+                  action_indices=tuple(range(7)))
+    peg = CosmosPolicyClient(CosmosClientConfig(task="peg-insertion-side", **fields))
+    assert peg.task.name == "peg-insertion-side" and peg.cameras == ("base_camera", "hand_camera")
+    assert peg.action_dim == 7 and peg.default_instruction == peg.task.instruction
+    with pytest.raises(ConfigError, match=r"unknown camera 'front'.*\['base_camera', 'hand_camera'\]"):
+        CosmosClientConfig(task="peg-insertion-side")  # the defaults map the cube's cameras
+    with pytest.raises(ConfigError, match="unknown camera 'base_camera'"):
+        CosmosClientConfig(**fields)
+    with pytest.raises(UserError, match="unknown task 'no-such-task'"):
+        CosmosClientConfig(task="no-such-task")
+
+
+def test_server_maps_other_cameras_by_position():
+    from wamplan.wam.server import DEFAULT_REQUEST_MAP, DEFAULT_RESPONSE_MAP, default_maps
+
+    assert default_maps(CAMERAS) == (DEFAULT_REQUEST_MAP, DEFAULT_RESPONSE_MAP)
+    request, response = default_maps(("base_camera", "hand_camera"))
+    assert request == {"primary_image": "base_camera", "left_wrist_image": "hand_camera",
+                       "right_wrist_image": "hand_camera"}
+    assert response == {"base_camera": "future_image", "hand_camera": "future_wrist_image"}
+
+
+def test_a_wam_that_names_no_task_acts_in_the_cube_task():
+    wam = EchoWAM()
+    assert wam.task.name == "cube-insertion" and wam.cameras == CAMERAS and wam.action_dim == 5
+    assert wam.default_instruction == DEFAULT_INSTRUCTION == wam.task.instruction
+    wam.task = "push-cube"
+    assert wam.cameras == ("base_camera",) and wam.action_dim == 7
+    with pytest.raises(WAMError, match="outputs 5-D actions but task push-cube takes 7-D"):
+        wam.action_dim = 5
+        WAMPolicy(wam, "push", task="push-cube")
 
 
 def test_make_wam_builds_the_client():

@@ -12,8 +12,11 @@ import pytest
 import torch
 
 from wamplan.data.alignment import hole_position
-from wamplan.envs.contract import STAGES
+from wamplan.envs.spec import get_task
+from wamplan.errors import UserError
 from wamplan.worldmodel.benchmark import ALL, PHASES, phase_of
+
+STAGES = get_task("cube-insertion").stages
 
 SCRIPT = Path(__file__).parents[1] / "scripts" / "wm_benchmark_store.py"
 # the expert (as the policy) on one seed, every boundary branched twice, at 64 px (~20 s)
@@ -37,15 +40,29 @@ def test_phase_of_reads_the_stage_flags_and_whether_the_cube_is_over_the_mount()
     over = np.array([hole[0] + 0.01, hole[1], hole[2] + half + 0.01, 1, 0, 0, 0])  # (7,) 10 mm off the axis, above
     away = np.array([hole[0] + 0.08, hole[1], hole[2] + half + 0.05, 1, 0, 0, 0])
     on_table = np.array([0.05, -0.05, half, 1, 0, 0, 0])
-    assert phase_of(_flags(), on_table, hole, half) == "grasp"
-    assert phase_of(_flags("grasped"), on_table, hole, half) == "grasp"  # closing, not yet lifted
-    assert phase_of(_flags("grasped", "lifted"), away, hole, half) == "carry"
-    assert phase_of(_flags("grasped", "lifted"), over, hole, half) == "alignment"
-    assert phase_of(_flags("grasped", "lifted", "aligned"), over, hole, half) == "descent"
-    assert phase_of(_flags("grasped", "lifted", "descended"), over, hole, half) == "descent"
+    assert phase_of(_flags(), on_table, hole, half, STAGES) == "grasp"
+    assert phase_of(_flags("grasped"), on_table, hole, half, STAGES) == "grasp"  # closing, not yet lifted
+    assert phase_of(_flags("grasped", "lifted"), away, hole, half, STAGES) == "carry"
+    assert phase_of(_flags("grasped", "lifted"), over, hole, half, STAGES) == "alignment"
+    assert phase_of(_flags("grasped", "lifted", "aligned"), over, hole, half, STAGES) == "descent"
+    assert phase_of(_flags("grasped", "lifted", "descended"), over, hole, half, STAGES) == "descent"
     low = over.copy()
     low[2] = hole[2] + half - 0.01  # beside the mount, below its top: not over it
-    assert phase_of(_flags("grasped", "lifted"), low, hole, half) == "carry"
+    assert phase_of(_flags("grasped", "lifted"), low, hole, half, STAGES) == "carry"
+
+
+def test_the_phases_are_the_cube_tasks_and_another_task_is_one_line(tmp_path):
+    from wamplan.data.store import EpisodeStore
+    from wamplan.envs.config import EnvConfig
+    from wamplan.worldmodel.benchmark import phase_task_of
+
+    stack = EpisodeStore(tmp_path / "stack", create=True, image_every=4,
+                         env=EnvConfig(task="stack-cube", camera_size=64).task_kwargs())
+    with pytest.raises(UserError, match="defined for task cube-insertion") as e:
+        phase_task_of(stack)
+    assert "stack-cube" in str(e.value) and "\n" not in str(e.value)
+    cube = EpisodeStore(tmp_path / "cube", create=True, image_every=4, env=EnvConfig(camera_size=64).task_kwargs())
+    assert phase_task_of(cube).stages == STAGES
 
 
 @pytest.fixture(scope="module")

@@ -239,6 +239,36 @@ def test_checkpoint_round_trip_gives_identical_outputs(tmp_path):
         load_decoder(tmp_path)
 
 
+def test_checkpoints_record_the_task_and_cameras_and_old_ones_mean_the_cube(tmp_path):
+    from wamplan.data.store import EpisodeStore
+    from wamplan.envs.config import EnvConfig
+    from wamplan.worldmodel.stores import predictor_for_task, stores_task
+
+    cams = ("base_camera", "hand_camera")  # TINY has 2 views, as peg-insertion-side
+    train_predictor(_windows(), TINY, TRAIN, tmp_path / "peg", device="cpu", max_steps=1, progress=False,
+                    task="peg-insertion-side", cameras=cams)
+    peg = load_predictor(tmp_path / "peg")
+    assert peg.task.name == "peg-insertion-side" and peg.cameras == cams
+    train_predictor(_windows(), TINY, TRAIN, tmp_path / "none", device="cpu", max_steps=1, progress=False)
+    unnamed = load_predictor(tmp_path / "none")  # records no task: the cube's, whose 3 cameras are not its 2 views
+    assert unnamed.task.name == "cube-insertion" and unnamed.cameras is None
+    assert WorldModelPredictor(TINY).task is None  # built in memory: not known
+    shipped = load_predictor("checkpoints/mini/wm_plain")  # made before tasks
+    assert shipped.task.name == "cube-insertion" and shipped.cameras == ("front", "side", "wrist")
+
+    roots = []
+    for task in ("cube-insertion", "push-cube"):
+        roots.append(tmp_path / task)
+        EpisodeStore(roots[-1], create=True, env=EnvConfig(task=task, camera_size=64).task_kwargs(), image_every=4)
+    spec, cameras = stores_task(roots[1:])
+    assert spec.name == "push-cube" and cameras == ("base_camera",)
+    assert predictor_for_task(PredictorConfig(), spec, cameras) == PredictorConfig(num_views=1, proprio_dim=16,
+                                                                                     action_dim=7)
+    with pytest.raises(UserError, match="--data mixes tasks") as e:
+        stores_task(roots)
+    assert "push-cube" in str(e.value) and "\n" not in str(e.value)
+
+
 @pytest.mark.parametrize("stop", [4, 3])  # inside epoch 2; exactly at the end of epoch 1
 def test_resume_continues_exactly(tmp_path, stop):
     data = _windows()

@@ -6,8 +6,8 @@ imported on first use, so ``import wamplan`` (and the command line) stays cheap.
 
 __version__ = "0.1.0"
 
-__all__ = ["ChunkDecision", "EpisodeResult", "Observation", "PlannedPolicy", "PlannedPolicyConfig", "WAM",
-           "WAMOutput", "load_wam", "make_env", "planned_policy", "run_episode"]
+__all__ = ["ChunkDecision", "EpisodeResult", "Observation", "PlannedPolicy", "PlannedPolicyConfig", "TaskSpec", "WAM",
+           "WAMOutput", "get_task", "load_wam", "make_env", "planned_policy", "register_task", "run_episode", "tasks"]
 
 
 def __getattr__(name: str):  # PEP 562: the API, imported when first asked for

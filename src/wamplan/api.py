@@ -3,14 +3,18 @@
     import wamplan
     wam = wamplan.load_wam("checkpoints/mini/tinywam")
     policy = wamplan.planned_policy(wam, world_model="checkpoints/mini/wm_augmented")
-    env = wamplan.make_env()
+    env = wamplan.make_env(task=wam.task.name)
     obs = env.reset(seed=0, with_images=True)
     decision = policy.plan_chunk(obs)      # ChunkDecision: .executed (H, A), .reason, .costs
     result = wamplan.run_episode(env, policy, seed=0)
 
+The tasks: ``wamplan.tasks()`` names the registered ones, ``wamplan.get_task(name)`` is one's
+:class:`TaskSpec` (cameras, action and proprio sizes, ...), ``wamplan.register_task(spec)`` adds one.
+
 Every name of ``__all__`` is also an attribute of ``wamplan`` itself, imported on first use (so that
 ``import wamplan`` and the command line stay fast). The settings and their defaults are the evaluation's
-(``wamplan eval``, condition 7): one code path builds the policy for both.
+(``wamplan eval``, condition 7): one code path builds the policy for both; the planned policy plans for its
+WAM's task, and refuses a world model made for another.
 """
 
 from __future__ import annotations
@@ -20,9 +24,9 @@ from typing import Any, Sequence
 
 from wamplan.config import from_dict
 from wamplan.errors import require_paths
-from wamplan.envs.contract import Observation
+from wamplan.envs.spec import TASKS, Observation, TaskSpec, get_task, register_task
 from wamplan.envs.config import EnvConfig
-from wamplan.envs.core import InsertionEnv
+from wamplan.envs.core import TaskEnv
 from wamplan.evaluation.build import plan_in_world_model
 from wamplan.evaluation.config import EvalConfig
 from wamplan.planning import CostConfig
@@ -32,8 +36,8 @@ from wamplan.planning.policy_config import PlannedPolicyConfig
 from wamplan.policies.rollout import EpisodeResult, run_episode
 from wamplan.wam.base import WAM, WAMOutput, load_wam
 
-__all__ = ["ChunkDecision", "EpisodeResult", "Observation", "PlannedPolicy", "PlannedPolicyConfig", "WAM",
-           "WAMOutput", "load_wam", "make_env", "planned_policy", "run_episode"]
+__all__ = ["ChunkDecision", "EpisodeResult", "Observation", "PlannedPolicy", "PlannedPolicyConfig", "TaskSpec", "WAM",
+           "WAMOutput", "get_task", "load_wam", "make_env", "planned_policy", "register_task", "run_episode", "tasks"]
 
 
 def planned_policy(wam: WAM | str | Path, world_model: str | Path | Sequence[str | Path], *,
@@ -47,7 +51,8 @@ def planned_policy(wam: WAM | str | Path, world_model: str | Path | Sequence[str
     ``planner_config``: its config, or a dict of overrides of its fields; ``cost``: a ``CostConfig``;
     ``settings``: fields of :class:`PlannedPolicyConfig` (e.g. ``first_chunk="rest-history"``). The models go
     to ``device`` ("auto", "cpu", "cuda", ...). The policy acts on :class:`Observation` s with (H, W, 3) uint8
-    views and returns (5,) actions; ``policy.plan_chunk(obs)`` decides one chunk -> :class:`ChunkDecision`.
+    views and returns (A,) actions of the WAM's task; ``policy.plan_chunk(obs)`` decides one chunk ->
+    :class:`ChunkDecision`.
     """
     parts = [world_model] if isinstance(world_model, (str, Path)) else list(world_model)
     paths = [p for part in parts for p in str(part).split(",") if p]
@@ -59,8 +64,14 @@ def planned_policy(wam: WAM | str | Path, world_model: str | Path | Sequence[str
     return plan_in_world_model(cfg, wam, paths)
 
 
-def make_env(**settings: Any) -> InsertionEnv:
-    """The task ``CubeInsertion-v1``, rendered on the CPU; ``settings``: fields of ``EnvConfig`` (e.g.
-    ``camera_size=224``, ``max_episode_steps=300``). ``env.reset(seed, with_images=True)`` -> :class:`Observation`
-    (proprio (10,), images camera -> (S, S, 3) uint8); ``env.step(action (5,))`` -> (observation, info)."""
-    return InsertionEnv(from_dict(EnvConfig, settings))
+def make_env(task: str = "cube-insertion", **settings: Any) -> TaskEnv:
+    """The registered ``task`` (see :func:`tasks`), rendered on the CPU; ``settings``: the other fields of
+    ``EnvConfig`` (e.g. ``camera_size=224``, ``max_episode_steps=300``). ``env.task`` is its :class:`TaskSpec`;
+    ``env.reset(seed, with_images=True)`` -> :class:`Observation` (proprio (P,), images camera -> (S, S, 3)
+    uint8); ``env.step(action (A,))`` -> (observation, info)."""
+    return TaskEnv(from_dict(EnvConfig, dict(settings, task=task)))
+
+
+def tasks() -> list[str]:
+    """The names of the registered tasks (``make_env(task=...)``, ``--task``), sorted."""
+    return sorted(TASKS)

@@ -1,4 +1,4 @@
-"""``wamplan collect`` and ``wamplan data info|view``."""
+"""``wamplan collect`` and ``wamplan data info|check|alignment|view|export|import``."""
 
 from __future__ import annotations
 
@@ -41,7 +41,7 @@ def _collect_options(p: argparse.ArgumentParser) -> None:
                    help="with --source policy: plan every chunk of the WAM in this world model (condition 7's "
                         "policy at eval's default planner and cost), so episodes and branches follow the planner's "
                         "own trajectories")
-    p.add_argument("--image-every", type=int, default=4, help="store the three views every N steps (and the last)")
+    p.add_argument("--image-every", type=int, default=4, help="store the task's views every N steps (and the last)")
     p.add_argument("--max-steps", type=int, default=None, help="truncate episodes earlier than the env's limit")
     p.add_argument("--branches", type=int, default=0,
                    help="with --source policy: also store this many counterfactual branches per chunk boundary "
@@ -69,7 +69,15 @@ def _data_commands(d: argparse.ArgumentParser) -> None:
     add_command(dsub, "alignment", _alignment_options,
                 help="per episode: how close the cube came to the hole (xy, yaw, in-hand offset) while carried over "
                      "the mount, from the privileged poses")
-    add_command(dsub, "view", _view_options, help="a contact sheet of the three views over one episode")
+    add_command(dsub, "view", _view_options, help="a contact sheet of the stored views over one episode")
+    add_command(dsub, "import", _import_options,
+                help="turn ManiSkill trajectory files (.h5 + .json) into an episode store of their task",
+                description="Import a ManiSkill trajectory (its motion planner's, its replay tool's or its "
+                            "published demonstrations) into the store OUT: actions in another controller than the "
+                            "task's are converted by ManiSkill's replay_trajectory first (the converted file is "
+                            "written beside the original), then every episode is replayed open loop from its seed and "
+                            "recorded with the task's cameras. Episodes that no longer succeed are dropped (kept "
+                            "with --keep-failed or --noise-std); OUT/import.json reports the share that succeeded.")
     add_command(dsub, "export", _export_options,
                 help="write a store in another project's training layout (Cosmos Policy HDF5)",
                 description="Write the store DIR under OUT in the HDF5 layout Cosmos Policy's post-training reads "
@@ -102,6 +110,44 @@ def _view_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=Path("sheet.png"), help="PNG to write (default: sheet.png)")
     p.add_argument("--frames", type=int, default=8, help="frames across the episode")
     p.set_defaults(func=cmd_view)
+
+
+def _import_options(p: argparse.ArgumentParser) -> None:
+    from wamplan.envs.config import EnvConfig
+    from wamplan.parallel import add_backend_argument
+
+    p.add_argument("trajectory", type=Path, help="a ManiSkill trajectory .h5 (its .json beside it)")
+    p.add_argument("out", type=Path, help="the store directory (created or resumed)")
+    p.add_argument("--format", required=True, choices=("maniskill",), help="the trajectory's format")
+    p.add_argument("--workers", type=int, default=1, help="worker processes (one simulator each), or Ray actors")
+    add_backend_argument(p)
+    p.add_argument("--image-every", type=int, default=4, help="store the task's views every N steps (and the last)")
+    p.add_argument("--episodes", type=int, default=None, help="import only the first N episodes (by seed)")
+    p.add_argument("--noise-std", type=float, default=0.0,
+                   help="add white Gaussian noise of this std to the arm's entries of every replayed action "
+                        "(noisy-expert data; episodes are kept whatever their outcome, source demo-noise<STD>)")
+    p.add_argument("--keep-failed", action="store_true", help="keep episodes that fail on replay")
+    add_arguments(p, EnvConfig)
+    p.set_defaults(func=cmd_import, task=None)  # default: the registered task that runs the trajectory's env
+
+
+def cmd_import(args: argparse.Namespace) -> int:
+    from wamplan.data.importer import import_maniskill
+    from wamplan.envs.config import EnvConfig
+    from wamplan.parallel import Backend
+
+    from wamplan.envs.spec import DEFAULT_TASK
+
+    require_dir(args.out)
+    if args.workers <= 0 or args.image_every <= 0 or (args.episodes is not None and args.episodes <= 0):
+        raise UserError("--workers, --image-every and --episodes must be positive")
+    task, args.task = args.task, args.task or DEFAULT_TASK
+    report = import_maniskill(args.trajectory, args.out, task=task, env=from_args(EnvConfig, args),
+                              workers=args.workers, image_every=args.image_every, noise_std=args.noise_std,
+                              keep_failed=args.keep_failed, limit=args.episodes,
+                              backend=Backend.from_option(args.ray))
+    print(json.dumps(report))
+    return 0
 
 
 def _export_options(p: argparse.ArgumentParser) -> None:
@@ -188,7 +234,8 @@ def store_info(root: Path) -> dict:
     n = sum(v["episodes"] for v in sources.values())
     return dict(dir=str(root), episodes=n, steps=sum(v["steps"] for v in sources.values()),
                 image_frames=sum(v["frames"] for v in sources.values()), bytes=size,
-                bytes_per_episode=size // n if n else None, image_every=store.image_every, env=store.env,
+                bytes_per_episode=size // n if n else None, image_every=store.image_every, task=store.task_name,
+                cameras=list(store.cameras), env=store.env,
                 sources=sources, damaged=damaged)
 
 
@@ -197,8 +244,8 @@ def cmd_info(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(info, indent=1))
         return 0
-    print(f"{info['dir']}: {info['episodes']} episodes, {info['steps']} steps, {info['image_frames']} image frames "
-          f"(every {info['image_every']} steps), {info['bytes'] / 2**20:.1f} MiB")
+    print(f"{info['dir']} (task {info['task']}): {info['episodes']} episodes, {info['steps']} steps, "
+          f"{info['image_frames']} image frames (every {info['image_every']} steps), {info['bytes'] / 2**20:.1f} MiB")
     for src, s in info["sources"].items():
         outs = ", ".join(f"{k} {v}" for k, v in sorted(s["outcomes"].items()))
         print(f"  {src:20s} {s['episodes']:5d} episodes  success {100 * s['success_rate']:5.1f}%  ({outs})")
@@ -275,11 +322,9 @@ def cmd_export(args: argparse.Namespace) -> int:
     import dataclasses
 
     from wamplan.data.export import CosmosExportConfig, export_cosmos_policy
-    from wamplan.wam.base import DEFAULT_INSTRUCTION
 
     require_dir(args.out, "OUT")
-    base = CosmosExportConfig(instruction=DEFAULT_INSTRUCTION)  # what WAMPolicy sends when given no instruction
-    cfg = from_args(CosmosExportConfig, args, base=base)
+    cfg = from_args(CosmosExportConfig, args)  # no --instruction: the store's task's (what a WAM of it is sent)
     cfg = dataclasses.replace(cfg, sources=tuple(s for x in cfg.sources for s in x.split(",") if s))
     print(json.dumps(export_cosmos_policy(args.dir, args.out, cfg), indent=1))
     return 0
@@ -293,20 +338,20 @@ def cmd_view(args: argparse.Namespace) -> int:
     import numpy as np
 
     from wamplan.data.store import EpisodeStore
-    from wamplan.envs.contract import CAMERAS
 
     require_file(args.out, "--out")
     store = EpisodeStore(args.dir)
+    cameras = store.cameras
     paths = store.episode_paths()
     if not 0 <= args.episode < len(paths):
         raise UserError(f"--episode {args.episode} is out of range: {args.dir} holds {len(paths)} episodes (0..{len(paths) - 1})")
     with store.open_episode(paths[args.episode]) as f:
         steps = f["image_steps"][:]
         idx = np.unique(np.linspace(0, len(steps) - 1, min(args.frames, len(steps))).round().astype(int))
-        imgs = {c: f["images"][c][idx] for c in CAMERAS}  # (F, H, W, 3) each
+        imgs = {c: f["images"][c][idx] for c in cameras}  # (F, H, W, 3) each
         title = (f"{f.attrs['source']} seed {f.attrs['seed']}: {f.attrs['outcome']}, {f.attrs['length']} steps")
-    fig, axes = plt.subplots(len(CAMERAS), len(idx), figsize=(2 * len(idx), 2 * len(CAMERAS) + 0.4), squeeze=False)
-    for r, c in enumerate(CAMERAS):
+    fig, axes = plt.subplots(len(cameras), len(idx), figsize=(2 * len(idx), 2 * len(cameras) + 0.4), squeeze=False)
+    for r, c in enumerate(cameras):
         for j, k in enumerate(idx):
             ax = axes[r][j]
             ax.imshow(imgs[c][j])

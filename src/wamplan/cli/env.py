@@ -1,4 +1,4 @@
-"""``wamplan env check|render|rollout``."""
+"""``wamplan env check|render|rollout`` and ``wamplan tasks``."""
 
 from __future__ import annotations
 
@@ -17,7 +17,30 @@ from wamplan.cli.main import add_command, add_group, register_command
 @register_command("env")
 def register(sub: argparse._SubParsersAction) -> None:
     add_group(sub, "env", _env_commands,
-              help="the CubeInsertion-v1 task: check the renderer, render views, roll out policies")
+              help="a task's env (--task, default cube-insertion): check the renderer, render views, roll out "
+                   "policies")
+
+
+@register_command("tasks")
+def register_tasks(sub: argparse._SubParsersAction) -> None:
+    add_command(sub, "tasks", _tasks_options, help="list the registered tasks (what --task accepts)")
+
+
+def _tasks_options(p: argparse.ArgumentParser) -> None:
+    p.set_defaults(func=cmd_tasks)
+
+
+def cmd_tasks(args: argparse.Namespace) -> int:
+    from wamplan.envs.spec import TASKS
+
+    names = sorted(TASKS)
+    width = max(map(len, names))
+    for name in names:
+        t = TASKS[name]
+        print(f"{name:{width}s}  env {t.env_id}  cameras {','.join(t.cameras)}  action {t.action_dim}  proprio "
+              f"{t.proprio_dim}  controller {t.control_mode}  episode {t.max_episode_steps} steps  scripted expert "
+              f"{t.expert or 'none'}")
+    return 0
 
 
 def _env_commands(env: argparse.ArgumentParser) -> None:
@@ -28,7 +51,11 @@ def _env_commands(env: argparse.ArgumentParser) -> None:
 
 
 def _check_options(p: argparse.ArgumentParser) -> None:
+    from wamplan.envs.spec import TASKS
+
     p.add_argument("--steps", type=int, default=20, help="steps to time (default 20)")
+    p.add_argument("--task", default="cube-insertion", choices=sorted(TASKS),
+                   help="the registered task whose env is checked (default: cube-insertion)")
     p.set_defaults(func=cmd_check)
 
 
@@ -48,7 +75,7 @@ def _rollout_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--episodes", type=int, default=10, help="number of episodes, seeds --seed-start .. (default: 10)")
     p.add_argument("--seed-start", type=int, default=0, help="the first episode seed (default: 0)")
     p.add_argument("--json", type=Path, default=None, help="write per-episode records and the summary here")
-    p.add_argument("--video", type=Path, default=None, help="write one MP4 per episode (three views) here")
+    p.add_argument("--video", type=Path, default=None, help="write one MP4 per episode (every view of the task) here")
     p.add_argument("--instruction", default=None, help="language instruction for WAM policies")
     add_arguments(p, EnvConfig)
     p.set_defaults(func=cmd_rollout)
@@ -58,29 +85,32 @@ def _rollout_options(p: argparse.ArgumentParser) -> None:
 def cmd_check(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from wamplan.envs.contract import ACTION_DIM, CAMERAS
+    from wamplan.envs.config import EnvConfig
     from wamplan.envs.diagnose import diagnose_renderer, mesa_version
 
     problems = diagnose_renderer()
     print(f"VK_ICD_FILENAMES={os.environ.get('VK_ICD_FILENAMES', '(unset)')}  mesa-vulkan-drivers={mesa_version()}")
+    cfg = EnvConfig(task=args.task)
     try:
-        from wamplan.envs.core import InsertionEnv
+        from wamplan.envs.core import TaskEnv
 
-        env = InsertionEnv()
+        env = TaskEnv(cfg)
         env.reset(0)
         env.render()
     except Exception as e:  # report any renderer failure with what to do, then the raw reason
         hint = "; ".join(problems) or "see the error above; `make setup` installs a working software renderer"
-        raise UserError(f"cannot render CubeInsertion-v1 here ({type(e).__name__}: {str(e).splitlines()[0]}): {hint}") from e
+        raise UserError(f"cannot render {cfg.spec.env_id} here ({type(e).__name__}: {str(e).splitlines()[0]}): "
+                        f"{hint}") from e
     for p in problems:
         print(f"warning: {p}")
-    zero = np.zeros(ACTION_DIM, np.float32)
+    task = env.task
+    zero = np.zeros(task.action_dim, np.float32)
     t = time.perf_counter()
     for _ in range(args.steps):
         env.step(zero)
     step_ms = (time.perf_counter() - t) / args.steps * 1e3
     print(f"renderer ok; physics step {step_ms:.1f} ms")
-    for cam in CAMERAS:
+    for cam in task.cameras:
         t = time.perf_counter()
         for _ in range(3):
             env.render((cam,))
@@ -88,7 +118,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     t = time.perf_counter()
     for _ in range(5):
         env.step(zero, with_images=True)
-    print(f"full step with three cameras {(time.perf_counter() - t) / 5 * 1e3:.1f} ms")
+    print(f"full step with all {len(task.cameras)} cameras {(time.perf_counter() - t) / 5 * 1e3:.1f} ms")
     env.close()
     return 0
 
@@ -96,15 +126,15 @@ def cmd_check(args: argparse.Namespace) -> int:
 # ---------------------------------------------------------------------- render
 def cmd_render(args: argparse.Namespace) -> int:
     from wamplan.envs.config import EnvConfig
-    from wamplan.envs.core import InsertionEnv
+    from wamplan.envs.core import TaskEnv
     from wamplan.envs.media import save_views
 
     require_seeds(args.seed, flag="--seed")
     require_file(args.out, "--out")
-    env = InsertionEnv(from_args(EnvConfig, args))
+    env = TaskEnv(from_args(EnvConfig, args))
     obs = env.reset(args.seed, with_images=True)
     save_views(obs.images, args.out)
-    print(f"wrote {args.out} (front | side | wrist, seed {args.seed})")
+    print(f"wrote {args.out} ({' | '.join(env.task.cameras)}, seed {args.seed})")
     return 0
 
 
@@ -113,7 +143,7 @@ def cmd_rollout(args: argparse.Namespace) -> int:
     from wamplan.progress import progress_bar
 
     from wamplan.envs.config import EnvConfig
-    from wamplan.envs.core import InsertionEnv
+    from wamplan.envs.core import TaskEnv
     from wamplan.envs.media import write_video
     from wamplan.policies.rollout import run_episode
     from wamplan.evaluation.build import load_policy
@@ -126,8 +156,8 @@ def cmd_rollout(args: argparse.Namespace) -> int:
     if args.video is not None:
         require_dir(args.video, "--video")
     cfg = from_args(EnvConfig, args)
-    policy = load_policy(args.policy, args.instruction)
-    env = InsertionEnv(cfg)
+    policy = load_policy(args.policy, args.instruction, task=cfg.spec)
+    env = TaskEnv(cfg)
     records, counts = [], Counter()
     seeds = range(args.seed_start, args.seed_start + args.episodes)
     bar = progress_bar(seeds, desc=f"rollout {args.policy}", unit="ep")

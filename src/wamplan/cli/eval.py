@@ -43,6 +43,8 @@ def _eval_options(p: argparse.ArgumentParser) -> None:
 
 
 def _reproduce_options(p: argparse.ArgumentParser) -> None:
+    from wamplan.envs.config import EnvConfig
+    from wamplan.envs.spec import TASKS
     from wamplan.presets import PRESETS
 
     p.add_argument("--preset", default="mini", choices=sorted(PRESETS),
@@ -52,6 +54,9 @@ def _reproduce_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=int, default=1, help="worker processes for collection and evaluation (default: 1)")
     p.add_argument("--sim-episodes", type=int, default=None,
                    help="episodes for the simulator conditions 2-5 (default: the preset's; 0 skips them)")
+    p.add_argument("--task", default=EnvConfig.task, choices=sorted(TASKS),
+                   help=f"the registered task every stage runs in; it needs a scripted expert (default: "
+                        f"{EnvConfig.task})")
     p.set_defaults(func=cmd_reproduce)
 
 
@@ -171,5 +176,6 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
     from wamplan.evaluation.reproduce import reproduce
 
     require_dir(args.out)
-    reproduce(args.preset, args.out, wam=args.wam, workers=args.workers, sim_episodes=args.sim_episodes)
+    reproduce(args.preset, args.out, wam=args.wam, workers=args.workers, sim_episodes=args.sim_episodes,
+              task=args.task)
     return 0

@@ -1,8 +1,8 @@
 """The one command-line entry point, ``wamplan``.
 
-Each command family registers its sub-commands from its module in ``wamplan/cli/`` (``env``, ``data``, ``wm``,
-``wam``, ``eval``, ``plot``): a function ``register(subparsers)`` decorated with
-``@register_command(name)`` (the ``COMMANDS`` registry below, which lists those modules);
+Each command family registers its sub-commands from its module in ``wamplan/cli/`` (``env``, whose module also
+registers ``tasks``, ``data``, ``wm``, ``wam``, ``eval``, ``plot``): a function ``register(subparsers)`` decorated
+with ``@register_command(name)`` (the ``COMMANDS`` registry below, which lists those modules);
 a handler is a function ``(args) -> int``.
 
 ``wamplan --help`` and every ``--help`` stay fast (well under a second): a command module imports nothing heavy

@@ -99,8 +99,6 @@ def _eval_options(p: argparse.ArgumentParser) -> None:
 
 
 def _viz_options(p: argparse.ArgumentParser) -> None:
-    from wamplan.envs.contract import CAMERAS
-
     p.add_argument("--ckpt", type=Path, required=True, help="predictor run directory")
     p.add_argument("--compare", type=Path, default=None, help="a second predictor to show as another row")
     p.add_argument("--decoder", type=Path, required=True, help="decoder run directory")
@@ -108,7 +106,8 @@ def _viz_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--episode", type=int, default=0, help="index in the store's sorted episode list")
     p.add_argument("--start", type=int, default=0, help="step of the first context frame")
     p.add_argument("--steps", type=int, default=12, help="rollout steps h (columns at 0, steps/4, ..., steps)")
-    p.add_argument("--camera", default="front", choices=CAMERAS, help="which view to show (default: front)")
+    p.add_argument("--camera", default=None, help="which view to show, one of the checkpoint's cameras (default: its "
+                                                  "first, e.g. front)")
     p.add_argument("--out", type=Path, default=Path("wm_viz.png"), help="PNG to write (default: wm_viz.png)")
     p.set_defaults(func=cmd_viz)
 
@@ -208,12 +207,16 @@ def cmd_train_decoder(args: argparse.Namespace) -> int:
 def cmd_eval(args: argparse.Namespace) -> int:
     from wamplan.data.features import feature_key
     from wamplan.data.readers import BranchGroups, WorldModelWindows
-    from wamplan.worldmodel.stores import encode_stores
+    from wamplan.worldmodel.stores import encode_stores, stores_task
     from wamplan.worldmodel.train import evaluate_predictor, load_world_model
 
     require_file(args.json, "--json")
     model, enc = load_world_model(args.ckpt)
     stores = _stores(args.data)
+    task, cameras = stores_task(stores)
+    if task.name != model.task.name or cameras != (model.cameras or cameras):
+        raise UserError(f"--data holds task '{task.name}' (cameras {list(cameras)}) but {args.ckpt} was trained on "
+                        f"task '{model.task.name}' (cameras {list(model.cameras)}); score it on stores of its task")
     encode_stores(stores, enc)
     ds = WorldModelWindows(stores, frameskip=model.cfg.frameskip, history=model.cfg.context, horizon=args.horizon,
                            split=args.split, val_fraction=args.val_fraction,
@@ -243,9 +246,14 @@ def _phase_report(model, groups, args: argparse.Namespace) -> dict:
 
     from wamplan.planning.dynamics import PlanningContext
     from wamplan.planning.timing import plan_seconds
-    from wamplan.worldmodel.benchmark import context_of, format_phase_table, phase_table
+    from wamplan.worldmodel.benchmark import ALL, PHASE_TASK, PHASES, context_of, format_phase_table, phase_table
 
-    table = phase_table(model, groups, args.horizon)
+    labels = None  # the phases of the groups (their task's stage flags)
+    if model.task.name != PHASE_TASK:
+        print(f"note: the phases ({', '.join(PHASES)}) are defined for task {PHASE_TASK}, not {model.task.name}: "
+              f"the table has the '{ALL}' row only")
+        labels = [ALL] * len(groups)
+    table = phase_table(model, groups, args.horizon, phases=labels)
     z, q, a, target = context_of(groups, model.cfg.context)
     secs = plan_seconds(model, PlanningContext(z=z, q=q, a=a), target)
     print(format_phase_table(table, args.horizon, secs, title=f"{args.ckpt} on {args.data} ({args.split}; "
@@ -316,7 +324,7 @@ def _seed_list(spec: str, flag: str = "--seeds") -> list[int]:
 
 def cmd_fidelity(args: argparse.Namespace) -> int:
     from wamplan.envs.config import EnvConfig
-    from wamplan.envs.core import InsertionEnv
+    from wamplan.envs.core import TaskEnv
     from wamplan.planning.dynamics import learned_dynamics
     from wamplan.evaluation.fidelity import FidelityConfig, Scored, format_fidelity, run_fidelity
     from wamplan.planning.policy import PlannedPolicyConfig
@@ -344,16 +352,21 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
     if dup:
         raise UserError(f"--wm labels must differ (the corrected twins are LABEL+bias): {', '.join(dup)} appears "
                         f"twice; name each model, e.g. --wm shipped=DIR,new=DIR")
-    models = []
+    models, tasks = [], {}  # world-model path -> the task it was trained on
     for label, members in specs:
         require_paths(members, "--wm", "pass a world-model checkpoint directory")
         loaded = [load_world_model(path, device=args.device) for path in members]
+        tasks.update({path: predictor.task.name for path, (predictor, _) in zip(members, loaded)})
         models.append(Scored(label, *learned_dynamics(loaded)))
         if args.bias_correction is not None:  # the same model (and dynamics object), scored as the corrected policy
             models.append(Scored(twin(label), models[-1].dynamics, models[-1].encoder,
                                  PlannedPolicyConfig(bias_correction=args.bias_correction)))
     wam = load_wam(args.wam, device=args.device)
-    env = InsertionEnv(EnvConfig(camera_size=args.camera_size))
+    for path, task in tasks.items():
+        if task != wam.task.name:
+            raise UserError(f"--wm {path} was trained on task '{task}' but --wam {args.wam} acts in task "
+                            f"'{wam.task.name}'; score world models of the WAM's task")
+    env = TaskEnv(EnvConfig(task=wam.task.name, camera_size=args.camera_size))
 
     def progress(seed, result, records):
         mine = [r for r in records if r["seed"] == seed]

@@ -6,6 +6,9 @@ mount's top, its centre within ``near`` of the hole's axis): the step of the sma
 hole's axis, that error (and its x / y parts), the cube's yaw error to the hole there (mod 90°, as the task
 scores it), the cube's offset from the TCP in xy (an off-centre grasp), and how many steps it spent there.
 An episode that never gets there reports its smallest xy error over the whole episode.
+
+The hole is the store's task's: its spec's ``hole_x`` and ``hole_y`` params and the store's ``mount_height``
+(cube-insertion; a task without a hole, or a store without cube poses, is refused in one line).
 """
 
 from __future__ import annotations
@@ -16,7 +19,9 @@ from typing import Any
 
 import numpy as np
 
-from wamplan.data.store import EpisodeStore
+from wamplan.data.store import LEGACY_TASK, EpisodeStore, StoreError
+from wamplan.envs.spec import get_task
+from wamplan.errors import UserError
 from wamplan.policies.expert import quat_yaw, wrap_quarter  # the expert's yaw of a wxyz quaternion, mod 90°
 
 NEAR = 0.03  # m: "over the mount" = cube centre within this of the hole's axis
@@ -55,10 +60,14 @@ def episode_alignment(cube_pose: np.ndarray, tcp_pose: np.ndarray, hole: np.ndar
 
 
 def hole_position(env: dict[str, Any]) -> np.ndarray:
-    """The hole's top centre (x, y, mount height) of a store's env settings, (3,) metres."""
-    from wamplan.envs.task import HOLE_XY  # the mount is fixed in the task
-
-    return np.array([*HOLE_XY, float(env.get("mount_height", 0.025))], np.float32)
+    """The hole's top centre (x, y, mount height) of a store's env settings (``EpisodeStore.env``; the mount is
+    fixed in the task: its spec's ``hole_x``, ``hole_y`` params), (3,) metres."""
+    task = get_task(env.get("task", LEGACY_TASK))
+    x, y = task.param("hole_x"), task.param("hole_y")
+    if x is None or y is None:
+        raise UserError(f"task '{task.name}' has no hole (its spec's params name no hole_x, hole_y): the cube's "
+                        f"alignment to the hole is a cube-insertion diagnostic")
+    return np.array([x, y, float(env.get("mount_height", 0.025))], np.float32)
 
 
 def store_alignment(root: str | Path, near: float = NEAR) -> list[EpisodeAlignment]:
@@ -68,6 +77,8 @@ def store_alignment(root: str | Path, near: float = NEAR) -> list[EpisodeAlignme
     out = []
     for p in store.episode_paths():
         with store.open_episode(p) as f:
+            if "cube_pose" not in f or "tcp_pose" not in f:
+                raise StoreError(f"{p} records no cube or TCP pose; the alignment reads both")
             cube, tcp = f["cube_pose"][:], f["tcp_pose"][:]  # (T+1, 7) each
             source, seed, outcome = str(f.attrs["source"]), int(f.attrs["seed"]), str(f.attrs["outcome"])
         out.append(episode_alignment(cube, tcp, hole, cube_half, near, source=source, seed=seed, outcome=outcome))

@@ -24,10 +24,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from wamplan.data.record import STATE_KEYS, collect_one, record_state
+from wamplan.data.record import STATE_KEYS, collect_one, record_state, stack_state
 from wamplan.data.store import BRANCH_SEED_FACTOR, EpisodeData, EpisodeStore, parent_episode
-from wamplan.envs.contract import CAMERAS
-from wamplan.envs.core import InsertionEnv
+from wamplan.envs.core import TaskEnv
 from wamplan.policies.base import Policy
 from wamplan.provenance import provenance
 
@@ -61,13 +60,13 @@ def parent_seed(branch_seed: int) -> int:
     return parent_episode("branch:", branch_seed)[1]
 
 
-def collect_branched(env: InsertionEnv, policy: Policy, seed: int, source: str, image_every: int,
+def collect_branched(env: TaskEnv, policy: Policy, seed: int, source: str, image_every: int,
                      spec: BranchSpec, max_steps: int | None = None) -> tuple[EpisodeData, list[EpisodeData]]:
     """The parent episode (as ``collect_one``) and its branches (see the module docstring)."""
     chunk = getattr(policy, "chunk_length", None) or spec.chunk  # a WAM's own chunk length sets the boundaries
     spec = replace(spec, chunk=chunk)
     snaps: dict[int, object] = {}
-    limit = min(max_steps or env.config.max_episode_steps, env.config.max_episode_steps)
+    limit = min(max_steps or env.max_episode_steps, env.max_episode_steps)
     if spec.branches * (limit // spec.chunk) >= BRANCH_SEED_FACTOR:
         raise ValueError(f"{spec.branches} branches x {limit // spec.chunk} boundaries would number {BRANCH_SEED_FACTOR} "
                          f"or more branches per episode, past the seed space s * {BRANCH_SEED_FACTOR} + j; use fewer "
@@ -76,7 +75,7 @@ def collect_branched(env: InsertionEnv, policy: Policy, seed: int, source: str, 
         raise ValueError(f"image_every {image_every} must divide the chunk {spec.chunk} and the context "
                          f"{spec.context_steps}")
 
-    def at_boundary(e: InsertionEnv, obs, action) -> None:
+    def at_boundary(e: TaskEnv, obs, action) -> None:
         t = obs.step
         if (t % spec.chunk == 0 and t >= max(spec.context_steps, 1) and t + spec.chunk <= limit
                 and spec.branches_at(t)):
@@ -88,25 +87,27 @@ def collect_branched(env: InsertionEnv, policy: Policy, seed: int, source: str, 
     for t, snap in sorted(snaps.items()):
         if t >= parent.length:  # the episode ended (success) at this boundary: nothing was executed from it
             continue
-        base = parent.actions[t:t + spec.chunk]  # (<=H, 5) the policy's chunk as executed
+        base = parent.actions[t:t + spec.chunk]  # (<=H, A) the policy's chunk as executed
         if len(base) < spec.chunk:  # the episode succeeded mid-chunk: hold its last action
             base = np.concatenate([base, np.repeat(base[-1:], spec.chunk - len(base), 0)])
         for b in range(spec.branches):
             sigma = spec.sigmas[b % len(spec.sigmas)]
-            acts = np.clip(base + rng.normal(0.0, sigma, base.shape), -1.0, 1.0).astype(np.float32)  # (H, 5)
+            acts = np.clip(base + rng.normal(0.0, sigma, base.shape), -1.0, 1.0).astype(np.float32)  # (H, A)
             out.append(_branch_episode(env, snap, parent, t, acts, seed * BRANCH_SEED_FACTOR + j,
                                        branch_source(source), image_every, spec, sigma))
             j += 1
     return parent, out
 
 
-def _branch_episode(env: InsertionEnv, snap, parent: EpisodeData, t: int, actions: np.ndarray, seed: int,
+def _branch_episode(env: TaskEnv, snap, parent: EpisodeData, t: int, actions: np.ndarray, seed: int,
                     source: str, image_every: int, spec: BranchSpec, sigma: float) -> EpisodeData:
     s0 = t - spec.context_steps  # the branch episode's step 0 is the parent's step s0
-    rec = {k: [getattr(parent, k)[i] for i in range(s0, t + 1)] for k in STATE_KEYS}
+    cameras = env.task.cameras
+    rec = {k: [None if getattr(parent, k) is None else getattr(parent, k)[i] for i in range(s0, t + 1)]
+           for k in STATE_KEYS}
     keep = [k for k, st in enumerate(parent.image_steps) if s0 <= st <= t]  # the parent's frames in the history
     image_steps = [int(parent.image_steps[k]) - s0 for k in keep]
-    frames = {c: [parent.images[c][k] for k in keep] for c in CAMERAS}
+    frames = {c: [parent.images[c][k] for k in keep] for c in cameras}
     env.restore(snap)
     for i, a in enumerate(actions, start=1):
         want = (spec.context_steps + i) % image_every == 0
@@ -114,15 +115,15 @@ def _branch_episode(env: InsertionEnv, snap, parent: EpisodeData, t: int, action
         record_state(rec, env, obs)
         if want:
             image_steps.append(spec.context_steps + i)
-            for c in CAMERAS:
+            for c in cameras:
                 frames[c].append(obs.images[c])
-    arrays = {k: np.stack(v) for k, v in rec.items()}
+    arrays = stack_state(rec)
     return EpisodeData(seed=seed, source=source, success=env.success, outcome=env.outcome(),
                        actions=np.concatenate([parent.actions[s0:t], actions]).astype(np.float32),
                        proprio=arrays["proprio"], stages=arrays["stages"], cube_pose=arrays["cube_pose"],
                        tcp_pose=arrays["tcp_pose"], sim_state=arrays["sim_state"],
                        drive_targets=arrays["drive_targets"], image_steps=np.asarray(image_steps, np.int32),
-                       images={c: np.stack(frames[c]) for c in CAMERAS}, reached=dict(env.reached),
+                       images={c: np.stack(frames[c]) for c in cameras}, reached=dict(env.reached),
                        policy=dict(parent.policy, branch_of=int(parent.seed), branch_step=int(t), sigma=float(sigma)),
                        provenance=provenance(parent_seed=int(parent.seed), start_step=int(s0)))
 

@@ -1,11 +1,14 @@
 """Collect episodes into an :class:`EpisodeStore` with parallel worker processes or Ray actors.
 
 The CPU simulator allows one env per process, so each worker (``wamplan.parallel``) owns one
-``InsertionEnv`` and takes seeds from a queue. Every finished episode is written atomically: by a
+``TaskEnv`` and takes seeds from a queue. Every finished episode is written atomically: by a
 worker process itself (the parent only counts), or, on Ray, by the driver from the episode the actor
 returns (the store need not be reachable from the cluster's nodes, and an item retried after its
 actor died still yields one episode). Killing the run (Ctrl-C or ``kill -9``) loses at most the
 episodes in flight; re-running the same command skips the seeds already in the store.
+
+A store holds one task's episodes: the env's (``EnvConfig.task``), recorded when the store is created; collecting
+into a store of another task is refused. Every policy is loaded for the worker's task (``task=env.task``).
 """
 
 from __future__ import annotations
@@ -15,13 +18,12 @@ from collections import Counter
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
-from typing import Any, Callable, Iterator
-
+from typing import Any, Callable, Iterator, Sequence
 
 from wamplan.data.record import collect_one
-from wamplan.data.store import EpisodeData, EpisodeStore
+from wamplan.data.store import MANIFEST, EpisodeData, EpisodeStore
 from wamplan.envs.config import EnvConfig
-from wamplan.envs.core import InsertionEnv
+from wamplan.envs.core import TaskEnv
 from wamplan.errors import UserError, require_paths, require_seeds
 from wamplan.parallel import Backend, imap_workers
 from wamplan.policies.base import Policy, make_policy
@@ -33,12 +35,12 @@ class CollectJob:
     """What a worker needs to rebuild its env and policy in a fresh process (all picklable)."""
 
     store: str
-    source: str  # expert | noisy-expert | pink | policy:<name>
+    source: str  # expert | noisy-expert | pink | policy:<name> | another tag of a registered policy's episodes
     policy_spec: str  # a registered policy name or a WAM checkpoint directory
     env: EnvConfig
     image_every: int
     max_steps: int | None = None
-    loader: Callable[[str], Policy] = make_policy  # policy_spec -> Policy; a module-level function (picklable)
+    loader: Callable[..., Policy] = make_policy  # (policy_spec, task=, **policy_kwargs) -> Policy; picklable
     branch: Any = None  # a wamplan.data.branch.BranchSpec: also store counterfactual branches of each episode
     policy_kwargs: dict[str, Any] = field(default_factory=dict)  # loader(policy_spec, **these)
 
@@ -49,8 +51,8 @@ class CollectWorker:
 
     def __init__(self, job: CollectJob, write: bool = True):
         self.job = job
-        self.env = InsertionEnv(job.env)
-        self.policy = job.loader(job.policy_spec, **job.policy_kwargs)
+        self.env = TaskEnv(job.env)
+        self.policy = job.loader(job.policy_spec, task=self.env.task, **job.policy_kwargs)
         self.store = EpisodeStore(job.store) if write else None
 
     def __call__(self, seed: int) -> dict[str, Any]:
@@ -100,13 +102,19 @@ def throughput(start: float, n: int) -> float:
 def collect(source: str, episodes: int, out: str | Path, *, seed_start: int = 0, workers: int = 1,
             policy: str | None = None, image_every: int = 4, max_steps: int | None = None,
             env: EnvConfig | None = None, progress: bool = True, log=print,
-            loader: Callable[[str], Policy] = make_policy, backend: Backend = Backend(),
+            loader: Callable[..., Policy] = make_policy, backend: Backend = Backend(),
             branch: Any = None, policy_kwargs: dict[str, Any] | None = None,
-            plan_with: str = "") -> dict[str, Any]:
+            plan_with: str = "", seeds: Sequence[int] | None = None,
+            policy_name: str | None = None) -> dict[str, Any]:
     """Collect seeds ``seed_start .. seed_start + episodes - 1`` of ``source`` (expert, noisy-expert, pink,
     or policy with ``policy`` a WAM checkpoint) into the store ``out``, skipping the seeds it holds.
-    ``loader`` builds the policy from its name or checkpoint in each worker: the registered policies by
-    default; pass ``wamplan.evaluation.build.load_policy`` to run WAM checkpoints (a layer above data).
+    ``seeds`` (``episodes`` of them; may be empty) replaces that range. ``env`` (default ``EnvConfig()``)
+    names the task; a new store records it, an existing one must hold the same task's episodes.
+    ``policy_name``: the registered policy that acts when ``source`` only tags its episodes (e.g. source
+    ``demo`` acted by ``demo-replay``); by default the source is the policy's name.
+    ``loader(spec, task=env's task, **policy_kwargs)`` builds the policy from its name or checkpoint in each
+    worker: the registered policies by default; pass ``wamplan.evaluation.build.load_policy`` to run WAM
+    checkpoints (a layer above data).
     ``backend``: worker processes here, or Ray actors (see ``wamplan.parallel``). ``branch`` (a
     ``wamplan.data.branch.BranchSpec``, policy sources only) also stores counterfactual branches per episode.
     ``policy_kwargs`` go to the policy's constructor (e.g. ``config=ExpertConfig(...)`` for the expert).
@@ -117,12 +125,22 @@ def collect(source: str, episodes: int, out: str | Path, *, seed_start: int = 0,
     from wamplan.progress import progress_bar
 
     backend.check()
-    if episodes <= 0 or workers <= 0 or image_every <= 0:
+    if workers <= 0 or image_every <= 0 or (seeds is None and episodes <= 0):
         raise UserError("--episodes, --workers and --image-every must be positive")
-    require_seeds(seed_start, episodes)
+    if seeds is None:
+        require_seeds(seed_start, episodes)
+        seeds = list(range(seed_start, seed_start + episodes))
+    else:
+        seeds = list(dict.fromkeys(int(s) for s in seeds))
+        if len(seeds) != episodes:
+            raise ValueError(f"episodes={episodes} but {len(seeds)} distinct seeds were given")
+        if seeds:
+            require_seeds(min(seeds), max(seeds) - min(seeds) + 1, "seeds")
     if source == "policy":
         if not policy:
             raise UserError("--source policy needs --policy CKPT (a WAM checkpoint directory)")
+        if policy_name:
+            raise UserError(f"--source policy runs the WAM checkpoint --policy, not the registered '{policy_name}'")
         spec, tag = policy, f"policy:{Path(policy).resolve().name}"
         if plan_with:
             if loader is make_policy:
@@ -137,23 +155,29 @@ def collect(source: str, episodes: int, out: str | Path, *, seed_start: int = 0,
     else:
         if policy:
             raise UserError(f"--policy is only for --source policy (got --source {source})")
-        spec, tag = source, source
+        spec, tag = policy_name or source, source
     if branch is not None and source != "policy":
         raise UserError(f"--branches needs --source policy (branches perturb a WAM's chunks), got --source {source}")
     env = env or EnvConfig()
-    store = EpisodeStore(out, create=True, env=env.task_kwargs(), image_every=image_every, provenance=provenance())
-    if (n := store.clean_partial()):
-        log(f"removed {n} partial episode file(s) left by an interrupted run")
-    store.check_source(tag)
-    seeds = list(range(seed_start, seed_start + episodes))
-    have = store.finished_seeds(tag) & set(seeds)
-    if have:
-        log(f"resuming: {len(have)} of {len(seeds)} episodes already in {out}")
     job = CollectJob(store=str(out), source=tag, policy_spec=spec, env=env, image_every=image_every,
                      max_steps=max_steps, loader=loader, branch=branch,
                      policy_kwargs=dict(policy_kwargs or {}))
-    if source == "policy" and len(have) < len(seeds):
-        loader(spec, **job.policy_kwargs)  # a damaged or foreign checkpoint: one line now, not in a worker
+    # a damaged or foreign checkpoint, a policy for another task: one line now, not in a worker (and, for a new
+    # store, before anything is written)
+    checked = False
+    if seeds and not (Path(out) / MANIFEST).is_file():
+        loader(spec, task=env.spec, **job.policy_kwargs)
+        checked = True
+    store = EpisodeStore(out, create=True, env=env.task_kwargs(), image_every=image_every, provenance=provenance(),
+                         task=env.spec)
+    if (n := store.clean_partial()):
+        log(f"removed {n} partial episode file(s) left by an interrupted run")
+    store.check_source(tag)
+    have = store.finished_seeds(tag) & set(seeds)
+    if have:
+        log(f"resuming: {len(have)} of {len(seeds)} episodes already in {out}")
+    if len(have) < len(seeds) and not checked:
+        loader(spec, task=env.spec, **job.policy_kwargs)
     counts: Counter = Counter()
     start, n = time.perf_counter(), 0
     bar = progress_bar(total=len(seeds), initial=len(have), desc=f"collect {tag}", unit="ep", disable=not progress)

@@ -1,7 +1,7 @@
 """Encode a store's images once with a frozen encoder and cache the features beside it.
 
-    DIR/features/<key>/<episode>.h5     dataset ``z`` (K, V, N, D) float16, one row per stored frame,
-                                        attrs: encoder config (JSON)
+    DIR/features/<key>/<episode>.h5     dataset ``z`` (K, V, N, D) float16, one row per stored frame, the
+                                        views in the store's ``cameras`` order; attrs: encoder config (JSON)
 
 The key is the encoder's name and a hash of its whole configuration (input size, patch size,
 projection, dtype, ...; not the local path of its weights), ``feature_key(encoder.config_dict())``, e.g.
@@ -22,7 +22,6 @@ from typing import Any, Iterator
 import torch
 
 from wamplan.data.store import CHECKSUMMED_FORMAT, TMP_PREFIX, EpisodeStore, StoreError, atomic_h5, reading
-from wamplan.envs.contract import CAMERAS
 
 
 def feature_key(encoder_config: dict[str, Any]) -> str:
@@ -51,6 +50,7 @@ def check_features(path: str | Path, key: str) -> None:
 def encode_store(root: str | Path, encoder, batch_size: int = 64) -> Iterator[str]:
     """Encode every episode of ``root`` not yet cached; yields the episode names as they finish."""
     store = EpisodeStore(root)
+    cameras = store.cameras
     key = feature_key(encoder.config_dict())
     out_dir = feature_dir(root, key)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -63,8 +63,8 @@ def encode_store(root: str | Path, encoder, batch_size: int = 64) -> Iterator[st
             check_features(final, key)
             continue
         with store.open_episode(path) as f:
-            frames = {c: f["images"][c][:] for c in CAMERAS}  # (K, H, W, 3) each
-        views = [encoder.encode_batched(frames[c], batch_size) for c in CAMERAS]  # V x (K, N, D)
+            frames = {c: f["images"][c][:] for c in cameras}  # (K, H, W, 3) each
+        views = [encoder.encode_batched(frames[c], batch_size) for c in cameras]  # V x (K, N, D)
         z = torch.stack(views, dim=1).to(torch.float16).numpy()  # (K, V, N, D)
         with atomic_h5(final, libver=CHECKSUMMED_FORMAT) as g:
             g.create_dataset("z", data=z, chunks=(1, *z.shape[1:]), fletcher32=True)

@@ -1,11 +1,15 @@
 """Torch datasets over one or more episode stores, for the two consumers.
 
 * :class:`WAMSamples` (WAM training): the observation at step t, the action chunk t..t+H-1 and the
-  three views at t+H (H = 16; past the episode's end the last action is held and the final frame is
+  views at t+H (H = 16; past the episode's end the last action is held and the final frame is
   the target, since the scene stays where it ended).
 * :class:`WorldModelWindows` (world-model training, paper eq. 1-2): ``history + horizon`` frames at
   stride Δ starting at any stored step s; frame i is step s + iΔ with its images (or cached encoder
-  features), its proprio, and the Δ-step action block executed from it, flattened to (Δ·5,).
+  features), its proprio, and the Δ-step action block executed from it, flattened to (Δ·A,).
+
+Views are stacked in the order of the stores' ``cameras`` (their task's); the stores of one dataset must hold
+the same task's episodes with the same env settings (``cameras``: a dataset's). A is the task's action size,
+P its proprio size.
 
 The train/validation split is by episode, from a hash of (source, seed), so it is the same on every
 run and machine and no episode contributes to both sides.
@@ -27,7 +31,6 @@ from torch.utils.data import Dataset
 
 from wamplan.data.features import check_features, feature_dir
 from wamplan.data.store import EpisodeStore, StoreError, parent_episode, reading
-from wamplan.envs.contract import CAMERAS
 
 
 def split_of(source: str, seed: int, val_fraction: float) -> str:
@@ -59,7 +62,7 @@ def index_episodes(stores: Sequence[str | Path], split: str = "all", val_fractio
     refs, envs = [], {}
     for root in stores:
         store = EpisodeStore(root)
-        envs[str(root)] = store.env
+        envs[str(root)] = dict(store.env, cameras=list(store.cameras))
         fdir = feature_dir(root, features) if features is not None else None
         for p in store.episode_paths():
             feat = None
@@ -81,10 +84,16 @@ def index_episodes(stores: Sequence[str | Path], split: str = "all", val_fractio
                                  int(json.loads(f.attrs["provenance"])["start_step"]))
                 refs.append(EpisodeRef(str(p), src, seed, int(f.attrs["length"]),
                                        tuple(int(s) for s in f["image_steps"][:]), store.image_every, feat, branch_at))
-    if len({tuple(sorted(e.items())) for e in envs.values()}) > 1:
-        raise StoreError(f"the stores {list(envs)} were collected with different env settings; train on stores "
-                         f"with the same settings")
+    if len({json.dumps(e, sort_keys=True) for e in envs.values()}) > 1:
+        tasks = sorted({e["task"] for e in envs.values()})
+        what = f"for different tasks ({', '.join(tasks)})" if len(tasks) > 1 else "with different env settings"
+        raise StoreError(f"the stores {list(envs)} were collected {what}; train on stores with the same settings")
     return refs
+
+
+def stores_cameras(stores: Sequence[str | Path]) -> tuple[str, ...]:
+    """The cameras of ``stores`` (one task's; :func:`index_episodes` checks that they agree)."""
+    return EpisodeStore(stores[0]).cameras if stores else ()
 
 
 class _H5Cache:
@@ -114,6 +123,7 @@ class _EpisodeDataset(Dataset):
     def __init__(self, stores: Sequence[str | Path], split: str, val_fraction: float, features: str | None = None,
                  sources: Sequence[str] | None = None):
         self.episodes = index_episodes(stores, split, val_fraction, features=features, sources=sources)
+        self.cameras = stores_cameras(stores)  # the views' order
         self.items: list[tuple[int, ...]] = []
         self._h5 = _H5Cache()
 
@@ -146,8 +156,8 @@ class _EpisodeDataset(Dataset):
 
 
 class WAMSamples(_EpisodeDataset):
-    """Items: ``images`` (V, H, W, 3) uint8 at t, ``proprio`` (10,), ``actions`` (H, 5), ``future`` (V, H, W, 3)
-    at t+H, plus ``step``. V follows ``CAMERAS`` (front, side, wrist)."""
+    """Items: ``images`` (V, H, W, 3) uint8 at t, ``proprio`` (P,), ``actions`` (H, A), ``future`` (V, H, W, 3)
+    at t+H, plus ``step``. V follows ``cameras`` (the cube's: front, side, wrist)."""
 
     def __init__(self, stores: Sequence[str | Path], chunk: int = 16, split: str = "train", val_fraction: float = 0.1,
                  sources: Sequence[str] | None = None):
@@ -162,18 +172,18 @@ class WAMSamples(_EpisodeDataset):
         t = e.image_steps[k]
         t_end = min(t + self.chunk, e.length)
         k_end = e.image_steps.index(t_end)
-        acts = f["actions"][t:t_end]  # (<=H, 5)
+        acts = f["actions"][t:t_end]  # (<=H, A)
         if len(acts) < self.chunk:  # hold the last action past the episode's end
             acts = np.concatenate([acts, np.repeat(acts[-1:], self.chunk - len(acts), 0)])
-        return dict(images=torch.from_numpy(np.stack([f["images"][c][k] for c in CAMERAS])),  # (V, H, W, 3)
-                    proprio=torch.from_numpy(f["proprio"][t]),  # (10,)
-                    actions=torch.from_numpy(acts.astype(np.float32)),  # (H, 5)
-                    future=torch.from_numpy(np.stack([f["images"][c][k_end] for c in CAMERAS])),  # (V, H, W, 3)
+        return dict(images=torch.from_numpy(np.stack([f["images"][c][k] for c in self.cameras])),  # (V, H, W, 3)
+                    proprio=torch.from_numpy(f["proprio"][t]),  # (P,)
+                    actions=torch.from_numpy(acts.astype(np.float32)),  # (H, A)
+                    future=torch.from_numpy(np.stack([f["images"][c][k_end] for c in self.cameras])),  # (V, H, W, 3)
                     step=torch.tensor(t))
 
 
 class WorldModelWindows(_EpisodeDataset):
-    """Items: ``q`` (T, 10), ``a`` (T, Δ·5), and ``z`` (T, V, N, D) cached features (with ``features``) or
+    """Items: ``q`` (T, P), ``a`` (T, Δ·A), and ``z`` (T, V, N, D) cached features (with ``features``) or
     ``images`` (T, V, H, W, 3) uint8, where T = history + horizon frames at stride Δ (``frameskip``).
 
     ``a[i]`` is the block of Δ actions executed from frame i's step, so frame i+1 = step(frame i, a[i]).
@@ -205,35 +215,38 @@ class WorldModelWindows(_EpisodeDataset):
         stride = self.frameskip // e.image_every
         ks = [k + j * stride for j in range(self.frames)]  # image indices of the frames
         steps = [e.image_steps[j] for j in ks]
-        acts = f["actions"][steps[0]:steps[-1] + self.frameskip]  # (T·Δ, 5), shorter at the episode's end
+        acts = f["actions"][steps[0]:steps[-1] + self.frameskip]  # (T·Δ, A), shorter at the episode's end
         if len(acts) < self.frames * self.frameskip:
             acts = np.concatenate([acts, np.repeat(acts[-1:], self.frames * self.frameskip - len(acts), 0)])
-        out = dict(q=torch.from_numpy(f["proprio"][steps]),  # (T, 10)
-                   a=torch.from_numpy(acts.reshape(self.frames, -1).astype(np.float32)),  # (T, Δ·5)
+        out = dict(q=torch.from_numpy(f["proprio"][steps]),  # (T, P)
+                   a=torch.from_numpy(acts.reshape(self.frames, -1).astype(np.float32)),  # (T, Δ·A)
                    steps=torch.tensor(steps))
         if self.features is not None:
             cache = self._h5.get(e.features)
             out["z"] = torch.from_numpy(cache["z"][ks])  # (T, V, N, D) float16
         else:
-            out["images"] = torch.from_numpy(np.stack([f["images"][c][ks] for c in CAMERAS], 1))  # (T, V, H, W, 3)
+            out["images"] = torch.from_numpy(np.stack([f["images"][c][ks] for c in self.cameras], 1))  # (T, V, H, W, 3)
         return out
 
 
 class FeatureFrames(_EpisodeDataset):
     """Items: ``z`` (N, D) cached features of one view of one stored frame and its ``image`` (H, W, 3)
-    uint8 (for training the decoder)."""
+    uint8 (for training the decoder), of the views of ``cameras`` (default: every stored view)."""
 
     def __init__(self, stores: Sequence[str | Path], features: str, split: str = "train", val_fraction: float = 0.1,
-                 cameras: Sequence[str] = CAMERAS, sources: Sequence[str] | None = None):
+                 cameras: Sequence[str] | None = None, sources: Sequence[str] | None = None):
         super().__init__(stores, split, val_fraction, features=features, sources=sources)
-        self.cameras = list(cameras)
+        use = self.cameras if cameras is None else tuple(cameras)
+        if unknown := [c for c in use if c not in self.cameras]:
+            raise StoreError(f"the stores {list(map(str, stores))} hold no views of {unknown}; their cameras are "
+                             f"{list(self.cameras)}")
         self.items = [(i, k, v) for i, e in enumerate(self.episodes) for k in range(len(e.image_steps))
-                      for v, c in enumerate(CAMERAS) if c in self.cameras]
+                      for v, c in enumerate(self.cameras) if c in use]
 
     def _read(self, idx: int) -> dict[str, torch.Tensor]:
         e, f, (k, v) = self._item(idx)
         z = self._h5.get(e.features)["z"][k, v]  # (N, D)
-        img = f["images"][CAMERAS[v]][k]  # (H, W, 3)
+        img = f["images"][self.cameras[v]][k]  # (H, W, 3)
         return dict(z=torch.from_numpy(z), image=torch.from_numpy(img))
 
 
@@ -241,7 +254,7 @@ class BranchGroups(WorldModelWindows):
     """Items: the sibling branches of one chunk boundary (``wamplan.data.branch``), each as the window whose
     context ends at the boundary (its H_ctx - 1 earlier frames come from the parent's shared past) and which
     runs ``horizon`` frames into the branch's own chunk: ``z`` (G, T, V, N, D) cached features (or ``images``
-    (G, T, V, H, W, 3) without ``features``), ``q`` (G, T, P), ``a`` (G, T, Δ·5) and ``steps`` (G, T), with
+    (G, T, V, H, W, 3) without ``features``), ``q`` (G, T, P), ``a`` (G, T, Δ·A) and ``steps`` (G, T), with
     T = history + horizon: :class:`WorldModelWindows` items stacked over G siblings.
     The G windows share their context and differ only in the chunk executed from the boundary, so comparing
     their futures teaches what CEM asks of the world model: which of two nearby chunks from one state ends

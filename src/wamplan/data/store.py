@@ -7,20 +7,26 @@ episodes in flight and never leaves a half-written episode behind.
 
 Layout::
 
-    DIR/store.json                         schema version, env settings (task kwargs), image stride,
-                                           cameras, provenance of the store's creation
+    DIR/store.json                         schema version, the task (``TaskSpec.describe()``), env settings (task
+                                           kwargs), image stride, cameras, provenance of the store's creation
     DIR/episodes/<source>-s<seed>.h5       one episode (``source`` with ':' and '/' made safe)
 
-Episode schema (T = executed control steps; step t's action is applied to the state at step t)::
+A store records one task; a store whose manifest names none (every store written before tasks) holds
+``cube-insertion`` episodes (:data:`LEGACY_TASK`).
+
+Episode schema (T = executed control steps; step t's action is applied to the state at step t; A, P and the
+cameras are the task's, the stages its ``stages``)::
 
     attrs: seed, source, success, outcome, length (= T), policy (JSON), provenance (JSON), reached (JSON)
-    actions         (T, 5)      float32  action executed at step t (after clipping to [-1, 1])
-    proprio         (T+1, 10)   float32  proprio at steps 0..T
-    stages          (T+1, 5)    bool     grasped, lifted, aligned, descended, seated at steps 0..T
-    cube_pose       (T+1, 7)    float32  privileged cube pose (xyz, wxyz quaternion)
-    tcp_pose        (T+1, 7)    float32  privileged TCP pose
-    sim_state       (T+1, S)    float32  ManiSkill ``get_state()`` (enough to restore physics and re-render)
-    drive_targets   (T+1, 9)    float32  joint drive targets (``get_state`` leaves them out)
+    actions         (T, A)      float32  action executed at step t (after clipping to [-1, 1])
+    proprio         (T+1, P)    float32  proprio at steps 0..T
+    stages          (T+1, S)    bool     the task's stage flags at steps 0..T (cube: grasped, lifted, aligned,
+                                         descended, seated)
+    cube_pose       (T+1, 7)    float32  privileged cube pose (xyz, wxyz quaternion); tasks whose privileged
+                                         state has one (cube-insertion)
+    tcp_pose        (T+1, 7)    float32  privileged TCP pose; robots with a TCP
+    sim_state       (T+1, S')   float32  ManiSkill ``get_state()`` (enough to restore physics and re-render)
+    drive_targets   (T+1, J)    float32  joint drive targets (``get_state`` leaves them out)
     image_steps     (K,)        int32    steps whose images are stored: every ``image_every``-th step and T
     images/<camera> (K, H, W, 3) uint8   one chunk per frame, gzip-compressed
 
@@ -47,12 +53,14 @@ from typing import Any, Iterator, Sequence
 import h5py
 import numpy as np
 
-from wamplan.envs.contract import CAMERAS
+from wamplan.envs.spec import TaskSpec, check_same_task, get_task
 from wamplan.errors import UserError, reason
 
 SCHEMA_VERSION = 1
 MANIFEST = "store.json"
 EPISODES = "episodes"
+from wamplan.envs.spec import DEFAULT_TASK as LEGACY_TASK  # noqa: E402  (what records no task means)
+POSES = ("cube_pose", "tcp_pose")  # privileged poses, stored where the task's privileged state has them
 
 
 class StoreError(UserError):
@@ -102,8 +110,8 @@ class EpisodeData:
     actions: np.ndarray
     proprio: np.ndarray
     stages: np.ndarray
-    cube_pose: np.ndarray
-    tcp_pose: np.ndarray
+    cube_pose: np.ndarray | None  # None: the task's privileged state has no cube pose
+    tcp_pose: np.ndarray | None  # None: the robot has no TCP
     sim_state: np.ndarray
     drive_targets: np.ndarray
     image_steps: np.ndarray
@@ -133,10 +141,11 @@ def atomic_h5(final: Path, **kwargs: Any) -> Iterator[h5py.File]:
 
 
 class EpisodeStore:
-    """Create or open a store. ``env`` (task kwargs) and ``image_every`` must match an existing store."""
+    """Create or open a store. ``task`` (the spec collected), ``env`` (task kwargs) and ``image_every`` must match
+    an existing store; creating one records ``task`` (default: the task ``env`` names)."""
 
     def __init__(self, root: str | Path, *, create: bool = False, env: dict | None = None, image_every: int | None = None,
-                 provenance: dict | None = None):
+                 provenance: dict | None = None, task: TaskSpec | None = None):
         self.root = Path(root)
         man = self.root / MANIFEST
         if self.root.exists() and not self.root.is_dir():
@@ -144,9 +153,11 @@ class EpisodeStore:
                              f"collecting: a new or empty one)")
         if man.is_file():
             self.manifest = self._read_manifest(man)
-            if env is not None and self.manifest["env"] != env:
-                diff = {k: (self.manifest["env"].get(k), env.get(k)) for k in set(env) | set(self.manifest["env"])
-                        if self.manifest["env"].get(k) != env.get(k)}
+            if task is not None:
+                check_same_task(task.name, self.task_name, f"store {self.root}")
+            if env is not None and self.env != env:
+                stored = self.env
+                diff = {k: (stored.get(k), env.get(k)) for k in set(env) | set(stored) if stored.get(k) != env.get(k)}
                 raise StoreError(f"{self.root} was collected with other env settings {diff} (stored, requested); "
                                  f"use another --out directory or the stored settings")
             if image_every is not None and self.manifest["image_every"] != image_every:
@@ -157,9 +168,13 @@ class EpisodeStore:
                 raise StoreError(f"{self.root} exists and is not a wamplan episode store; choose an empty or new --out")
             if env is None or image_every is None:
                 raise ValueError("creating a store needs env and image_every")
+            task = task or get_task(env.get("task", LEGACY_TASK))
+            if env.get("task", task.name) != task.name:
+                raise ValueError(f"env settings of task {env['task']} given for a store of task {task.name}")
             self.root.mkdir(parents=True, exist_ok=True)
-            self.manifest = dict(format="wamplan-episode-store", schema_version=SCHEMA_VERSION, env=env,
-                                 image_every=int(image_every), cameras=list(CAMERAS), provenance=provenance or {})
+            self.manifest = dict(format="wamplan-episode-store", schema_version=SCHEMA_VERSION, task=task.describe(),
+                                 env=env, image_every=int(image_every), cameras=list(task.cameras),
+                                 provenance=provenance or {})
             tmp = man.with_suffix(".json.tmp")
             tmp.write_text(json.dumps(self.manifest, indent=2) + "\n")
             os.replace(tmp, man)
@@ -188,7 +203,32 @@ class EpisodeStore:
 
     @property
     def env(self) -> dict:
-        return dict(self.manifest["env"])
+        """The env settings (``EnvConfig.task_kwargs()``), with the task's name (a legacy store's: cube-insertion)."""
+        return {"task": self.task_name, **self.manifest["env"]}
+
+    @property
+    def task_name(self) -> str:
+        """The name of the task the store was collected in (:data:`LEGACY_TASK` where it records none)."""
+        recorded = self.manifest.get("task") or {}
+        return str(recorded.get("task") or self.manifest["env"].get("task") or LEGACY_TASK)
+
+    @property
+    def task(self) -> TaskSpec:
+        """The registered spec of the store's task; one line if it no longer describes what the store recorded."""
+        spec = get_task(self.task_name)
+        recorded = self.manifest.get("task")
+        if recorded is not None and recorded != spec.describe():
+            now = spec.describe()
+            diff = {k: (recorded.get(k), now.get(k)) for k in set(recorded) | set(now) if recorded.get(k) != now.get(k)}
+            raise StoreError(f"{self.root} was collected in task '{spec.name}' as it was then; the registered task "
+                             f"differs {diff} (stored, registered): collect the store again for the task as it is")
+        return spec
+
+    @property
+    def cameras(self) -> tuple[str, ...]:
+        """The cameras whose views every episode stores, in the order models stack them."""
+        cams = self.manifest.get("cameras")
+        return tuple(cams) if cams else self.task.cameras
 
     def episode_path(self, source: str, seed: int) -> Path:
         return self.root / EPISODES / f"{source_tag(source)}-s{int(seed):07d}.h5"
@@ -233,8 +273,9 @@ class EpisodeStore:
             f.attrs.update(seed=ep.seed, source=ep.source, success=bool(ep.success), outcome=ep.outcome, length=ep.length,
                            policy=json.dumps(ep.policy), provenance=json.dumps(ep.provenance),
                            reached=json.dumps(ep.reached))
-            for name in ("actions", "proprio", "cube_pose", "tcp_pose", "sim_state", "drive_targets"):
-                f.create_dataset(name, data=np.asarray(getattr(ep, name), np.float32), fletcher32=True)
+            for name in ("actions", "proprio", *POSES, "sim_state", "drive_targets"):
+                if getattr(ep, name) is not None:  # a pose the task's privileged state lacks is left out
+                    f.create_dataset(name, data=np.asarray(getattr(ep, name), np.float32), fletcher32=True)
             f.create_dataset("stages", data=np.asarray(ep.stages, bool), fletcher32=True)
             f.create_dataset("image_steps", data=np.asarray(ep.image_steps, np.int32), fletcher32=True)
             g = f.create_group("images")
@@ -276,7 +317,7 @@ class EpisodeStore:
         with self.open_episode(path) as f:
             return EpisodeData(seed=int(f.attrs["seed"]), source=str(f.attrs["source"]), success=bool(f.attrs["success"]),
                                outcome=str(f.attrs["outcome"]), actions=f["actions"][:], proprio=f["proprio"][:],
-                               stages=f["stages"][:], cube_pose=f["cube_pose"][:], tcp_pose=f["tcp_pose"][:],
+                               stages=f["stages"][:], **{k: f[k][:] if k in f else None for k in POSES},
                                sim_state=f["sim_state"][:], drive_targets=f["drive_targets"][:],
                                image_steps=f["image_steps"][:], images={c: f["images"][c][:] for c in f["images"]},
                                reached=json.loads(f.attrs["reached"]), policy=json.loads(f.attrs["policy"]),
@@ -306,8 +347,10 @@ def verify_episode(path: str | Path) -> tuple[str | None, bool]:
                     json.loads(v)
             datasets: list[h5py.Dataset] = []
             f.visititems(lambda _, obj: datasets.append(obj) if isinstance(obj, h5py.Dataset) else None)
-            for name in ("actions", "image_steps", "images/" + CAMERAS[0]):
+            for name in ("actions", "image_steps", "images"):
                 f[name]  # noqa: B018  (raises if the file is not an episode)
+            if not len(f["images"]):
+                raise KeyError("the episode stores no camera's images")
             for ds in datasets:
                 checked &= bool(ds.fletcher32)
                 step = max(1, ds.chunks[0]) * 16 if ds.chunks else max(1, len(ds))  # bounded memory for images

@@ -7,13 +7,13 @@ privileged poses, and fits a ridge regression from the flattened tokens to
 * ``cube-rel-hole``: the cube's centre relative to the hole's top centre (what alignment needs; the
   mount is fixed, so this is the cube's world position up to a constant),
 
-per view (front, side, wrist) and for all views concatenated. The split is by episode: some episodes fit
-the probe, the others (``val_fraction``, at least one) are held out and scored. The ridge strength is
-chosen per target from a grid by grouped cross-validation over the fitting episodes (folds of whole
-episodes), then the probe is refit on all fitting episodes. Errors are mean Euclidean distances in mm on
-the held-out frames, beside the error of predicting the fitting episodes' mean; the same errors are also given
-on the held-out frames whose cube is within ``near_mm`` of the hole axis (the alignment regime; the baseline
-there is the mean of the fitting frames in that regime).
+per view (the stores' cameras; the cube's front, side, wrist) and for all views concatenated. The split is
+by episode: some episodes fit the probe, the others (``val_fraction``, at least one) are held out and scored.
+The ridge strength is chosen per target from a grid by grouped cross-validation over the fitting episodes
+(folds of whole episodes), then the probe is refit on all fitting episodes. Errors are mean Euclidean
+distances in mm on the held-out frames, beside the error of predicting the fitting episodes' mean; the same
+errors are also given on the held-out frames whose cube is within ``near_mm`` of the hole axis (the alignment
+regime; the baseline there is the mean of the fitting frames in that regime).
 
 A linear read-out is a lower bound on what the tokens carry: a pixel patch is not linear in the position of
 the object it shows, so finer pixel grids need not probe better linearly even when a nonlinear model (the
@@ -40,12 +40,11 @@ import torch
 
 from wamplan.config import field, require
 from wamplan.data.alignment import hole_position
-from wamplan.data.store import EpisodeStore
+from wamplan.data.store import EpisodeStore, StoreError
 from wamplan.errors import UserError
-from wamplan.envs.contract import CAMERAS
 
 TARGETS = ("cube-rel-tcp", "cube-rel-hole")
-VIEWS = (*CAMERAS, "all")
+ALL = "all"  # the views concatenated
 
 
 @dataclass(frozen=True)
@@ -69,10 +68,15 @@ class ProbeConfig:
 class ProbeData:
     """Features and targets of every stored frame. M = frames over all episodes."""
 
-    features: dict[str, np.ndarray]  # view -> (M, N*D) float32 (``all``: the three views concatenated)
+    features: dict[str, np.ndarray]  # view -> (M, N*D) float32 (``all``: the views concatenated)
     targets: dict[str, np.ndarray]  # target -> (M, 3) float32, metres
     episode: np.ndarray  # (M,) int, index into ``episodes``
     episodes: list[str]  # "<source>:<seed>" per episode, the split's key
+
+    @property
+    def views(self) -> tuple[str, ...]:
+        """The probed views: each camera, then ``all``."""
+        return tuple(self.features)
 
 
 def _hash01(key: str) -> float:
@@ -82,24 +86,31 @@ def _hash01(key: str) -> float:
 @torch.inference_mode()
 def load_probe_data(stores: Sequence[str | Path], encoders: Sequence[Any], batch_size: int = 64,
                     progress: bool = False) -> list[ProbeData]:
-    """Read every episode of ``stores`` once and encode its frames with each encoder; one ProbeData per encoder."""
-    feats: list[dict[str, list[np.ndarray]]] = [{c: [] for c in CAMERAS} for _ in encoders]
+    """Read every episode of ``stores`` (one task's, with the same cameras) once and encode its frames with each
+    encoder; one ProbeData per encoder."""
+    opened = [EpisodeStore(root) for root in stores]
+    cameras = opened[0].cameras if opened else ()
+    if other := [str(s.root) for s in opened if s.cameras != cameras]:
+        raise UserError(f"the stores {other} have other cameras than {list(cameras)}; probe one task's stores")
+    feats: list[dict[str, list[np.ndarray]]] = [{c: [] for c in cameras} for _ in encoders]
     targets: dict[str, list[np.ndarray]] = {t: [] for t in TARGETS}
     episode: list[np.ndarray] = []
     names: list[str] = []
-    paths = [(EpisodeStore(root), p) for root in stores for p in EpisodeStore(root).episode_paths()]
+    paths = [(store, p) for store in opened for p in store.episode_paths()]
     if len(paths) < 2:
         raise UserError(f"the probe needs at least 2 episodes (fit and held out); {list(stores)} hold {len(paths)}; "
                         f"collect more with `wamplan collect`")
     for i, (store, path) in enumerate(paths):
         hole = hole_position(store.env)
         with store.open_episode(path) as f:
+            if "cube_pose" not in f or "tcp_pose" not in f:
+                raise StoreError(f"{path} records no cube or TCP pose; the probe's targets are read from both")
             steps = f["image_steps"][:]  # (K,)
             cube = f["cube_pose"][:][steps, :3]  # (K, 3)
             tcp = f["tcp_pose"][:][steps, :3]  # (K, 3)
             names.append(f"{f.attrs['source']}:{int(f.attrs['seed'])}")
-            frames = {c: f["images"][c][:] for c in CAMERAS}  # (K, H, W, 3) uint8 each
-        for c in CAMERAS:
+            frames = {c: f["images"][c][:] for c in cameras}  # (K, H, W, 3) uint8 each
+        for c in cameras:
             for e, enc in enumerate(encoders):
                 z = enc.encode_batched(torch.from_numpy(frames[c]), batch_size)  # (K, N, D) on the CPU
                 feats[e][c].append(z.flatten(1).numpy().astype(np.float32))  # (K, N*D)
@@ -112,8 +123,8 @@ def load_probe_data(stores: Sequence[str | Path], encoders: Sequence[Any], batch
     ep = np.concatenate(episode)
     out = []
     for fe in feats:
-        views = {c: np.concatenate(fe[c]) for c in CAMERAS}
-        views["all"] = np.concatenate([views[c] for c in CAMERAS], axis=1)  # (M, 3 N D)
+        views = {c: np.concatenate(fe[c]) for c in cameras}
+        views[ALL] = np.concatenate([views[c] for c in cameras], axis=1)  # (M, V N D)
         out.append(ProbeData(views, tgt, ep, names))
     return out
 
@@ -183,7 +194,7 @@ def probe_arrays(data: ProbeData, config: ProbeConfig | None = None) -> dict[str
     xy = 1000.0 * np.linalg.norm(data.targets["cube-rel-hole"][:, :2], axis=1)  # (M,) mm from the hole axis
     near_test, near_fit = xy[test] < cfg.near_mm, xy[fit] < cfg.near_mm
     rows = []
-    for view in VIEWS:
+    for view in data.views:
         x = data.features[view]
         x_fit, x_test = x[fit], x[test]
         cv = {t: np.zeros(len(cfg.alphas)) for t in TARGETS}
@@ -234,15 +245,16 @@ def format_probe(report: dict[str, Any]) -> str:
     head = (f"encoder {enc} ({n} tokens x {d} per view); fit {report['episodes']['fit']} episodes / "
             f"{report['frames']['fit']} frames, held out {report['episodes']['held_out']} / "
             f"{report['frames']['held_out']}; mean Euclidean error, mm")
-    lines = [head, f"{'target':<19}" + "".join(f"{v:>8}" for v in VIEWS) + f"{'mean':>8}"]
+    views = list(dict.fromkeys(r["view"] for r in report["rows"]))  # each camera, then all
+    lines = [head, f"{'target':<19}" + "".join(f"{v:>8}" for v in views) + f"{'mean':>8}"]
     for t in TARGETS:
         rows = {r["view"]: r for r in report["rows"] if r["target"] == t}
-        lines.append(f"{t:<19}" + "".join(f"{rows[v]['error_mm']:>8.1f}" for v in VIEWS)
-                     + f"{rows['all']['baseline_mm']:>8.1f}")
+        lines.append(f"{t:<19}" + "".join(f"{rows[v]['error_mm']:>8.1f}" for v in views)
+                     + f"{rows[ALL]['baseline_mm']:>8.1f}")
     for t in TARGETS:
         rows = {r["view"]: r for r in report["rows"] if r["target"] == t}
-        if "near_error_mm" in rows["all"]:
-            lines.append(f"{t + ' near':<19}" + "".join(f"{rows[v]['near_error_mm']:>8.1f}" for v in VIEWS)
-                         + f"{rows['all']['near_baseline_mm']:>8.1f}   ({rows['all']['near_frames']} held-out frames "
+        if "near_error_mm" in rows[ALL]:
+            lines.append(f"{t + ' near':<19}" + "".join(f"{rows[v]['near_error_mm']:>8.1f}" for v in views)
+                         + f"{rows[ALL]['near_baseline_mm']:>8.1f}   ({rows[ALL]['near_frames']} held-out frames "
                          f"with the cube near the hole)")
     return "\n".join(lines)

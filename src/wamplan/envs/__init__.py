@@ -1,6 +1,7 @@
-"""The ManiSkill 3 task ``CubeInsertion-v1`` and wamplan's thin wrapper around it.
+"""Tasks: the registry of task specs (``wamplan.envs.spec``), the ManiSkill 3 task ``CubeInsertion-v1`` (its
+contract in ``wamplan.envs.contract``), any ManiSkill task (``wamplan.envs.maniskill``), and ``TaskEnv``, the thin
+wrapper every layer above steps.
 
-``wamplan.envs.contract`` (re-exported here) is the task's contract and imports no simulator.
 Importing this package registers ``CubeInsertion-v1`` with gymnasium lazily, without importing ManiSkill:
 the first ``gym.make("CubeInsertion-v1", ...)`` imports ``wamplan.envs.task``, whose ManiSkill registration
 (``register_env``) then takes the placeholder's place. Vulkan is configured here, before any submodule can
@@ -11,8 +12,8 @@ from wamplan.envs.vulkan import configure_vulkan
 
 configure_vulkan()
 
-from wamplan.envs.contract import (ACTION_DIM, CAMERAS, ENV_ID, MAX_EPISODE_STEPS, OUTCOMES,  # noqa: E402
-                                   PROPRIO_DIM, STAGES, Observation)
+from wamplan.envs.contract import ENV_ID, MAX_EPISODE_STEPS  # noqa: E402
+from wamplan.envs.spec import TASKS, Observation, TaskSpec, get_task, register_task  # noqa: E402
 
 
 def _register_lazily() -> None:
@@ -31,5 +32,4 @@ def _register_lazily() -> None:
 
 _register_lazily()
 
-__all__ = ["ACTION_DIM", "CAMERAS", "ENV_ID", "MAX_EPISODE_STEPS", "OUTCOMES", "PROPRIO_DIM", "STAGES",
-           "Observation"]
+__all__ = ["TASKS", "Observation", "TaskSpec", "get_task", "register_task"]

@@ -8,7 +8,7 @@ import numpy as np
 from mani_skill.agents.registration import register_agent
 from mani_skill.agents.robots.panda.panda import Panda
 
-from wamplan.envs.config import CONTROL_MODE  # noqa: F401  (the control mode this module builds)
+from wamplan.envs.contract import CONTROL_MODE
 from wamplan.envs.controller import EEDeltaXYZYawControllerConfig
 
 # Joint angles of the rest pose: the TCP points straight down above the table centre.

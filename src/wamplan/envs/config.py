@@ -1,6 +1,6 @@
-"""The task's settings, :class:`EnvConfig`: what ``InsertionEnv`` builds (camera size, geometry, episode length,
-ManiSkill's backends). Like ``wamplan.envs.contract`` it imports no simulator, so the command line can offer its
-options (``wamplan collect --help``) without loading ManiSkill."""
+"""The env's settings, :class:`EnvConfig`: which registered task ``TaskEnv`` builds and how (camera size, the cube
+task's geometry, episode length, ManiSkill's backends). Like ``wamplan.envs.spec`` it imports no simulator, so the
+command line can offer its options (``wamplan collect --help``) without loading ManiSkill."""
 
 from __future__ import annotations
 
@@ -8,9 +8,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from wamplan.config import field, require
-from wamplan.envs.contract import ENV_ID, MAX_EPISODE_STEPS
+from wamplan.envs.spec import TASKS, TaskSpec, get_task
 
-CONTROL_MODE = "pd_ee_delta_xyzyaw"  # the 5-D controller of wamplan.envs.agent (which imports ManiSkill)
 # ManiSkill's backend names (mani_skill/envs/utils/system/backend.py); a CUDA one may name a device (cuda:1)
 SIM_BACKENDS = ("physx_cpu", "cpu", "physx_cuda", "cuda", "gpu")
 RENDER_BACKENDS = ("cpu", "gpu", "cuda", "sapien_cpu", "sapien_cuda", "none")
@@ -18,17 +17,20 @@ RENDER_BACKENDS = ("cpu", "gpu", "cuda", "sapien_cpu", "sapien_cuda", "none")
 
 @dataclass(frozen=True)
 class EnvConfig:
-    camera_size: int = field(224, "rendered image side in pixels, all three cameras")
-    clearance: float = field(0.002, "gap between cube and hole wall per side, metres")
-    cube_half_size: float = field(0.02, "half the cube's side, metres")
-    mount_height: float = field(0.025, "height of the mount (depth of the hole), metres")
-    robot_init_qpos_noise: float = field(0.02, "std of the initial joint-angle noise, radians")
-    max_episode_steps: int = field(MAX_EPISODE_STEPS, "episodes truncate after this many control steps")
+    task: str = field("cube-insertion", "the registered task (`wamplan tasks` lists them)", choices=lambda: TASKS)
+    camera_size: int = field(224, "rendered image side in pixels, every camera")
+    clearance: float = field(0.002, "cube-insertion: gap between cube and hole wall per side, metres")
+    cube_half_size: float = field(0.02, "cube-insertion: half the cube's side, metres")
+    mount_height: float = field(0.025, "cube-insertion: height of the mount (depth of the hole), metres")
+    robot_init_qpos_noise: float = field(0.02, "cube-insertion: std of the initial joint-angle noise, radians")
+    max_episode_steps: int | None = field(None, "episodes truncate after this many control steps (default: the "
+                                                "task's)")
     sim_backend: str = field("physx_cpu", "ManiSkill sim backend: physx_cpu (one env per process) or physx_cuda "
                              "(cuda:N for a device)")
     render_backend: str = field("cpu", "ManiSkill render backend: cpu (lavapipe), gpu, cuda:N (a device) or none")
 
     def __post_init__(self):
+        get_task(self.task)  # one line naming the registered tasks if unknown
         for flag, name, known in (("--sim-backend", self.sim_backend, SIM_BACKENDS),
                                   ("--render-backend", self.render_backend, RENDER_BACKENDS)):
             kind, _, index = name.partition(":")
@@ -43,10 +45,21 @@ class EnvConfig:
         require(16 <= self.camera_size <= 1024, f"--camera-size must be in [16, 1024], got {self.camera_size}")
         require(0 < self.clearance < self.cube_half_size,
                 f"--clearance must be in (0, --cube-half-size={self.cube_half_size}), got {self.clearance}")
-        require(self.max_episode_steps > 0, f"--max-episode-steps must be > 0, got {self.max_episode_steps}")
+        require(self.max_episode_steps is None or self.max_episode_steps > 0,
+                f"--max-episode-steps must be > 0, got {self.max_episode_steps}")
+
+    @property
+    def spec(self) -> TaskSpec:
+        return get_task(self.task)
+
+    @property
+    def episode_steps(self) -> int:
+        """Control steps before an episode truncates: ``max_episode_steps``, or the task's."""
+        return self.max_episode_steps or self.spec.max_episode_steps
 
     def task_kwargs(self) -> dict[str, Any]:
         """The kwargs that define the task's physics and pictures (what must match across a dataset)."""
-        return dict(camera_size=self.camera_size, clearance=self.clearance, cube_half_size=self.cube_half_size,
-                    mount_height=self.mount_height, robot_init_qpos_noise=self.robot_init_qpos_noise,
-                    control_mode=CONTROL_MODE, env_id=ENV_ID)
+        spec = self.spec
+        kw = dict(task=spec.name, env_id=spec.env_id, control_mode=spec.control_mode, camera_size=self.camera_size)
+        kw.update({name: getattr(self, name) for name in spec.config_kwargs})
+        return kw

@@ -1,7 +1,8 @@
-"""The task's contract: what ``CubeInsertion-v1`` shows a policy, what it accepts, and what it reports.
+"""``CubeInsertion-v1``'s contract: what it shows a policy, what it accepts and what it reports, registered as the
+task ``cube-insertion`` (:data:`CUBE_INSERTION`, a :class:`~wamplan.envs.spec.TaskSpec`).
 
-Everything above the env layer (policies, data, models, planning, evaluation) speaks these names; this
-module imports neither ManiSkill nor torch, so importing it is cheap.
+Only the env layer reads these constants; everything above it reads the spec. This module imports neither
+ManiSkill nor torch, so importing it is cheap.
 
 * observation: :class:`Observation` per control step; ``proprio`` is ``PROPRIO_DIM`` = 10 floats
   (gripper width, TCP xyz, TCP 6-D rotation), images come from the ``CAMERAS`` (front, side, wrist);
@@ -13,9 +14,9 @@ module imports neither ManiSkill nor torch, so importing it is cheap.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
 import numpy as np
+
+from wamplan.envs.spec import Observation, TaskSpec, register_task
 
 ENV_ID = "CubeInsertion-v1"
 MAX_EPISODE_STEPS = 300
@@ -28,6 +29,7 @@ HOLD_ACTION = np.array([0.0, 0.0, 0.0, 0.0, GRIPPER_OPEN], np.float32)  # (A,) a
 HOLD_ACTION.setflags(write=False)
 PROPRIO_DIM = 10
 STAGES = ("grasped", "lifted", "aligned", "descended", "seated")
+HOLE_XY = (0.0, 0.12)  # the mount's hole axis, metres (fixed in the task)
 ALIGN_XY_TOL = 0.004  # metres: "aligned" needs the cube's centre this close to the hole's axis (and the yaw within 0.1 rad)
 # the task's continuous measures of the cube, in every step's info: metres (xy from the hole's axis; bottom above
 # the table) and radians (yaw from the hole's square; tilt of its axis from vertical)
@@ -35,11 +37,19 @@ CUBE_METRICS = ("cube_xy_error", "cube_yaw_error", "cube_bottom", "cube_tilt")
 OUTCOMES = ("success", "never_lifted", "lifted_not_aligned", "aligned_not_descended", "descended_not_seated")
 
 
-@dataclass
-class Observation:
-    """What a policy sees at control step ``step``."""
+CONTROL_MODE = "pd_ee_delta_xyzyaw"  # the 5-D controller of wamplan.envs.agent (which imports ManiSkill)
+INSTRUCTION = "insert the cube into the square hole"
 
-    step: int
-    proprio: np.ndarray  # (10,) float32: gripper width, TCP xyz (3), TCP 6-D rotation (6)
-    images: dict[str, np.ndarray] | None = None  # camera -> (H, W, 3) uint8; None if not rendered
-    state: dict[str, np.ndarray] = field(default_factory=dict)  # privileged sim state (experts only)
+CUBE_INSERTION = register_task(TaskSpec(
+    name="cube-insertion", env_id=ENV_ID, cameras=CAMERAS, action_dim=ACTION_DIM, proprio_dim=PROPRIO_DIM,
+    control_mode=CONTROL_MODE, max_episode_steps=MAX_EPISODE_STEPS, instruction=INSTRUCTION,
+    adapter="wamplan.envs.task:CubeInsertionAdapter", gripper_index=GRIPPER_INDEX, gripper_open=GRIPPER_OPEN,
+    gripper_closed=GRIPPER_CLOSED, chunk_len=16, stages=STAGES,
+    outcomes=(("descended", "descended_not_seated"), ("aligned", "aligned_not_descended"),
+              ("lifted", "lifted_not_aligned")),
+    failure="never_lifted", metrics=CUBE_METRICS, expert="expert",
+    config_kwargs=("clearance", "cube_half_size", "mount_height", "robot_init_qpos_noise"), params=(("align_xy_tol", ALIGN_XY_TOL), ("hole_x", HOLE_XY[0]), ("hole_y", HOLE_XY[1]))))
+assert CUBE_INSERTION.outcome_names == OUTCOMES
+
+__all__ = ["ACTION_DIM", "ARM", "CAMERAS", "CUBE_INSERTION", "CUBE_METRICS", "ENV_ID", "GRIPPER_INDEX", "HOLD_ACTION", "HOLE_XY",
+           "MAX_EPISODE_STEPS", "OUTCOMES", "PROPRIO_DIM", "STAGES", "Observation"]

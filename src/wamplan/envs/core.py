@@ -1,4 +1,5 @@
-"""``InsertionEnv``: wamplan's wrapper around one ``CubeInsertion-v1`` instance (CPU simulator).
+"""``TaskEnv``: wamplan's wrapper around one instance of a registered task's ManiSkill env (``EnvConfig.task``;
+the CPU simulator by default).
 
 It speaks numpy and :class:`~wamplan.envs.contract.Observation`, renders cameras only on demand
 (physics is cheap, a camera picture costs tens of milliseconds), tracks the furthest stage an episode reached, and
@@ -30,8 +31,9 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from wamplan.envs.adapters import adapter_class
 from wamplan.envs.config import EnvConfig
-from wamplan.envs.contract import ACTION_DIM, CAMERAS, CUBE_METRICS, ENV_ID, STAGES, Observation
+from wamplan.envs.spec import Observation, TaskSpec
 
 _CORNERS = np.array(list(itertools.product((0, 1), repeat=3)))  # (8, 3): min (0) or max (1) per axis
 
@@ -55,8 +57,8 @@ def _clone(x: Any) -> Any:
     return copy.deepcopy(x)
 
 
-class InsertionEnv:
-    """One CubeInsertion-v1 episode at a time; numpy in, numpy out.
+class TaskEnv:
+    """One episode of the task ``config.task`` at a time; numpy in, numpy out. ``task`` is its spec.
 
     The methods that change simulator or controller state run with inference mode off, whatever the caller's
     mode: a planner that steps the env inside ``torch.inference_mode()`` would otherwise leave inference tensors
@@ -64,17 +66,21 @@ class InsertionEnv:
     """
 
     def __init__(self, config: EnvConfig | None = None):
-        import wamplan.envs.task  # noqa: F401  (registers the task, configures Vulkan)
+        import wamplan.envs.task  # noqa: F401  (registers the cube task, configures Vulkan)
+        import mani_skill.envs  # noqa: F401  (registers ManiSkill's own tasks)
 
         self.config = config or EnvConfig()
-        kw = self.config.task_kwargs()
-        kw.pop("env_id")
-        self._gym = gym.make(ENV_ID, obs_mode="state_dict", reward_mode="none", num_envs=1,
-                             sim_backend=self.config.sim_backend, render_backend=self.config.render_backend, **kw)
+        self.task: TaskSpec = self.config.spec
+        adapter = adapter_class(self.task)
+        self._gym = gym.make(self.task.env_id, obs_mode="state_dict", reward_mode="none", num_envs=1,
+                             sim_backend=self.config.sim_backend, render_backend=self.config.render_backend,
+                             **adapter.make_kwargs(self.task, self.config))
         self.base = self._gym.unwrapped
+        self.adapter = adapter(self.task, self.base)
+        self._check_action_space()
         self.step_count = 0
         self.seed: int | None = None
-        self.reached = {s: False for s in STAGES}
+        self.reached = {s: False for s in self.task.stages}
         self._last: dict[str, Any] = {}
         self._mid_rollout = False  # set by simulate(): physics moved on without stage tracking
         self._bodies: list | None = None  # render bodies, for frustum culling (see render)
@@ -94,56 +100,58 @@ class InsertionEnv:
         self._stepped = False
         self._mid_rollout = False
         self.step_count = 0
-        self.reached = {s: False for s in STAGES}
+        self.reached = {s: False for s in self.task.stages}
         self._last = self._evaluate()
         return self.observe(with_images)
 
     @torch.inference_mode(False)
     def step(self, action: np.ndarray, with_images: bool = False) -> tuple[Observation, dict[str, Any]]:
-        """Apply one 5-D action (clipped to [-1, 1]); returns the next observation and step info."""
+        """Apply one action (A,) (clipped to [-1, 1]); returns the next observation and step info."""
         self._check_not_mid_rollout()
         a = self.check_action(action)
         self._stepped = True
-        self.base.step(torch.as_tensor(a[None]))  # (1, 5)
+        self.base.step(torch.as_tensor(a[None]))  # (1, A)
         self.step_count += 1
         self._last = self._evaluate()
-        info = dict(self._last, step=self.step_count, truncated=self.step_count >= self.config.max_episode_steps)
+        info = dict(self._last, step=self.step_count, truncated=self.step_count >= self.max_episode_steps)
         return self.observe(with_images), info
 
-    @staticmethod
-    def check_action(action: Any) -> np.ndarray:
-        """Validate one action: shape (5,), finite; values outside [-1, 1] are clipped (documented)."""
+    @property
+    def max_episode_steps(self) -> int:
+        return self.config.episode_steps
+
+    def _check_action_space(self) -> None:
+        space = self.base.single_action_space
+        if space.shape != (self.task.action_dim,) or not (np.all(space.low >= -1) and np.all(space.high <= 1)):
+            raise ValueError(f"task {self.task.name}: controller {self.task.control_mode} takes actions in a box of "
+                             f"shape {space.shape} from {space.low.min():g} to {space.high.max():g}, but the spec "
+                             f"says {self.task.action_dim} entries in [-1, 1]; choose a normalised controller "
+                             f"(pd_ee_delta_pose, pd_joint_delta_pos) and its size")
+
+    def check_action(self, action: Any) -> np.ndarray:
+        """Validate one action: shape (A,), finite; values outside [-1, 1] are clipped (documented)."""
         a = np.asarray(action, dtype=np.float32)
-        if a.shape != (ACTION_DIM,):
-            raise ValueError(f"action must have shape ({ACTION_DIM},) = (dx, dy, dz, dyaw, gripper), got {a.shape}")
+        if a.shape != (self.task.action_dim,):
+            raise ValueError(f"action must have shape ({self.task.action_dim},) for task {self.task.name}, got "
+                             f"{a.shape}")
         if not np.all(np.isfinite(a)):
             raise ValueError(f"action must be finite, got {a.tolist()}; check the policy's output for NaN/inf")
         return np.clip(a, -1.0, 1.0)
 
     def _evaluate(self) -> dict[str, Any]:
-        ev = self.base.evaluate()
-        flags = {s: bool(ev[s][0]) for s in STAGES}
-        for s in STAGES:
-            self.reached[s] |= flags[s]
-        return dict(flags, success=flags["seated"], **{k: float(ev[k][0]) for k in CUBE_METRICS})
+        ev = self.adapter.evaluate()  # success, stage flags, metrics
+        for s in self.task.stages:
+            self.reached[s] |= ev[s]
+        return ev
 
     def outcome(self) -> str:
-        """The episode's outcome so far: success, or the furthest stage reached before failing."""
-        r = self.reached
-        if self._last.get("success"):
-            return "success"
-        if r["descended"]:
-            return "descended_not_seated"
-        if r["aligned"]:
-            return "aligned_not_descended"
-        if r["lifted"]:
-            return "lifted_not_aligned"
-        return "never_lifted"
+        """The episode's outcome so far: success, or the outcome of the furthest stage reached before failing."""
+        return self.task.outcome(bool(self._last.get("success")), self.reached)
 
     @property
     def metrics(self) -> dict[str, Any]:
-        """The task's evaluation of the current state (privileged): the stage flags, ``success`` and the
-        cube's continuous measures (``CUBE_METRICS``: metres, radians)."""
+        """The task's evaluation of the current state (privileged): ``success``, the stage flags and the
+        task's continuous measures (``task.metrics``)."""
         return dict(self._last)
 
     @property
@@ -152,16 +160,11 @@ class InsertionEnv:
 
     # ------------------------------------------------------------------ observations
     def proprio(self) -> np.ndarray:
-        """(10,) float32: gripper width, TCP xyz, first two columns of the TCP rotation matrix."""
-        return self.base.proprio()[0].numpy().astype(np.float32)  # (10,): the task's obs["extra"]["proprio"]
+        """(P,) float32: the task's proprioception (its adapter reads it)."""
+        return self.adapter.proprio()
 
     def privileged_state(self) -> dict[str, np.ndarray]:
-        b = self.base
-        return dict(tcp_pose=b.agent.tcp_pose.raw_pose[0].numpy().copy(),
-                    cube_pose=b.cube.pose.raw_pose[0].numpy().copy(),
-                    hole_pos=np.array([*b.hole_xy.tolist(), b.mount_height], dtype=np.float32),
-                    cube_half_size=np.float32(b.cube_half_size),
-                    stages=np.array([self._last.get(s, False) for s in STAGES], bool))
+        return self.adapter.privileged_state(self._last)
 
     def sim_state(self) -> np.ndarray:
         """ManiSkill's flat physics state (S,) float32: enough to restore poses and velocities and re-render."""
@@ -170,13 +173,13 @@ class InsertionEnv:
     def drive_targets(self) -> np.ndarray:
         return self.base.agent.robot.get_drive_targets()[0].numpy().astype(np.float32)
 
-    def render(self, cameras: tuple[str, ...] = CAMERAS, cull: bool = False) -> dict[str, np.ndarray]:
-        """Render the current state: camera -> (H, W, 3) uint8. ``cull`` hides, per camera, the bodies wholly
+    def render(self, cameras: tuple[str, ...] | None = None, cull: bool = False) -> dict[str, np.ndarray]:
+        """Render the current state: camera -> (H, W, 3) uint8 (default: the task's cameras). ``cull`` hides, per camera, the bodies wholly
         outside its view frustum while it draws (the same pixels, drawn faster; ``simulate`` uses it)."""
         b = self.base
         b.scene.update_render(update_sensors=True, update_human_render_cameras=False)
         out = {}
-        for name in cameras:
+        for name in cameras or self.task.cameras:
             cam = b.scene.sensors[name]
             hidden = self._outside_frustum(cam.camera._render_cameras[0]) if cull else []
             for body in hidden:
@@ -250,8 +253,9 @@ class InsertionEnv:
 
     # ------------------------------------------------------------------ planning
     @torch.inference_mode(False)
-    def simulate(self, snap: Snapshot, actions: np.ndarray, cameras: tuple[str, ...] = CAMERAS) -> np.ndarray:
-        """Candidate rollouts for a planner: actions (B, L, 5) -> terminal views (B, V, H, W, 3) uint8.
+    def simulate(self, snap: Snapshot, actions: np.ndarray, cameras: tuple[str, ...] | None = None) -> np.ndarray:
+        """Candidate rollouts for a planner: actions (B, L, A) -> terminal views (B, V, H, W, 3) uint8 (default
+        views: the task's cameras).
 
         Each candidate starts from ``snap`` (restored once) and runs the controller and physics only; its
         terminal state is bit-identical to ``restore(snap)`` then ``step`` over the same actions. The env is
@@ -260,18 +264,19 @@ class InsertionEnv:
         would implement the same signature with one batched rollout.
         """
         acts = np.asarray(actions, dtype=np.float32)
-        if acts.ndim != 3 or acts.shape[-1] != ACTION_DIM:
-            raise ValueError(f"actions must have shape (B, L, {ACTION_DIM}), got {acts.shape}")
+        cameras = cameras or self.task.cameras
+        if acts.ndim != 3 or acts.shape[-1] != self.task.action_dim:
+            raise ValueError(f"actions must have shape (B, L, {self.task.action_dim}), got {acts.shape}")
         if not np.all(np.isfinite(acts)):
             raise ValueError("candidate actions must be finite; check the planner's samples for NaN/inf")
         acts = np.clip(acts, -1.0, 1.0)  # as step's check_action
         self._stepped = True
         views = []
-        for cand in torch.from_numpy(acts):  # (L, 5)
+        for cand in torch.from_numpy(acts):  # (L, A)
             self._restore_sim(snap)
             self._mid_rollout = True
             for a in cand:
-                self.base._step_action(a[None])  # (1, 5): controller + physics, as in base.step
+                self.base._step_action(a[None])  # (1, A): controller + physics, as in base.step
             frames = self.render(cameras, cull=True)
             views.append(np.stack([frames[c] for c in cameras]))  # (V, H, W, 3)
         return np.stack(views)  # (B, V, H, W, 3)

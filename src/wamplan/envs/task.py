@@ -13,7 +13,7 @@ Scene (metres, world frame; the table top is z = 0, the robot base stands at x =
 
 Observations (``gym.make("CubeInsertion-v1", obs_mode=...)``, any ManiSkill mode): ManiSkill's ``agent``
 (qpos, qvel) and, for camera modes, ``sensor_data`` / ``sensor_param``; ``extra`` holds ``proprio`` (the
-10-D proprio wamplan's policies see, :meth:`CubeInsertionEnv.proprio`), ``tcp_pose`` and ``hole_pos``,
+10-D proprio wamplan's policies see, :meth:`CubeTaskEnv.proprio`), ``tcp_pose`` and ``hole_pos``,
 plus the privileged ``cube_pose`` only in the ``state`` / ``state_dict`` modes (ManiSkill's convention).
 
 Stages, per step (``evaluate``): ``grasped`` (both fingers press the cube), ``lifted`` (cube bottom
@@ -39,10 +39,12 @@ from mani_skill.utils.registration import make, register_env
 from mani_skill.utils.scene_builder.table import TableSceneBuilder
 from mani_skill.utils.structs.pose import Pose
 
+from wamplan.envs.adapters import ManiSkillAdapter
 from wamplan.envs.agent import CONTROL_MODE, REST_QPOS, PandaInsertion
-from wamplan.envs.contract import ALIGN_XY_TOL, ENV_ID, MAX_EPISODE_STEPS, STAGES
+from wamplan.envs.config import EnvConfig
+from wamplan.envs.contract import ALIGN_XY_TOL, ENV_ID, HOLE_XY, MAX_EPISODE_STEPS, STAGES
+from wamplan.envs.spec import TaskSpec
 
-HOLE_XY = (0.0, 0.12)
 CUBE_X_RANGE = (-0.10, 0.05)
 CUBE_Y_RANGE = (-0.20, -0.05)
 CUBE_YAW_RANGE = (-np.pi / 4, np.pi / 4)
@@ -70,7 +72,7 @@ gym.registry.pop(ENV_ID, None)  # the lazy placeholder from wamplan.envs: ManiSk
 
 
 @register_env(ENV_ID, max_episode_steps=MAX_EPISODE_STEPS)
-class CubeInsertionEnv(BaseEnv):
+class CubeTaskEnv(BaseEnv):
     SUPPORTED_ROBOTS = ["panda_insertion"]
     agent: PandaInsertion
 
@@ -198,3 +200,23 @@ class CubeInsertionEnv(BaseEnv):
 
     def compute_normalized_dense_reward(self, obs: Any, action: torch.Tensor, info: dict):
         return self.compute_dense_reward(obs, action, info) / 9.0
+
+
+class CubeInsertionAdapter(ManiSkillAdapter):
+    """The cube task's reading: its 10-D proprio, and the cube, TCP and hole poses as privileged state."""
+
+    @staticmethod
+    def make_kwargs(spec: TaskSpec, config: EnvConfig) -> dict[str, Any]:
+        kw = {k: v for k, v in config.task_kwargs().items() if k not in ("task", "env_id")}
+        return dict(spec.env_kwargs, **kw)
+
+    def proprio(self) -> np.ndarray:
+        return self.base.proprio()[0].numpy().astype(np.float32)  # (10,): the task's obs["extra"]["proprio"]
+
+    def privileged_state(self, evaluation: dict[str, Any]) -> dict[str, np.ndarray]:
+        b = self.base
+        return dict(tcp_pose=b.agent.tcp_pose.raw_pose[0].numpy().copy(),
+                    cube_pose=b.cube.pose.raw_pose[0].numpy().copy(),
+                    hole_pos=np.array([*b.hole_xy.tolist(), b.mount_height], dtype=np.float32),
+                    cube_half_size=np.float32(b.cube_half_size),
+                    stages=np.array([evaluation.get(s, False) for s in STAGES], bool))

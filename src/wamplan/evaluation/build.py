@@ -12,6 +12,7 @@ from wamplan.errors import UserError
 from wamplan.policies import POLICIES, Policy, make_policy
 
 if TYPE_CHECKING:
+    from wamplan.envs.spec import TaskSpec
     from wamplan.evaluation.config import EvalConfig
     from wamplan.planning.dynamics import Dynamics
     from wamplan.planning.policy import PlannedPolicy
@@ -43,24 +44,33 @@ def plan_in_world_model(cfg: EvalConfig, wam: WAM | str, paths: Sequence[str]) -
     return planned_policy(cfg, wam, dyn, enc, world_models=paths)
 
 
-def load_policy(spec: str, instruction: str | None = None, plan_with: str = "", **kwargs: Any) -> Policy:
+def load_policy(spec: str, instruction: str | None = None, plan_with: str = "", task: TaskSpec | None = None,
+                **kwargs: Any) -> Policy:
     """A registered policy name (``kwargs`` go to its constructor), or a directory holding a WAM checkpoint:
     run open loop, or with ``plan_with`` (world model checkpoints, comma-separated for an ensemble) planned
-    as condition 7 plans it, at the evaluation's default planner, cost and chunk rules."""
+    as condition 7 plans it, at the evaluation's default planner, cost and chunk rules. ``task``: the task the
+    policy acts in; a registered policy is built for it, a WAM must have been made for it (one line otherwise)."""
     if spec in POLICIES:
         if plan_with:
             raise UserError(f"--plan-with plans a WAM's chunks; '{spec}' is a scripted policy, pass a WAM checkpoint")
-        return make_policy(spec, **kwargs)
+        return make_policy(spec, task=task, **kwargs)
     if kwargs:
         raise UserError(f"settings {sorted(kwargs)} are for the registered policies, not for '{spec}'")
     if not Path(spec).is_dir():
         raise UserError(f"unknown policy '{spec}': choose one of {sorted(POLICIES)} or pass a WAM checkpoint directory")
+    from wamplan.envs.spec import check_same_task
+    from wamplan.planning.dynamics import task_name
     from wamplan.wam import WAMPolicy, load_wam
 
     if not plan_with:
         wam = load_wam(spec)
+        if task is not None:
+            check_same_task(task.name, task_name(wam), f"WAM {spec}")
         return WAMPolicy(wam, instruction=instruction) if instruction else WAMPolicy(wam)
     from wamplan.evaluation.config import EvalConfig
 
     cfg = EvalConfig(wam=spec, wm_augmented=plan_with)  # on cfg.device, as the evaluation loads them
-    return plan_in_world_model(cfg, spec, plan_with.split(","))
+    wam = load_wam(spec, device=cfg.device)
+    if task is not None:
+        check_same_task(task.name, task_name(wam), f"WAM {spec}")
+    return plan_in_world_model(cfg, wam, plan_with.split(","))  # the world models must match the WAM's task

@@ -1,6 +1,6 @@
 """One evaluation's settings, :class:`EvalConfig`: the checkpoints, and the configs of the env, the planner, the
 cost and the planned policy, nested as they are used; ``check_for(conditions)`` refuses what those conditions
-cannot run with, in one line, before anything loads."""
+cannot run with, in one line, before anything loads. The task is the env's (``env.task``, ``--task``)."""
 
 from __future__ import annotations
 
@@ -54,7 +54,8 @@ class EvalConfig:
                                 "None = its defaults", cli=False)
     cost: CostConfig = field(help="the planning cost", default_factory=CostConfig)
     policy: PlannedPolicyConfig = field(help="the planned policy's chunk rules", default_factory=PlannedPolicyConfig)
-    env: EnvConfig = field(help="the task (camera size, episode length, ...)", default_factory=_env_default)
+    env: EnvConfig = field(help="the task and its env (--task, camera size, episode length, ...)",
+                           default_factory=_env_default)
 
     def __post_init__(self):
         cls = PLANNERS.lookup(self.planner).config_cls
@@ -65,6 +66,13 @@ class EvalConfig:
         object.__setattr__(self, "planner_config", pc)
         require(0.0 <= self.oracle_blend <= 1.0, f"--oracle-blend {self.oracle_blend} is outside [0, 1]; 0 plans in "
                 "the world model alone, 1 with the simulator's dynamics")
+
+    @property
+    def task_planner_config(self) -> Any:
+        """The planner's config with the settings it leaves to the task filled from the env's task (what the planned
+        policy plans with); one line if the task cannot fill them (cem-gripper for a task without a gripper)."""
+        fill = getattr(self.planner_config, "for_task", None)
+        return self.planner_config if fill is None else fill(self.env.spec)
 
     @staticmethod
     def world_model_flag(condition: int) -> str | None:
@@ -94,6 +102,13 @@ class EvalConfig:
             from wamplan.wam.cosmos_client import profile_config
 
             profile_config(self.wam_profile, url=self.wam_url)  # a bad URL or profile fails now, in one line
+        spec = self.env.spec
+        expert = [c for c in conditions if "expert" in (CONDITIONS[c].seed, CONDITIONS[c].target)]
+        if expert and spec.expert is None:
+            raise UserError(f"conditions {expert} seed or aim the search with the scripted expert, but task "
+                            f"'{spec.name}' has none; run conditions 1, 5, 6 and 7")
+        if any(CONDITIONS[c].dynamics != "none" for c in conditions):
+            _ = self.task_planner_config  # the planner fits the task
         if self.oracle_blend > 0 and not any(CONDITIONS[c].learned for c in conditions):
             raise UserError(f"--oracle-blend blends a world model's predictions, but conditions {conditions} plan in "
                             "none; add condition 6 or 7, or drop --oracle-blend")

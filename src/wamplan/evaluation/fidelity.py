@@ -18,7 +18,8 @@ of the model's pick and of the simulator's own best candidate, relative to the W
 spread (std/mean) of the true costs. With ``task_metric``, every candidate is also stepped (state only) to
 record the cube's xy distance to the hole axis after it: whether the true cost itself prefers chunks that
 align the cube (Spearman of true cost against that distance, at boundaries where the cube is lifted), and
-how far the model's pick moves the cube relative to the WAM's chunk.
+how far the model's pick moves the cube relative to the WAM's chunk; a task that does not measure the
+cube's xy error (:data:`TASK_METRIC` among its metrics) is scored without it.
 
 One WAM query per boundary feeds every policy (:class:`OnceWAM`), so a stochastic WAM cannot give the
 models different chunks or targets. Scoring in the simulator restores the boundary snapshot afterwards;
@@ -40,10 +41,12 @@ from wamplan.planning.costs import CostFn, make_cost
 from wamplan.planning.dynamics import Dynamics, SimulatorDynamics
 from wamplan.planning.policy import PlannedPolicy
 from wamplan.planning.policy_config import PlannedPolicyConfig
-from wamplan.envs.contract import ARM, Observation
+from wamplan.envs.spec import Observation
 from wamplan.policies.base import Policy
 from wamplan.wam.once import OnceWAM
 from wamplan.wam.base import WAM
+
+TASK_METRIC = "cube_xy_error"  # the task metric task_metric needs: the cube task's (its privileged cube and hole)
 
 
 @dataclass(frozen=True)
@@ -147,6 +150,9 @@ class _Scorer:
         self.candidates: torch.Tensor | None = None  # (N, H, A), set by the driver before each boundary
         self.costs: torch.Tensor | None = None  # (N,) after plan()
 
+    def for_task(self, task) -> _Scorer:
+        return self  # nothing of it depends on the task
+
     def plan(self, seed_actions: torch.Tensor, objective, *, generator=None, seed=None) -> PlanResult:
         cands = self.candidates[:, :seed_actions.shape[0]].to(seed_actions.device)  # (N, L, A)
         costs = objective(cands).detach().double().cpu()  # (N,)
@@ -178,6 +184,8 @@ class FidelityPolicy(Policy):
                  cost: CostFn | None = None):
         self.wam, self.cfg, self.env = OnceWAM(wam), config, env
         self.chunk = wam.chunk_length
+        self.arm = list(env.task.arm)  # the action entries whose summed shift is the arm's end-point shift
+        self.task_metric = config.task_metric and TASK_METRIC in env.task.metrics
         cost = cost or make_cost("patch")
         self.labels = [m.label for m in models]
         self.scorers = {m.label: _Scorer() for m in models}
@@ -236,12 +244,12 @@ class FidelityPolicy(Policy):
                 model = self.scorers[label].costs
                 true = self.scorers["sim:" + self.reference[label]].costs
                 n = self.policies[label].dynamics.covered(self.chunk)  # the steps this model scores
-                shift = (cands - cands[:1])[:, :n].sum(dim=1)[:, ARM]  # (N, A-1): the arm's end-point shift
+                shift = (cands - cands[:1])[:, :n].sum(dim=1)[:, self.arm]  # (N, arm entries): the end-point shift
                 d = self.policies[label].last_decision  # this boundary's
                 bias = {k: v for k, v in (("bias", d.bias), ("bias_left", d.bias_left)) if v is not None}
                 rec["models"][label] = dict(boundary_stats(model, true, self.cfg.top_k, shift), **bias,
                                             model_costs=model.tolist(), true_costs=true.tolist())
-            if self.cfg.task_metric:
+            if self.task_metric:
                 rec["task"] = self._task(self.scorers[self.labels[0]].candidates)
                 for label in self.labels:
                     rec["models"][label].update(task_stats(torch.tensor(rec["models"][label]["model_costs"]),

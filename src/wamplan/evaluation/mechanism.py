@@ -10,6 +10,9 @@ looking; planning never uses it); the real columns are rendered after executing 
 snapshot. Costs are the planning cost (eq. 3) against the WAM's target: the model's (what the planner minimised)
 and the true one (the rendered frame encoded by the same encoder), so the picture says whether the plan
 the model preferred is also better in the simulator, and where the model's picture differs from reality.
+The views are the planned policy's (its world model's cameras, in order); where the task's privileged state
+has the cube and the hole (the cube task), each real column also says how far the cube ended from the hole's
+axis.
 """
 
 from __future__ import annotations
@@ -20,7 +23,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from wamplan.envs.contract import CAMERAS
 from wamplan.errors import UserError
 
 
@@ -33,7 +35,9 @@ class Mechanism:
     real: dict[str, np.ndarray]  # "wam" / "plan" -> (V, H, W, 3) uint8 after executing the chunk
     model_cost: dict[str, float]
     true_cost: dict[str, float]
-    cube_xy_mm: dict[str, float]  # the cube's xy distance to the hole axis after each chunk
+    cube_xy_mm: dict[str, float] | None  # the cube's xy distance to the hole axis after each chunk (None: no cube)
+    cameras: tuple[str, ...]  # the V views, in order
+    chunk: int  # H: the target is at step + chunk
 
 
 @torch.no_grad()  # not inference mode: the env built here must hold ordinary tensors
@@ -67,24 +71,26 @@ def explain_chunk(cfg, decoder: str | Path, seed: int, chunk_index: int) -> Mech
     z = policy.dynamics.terminal(policy.clip(cands[:, :covered]))  # (2, V, N, D), for the pictures
     model_cost = policy.objective(target)(policy.clip(cands[:, :covered]))  # (2,) what the planner minimised
     pics = dec(z.flatten(0, 1).float().to(next(dec.parameters()).device))  # (2V, 3, S, S)
-    pics = pics.permute(0, 2, 3, 1).reshape(2, len(CAMERAS), *pics.shape[2:], 3).cpu().numpy()
+    cams = policy.cameras
+    pics = pics.permute(0, 2, 3, 1).reshape(2, len(cams), *pics.shape[2:], 3).cpu().numpy()
     snap = env.snapshot()
     real, true_cost, xy = {}, {}, {}
     for k, acts in chunks.items():
         env.restore(snap)
         for a in acts:
             env.step(a)
-        views = env.render()
-        real[k] = np.stack([views[c] for c in CAMERAS])
+        views = env.render(cams)
+        real[k] = np.stack([views[c] for c in cams])
         true_cost[k] = float(policy.cost(policy.encode(views)[None], target)[0])
         s = env.privileged_state()
-        xy[k] = float(np.linalg.norm(s["cube_pose"][:2] - s["hole_pos"][:2]) * 1000)
+        if "cube_pose" in s and "hole_pos" in s:
+            xy[k] = float(np.linalg.norm(s["cube_pose"][:2] - s["hole_pos"][:2]) * 1000)
     env.restore(snap)
-    return Mechanism(step=t, now=np.stack([obs.images[c] for c in CAMERAS]),
-                     target=np.stack([target_views[c] for c in CAMERAS]),
+    return Mechanism(step=t, now=np.stack([obs.images[c] for c in cams]),
+                     target=np.stack([target_views[c] for c in cams]),
                      model={k: pics[i] for i, k in enumerate(chunks)}, real=real,
                      model_cost={k: float(model_cost[i]) for i, k in enumerate(chunks)}, true_cost=true_cost,
-                     cube_xy_mm=xy)
+                     cube_xy_mm=xy or None, cameras=tuple(cams), chunk=policy.chunk)
 
 
 def mechanism_figure(m: Mechanism, out: str | Path, title: str = "") -> Path:
@@ -95,15 +101,17 @@ def mechanism_figure(m: Mechanism, out: str | Path, title: str = "") -> Path:
 
     from wamplan.plot import save_figure
 
-    cols = [(f"now (step {m.step})", m.now), (f"WAM's target (step {m.step + 16})", m.target),
+    cube = {k: f", cube {m.cube_xy_mm[k]:.1f} mm" if m.cube_xy_mm else "" for k in ("wam", "plan")}
+    cols = [(f"now (step {m.step})", m.now), (f"WAM's target (step {m.step + m.chunk})", m.target),
             (f"model, WAM's chunk\ncost {m.model_cost['wam']:.3f}", m.model["wam"]),
             (f"model, plan\ncost {m.model_cost['plan']:.3f}", m.model["plan"]),
-            (f"real, WAM's chunk\ncost {m.true_cost['wam']:.3f}, cube {m.cube_xy_mm['wam']:.1f} mm", m.real["wam"]),
-            (f"real, plan\ncost {m.true_cost['plan']:.3f}, cube {m.cube_xy_mm['plan']:.1f} mm", m.real["plan"])]
-    fig, axes = plt.subplots(len(CAMERAS), len(cols), figsize=(2.2 * len(cols), 2.3 * len(CAMERAS) + 0.6),
+            (f"real, WAM's chunk\ncost {m.true_cost['wam']:.3f}{cube['wam']}", m.real["wam"]),
+            (f"real, plan\ncost {m.true_cost['plan']:.3f}{cube['plan']}", m.real["plan"])]
+    cams = m.cameras
+    fig, axes = plt.subplots(len(cams), len(cols), figsize=(2.2 * len(cols), 2.3 * len(cams) + 0.6),
                              squeeze=False)
     for j, (label, views) in enumerate(cols):
-        for v, cam in enumerate(CAMERAS):
+        for v, cam in enumerate(cams):
             ax = axes[v][j]
             img = views[v]
             ax.imshow(img if img.dtype == np.uint8 else np.clip(img, 0, 1))
@@ -114,6 +122,7 @@ def mechanism_figure(m: Mechanism, out: str | Path, title: str = "") -> Path:
                 ax.set_ylabel(cam, fontsize=9)
     better = m.true_cost["plan"] < m.true_cost["wam"]
     fig.suptitle((title + "\n" if title else "") + "costs: planning cost (eq. 3) against the WAM's target; model = "
-                 "decoded world-model prediction; cube = xy distance to the hole axis. The plan is "
+                 "decoded world-model prediction" + ("; cube = xy distance to the hole axis" if m.cube_xy_mm else "")
+                 + ". The plan is "
                  f"{'better' if better else 'worse'} than the WAM's chunk in the simulator.", fontsize=8)
     return save_figure(fig, out)

@@ -1,5 +1,10 @@
 """``wamplan report DIR``: Table 1, Figure 3, Table 2, the timing summary and the gap to the oracle from
-evaluation records."""
+evaluation records.
+
+Outcomes are the task's (``TaskSpec.outcome_names``), the task being the one the directories ran (their
+``eval_config.json``; a directory from before tasks were recorded ran cube-insertion, ``EnvConfig``'s default).
+Readings that need the cube task's stages or measures are left out for a task without them: the insertion
+columns need the stage :data:`ALIGNED`, the release table the ``align_xy_tol`` parameter and traced records."""
 
 from __future__ import annotations
 
@@ -12,15 +17,52 @@ from typing import Any
 
 import numpy as np
 
-from wamplan.envs.contract import ALIGN_XY_TOL, OUTCOMES
+from wamplan.envs.config import EnvConfig
+from wamplan.envs.spec import TaskSpec, get_task
 from wamplan.evaluation.conditions import CONDITIONS
 from wamplan.evaluation.records import RECORDS, read_records
 
-# Figure 3's colours: success, then the furthest stage reached by failures
-# Failures run red -> orange -> yellow -> light blue as they get closer to success, so no failure shade
-# can be mistaken for the success green.
-OUTCOME_COLORS = {"success": "#2e7d32", "descended_not_seated": "#90caf9", "aligned_not_descended": "#fdd835",
-                  "lifted_not_aligned": "#fb8c00", "never_lifted": "#d32f2f"}
+SETTINGS = "eval_config.json"  # an evaluation directory's settings (evaluation/runner.py writes it)
+ALIGNED = "aligned"  # the stage the insertion readings (paired table, Table 2) start from, where a task has it
+# Figure 3's colours: success, then the task's failures from the earliest stage on. Failures run red -> orange ->
+# yellow -> light blue as they get closer to success (the cube task's four), so no failure shade can be mistaken
+# for the success green; a task with more failures continues with the further shades.
+SUCCESS_COLOR = "#2e7d32"
+FAILURE_COLORS = ("#d32f2f", "#fb8c00", "#fdd835", "#90caf9", "#ce93d8", "#80cbc4", "#bcaaa4")
+
+
+def outcome_colors(task: TaskSpec) -> dict[str, str]:
+    """Figure 3's colour of each of ``task``'s outcomes."""
+    failures = task.outcome_names[1:]  # the earliest first
+    return {"success": SUCCESS_COLOR, **{o: FAILURE_COLORS[i % len(FAILURE_COLORS)] for i, o in enumerate(failures)}}
+
+
+def default_task() -> TaskSpec:
+    """The task of records that name none: the evaluation's default (``EnvConfig``'s)."""
+    return get_task(EnvConfig.task)
+
+
+def run_task(dirs: list[Path]) -> TaskSpec:
+    """The task the evaluation directories ``dirs`` ran, from their settings (a directory whose settings name no
+    task ran the default task; one without settings says nothing); one line if two ran different tasks."""
+    from wamplan.errors import UserError
+
+    found: dict[str, Path] = {}
+    for d in dirs:
+        if (d / SETTINGS).is_file():
+            found.setdefault(json.loads((d / SETTINGS).read_text()).get("env.task", EnvConfig.task), d)
+    if len(found) > 1:
+        raise UserError("the runs evaluated different tasks (" + ", ".join(f"{t} in {d}" for t, d in found.items())
+                        + "); report each task's runs apart")
+    return get_task(next(iter(found), EnvConfig.task))
+
+
+def _insertion_outcomes(task: TaskSpec) -> tuple[str, ...] | None:
+    """The failures that reached :data:`ALIGNED` (aligned, not inserted), earliest first; None without that stage."""
+    if ALIGNED not in task.stages:
+        return None
+    first = task.stages.index(ALIGNED)
+    return tuple(o for st, o in reversed(task.outcomes) if task.stages.index(st) >= first)
 
 
 def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
@@ -104,22 +146,29 @@ def markdown_timing(rows: list[dict[str, Any]]) -> str:
     return "\n".join(out)
 
 
-def markdown_table2(records: list[dict[str, Any]]) -> str | None:
-    """First chunk skipped vs planned, for conditions run both ways (appendix A, Table 2)."""
+def markdown_table2(records: list[dict[str, Any]], task: TaskSpec | None = None) -> str | None:
+    """First chunk skipped vs planned, for conditions run both ways (appendix A, Table 2): success, the failures
+    that reached no stage, and (where ``task`` has the stage :data:`ALIGNED`) the aligned ones not inserted."""
+    task = task or default_task()
     variants = defaultdict(lambda: defaultdict(list))
     for r in records:
         variants[r["condition"]][r.get("variant", "open-loop")].append(r)
     both = [c for c, v in variants.items() if {"open-loop", "rest-history"} <= set(v)]
     if not both:
         return None
-    out = ["| Condition | First chunk | Episodes | Success | Never lifted | Aligned, not inserted |", "|---|---|---|---|---|---|"]
+    cols = [(task.failure.replace("_", " ").capitalize(), (task.failure,))]
+    inserted = _insertion_outcomes(task)
+    if inserted is not None:
+        cols.append(("Aligned, not inserted", inserted))
+    out = ["| Condition | First chunk | Episodes | Success | " + " | ".join(h for h, _ in cols) + " |",
+           "|---" * (4 + len(cols)) + "|"]
     for c in sorted(both):
         for v, name in (("open-loop", "skipped"), ("rest-history", "planned")):
             rs = variants[c][v]
             n = len(rs)
             pct = lambda o: 100 * sum(r["outcome"] == o for r in rs) / n  # noqa: E731
-            not_ins = pct("aligned_not_descended") + pct("descended_not_seated")
-            out.append(f"| {c} | {name} | {n} | {pct('success'):.0f}% | {pct('never_lifted'):.0f}% | {not_ins:.0f}% |")
+            shares = " | ".join(f"{sum(pct(o) for o in outcomes):.0f}%" for _, outcomes in cols)
+            out.append(f"| {c} | {name} | {n} | {pct('success'):.0f}% | {shares} |")
     return "\n".join(out)
 
 
@@ -132,18 +181,21 @@ def open_loop_by_seed(records: list[dict[str, Any]]) -> dict[int, dict[int, dict
     return by
 
 
-def markdown_paired(records: list[dict[str, Any]], baseline: int = 1) -> str | None:
+def markdown_paired(records: list[dict[str, Any]], baseline: int = 1, task: TaskSpec | None = None) -> str | None:
     """Each condition against the baseline on the seeds both ran (paper §5: where the net gain comes from).
 
     Gained / lost count seeds that only one of the two solved; p is the exact two-sided sign (McNemar) test
-    on those discordant seeds. "Inserted | aligned" is the share of episodes that reached the aligned stage
-    and went on to succeed: the insertion skill on its own.
+    on those discordant seeds. "Inserted | aligned" (where ``task`` has the stage :data:`ALIGNED`) is the share
+    of episodes that reached the aligned stage and went on to succeed: the insertion skill on its own.
     """
+    task = task or default_task()
     by = open_loop_by_seed(records)
     if baseline not in by or len(by) < 2:
         return None
-    out = [f"| Condition | Seeds shared with {baseline} | Gained | Lost | p (sign test) | Inserted \\| aligned "
-           f"(cond. {baseline} → this) |", "|---|---|---|---|---|---|"]
+    aligned_col = ALIGNED in task.stages
+    out = [f"| Condition | Seeds shared with {baseline} | Gained | Lost | p (sign test) |"
+           + (f" Inserted \\| aligned (cond. {baseline} → this) |" if aligned_col else ""),
+           "|---" * (6 if aligned_col else 5) + "|"]
     for c in sorted(k for k in by if k != baseline):
         seeds = sorted(set(by[c]) & set(by[baseline]))
         if not seeds:
@@ -153,12 +205,13 @@ def markdown_paired(records: list[dict[str, Any]], baseline: int = 1) -> str | N
         p = sign_test(gained, lost)
 
         def inserted(cid: int) -> str:
-            aligned = [by[cid][s] for s in seeds if by[cid][s].get("reached", {}).get("aligned")]
+            aligned = [by[cid][s] for s in seeds if by[cid][s].get("reached", {}).get(ALIGNED)]
             if not aligned:
                 return "—"
             return f"{100 * sum(r['success'] for r in aligned) / len(aligned):.0f}% of {len(aligned)}"
 
-        out.append(f"| {c} | {len(seeds)} | {gained} | {lost} | {_p(p)} | {inserted(baseline)} → {inserted(c)} |")
+        out.append(f"| {c} | {len(seeds)} | {gained} | {lost} | {_p(p)} |"
+                   + (f" {inserted(baseline)} → {inserted(c)} |" if aligned_col else ""))
     return "\n".join(out) if len(out) > 2 else None
 
 
@@ -208,13 +261,16 @@ def markdown_gap(records: list[dict[str, Any]], baseline: int = 1) -> str | None
     return "\n".join(out) if len(out) > 2 else None
 
 
-def markdown_release(records: list[dict[str, Any]]) -> str | None:
+def markdown_release(records: list[dict[str, Any]], task: TaskSpec | None = None) -> str | None:
     """Where each condition let the cube go (the records' privileged ``release``, the episodes whose first chunk
     ran open loop): how far from the hole's axis and how high it was on the last step it was held, how often
-    that was inside the alignment tolerance, with the success of each kind. None when no record carries a
-    trace (older records have none)."""
+    that was inside the alignment tolerance (``task``'s ``align_xy_tol``), with the success of each kind. None
+    when no record carries a trace (older records have none) or the task has no such tolerance."""
+    task = task or default_task()
+    if task.param("align_xy_tol") is None:
+        return None
     by = open_loop_by_seed(records)
-    tol = 1000 * ALIGN_XY_TOL
+    tol = 1000 * task.param("align_xy_tol")
     out = [f"| Condition | Episodes traced | Let go after a grasp | Held at the end | Off the axis when let go, median "
            f"[IQR] mm | Cube bottom when let go, median mm | Let go within {tol:.0f} mm of the axis | Success: let go "
            f"within / beyond |", "|---|---|---|---|---|---|---|---|"]
@@ -238,7 +294,7 @@ def markdown_release(records: list[dict[str, Any]]) -> str | None:
     return "\n".join(out) if len(out) > 2 else None
 
 
-def figure3(rows: list[dict[str, Any]], path: Path) -> None:
+def figure3(rows: list[dict[str, Any]], path: Path, task: TaskSpec | None = None) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -247,9 +303,10 @@ def figure3(rows: list[dict[str, Any]], path: Path) -> None:
     fig, ax = plt.subplots(figsize=(max(6.0, 1.3 * len(rows) + 3.0), 4))
     x = np.arange(len(rows))
     bottom = np.zeros(len(rows))
-    for o in OUTCOMES:
+    colors = outcome_colors(task or default_task())
+    for o, color in colors.items():
         frac = np.array([r["outcomes"].get(o, 0) / r["episodes"] for r in rows])
-        ax.bar(x, 100 * frac, bottom=100 * bottom, color=OUTCOME_COLORS[o], label=o.replace("_", " "), width=0.7)
+        ax.bar(x, 100 * frac, bottom=100 * bottom, color=color, label=o.replace("_", " "), width=0.7)
         bottom += frac
     for i, r in enumerate(rows):
         ax.text(i, 101, f"{100 * r['success_rate']:.0f}%", ha="center", va="bottom", fontsize=9)
@@ -265,13 +322,13 @@ def figure3(rows: list[dict[str, Any]], path: Path) -> None:
     plt.close(fig)
 
 
-def _settings_line(out: Path, named: bool = False) -> list[str]:
-    """The planner, its search size and the settings that differ from its defaults, from the directory's
-    ``eval_config.json`` (absent: nothing); ``named``: say which directory."""
+def _settings_line(out: Path, task: TaskSpec, named: bool = False) -> list[str]:
+    """The planner, its search size and the settings that differ from its defaults for ``task``, from the
+    directory's ``eval_config.json`` (absent: nothing); ``named``: say which directory."""
     from wamplan.config import to_dict
     from wamplan.planning import PLANNERS
 
-    path = out / "eval_config.json"
+    path = out / SETTINGS
     if not path.is_file():
         return []
     s = json.loads(path.read_text())
@@ -279,7 +336,7 @@ def _settings_line(out: Path, named: bool = False) -> list[str]:
     size = f"{s.get('planner_config.num_candidates')} candidates × {s.get('planner_config.iterations')} iterations"
     changed = "?"
     if name in PLANNERS:
-        defaults = to_dict(PLANNERS.lookup(name).config_cls())  # JSON-ready, as eval_config.json stores them
+        defaults = to_dict(PLANNERS.lookup(name).config_cls().for_task(task))  # JSON-ready, as stored
         changed = ", ".join(f"{k} {s[f'planner_config.{k}']}" for k, v in defaults.items()
                             if f"planner_config.{k}" in s and s[f"planner_config.{k}"] != v) or "none"
     where = f" in `{out}`" if named else ""
@@ -341,6 +398,7 @@ def write_report(out_dir: str | Path, more: list[str | Path] = ()) -> dict[str, 
     records = merged_records([out, *more])
     if not records:
         raise UserError(f"{out} has no evaluation records; run `wamplan eval --out {out}` first")
+    task = run_task(dirs)
     out.mkdir(parents=True, exist_ok=True)
     rows = table1(records)
     paths = {"table1_md": out / "table1.md", "table1_csv": out / "table1.csv", "figure3": out / "figure3.png",
@@ -348,28 +406,28 @@ def write_report(out_dir: str | Path, more: list[str | Path] = ()) -> dict[str, 
     md1 = markdown_table1(rows)
     paths["table1_md"].write_text(md1 + "\n")
     with open(paths["table1_csv"], "w", newline="") as f:
-        keys = [k for k in rows[0] if k != "outcomes"] + list(OUTCOMES)
+        keys = [k for k in rows[0] if k != "outcomes"] + list(task.outcome_names)
         w = csv.DictWriter(f, fieldnames=keys, extrasaction="ignore")
         w.writeheader()
         for r in rows:
-            w.writerow({**r, **{o: r["outcomes"].get(o, 0) for o in OUTCOMES}})
-    figure3(rows, paths["figure3"])
-    settings = [line for d in dirs for line in _settings_line(d, named=len(dirs) > 1)]
+            w.writerow({**r, **{o: r["outcomes"].get(o, 0) for o in task.outcome_names}})
+    figure3(rows, paths["figure3"], task)
+    settings = [line for d in dirs for line in _settings_line(d, task, named=len(dirs) > 1)]
     sources = ["Runs merged: " + ", ".join(f"`{m}`" for m in ([out] if (out / RECORDS).is_file() else []) + list(more)),
                ""] if more else []
     parts = ["# Evaluation report", "", *sources, *settings,
              "## Table 1: success rate and length of successful episodes", "", md1, "",
              "![Figure 3](figure3.png)", "", "## Per-chunk timing (planned chunks)", "", markdown_timing(rows)]
-    paired = markdown_paired(records)
+    paired = markdown_paired(records, task=task)
     if paired:
         parts += ["", "## Episode by episode against condition 1", "", paired]
     gap = markdown_gap(records)
     if gap:
         parts += ["", "## The gap to the simulator oracle", "", gap]
-    released = markdown_release(records)
+    released = markdown_release(records, task)
     if released:
         parts += ["", "## Where the cube was let go (privileged)", "", released]
-    t2 = markdown_table2(records)
+    t2 = markdown_table2(records, task)
     if t2:
         parts += ["", "## Table 2: first chunk skipped vs planned", "", t2]
     paths["report"].write_text("\n".join(parts) + "\n")

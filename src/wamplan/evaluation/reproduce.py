@@ -6,6 +6,10 @@ come from ``wamplan.presets``. A finished stage is recorded with its duration in
 and skipped when the command is run again; a stage cut short resumes inside itself (the stores,
 trainers and evaluation records are resumable). Each stage prints the ``wamplan`` command line that
 does the same, to re-run or inspect one stage by hand.
+
+Every stage runs in one task (``task``, ``--task``; default cube-insertion): its env collects and evaluates, and
+the models learn from its stores. The pipeline starts from scripted-expert demonstrations, so the task must have
+a scripted expert (``TaskSpec.expert``): one line otherwise.
 """
 
 from __future__ import annotations
@@ -16,6 +20,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
+from wamplan.envs.config import EnvConfig
+from wamplan.envs.spec import get_task
 from wamplan.errors import UserError
 from wamplan.presets import PRESETS, Preset, get_preset
 
@@ -44,30 +50,37 @@ class Stage:
     calls: tuple[Call, ...]
 
 
+def _task_flag(task: str) -> list[str]:
+    """``--task TASK`` for the printed command lines; nothing for the default task."""
+    return [] if task == EnvConfig.task else ["--task", task]
+
+
 def _collect(source: str, p: Preset, store: Path, workers: int, seeds: int, policy: str | None = None,
-             max_steps: int | None = None) -> Call:
+             max_steps: int | None = None, task: str = EnvConfig.task) -> Call:
     from wamplan.data.collect import collect
     from wamplan.evaluation.build import load_policy
 
     key = "on_policy" if source == "policy" else source.removesuffix("-expert")
     cmd = ["collect", "--source", source, *(["--policy", policy] if policy else []), "--episodes", str(seeds),
            "--seed-start", str(SEED_BASE[key]), *(["--max-steps", str(max_steps)] if max_steps else []),
-           "--out", str(store), "--image-every", str(p.image_every), "--workers", str(workers)]
+           "--out", str(store), "--image-every", str(p.image_every), "--workers", str(workers), *_task_flag(task)]
     return Call(collect, dict(source=source, episodes=seeds, out=store, seed_start=SEED_BASE[key], workers=workers,
-                              policy=policy, image_every=p.image_every, max_steps=max_steps, loader=load_policy),
+                              policy=policy, image_every=p.image_every, max_steps=max_steps, loader=load_policy,
+                              env=EnvConfig(task=task)),
                 tuple(cmd))
 
 
 def evaluate_conditions(conditions: list[int], episodes: int, out: Path, workers: int, wam: str, wm_plain: str,
-                        wm_augmented: str) -> dict[int, dict[str, int]]:
+                        wm_augmented: str, task: str = EnvConfig.task) -> dict[int, dict[str, int]]:
     """``wamplan eval`` for ``conditions`` on seeds 0 .. episodes-1 (resumable) with the paper's planner (CEM, not
-    wamplan's default); outcome counts of new episodes."""
+    wamplan's default) in ``task``; outcome counts of new episodes."""
     from collections import Counter
 
     from wamplan.evaluation.config import EvalConfig
     from wamplan.evaluation.runner import run_evaluation
 
-    cfg = EvalConfig(wam=wam, wm_plain=wm_plain, wm_augmented=wm_augmented, planner=PAPER_PLANNER)
+    cfg = EvalConfig(wam=wam, wm_plain=wm_plain, wm_augmented=wm_augmented, planner=PAPER_PLANNER,
+                     env=EnvConfig(task=task))
     cfg.check_for(conditions)
     counts: dict[int, Counter] = {c: Counter() for c in conditions}
     for rec in run_evaluation(cfg, conditions, list(range(episodes)), out, workers=workers):
@@ -77,12 +90,18 @@ def evaluate_conditions(conditions: list[int], episodes: int, out: Path, workers
     return {c: dict(v) for c, v in counts.items() if v}
 
 
-def plan(p: Preset, out: Path, wam: str | None, workers: int, sim_episodes: int | None = None) -> list[Stage]:
-    """Every stage of the pipeline; ``wam`` replaces TinyWAM training, ``sim_episodes`` the preset's count
-    for the simulator conditions 2-5 (0 skips them)."""
+def plan(p: Preset, out: Path, wam: str | None, workers: int, sim_episodes: int | None = None,
+         task: str = EnvConfig.task) -> list[Stage]:
+    """Every stage of the pipeline in ``task``; ``wam`` replaces TinyWAM training, ``sim_episodes`` the preset's
+    count for the simulator conditions 2-5 (0 skips them)."""
     from wamplan.evaluation.report import write_report
     from wamplan.wam.train import train_tinywam
     from wamplan.worldmodel.stores import train_decoder_on_stores, train_predictor_on_stores
+
+    spec = get_task(task)
+    if spec.expert is None:
+        raise UserError(f"reproduce starts from scripted-expert demonstrations, but task '{task}' has no scripted "
+                        f"expert; collect its stores with `wamplan collect` and run the later stages by hand")
 
     d, runs = out / "data", out / "runs"
     sim_episodes = p.sim_eval_episodes if sim_episodes is None else sim_episodes
@@ -102,14 +121,16 @@ def plan(p: Preset, out: Path, wam: str | None, workers: int, sim_episodes: int 
 
     def evaluation(conds: list[int], episodes: int) -> Call:
         return Call(evaluate_conditions, dict(conditions=conds, episodes=episodes, out=out / "eval", workers=workers,
-                                              **models),
+                                              task=task, **models),
                     ("eval", "--conditions", ",".join(map(str, conds)), "--episodes", str(episodes), "--out",
-                     str(out / "eval"), *model_flags, "--planner", PAPER_PLANNER, "--workers", str(workers)))
+                     str(out / "eval"), *model_flags, "--planner", PAPER_PLANNER, "--workers", str(workers),
+                     *_task_flag(task)))
 
     out_stages = [
-        Stage("collect expert", (_collect("expert", p, d / "expert", workers, p.expert),)),
-        Stage("collect noisy", (_collect("noisy-expert", p, d / "noisy", workers, p.noisy),)),
-        Stage("collect pink", (_collect("pink", p, d / "pink", workers, p.pink, max_steps=p.pink_max_steps),)),
+        Stage("collect expert", (_collect("expert", p, d / "expert", workers, p.expert, task=task),)),
+        Stage("collect noisy", (_collect("noisy-expert", p, d / "noisy", workers, p.noisy, task=task),)),
+        Stage("collect pink", (_collect("pink", p, d / "pink", workers, p.pink, max_steps=p.pink_max_steps,
+                                        task=task),)),
     ]
     if wam is None:
         out_stages.append(Stage("train TinyWAM", (Call(
@@ -119,7 +140,8 @@ def plan(p: Preset, out: Path, wam: str | None, workers: int, sim_episodes: int 
              str(p.tinywam_train.epochs))),)))
     dec_stores = [d / s for s in p.decoder_sources]
     out_stages += [
-        Stage("collect on-policy", (_collect("policy", p, d / "on_policy", workers, p.on_policy, policy=wam_ckpt),)),
+        Stage("collect on-policy", (_collect("policy", p, d / "on_policy", workers, p.on_policy, policy=wam_ckpt,
+                                             task=task),)),
         Stage("train plain world model", (wm_train(plain, runs / "wm_plain"),)),
         Stage("train augmented world model", (wm_train(aug, runs / "wm_augmented"),)),
         Stage("train decoder", (Call(train_decoder_on_stores, dict(stores=dec_stores, out=runs / "decoder",
@@ -133,20 +155,22 @@ def plan(p: Preset, out: Path, wam: str | None, workers: int, sim_episodes: int 
     return out_stages
 
 
-def stages(p: Preset, out: Path, wam: str | None, workers: int,
-           sim_episodes: int | None = None) -> list[tuple[str, list[list[str]]]]:
+def stages(p: Preset, out: Path, wam: str | None, workers: int, sim_episodes: int | None = None,
+           task: str = EnvConfig.task) -> list[tuple[str, list[list[str]]]]:
     """The ``wamplan`` command lines equivalent to every stage of :func:`plan` (what reproduce prints)."""
-    return [(s.name, [list(c.command) for c in s.calls]) for s in plan(p, out, wam, workers, sim_episodes)]
+    return [(s.name, [list(c.command) for c in s.calls]) for s in plan(p, out, wam, workers, sim_episodes, task)]
 
 
 def reproduce(preset: str, out: Path, wam: str | None = None, workers: int = 1,
-              sim_episodes: int | None = None) -> dict[str, float]:
-    """Run every stage not yet finished, in order; returns seconds per stage (kept in ``out/stage_times.json``)."""
+              sim_episodes: int | None = None, task: str = EnvConfig.task) -> dict[str, float]:
+    """Run every stage not yet finished, in order, in ``task``; returns seconds per stage (kept in
+    ``out/stage_times.json``)."""
     p = get_preset(preset)
+    stage_list = plan(p, out, wam, workers, sim_episodes, task)  # a task that cannot run it fails before any work
     out.mkdir(parents=True, exist_ok=True)
     times_path = out / TIMES_FILE
     times: dict[str, float] = json.loads(times_path.read_text()) if times_path.is_file() else {}
-    for stage in plan(p, out, wam, workers, sim_episodes):
+    for stage in stage_list:
         if stage.name in times:
             print(f"== {stage.name}: done ({times[stage.name] / 60:.1f} min; delete its entry in {times_path} to "
                   f"run it again)", flush=True)

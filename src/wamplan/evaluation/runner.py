@@ -4,13 +4,17 @@ process as episodes finish.
 Every condition runs the same seeds. A job is one (condition, seed); a worker builds the env, the WAM
 and the world models once and a policy per condition on first use. Re-running the same command skips
 the jobs already recorded, so an interrupted evaluation resumes without repeating or losing episodes.
-Every record also carries the cube's privileged path (``trace``, every ``TRACE_EVERY`` steps), where it was
-finally let go (``release``, found at every step) and whether it was still held at the end, for reading
-failures; no policy sees them.
+Every record of a task that measures the cube (``CubeTrace.fits``) also carries the cube's privileged path
+(``trace``, every ``TRACE_EVERY`` steps), where it was finally let go (``release``, found at every step) and
+whether it was still held at the end, for reading failures; no policy sees them.
+
+The task is the env's (``--task``): a WAM or world model made for another task stops the run in one line, before
+its settings are stored.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import time
@@ -21,10 +25,12 @@ from typing import Any, Iterator
 import numpy as np
 
 from wamplan.config import to_dict
+from wamplan.envs.spec import check_same_task
 from wamplan.evaluation.conditions import CONDITIONS
 from wamplan.evaluation.config import EvalConfig
 from wamplan.evaluation.records import append_record, read_records, record_key
 from wamplan.parallel import Backend, imap_workers
+from wamplan.planning.dynamics import task_name
 from wamplan.planning.gates import DISCARDED
 from wamplan.planning.defaults import DEFAULT_PLANNER
 
@@ -35,17 +41,18 @@ class EvalWorker:
     """Holds the env, the WAM, the models; ``worker((condition, seed))`` runs one episode -> record."""
 
     def __init__(self, cfg: EvalConfig):
-        from wamplan.envs.core import InsertionEnv
+        from wamplan.envs.core import TaskEnv
         from wamplan.wam import load_wam
 
         self.cfg = cfg
-        self.env = InsertionEnv(cfg.env)
+        self.env = TaskEnv(cfg.env)
         if cfg.wam_url:
             from wamplan.wam.cosmos_client import CosmosPolicyClient
 
             self.wam = CosmosPolicyClient(profile=cfg.wam_profile, url=cfg.wam_url)
         else:
             self.wam = load_wam(cfg.wam, device=cfg.device)
+        check_wam_task(cfg, self.wam)
         self._models: dict[str, Any] = {}
         self._policies: dict[int, Any] = {}
 
@@ -54,6 +61,7 @@ class EvalWorker:
 
         if path not in self._models:
             self._models[path] = load_world_model(path, device=self.cfg.device)
+            check_world_model_task(self.cfg, path, self._models[path][0])
         return self._models[path]  # (predictor, encoder)
 
     def _sim_encoder(self):
@@ -98,8 +106,8 @@ class EvalWorker:
         from wamplan.policies.rollout import run_episode
 
         cid, seed = job
-        trace = CubeTrace(every=TRACE_EVERY)
-        r = run_episode(self.env, self.policy(cid), seed, max_steps=self.cfg.env.max_episode_steps, on_obs=trace)
+        trace = CubeTrace(every=TRACE_EVERY) if CubeTrace.fits(self.env.task) else None
+        r = run_episode(self.env, self.policy(cid), seed, max_steps=self.cfg.env.episode_steps, on_obs=trace)
         chunks = r.policy_info.get("chunks")  # PlannedPolicy: per-chunk records; WAMPolicy: a count
         planned = [ch for ch in chunks if ch.get("planned")] if isinstance(chunks, list) else []
         searched = [ch for ch in chunks if ch.get("planned") or ch.get("open_loop") in DISCARDED] \
@@ -114,11 +122,21 @@ class EvalWorker:
                     planned_chunks=len(planned), open_loop_chunks=r.policy_info.get("open_loop_chunks", {}),
                     chunk_timing_s=timing,
                     chunks=[{k: (round(v, 4) if isinstance(v, float) else v) for k, v in ch.items()} for ch in searched],
-                    **trace.summary(), **self._blend(cid), finished=time.time())
+                    **(trace.summary() if trace else {}), **self._blend(cid), finished=time.time())
 
     def _blend(self, cid: int) -> dict[str, float]:
         """The record's mark of the --oracle-blend diagnostic, where it changed the dynamics (none otherwise)."""
         return {"oracle_blend": self.cfg.oracle_blend} if CONDITIONS[cid].learned and self.cfg.oracle_blend > 0 else {}
+
+
+def check_wam_task(cfg: EvalConfig, wam: Any) -> None:
+    """One line when ``wam`` was made for another task than the evaluation's (``--task``)."""
+    check_same_task(cfg.env.task, task_name(wam), f"WAM {cfg.wam or cfg.wam_url}")
+
+
+def check_world_model_task(cfg: EvalConfig, path: str, predictor: Any) -> None:
+    """One line when the world model loaded from ``path`` was made for another task than the evaluation's."""
+    check_same_task(cfg.env.task, task_name(predictor), f"world-model checkpoint {path}")
 
 
 def _same(a: Any, b: Any) -> bool:
@@ -130,10 +148,13 @@ def _same(a: Any, b: Any) -> bool:
 
 
 def settings(cfg: EvalConfig) -> dict[str, Any]:
-    """The settings records of one directory must share, flat (``"planner_config.temperature": 0.1``).
-    The first-chunk variant may differ (Table 2) and the device does not matter. The served-WAM keys
+    """The settings records of one directory must share, flat (``"planner_config.temperature": 0.1``), as they
+    ran: the planner's task settings filled from the task, the episode length resolved (the task's when not
+    given). The first-chunk variant may differ (Table 2) and the device does not matter. The served-WAM keys
     appear only when set, so directories written before they existed keep their settings."""
-    return {k: v for k, v in _flat(to_dict(cfg)).items() if k not in ("policy.first_chunk", "device")
+    ran = dataclasses.replace(cfg, planner_config=cfg.task_planner_config,
+                              env=dataclasses.replace(cfg.env, max_episode_steps=cfg.env.episode_steps))
+    return {k: v for k, v in _flat(to_dict(ran)).items() if k not in ("policy.first_chunk", "device")
             and not (k in ("wam_url", "wam_profile") and not v)}
 
 
@@ -188,10 +209,15 @@ def _check_inputs(cfg: EvalConfig, conditions: list[int]) -> None:
     if cfg.wam:
         from wamplan.wam import load_wam
 
-        load_wam(cfg.wam, device="cpu").close()
+        wam = load_wam(cfg.wam, device="cpu")
+        try:
+            check_wam_task(cfg, wam)
+        finally:
+            wam.close()
     for c in sorted(set(conditions)):
         for path in cfg.world_models(c):
-            load_world_model(path, device="cpu")  # the predictor and its encoder
+            predictor, _ = load_world_model(path, device="cpu")  # the predictor and its encoder
+            check_world_model_task(cfg, path, predictor)
 
 
 def run_evaluation(cfg: EvalConfig, conditions: list[int], seeds: list[int], out_dir: str | Path,

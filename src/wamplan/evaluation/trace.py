@@ -11,11 +11,20 @@ below the mount's top). Grasps that never lifted the cube (a graze at the start)
     trace.close()   # [{"t": 0, "xy_mm": 121.3, "bottom_mm": 0.0, "tilt": 0.0, "yaw": 0.31, "grasped": False, "grip_mm": 80.0}, ...]
     trace.release   # {"t": 148, "xy_mm": 6.2, "bottom_mm": 43.9, ..., "held_mm": [5.8, 45.0]} or None
     trace.held_at_end  # grasped at the last step (e.g. seated while still holding: nothing let go)
+
+It reads the cube task's measures (:data:`METRICS` and the stages :data:`STAGES` of every step's metrics, the
+gripper's opening as the first proprio entry); :meth:`CubeTrace.fits` says whether a task reports them.
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from wamplan.envs.spec import TaskSpec
+
+METRICS = ("cube_xy_error", "cube_bottom", "cube_tilt", "cube_yaw_error")  # the continuous measures read
+STAGES = ("grasped", "lifted")  # the stage flags read
 
 
 class CubeTrace:
@@ -30,6 +39,11 @@ class CubeTrace:
         self._last: dict[str, Any] | None = None
         self._let_go: dict[str, Any] | None = None
         self._lifted = False
+
+    @staticmethod
+    def fits(task: TaskSpec) -> bool:
+        """Whether ``task`` reports what the trace reads (the cube task's :data:`METRICS` and :data:`STAGES`)."""
+        return set(METRICS) <= set(task.metrics) and set(STAGES) <= set(task.stages)
 
     @property
     def held_at_end(self) -> bool:

@@ -19,13 +19,16 @@ from __future__ import annotations
 import abc
 import dataclasses
 from dataclasses import dataclass
-from typing import Any, Callable, ClassVar
+from typing import TYPE_CHECKING, Any, Callable, ClassVar
 
 import torch
 from torch import Tensor
 
 from wamplan.config import ConfigError, field, from_dict, require
 from wamplan.registry import Registry
+
+if TYPE_CHECKING:
+    from wamplan.envs.spec import TaskSpec
 
 Objective = Callable[[Tensor], Tensor]  # candidates (B, H_opt, A) -> costs (B,)
 
@@ -106,6 +109,11 @@ class SamplingConfig:
         require(self.action_low < self.action_high,
                 f"action_low ({self.action_low}) must be < action_high ({self.action_high})")
 
+    def for_task(self, task: TaskSpec) -> SamplingConfig:
+        """This config with the settings it leaves to the task (None, or an empty tuple where documented) filled
+        from ``task``; a config that leaves none returns itself. One line when the task cannot fill them."""
+        return self
+
 
 class Planner(abc.ABC):
     """Refines a seed chunk against an objective. Subclasses register with ``@register_planner``."""
@@ -118,6 +126,13 @@ class Planner(abc.ABC):
         require(isinstance(config, self.config_cls), f"planner '{self.name}' needs a "
                 f"{self.config_cls.__name__}, got {type(config).__name__}")
         self.config = config
+
+    def for_task(self, task: TaskSpec) -> Planner:
+        """This planner for actions of ``task``: rebuilt with its config's task settings filled
+        (``config.for_task``), or itself when its config leaves none to the task."""
+        fill = getattr(self.config, "for_task", None)
+        config = self.config if fill is None else fill(task)
+        return self if config is self.config else type(self)(config)
 
     @abc.abstractmethod
     def plan(self, seed_actions: Tensor, objective: Objective, *,

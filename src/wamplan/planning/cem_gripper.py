@@ -26,28 +26,38 @@ happens to draw). After each iteration the probabilities are refit to the elites
 mixed with the previous distribution by ``gripper_smoothing`` (0 = the plain CEM refit). Candidate 0 is
 the current mean with the most probable category (ties: the lowest index, so ``keep`` first); the plan
 returned is the final mean with the final most probable category.
+
+The gripper's entry and its open and closed commands are the task's: left None in the config, they are filled
+when the planned policy is built for a task (:meth:`CEMGripperConfig.for_task`). A task without a gripper has
+nothing for this planner to switch: building it for one is a one-line error naming ``--planner cem`` (which
+searches the same continuous dimensions), never a silent fall-back.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
 
-from wamplan.config import field, require
-from wamplan.envs.contract import GRIPPER_CLOSED, GRIPPER_INDEX, GRIPPER_OPEN
+from wamplan.config import ConfigError, field, require
 from wamplan.planning.base import register_planner
 from wamplan.planning.cem import CEMConfig, CEMPlanner
+
+if TYPE_CHECKING:
+    from wamplan.envs.spec import TaskSpec
 
 
 @dataclass(frozen=True)
 class CEMGripperConfig(CEMConfig):
     """CEM over the continuous dimensions plus a categorical search over gripper switch times."""
 
-    gripper_dim: int = field(GRIPPER_INDEX, "index of the gripper in the action vector (its Gaussian sigma is unused)")
-    gripper_open: float = field(GRIPPER_OPEN, "the gripper command that means open")
-    gripper_closed: float = field(GRIPPER_CLOSED, "the gripper command that means closed")
+    gripper_dim: int | None = field(None, "index of the gripper in the action vector (its Gaussian sigma is unused); "
+                                          "None = the task's")
+    gripper_open: float | None = field(None, "the gripper command that means open; None = the task's")
+    gripper_closed: float | None = field(None, "the gripper command that means closed; None = the task's")
     gripper_prior_steps: float = field(
         16.0, "width of the initial categorical prior: logit = -(steps differing from the WAM's gripper) / this")
     gripper_smoothing: float = field(
@@ -55,10 +65,23 @@ class CEMGripperConfig(CEMConfig):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        require(self.gripper_open != self.gripper_closed, "gripper_open and gripper_closed must differ")
+        require(self.gripper_open is None or self.gripper_open != self.gripper_closed,
+                "gripper_open and gripper_closed must differ")
         require(self.gripper_prior_steps > 0, f"gripper_prior_steps must be > 0, got {self.gripper_prior_steps}")
         require(0.0 <= self.gripper_smoothing < 1.0,
                 f"gripper_smoothing must be in [0, 1), got {self.gripper_smoothing}")
+
+    def for_task(self, task: TaskSpec) -> CEMGripperConfig:
+        """The gripper settings left None filled from ``task``; one line if the task has no gripper."""
+        unset = {k: v for k, v in (("gripper_dim", task.gripper_index), ("gripper_open", task.gripper_open),
+                                   ("gripper_closed", task.gripper_closed)) if getattr(self, k) is None}
+        if not unset:
+            return self
+        if task.gripper_index is None:
+            raise ConfigError(f"planner cem-gripper searches when the gripper opens and closes, but task "
+                              f"'{task.name}' has no gripper; use --planner cem (the same search without the "
+                              f"gripper's categories)")
+        return dataclasses.replace(self, **unset)
 
 
 def gripper_categories(seed_gripper: Tensor, open_: float, closed: float) -> tuple[Tensor, list[str]]:
@@ -108,6 +131,9 @@ class CEMGripperPlanner(CEMPlanner):
     # which is refit to the elites; the mean's gripper is the most probable sequence.
     def _begin(self, mu: Tensor, sigma: Tensor, frozen: Tensor) -> None:
         cfg = self.config
+        if None in (cfg.gripper_dim, cfg.gripper_open, cfg.gripper_closed):
+            raise ConfigError("cem-gripper needs the gripper's entry and commands: build the planned policy for a "
+                              "task (it fills them), or pass gripper_dim, gripper_open and gripper_closed")
         self._gd = gd = cfg.gripper_dim % mu.shape[1]
         frozen[:, gd] = True
         sigma[:, gd] = 0.0

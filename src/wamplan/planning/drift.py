@@ -16,18 +16,26 @@ so errors of single candidates average out instead of picking the winner; the ex
 smooth drift, never per-step jitter. sigma then shrinks by ``std_shrink`` and the next iteration refits
 around the new centre. The final centre is returned. It suits a cost model whose argmin is unreliable but
 whose slope is not.
+
+Which dimensions are searched is the task's: ``search_dims`` left empty means the task's arm entries
+(every action entry but the gripper), filled when the planned policy is built for a task
+(:meth:`DriftConfig.for_task`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
 
 from wamplan.config import ConfigError, field, require
-from wamplan.envs.contract import ARM
 from wamplan.planning.base import SamplingConfig, SamplingPlanner, register_planner
+
+if TYPE_CHECKING:
+    from wamplan.envs.spec import TaskSpec
 
 
 @dataclass(frozen=True)
@@ -38,8 +46,9 @@ class DriftConfig(SamplingConfig):
     iterations: int = field(2, "response-surface fits, each around the previous step's centre")
     init_std: float = field(0.025, "std of the per-step drift for every searched action dimension")
     search_dims: tuple[int, ...] = field(
-        tuple(range(ARM.start, ARM.stop)), "action dimensions whose drift is searched (default x, y, z, yaw); the others, the gripper "
-        "among them, stay the WAM's. init_std_per_dim, if given, sets their stds (a 0 also leaves one out)")
+        (), "action dimensions whose drift is searched (empty = the task's arm entries: x, y, z, yaw for the cube); "
+        "the others, the gripper among them, stay the WAM's. init_std_per_dim, if given, sets their stds (a 0 also "
+        "leaves one out)")
     step_radius: float = field(1.0, "farthest step from the current centre, in units of sigma (a trust region: "
                                     "1 = no farther than the samples the surface was fitted on reach)")
     std_shrink: float = field(0.5, "sigma is multiplied by this after each iteration")
@@ -49,12 +58,16 @@ class DriftConfig(SamplingConfig):
         super().__post_init__()
         require(self.noise_beta == 0, "drift searches constant per-step offsets; noise_beta does not apply "
                                       f"(got {self.noise_beta}); leave it at 0")
-        require(len(self.search_dims) > 0 and min(self.search_dims) >= 0 and
-                len(set(self.search_dims)) == len(self.search_dims),
+        require(not self.search_dims or (min(self.search_dims) >= 0 and
+                                         len(set(self.search_dims)) == len(self.search_dims)),
                 f"search_dims must be distinct action indices >= 0, got {self.search_dims}")
         require(self.step_radius > 0, f"step_radius must be > 0, got {self.step_radius}")
         require(0 < self.std_shrink <= 1, f"std_shrink must be in (0, 1], got {self.std_shrink}")
         require(self.ridge >= 0, f"ridge must be >= 0, got {self.ridge}")
+
+    def for_task(self, task: TaskSpec) -> DriftConfig:
+        """Empty ``search_dims`` filled with ``task``'s arm entries."""
+        return self if self.search_dims else dataclasses.replace(self, search_dims=task.arm)
 
 
 def quadratic_features(x: Tensor) -> Tensor:
@@ -99,6 +112,9 @@ class DriftPlanner(SamplingPlanner):
 
     def _begin(self, mu: Tensor, sigma: Tensor, frozen: Tensor) -> None:
         a = mu.shape[1]
+        if not self.config.search_dims:
+            raise ConfigError("drift needs search_dims: build the planned policy for a task (its arm entries fill "
+                              "them), or pass --search-dims")
         if max(self.config.search_dims) >= a:
             raise ConfigError(f"search_dims {self.config.search_dims} name dimensions the {a}-D actions do not have; "
                               f"pass indices below {a}")

@@ -14,7 +14,7 @@ actions the backend's rollout covers (``covered``): Δ·⌊H/Δ⌋ for the learn
   with a weight so the search avoids actions the members disagree about.
 * :class:`BlendedDynamics` (a diagnostic) moves a learned model's prediction a given share of the way to
   the simulator's, to measure how much of the model's error planning can bear.
-* :class:`SimulatorDynamics` (the oracle) hands all candidates to ``InsertionEnv.simulate`` (restore the
+* :class:`SimulatorDynamics` (the oracle) hands all candidates to ``TaskEnv.simulate`` (restore the
   chunk-boundary snapshot once, controller and physics only, render the terminal views with frustum
   culling), encodes the views, and restores the snapshot afterwards, so that the chosen plan executes
   from a restored state as each candidate did. One restore is exact: restoring twice gives bit-identical
@@ -24,16 +24,41 @@ actions the backend's rollout covers (``covered``): Δ·⌊H/Δ⌋ for the learn
   an env with ``num_envs = B`` on physx_cuda broadcasts the snapshot to its B sub-scenes, steps (B, A)
   actions L times and renders the B terminal frames with ManiSkill's camera groups; ``terminal``'s contract
   (B, L, A) -> (B, V, N, D) and this class stay as they are.
+
+Every backend says which task it predicts (``task``, a :class:`~wamplan.envs.spec.TaskSpec`: the loaded world
+model's, or the env's; None for a model that records none, e.g. one built in memory) and which views it stacks,
+in order (``cameras``: the world model's, or the task's; None where it does not say). Backends combined into one
+must share a task (one line otherwise).
 """
 
 from __future__ import annotations
 
 import abc
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import torch
 
-from wamplan.envs.contract import CAMERAS
+from wamplan.envs.spec import check_same_task
+
+if TYPE_CHECKING:
+    from wamplan.envs.spec import TaskSpec
+
+
+def task_name(obj: Any) -> str | None:
+    """The name of the task ``obj`` (a WAM, a loaded world model, a backend) was made for, from its ``task`` (a
+    TaskSpec or a name); None when it records none."""
+    task = getattr(obj, "task", None)
+    return getattr(task, "name", task)
+
+
+def _shared_task(parts: list[Dynamics], what: str) -> TaskSpec | None:
+    """The task of backends combined into one (the first that records one); one line naming ``what`` (``{i}``:
+    the part's number, from 1) if another was made for a different task."""
+    named = [(i, p) for i, p in enumerate(parts) if p.task is not None]
+    for i, p in named[1:]:
+        check_same_task(named[0][1].task.name, p.task.name, what.format(i=i + 1))
+    return named[0][1].task if named else None
 
 
 @dataclass
@@ -51,6 +76,8 @@ class PlanningContext:
 
 class Dynamics(abc.ABC):
     needs_history: bool = False
+    task: TaskSpec | None = None  # the task it predicts; None: recorded nowhere
+    cameras: tuple[str, ...] | None = None  # the views it stacks, in order; None: the task's
 
     @property
     @abc.abstractmethod
@@ -82,6 +109,8 @@ class LearnedDynamics(Dynamics):
 
     def __init__(self, predictor):
         self.model = predictor.eval()
+        self.task = predictor.task  # a loaded checkpoint's task; None for a predictor built in memory without one
+        self.cameras = predictor.cameras  # its views' cameras, in order (None: not known)
         self.frameskip = predictor.cfg.frameskip
         self.context = predictor.cfg.context
         self._prefix = None
@@ -112,10 +141,12 @@ class LearnedDynamics(Dynamics):
 
 
 class SimulatorDynamics(Dynamics):
-    """The simulator oracle: privileged, exact dynamics, at the price of stepping and rendering."""
+    """The simulator oracle: privileged, exact dynamics, at the price of stepping and rendering. It renders
+    ``cameras`` (default: the env's task's), in that order."""
 
-    def __init__(self, env, encoder, cameras: tuple[str, ...] = CAMERAS):
-        self.env, self.encoder, self.cameras = env, encoder, cameras
+    def __init__(self, env, encoder, cameras: tuple[str, ...] | None = None):
+        self.env, self.encoder, self.task = env, encoder, env.task
+        self.cameras = tuple(cameras) if cameras else env.task.cameras
         self._snap = None
 
     @property
@@ -157,6 +188,8 @@ class BlendedDynamics(Dynamics):
         if not 0.0 <= weight <= 1.0:
             raise ValueError(f"blend weight {weight} is outside [0, 1]; 0 is the learned model, 1 the simulator")
         self.model, self.oracle, self.weight = model, oracle, float(weight)
+        self.task = _shared_task([oracle, model], "checkpoint of the world model in the blend")
+        self.cameras = model.cameras or oracle.cameras
         self.needs_history = model.needs_history
         self.frameskip = getattr(model, "frameskip", None)
         self.context = getattr(model, "context", 1)
@@ -194,6 +227,8 @@ class EnsembleDynamics(Dynamics):
                 raise ValueError(f"ensemble members differ in {attr} {sorted(vals, key=str)}; use world models "
                                  f"trained with the same {attr}")
         self.members = list(members)
+        self.task = _shared_task(self.members, "checkpoint {i} of the ensemble")
+        self.cameras = next((m.cameras for m in members if m.cameras), None)
         self.needs_history = any(m.needs_history for m in members)
         self.frameskip = getattr(members[0], "frameskip", None)
         self.context = getattr(members[0], "context", 1)

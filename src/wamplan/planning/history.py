@@ -4,7 +4,7 @@
 At planning point t (a chunk boundary, or a re-planning step) the history is the frames at
 t-(Tc-1)Δ, ..., t-Δ, t with the actions executed between them, anchored to t whether or not Δ divides the
 chunk (Δ=5, H=16: frames t-10, t-5, t). Before step 0 the robot rested: with ``rest_state`` the first frame
-stands in for the earlier ones, with :data:`~wamplan.envs.contract.HOLD_ACTION` between them; without it, a
+stands in for the earlier ones, with the task's ``hold_action`` (arm still, gripper open) between them; without it, a
 history reaching before step 0 is no history (None). A frame that should exist but was never shown is a
 :class:`PlanningError`, never a silently unplanned chunk.
 """
@@ -16,7 +16,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from wamplan.envs.contract import HOLD_ACTION, Observation
+from wamplan.envs.spec import Observation
 from wamplan.errors import UserError
 from wamplan.planning.dynamics import Dynamics, PlanningContext
 
@@ -34,20 +34,27 @@ class FrameHistory:
     ``frameskip`` Δ and ``context`` Tc are the dynamics' (a learned world model's stride and number of frames);
     ``chunk`` H is the WAM's. ``keeps_frames`` is False for a backend that needs no history (the simulator):
     then only the executed actions are kept. Frames are encoded with ``encode`` and kept on ``device``.
+    ``hold_action`` (A,): the action of the rest before step 0 (the task's ``hold_action``), needed with
+    ``rest_state``.
     """
 
     def __init__(self, chunk: int, frameskip: int, context: int, encode: Encode, device: torch.device, *,
-                 keeps_frames: bool = True, rest_state: bool = False):
+                 keeps_frames: bool = True, rest_state: bool = False, hold_action: np.ndarray | None = None):
+        if rest_state and hold_action is None:
+            raise ValueError("a rest-state history needs the task's hold_action (the action of the rest)")
         self.chunk, self.frameskip, self.context = chunk, frameskip, context
         self.encode, self.device = encode, device
-        self.keeps_frames, self.rest_state = keeps_frames, rest_state
+        self.keeps_frames, self.rest_state, self.hold_action = keeps_frames, rest_state, hold_action
         self.reset()
 
     @classmethod
-    def for_dynamics(cls, dynamics: Dynamics, chunk: int, encode: Encode, rest_state: bool = False) -> FrameHistory:
-        """The history ``dynamics`` needs (its frameskip and context; none for a backend without history)."""
+    def for_dynamics(cls, dynamics: Dynamics, chunk: int, encode: Encode, hold_action: np.ndarray,
+                     rest_state: bool = False) -> FrameHistory:
+        """The history ``dynamics`` needs (its frameskip and context; none for a backend without history);
+        ``hold_action`` (A,): the task's rest action."""
         return cls(chunk, getattr(dynamics, "frameskip", chunk), getattr(dynamics, "context", 1), encode,
-                   dynamics.device, keeps_frames=dynamics.needs_history, rest_state=rest_state)
+                   dynamics.device, keeps_frames=dynamics.needs_history, rest_state=rest_state,
+                   hold_action=hold_action)
 
     def reset(self) -> None:
         """Start a new episode."""
@@ -102,6 +109,7 @@ class FrameHistory:
         # Before step 0 the robot rested: the first frame again, with hold-still actions (arm still, gripper open).
         z = torch.stack([self.frames[max(s, 0)][0] for s in steps])  # (Tc, V, N, D)
         q = torch.stack([self.frames[max(s, 0)][1] for s in steps])  # (Tc, P)
-        acts = np.stack([self.executed[s] if s >= 0 else HOLD_ACTION for s in range(steps[0], t)])  # ((Tc-1)Δ, A)
+        acts = np.stack([self.executed[s] if s >= 0 else self.hold_action
+                         for s in range(steps[0], t)])  # ((Tc-1)Δ, A)
         a = torch.from_numpy(acts.reshape(self.context - 1, -1).astype(np.float32)).to(self.device)  # (Tc-1, Δ·A)
         return PlanningContext(z, q, a)

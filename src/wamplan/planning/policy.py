@@ -20,6 +20,11 @@ Contract, the same for every dynamics backend:
 * a history frame that should exist but was never shown to the policy is a :class:`PlanningError`.
 
 Devices: the target embedding, the seed chunk and every candidate live on ``dynamics.device``.
+
+The task is the WAM's (``wam.task``): its views are encoded in the order of the dynamics' ``cameras`` (the world
+model's, else the task's), its arm entries carry a warm start, its rest action fills a rest-state history, and
+the planner's task settings are filled from it (``Planner.for_task``). The target WAM and the dynamics (the
+world model's checkpoint, or the simulator's env) must have been made for the same task: one line otherwise.
 """
 
 from __future__ import annotations
@@ -31,11 +36,11 @@ import numpy as np
 import torch
 
 from wamplan.config import to_dict
-from wamplan.envs.contract import ARM, CAMERAS, Observation
+from wamplan.envs.spec import Observation, check_same_task
 from wamplan.planning.base import Planner
 from wamplan.planning.costs import CostFn
 from wamplan.planning.decision import ChunkCosts, ChunkDecision, ChunkTimings
-from wamplan.planning.dynamics import Dynamics, PlanningContext
+from wamplan.planning.dynamics import Dynamics, PlanningContext, task_name
 from wamplan.planning.history import FrameHistory, PlanningError
 from wamplan.planning.policy_config import PlannedPolicyConfig, check_fits
 from wamplan.policies.base import Policy
@@ -54,15 +59,22 @@ class PlannedPolicy(Policy):
                  target_wam: WAM | None = None, config: PlannedPolicyConfig | None = None,
                  instruction: str | None = None, world_models: tuple[str, ...] = ()):
         self.wam, self.target_wam = wam, target_wam or wam
-        self.planner, self.dynamics, self.encoder, self.cost = planner, dynamics, encoder, cost
+        self.task = wam.task
+        check_same_task(self.task.name, task_name(self.target_wam), f"WAM {self.target_wam.name} (the target)")
+        check_same_task(self.task.name, task_name(dynamics),
+                        "checkpoint of the world model" if dynamics.needs_history else "simulator env")
+        self.planner = planner.for_task(self.task)
+        self.dynamics, self.encoder, self.cost = dynamics, encoder, cost
+        self.cameras = dynamics.cameras or self.task.cameras  # the order the encoded views are stacked in
+        self._arm = list(self.task.arm)  # the action entries a warm start carries over
         self.config = config or PlannedPolicyConfig()
         self.gates = self.config.gates
         self.world_models = tuple(world_models)  # the learned dynamics' checkpoints, for the record (config_dict)
         self.instruction = instruction or getattr(wam, "default_instruction", "")
         self.chunk = wam.chunk_length
-        self.history = FrameHistory.for_dynamics(dynamics, self.chunk, self.encode,
+        self.history = FrameHistory.for_dynamics(dynamics, self.chunk, self.encode, self.task.hold_action,
                                                  rest_state=self.config.first_chunk == "rest-history")
-        self.period = check_fits(self.config, self.chunk, planner, dynamics)  # between planning points: H, or K
+        self.period = check_fits(self.config, self.chunk, self.planner, dynamics)  # between planning points: H, or K
         self.reset()
 
     @property
@@ -195,7 +207,7 @@ class PlannedPolicy(Policy):
         init = seed
         if self.config.warm_start == "residual" and correction is not None:
             init = seed.clone()  # (H_opt, A)
-            init[:, ARM] += self.config.warm_weight * correction[:, ARM]  # arm only: the gripper stays the WAM's
+            init[:, self._arm] += self.config.warm_weight * correction[:, self._arm]  # the gripper stays the WAM's
         result = self.planner.plan(init, objective, seed=self._plan_seed(obs.step))
         self.last_plan = result
         planned = self._damped(result.actions[:covered], seed)  # (H_opt, A) what is executed of the plan
@@ -258,7 +270,7 @@ class PlannedPolicy(Policy):
     @torch.inference_mode()
     def encode(self, images: dict[str, np.ndarray]) -> torch.Tensor:
         """camera -> (H, W, 3) uint8 views -> (V, N, D) float32 on the search's device."""
-        x = torch.from_numpy(np.stack([images[c] for c in CAMERAS]))  # (V, H, W, 3)
+        x = torch.from_numpy(np.stack([images[c] for c in self.cameras]))  # (V, H, W, 3)
         return self.encoder.encode(x.to(self.encoder.device)).float().to(self.device)  # (V, N, D)
 
     def clip(self, actions: torch.Tensor) -> torch.Tensor:

@@ -1,5 +1,5 @@
-"""Policies: the interface, and the scripted ones that generate data (expert, noisy expert, pink noise).
-The task's observation and action spaces are in ``wamplan.envs.contract``."""
+"""Policies: the interface, and the scripted ones that generate data (expert, noisy expert, pink noise,
+demonstration replay). A task's observation and action spaces are in its spec (``wamplan.envs.spec.TaskSpec``)."""
 
 from wamplan.policies.base import POLICIES, Policy, make_policy, register_policy
 from wamplan.policies.expert import ExpertConfig, ExpertPolicy

@@ -26,6 +26,8 @@ large; "approach" turns from the first step, while moving.
 
 Gains map metre/radian errors to normalised actions of the 5-D controller (pos 0.02 m, yaw 0.1 rad
 per unit; see ``wamplan.envs.controller``).
+
+It scripts the cube task: it acts in a task whose spec names it as the task's ``expert`` (cube-insertion).
 """
 
 from __future__ import annotations
@@ -36,8 +38,9 @@ from typing import Any
 import numpy as np
 
 from wamplan.config import field, require
-from wamplan.envs.contract import Observation
-from wamplan.policies.base import Policy, register_policy
+from wamplan.envs.spec import Observation, TaskSpec
+from wamplan.errors import UserError
+from wamplan.policies.base import Policy, policy_task, register_policy
 
 POS_BOUND, YAW_BOUND = 0.02, 0.1  # controller units (see wamplan.envs.controller)
 TURN_PHASES = ("descend", "approach")
@@ -78,12 +81,24 @@ class ExpertConfig:
                 f"align_tol and align_yaw_tol must be > 0, got {self.align_tol}, {self.align_yaw_tol}")
 
 
+def scripted_task(task: TaskSpec | None) -> TaskSpec:
+    """The task the scripted expert acts in (default: the default policy task); one line for a task it does not
+    script (whose spec names another ``expert``, or none)."""
+    spec = policy_task(task)
+    if spec.expert != ExpertPolicy.name:
+        has = f"'{spec.expert}' as its expert" if spec.expert else "no scripted expert"
+        raise UserError(f"the scripted expert acts in the tasks whose spec names it (cube-insertion); task "
+                        f"'{spec.name}' has {has}; use another --source (pink, or imported demonstrations)")
+    return spec
+
+
 @register_policy("expert")
 class ExpertPolicy(Policy):
     """Scripted expert; needs ``obs.state`` (privileged) and never images."""
 
-    def __init__(self, config: ExpertConfig | None = None):
+    def __init__(self, config: ExpertConfig | None = None, task: TaskSpec | None = None):
         self.config = config or ExpertConfig()
+        self.task = scripted_task(task)
         self.reset()
 
     def reset(self, seed: int | None = None) -> None:

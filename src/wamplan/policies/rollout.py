@@ -1,4 +1,4 @@
-"""Run one episode of a policy in an :class:`InsertionEnv`, rendering only when someone needs images."""
+"""Run one episode of a policy in a :class:`TaskEnv`, rendering only when someone needs images."""
 
 from __future__ import annotations
 
@@ -8,12 +8,12 @@ from typing import Any, Callable
 
 import numpy as np
 
-from wamplan.envs.contract import Observation
-from wamplan.envs.core import InsertionEnv
+from wamplan.envs.spec import Observation
+from wamplan.envs.core import TaskEnv
 from wamplan.policies.base import Policy
 
 # Called with (env, obs, action) after the reset (action None) and after every step (the action that led to obs).
-ObsHook = Callable[[InsertionEnv, Observation, "np.ndarray | None"], None]
+ObsHook = Callable[[TaskEnv, Observation, "np.ndarray | None"], None]
 
 
 @dataclass
@@ -31,7 +31,7 @@ class EpisodeResult:
                     wall_time=round(self.wall_time, 3), **({"policy_info": self.policy_info} if self.policy_info else {}))
 
 
-def run_episode(env: InsertionEnv, policy: Policy, seed: int, *, images_at: Callable[[int], bool] | None = None,
+def run_episode(env: TaskEnv, policy: Policy, seed: int, *, images_at: Callable[[int], bool] | None = None,
                 on_obs: ObsHook | None = None, stop_on_success: bool = True,
                 max_steps: int | None = None) -> EpisodeResult:
     """Roll ``policy`` out from ``env.reset(seed)``.
@@ -40,7 +40,7 @@ def run_episode(env: InsertionEnv, policy: Policy, seed: int, *, images_at: Call
     The episode ends at the first success (``stop_on_success``) or at the step limit (``max_steps``,
     default the env's ``max_episode_steps``).
     """
-    limit = min(max_steps or env.config.max_episode_steps, env.config.max_episode_steps)
+    limit = min(max_steps or env.max_episode_steps, env.max_episode_steps)
     t0 = time.perf_counter()
     want = (lambda t: policy.wants_images(t) or (images_at is not None and images_at(t)))
     policy.reset(seed)

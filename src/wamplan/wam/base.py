@@ -23,7 +23,7 @@ from typing import Any, Callable, ClassVar
 
 import numpy as np
 
-from wamplan.envs.contract import ACTION_DIM, CAMERAS, Observation
+from wamplan.envs.spec import Observation, TaskSpec, check_same_task, get_task
 from wamplan.errors import UserError
 from wamplan.policies.base import Policy
 from wamplan.registry import Registry
@@ -32,7 +32,10 @@ from wamplan.registry import Registry
 # Whoever adds a WAM module (TinyWAM, the expert oracle) adds it here.
 BUILTIN_WAM_MODULES = ("wamplan.wam.cosmos_client", "wamplan.wam.tinywam", "wamplan.wam.oracle")
 
-# The cube-insertion task's language instruction, used when none is given (the paper does not quote one).
+# The task of a WAM (or WAM checkpoint) that names none: every one made before tasks acted in it.
+from wamplan.envs.spec import DEFAULT_TASK as LEGACY_TASK  # noqa: E402  (what records no task means)
+# The cube-insertion task's language instruction (the paper does not quote one); a WAM's default instruction is
+# its task's (``TaskSpec.instruction``), which for cube-insertion is this.
 DEFAULT_INSTRUCTION = "insert the cube into the square hole"
 
 
@@ -101,14 +104,50 @@ def validate_wam_output(out: WAMOutput, *, chunk_length: int, action_dim: int,
 
 
 class WAM(abc.ABC):
-    """A world action model. Subclasses set ``name`` (via ``@register_wam``) and the three attributes below
-    (class attributes, instance attributes or properties)."""
+    """A world action model. Subclasses set ``name`` (via ``@register_wam``) and may set ``chunk_length``,
+    ``task``, ``action_dim``, ``cameras`` and ``default_instruction`` (class attributes, instance attributes or
+    properties). ``task`` is the :class:`~wamplan.envs.spec.TaskSpec` the WAM acts in (from its checkpoint or its
+    config; a WAM that sets none acts in :data:`LEGACY_TASK`); ``action_dim``, ``cameras`` and
+    ``default_instruction`` default to the task's."""
 
     name: ClassVar[str] = ""
     chunk_length: int = 16  # H: actions per chunk; the images are predicted for t + H
-    action_dim: int = ACTION_DIM  # A
-    cameras: tuple[str, ...] = CAMERAS  # cameras the WAM reads and predicts
-    default_instruction: str = DEFAULT_INSTRUCTION  # what WAMPolicy sends when given no instruction
+
+    @property
+    def task(self) -> TaskSpec:
+        """The task the WAM acts in (its checkpoint's or config's; :data:`LEGACY_TASK` if it sets none)."""
+        return get_task(self.__dict__.get("_task", LEGACY_TASK))
+
+    @task.setter
+    def task(self, task: str | TaskSpec) -> None:
+        self._task = get_task(task)
+
+    @property
+    def action_dim(self) -> int:
+        """A, the size of one action (default: the task's)."""
+        return self.__dict__.get("_action_dim", self.task.action_dim)
+
+    @action_dim.setter
+    def action_dim(self, value: int) -> None:
+        self._action_dim = int(value)
+
+    @property
+    def cameras(self) -> tuple[str, ...]:
+        """The cameras the WAM reads and predicts, in order (default: the task's)."""
+        return self.__dict__.get("_cameras", self.task.cameras)
+
+    @cameras.setter
+    def cameras(self, value: tuple[str, ...]) -> None:
+        self._cameras = tuple(value)
+
+    @property
+    def default_instruction(self) -> str:
+        """What WAMPolicy sends when given no instruction (default: the task's instruction)."""
+        return self.__dict__.get("_default_instruction", self.task.instruction)
+
+    @default_instruction.setter
+    def default_instruction(self, value: str) -> None:
+        self._default_instruction = str(value)
 
     @abc.abstractmethod
     def predict(self, obs: Observation, instruction: str) -> WAMOutput:
@@ -162,17 +201,22 @@ class WAMPolicy(Policy):
     ``refine(obs, out) -> (H, A) actions``, if given, replaces each proposed chunk before it is executed
     (the planner's hook); the WAM's own output stays available as ``last_output``. Without an
     ``instruction`` the WAM's ``default_instruction`` is sent. Executed actions are
-    clipped to [-1, 1], the range every policy promises. Not in the policy registry: it needs a WAM
-    (``WAMPolicy(load_wam(path))``), so a name alone cannot build it.
+    clipped to [-1, 1], the range every policy promises. ``task`` is the task of the env the policy acts in
+    (``env.task``; None: the WAM's own): a WAM made for another task, or one whose actions are not that task's
+    size, is one line. Not in the policy registry: it needs a WAM (``WAMPolicy(load_wam(path))``), so a name
+    alone cannot build it.
     """
 
     name = "wam"
 
     def __init__(self, wam: WAM, instruction: str | None = None,
-                 refine: Callable[[Observation, WAMOutput], np.ndarray] | None = None):
-        if wam.action_dim != ACTION_DIM:
-            raise WAMError(f"WAM '{wam.name}' outputs {wam.action_dim}-D actions but the environment takes "
-                           f"{ACTION_DIM}-D ones; configure the WAM's action dimensions")
+                 refine: Callable[[Observation, WAMOutput], np.ndarray] | None = None,
+                 task: str | TaskSpec | None = None):
+        task = get_task(task) if task is not None else wam.task
+        check_same_task(task.name, wam.task.name, f"WAM '{wam.name}'")
+        if wam.action_dim != task.action_dim:
+            raise WAMError(f"WAM '{wam.name}' outputs {wam.action_dim}-D actions but task {task.name} takes "
+                           f"{task.action_dim}-D ones; configure the WAM's action dimensions")
         self.wam = wam
         self.instruction = instruction if instruction is not None else wam.default_instruction
         self.refine = refine

@@ -4,9 +4,11 @@
     out = wam.predict(obs, "insert the cube into the hole")   # WAMOutput, validated
 
 The client adapts wamplan's observation to what the server was trained on (camera -> request field,
-proprio length, chunk length, which action columns are wamplan's 5-D action) and maps the predicted
-views back to wamplan cameras. Every failure (server down, timeout, HTTP error, the "error" answer,
-a malformed or non-finite answer) raises :class:`WAMServerError` with one line naming the fix.
+proprio length, chunk length, which action columns are wamplan's action) and maps the predicted
+views back to wamplan cameras. It acts in the task of its config (``task``, default cube-insertion; ``wam.task``):
+the cameras it maps are that task's (the defaults and the profiles map cube-insertion's). Every failure (server
+down, timeout, HTTP error, the "error" answer, a malformed or non-finite answer) raises :class:`WAMServerError`
+with one line naming the fix.
 
 CLI flags: ``wamplan.config.add_arguments(parser, CosmosClientConfig, prefix="wam_")`` gives
 ``--wam-url``, ``--wam-timeout-s``, ...; error messages name those flags. A server's shared secret is not a
@@ -38,7 +40,7 @@ import numpy as np
 import requests
 
 from wamplan.config import ConfigError, field, require, to_dict
-from wamplan.envs.contract import CAMERAS, Observation
+from wamplan.envs.spec import TASKS, Observation, get_task
 from wamplan.wam import protocol
 from wamplan.wam.base import WAM, WAMError, WAMOutput, WAMOutputError, WAMServerError, register_wam
 
@@ -49,14 +51,15 @@ def _flag(name: str) -> str:
     return FLAG_PREFIX + name.replace("_", "-")
 
 
-def _pairs(items: tuple[str, ...], option: str) -> list[tuple[str, str]]:
+def _pairs(items: tuple[str, ...], option: str, cameras: tuple[str, ...]) -> list[tuple[str, str]]:
+    """``items`` ("CAMERA=FIELD", ...) as (camera, field) pairs; one line for a camera not among ``cameras``."""
     out = []
     for item in items:
         cam, sep, name = item.partition("=")
         require(bool(sep and cam and name),
                 f"{_flag(option)}: '{item}' is not CAMERA=FIELD (e.g. front=primary_image)")
-        require(cam in CAMERAS,
-                f"{_flag(option)}: unknown camera '{cam}' in '{item}'; cameras are {list(CAMERAS)}")
+        require(cam in cameras,
+                f"{_flag(option)}: unknown camera '{cam}' in '{item}'; the task's cameras are {list(cameras)}")
         out.append((cam, name))
     return out
 
@@ -65,20 +68,22 @@ def _pairs(items: tuple[str, ...], option: str) -> list[tuple[str, str]]:
 class CosmosClientConfig:
     """How to reach a Cosmos Policy /act server and adapt wamplan's observations to it."""
 
+    task: str = field("cube-insertion", "the task the served model acts in (its cameras are the ones mapped)",
+                      choices=lambda: TASKS)
     url: str = field(f"http://127.0.0.1:{protocol.DEFAULT_PORT}{protocol.ROUTE}", "the server's /act endpoint")
     request_fields: tuple[str, ...] = field(
         ("front=primary_image", "side=left_wrist_image", "wrist=right_wrist_image"),
-        "CAMERA=FIELD: which wamplan camera fills each request image (all three fields are required)")
+        "CAMERA=FIELD: which camera of the task fills each request image (all three fields are required)")
     response_fields: tuple[str, ...] = field(
         ("front=future_image", "side=future_wrist_image", "wrist=future_wrist_image2"),
-        "CAMERA=FIELD: which predicted future image becomes each wamplan camera's target")
+        "CAMERA=FIELD: which predicted future image becomes each camera's target")
     chunk_length: int = field(16, "actions per chunk the server returns (H); the images are for t + H")
     action_indices: tuple[int, ...] = field((0, 1, 2, 3, 4), "columns of the server's actions that form "
-                                            "wamplan's action (dx, dy, dz, dyaw, gripper)")
+                                            "the task's action (the cube's: dx, dy, dz, dyaw, gripper)")
     clip_actions: bool = field(True, "clip actions into [-1, 1] (sampled actions can overshoot slightly); "
                                "off: an out-of-range action is an error")
-    proprio_dim: int | None = field(None, "proprio length the server expects (truncate or pad wamplan's 10-D "
-                                    "proprio); None sends it unchanged")
+    proprio_dim: int | None = field(None, "proprio length the server expects (truncate or pad the task's "
+                                    "proprio, the cube's 10-D); None sends it unchanged")
     proprio_pad: float = field(0.0, "value used to pad proprio up to proprio_dim")
     send_image_size: int | None = field(None, "resize camera images to this square size before sending; "
                                         "None sends them as rendered")
@@ -89,14 +94,15 @@ class CosmosClientConfig:
     backoff_s: float = field(0.5, "wait before the first retry; doubles after each")
 
     def __post_init__(self) -> None:
+        get_task(self.task)  # one line naming the registered tasks if unknown
         require(self.url.startswith(("http://", "https://")),
                 f"{_flag('url')} must be an http(s) URL such as http://127.0.0.1:8777/act, got '{self.url}'")
-        req = _pairs(self.request_fields, "request_fields")
+        req = _pairs(self.request_fields, "request_fields", self.cameras)
         names = sorted(n for _, n in req)
         require(any(names == sorted(fs) for fs in protocol.REQUEST_IMAGE_FIELD_SETS),
                 f"{_flag('request_fields')} must fill each field of one of {[list(fs) for fs in protocol.REQUEST_IMAGE_FIELD_SETS]} "
                 f"exactly once, got {list(self.request_fields)}")
-        resp = _pairs(self.response_fields, "response_fields")
+        resp = _pairs(self.response_fields, "response_fields", self.cameras)
         require(len(resp) > 0, f"{_flag('response_fields')} must map at least one camera")
         cams = [c for c, _ in resp]
         require(len(set(cams)) == len(cams),
@@ -119,14 +125,19 @@ class CosmosClientConfig:
         require(self.backoff_s >= 0, f"{_flag('backoff_s')} must be >= 0, got {self.backoff_s}")
 
     @property
+    def cameras(self) -> tuple[str, ...]:
+        """The task's cameras, the ones the fields may map."""
+        return get_task(self.task).cameras
+
+    @property
     def request_map(self) -> dict[str, str]:
-        """request field -> wamplan camera."""
-        return {name: cam for cam, name in _pairs(self.request_fields, "request_fields")}
+        """request field -> camera."""
+        return {name: cam for cam, name in _pairs(self.request_fields, "request_fields", self.cameras)}
 
     @property
     def response_map(self) -> dict[str, str]:
-        """wamplan camera -> response field."""
-        return dict(_pairs(self.response_fields, "response_fields"))
+        """camera -> response field."""
+        return dict(_pairs(self.response_fields, "response_fields", self.cameras))
 
 
 _ROBOCASA = dict(request_fields=("front=primary_image", "side=secondary_image", "wrist=wrist_image"),
@@ -203,6 +214,7 @@ class CosmosPolicyClient(WAM):
             base = dataclasses.replace(base, **{k: tuple(v) if isinstance(v, list) else v
                                                 for k, v in overrides.items()})
         self.config = base
+        self.task = base.task
         self.chunk_length = base.chunk_length
         self.action_dim = len(base.action_indices)
         self.cameras = tuple(base.response_map)
@@ -240,7 +252,7 @@ class CosmosPolicyClient(WAM):
                                f"change {_flag('request_fields')}")
             img = np.asarray(obs.images[cam], dtype=np.uint8)  # (H, W, 3)
             images[name] = resize_image(img, cfg.send_image_size) if cfg.send_image_size else img
-        proprio = np.asarray(obs.proprio, dtype=np.float32).reshape(-1)  # (10,)
+        proprio = np.asarray(obs.proprio, dtype=np.float32).reshape(-1)  # (P,)
         if not np.isfinite(proprio).all():
             raise WAMError(f"the observation at step {obs.step} has non-finite proprio {proprio}; "
                            f"check the environment's state")

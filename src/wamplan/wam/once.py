@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from wamplan.envs.contract import Observation
+from wamplan.envs.spec import Observation
 from wamplan.wam.base import WAM, WAMOutput
 
 
@@ -16,6 +16,7 @@ class OnceWAM(WAM):
     def __init__(self, inner: WAM):
         self.inner = inner
         self.name = inner.name
+        self.task = inner.task
         self.chunk_length, self.action_dim = inner.chunk_length, inner.action_dim
         self.cameras, self.default_instruction = inner.cameras, inner.default_instruction
         self._out: dict[int, WAMOutput] = {}

@@ -15,7 +15,9 @@ the executed trajectory is the simulated one: with the "restore before simulatin
 executing" rule the two are bit-identical (PhysX keeps hidden state, so a rollout from a restored state
 differs slightly from one that never was).
 
-It needs the live env, so it cannot be loaded from a checkpoint: ``make_wam("expert-oracle", env=env)``.
+It needs the live env, so it cannot be loaded from a checkpoint: ``make_wam("expert-oracle", env=env)``. Its
+task, action size and cameras are the env's (``env.task``); the task must be one the scripted expert solves
+(``TaskSpec.expert == "expert"``: cube-insertion).
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from wamplan.envs.contract import CAMERAS, Observation
+from wamplan.envs.spec import Observation
 from wamplan.policies.expert import ExpertPolicy
 from wamplan.wam.base import WAM, WAMError, WAMOutput, register_wam
 
@@ -34,25 +36,34 @@ from wamplan.wam.base import WAM, WAMError, WAMOutput, register_wam
 @register_wam("expert-oracle")
 class ExpertOracleWAM(WAM):
     """``ExpertOracleWAM(env, chunk=16, image_size=None)``: the expert's next ``chunk`` actions and the true
-    views after them. ``image_size`` resizes the rendered views (None keeps the env's camera size)."""
+    views after them. ``image_size`` resizes the rendered views (None keeps the env's camera size); ``cameras``
+    (default: the env's task's) are the views it renders."""
 
     def __init__(self, env: Any, chunk: int = 16, image_size: int | None = None,
-                 expert: ExpertPolicy | None = None, cameras: tuple[str, ...] = CAMERAS):
-        if not (hasattr(env, "snapshot") and hasattr(env, "restore") and hasattr(env, "render")):
-            raise WAMError(f"the expert oracle needs a live InsertionEnv, got {type(env).__name__}; "
-                           f"pass env=InsertionEnv(...)")
+                 expert: ExpertPolicy | None = None, cameras: tuple[str, ...] | None = None):
+        if not (hasattr(env, "snapshot") and hasattr(env, "restore") and hasattr(env, "render")
+                and hasattr(env, "task")):
+            raise WAMError(f"the expert oracle needs a live TaskEnv, got {type(env).__name__}; "
+                           f"pass env=TaskEnv(...)")
+        task = env.task
+        if task.expert != ExpertPolicy.name:
+            raise WAMError(f"the expert oracle simulates the scripted expert, which acts in the tasks whose spec names "
+                           f"it (cube-insertion); task {task.name} has {task.expert or 'none'}: use another WAM")
         if chunk < 1:
             raise WAMError(f"the oracle's chunk must be >= 1, got {chunk}")
         if image_size is not None and image_size < 1:
             raise WAMError(f"the oracle's image_size must be >= 1 (or None), got {image_size}")
-        unknown = [c for c in cameras if c not in CAMERAS]
+        cameras = tuple(cameras) if cameras is not None else task.cameras
+        unknown = [c for c in cameras if c not in task.cameras]
         if unknown or not cameras:
-            raise WAMError(f"the oracle's cameras must be among {list(CAMERAS)}, got {list(cameras)}")
+            raise WAMError(f"the oracle's cameras must be among task {task.name}'s {list(task.cameras)}, got "
+                           f"{list(cameras)}")
         self.env = env
+        self.task = task
         self.chunk_length = int(chunk)
         self.image_size = image_size
         self.cameras = tuple(cameras)
-        self.expert = copy.deepcopy(expert) if expert is not None else ExpertPolicy()
+        self.expert = copy.deepcopy(expert) if expert is not None else ExpertPolicy(task=task)
 
     def reset(self) -> None:
         self.expert.reset()

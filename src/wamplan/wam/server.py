@@ -13,7 +13,7 @@ own server answers every failure with HTTP 200 and the bare JSON string ``"error
 * an optional shared secret: with one, ``/act`` needs it in the ``X-WAMplan-Secret`` header (or
   ``Authorization: Bearer <secret>``) and answers HTTP 401 with a one-line JSON error without it;
 * a request size limit: a larger body is refused with HTTP 413 before it is read;
-* ``GET /health`` (no secret needed): ``{"ok": true, "wam": ..., "chunk_length": ..., "cameras": [...]}``.
+* ``GET /health`` (no secret needed): ``{"ok": true, "wam": ..., "task": ..., "chunk_length": ..., "cameras": [...]}``.
 
     app = create_app(wam, secret="s3cret")     # a FastAPI app
     serve(wam, host="127.0.0.1", port=8777)    # blocking, uvicorn
@@ -35,7 +35,7 @@ from fastapi import FastAPI, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse, Response
 
-from wamplan.envs.contract import Observation
+from wamplan.envs.spec import Observation
 from wamplan.errors import UserError, reason
 from wamplan.wam import protocol
 from wamplan.wam.base import WAM, WAMOutputError
@@ -44,9 +44,23 @@ log = logging.getLogger(__name__)
 
 DEFAULT_HOST = "127.0.0.1"  # loopback: other machines reach the server only when --host says so
 
-# request field -> wamplan camera, and wamplan camera -> response field (the client's defaults).
+# request field -> camera, and camera -> response field: the client's defaults, for cube-insertion's cameras.
 DEFAULT_REQUEST_MAP = {"primary_image": "front", "left_wrist_image": "side", "right_wrist_image": "wrist"}
 DEFAULT_RESPONSE_MAP = {"front": "future_image", "side": "future_wrist_image", "wrist": "future_wrist_image2"}
+
+
+def default_maps(cameras: tuple[str, ...]) -> tuple[dict[str, str], dict[str, str]]:
+    """The request and response maps of a server for a WAM reading ``cameras`` when none are given: the client's
+    defaults for cube-insertion's cameras; for other cameras, camera i fills request field i of the defaults (the
+    last camera the fields left over) and its prediction is response field i."""
+    if all(c in DEFAULT_REQUEST_MAP.values() for c in cameras):
+        return dict(DEFAULT_REQUEST_MAP), dict(DEFAULT_RESPONSE_MAP)
+    fields, futures = list(DEFAULT_REQUEST_MAP), list(DEFAULT_RESPONSE_MAP.values())
+    if len(cameras) > len(fields):
+        raise UserError(f"the WAM reads {len(cameras)} cameras {list(cameras)} but a request carries {len(fields)} "
+                        f"images; pass a request map for the cameras to serve")
+    request = {f: cameras[min(i, len(cameras) - 1)] for i, f in enumerate(fields)}
+    return request, {c: futures[i] for i, c in enumerate(cameras)}
 
 
 class _Refused(Exception):
@@ -85,7 +99,8 @@ def create_app(wam: WAM, instruction_default: str | None = None, request_map: di
     """A FastAPI app answering ``POST /act`` with ``wam``'s predictions, and ``GET /health``.
 
     ``instruction_default`` (default: the WAM's ``default_instruction``) is used when a request's
-    ``task_description`` is empty. ``secret`` (None or empty: none) must come with every ``/act`` request;
+    ``task_description`` is empty; ``request_map`` / ``response_map`` default to :func:`default_maps` of the WAM's
+    cameras. ``secret`` (None or empty: none) must come with every ``/act`` request;
     bodies over ``max_request_bytes`` are refused (413). Queries are serialised (one at a time), since a WAM
     may keep state and hold a single model. A request that fails is answered 400 / 422 / 500 with
     ``{"error": reason}`` (module docstring), or, with ``bare_errors``, as Cosmos Policy does: HTTP 200, ``"error"``.
@@ -93,8 +108,9 @@ def create_app(wam: WAM, instruction_default: str | None = None, request_map: di
     if max_request_bytes < 1:
         raise UserError(f"the request size limit must be >= 1 byte, got {max_request_bytes}")
     secret = secret or None
-    request_map = dict(request_map or DEFAULT_REQUEST_MAP)
-    response_map = dict(response_map or DEFAULT_RESPONSE_MAP)
+    default_request, default_response = default_maps(tuple(wam.cameras))
+    request_map = dict(request_map or default_request)
+    response_map = dict(response_map or default_response)
     bad = sorted(set(request_map) - {f for fs in protocol.REQUEST_IMAGE_FIELD_SETS for f in fs})
     bad += sorted(set(response_map.values()) - set(protocol.KNOWN_RESPONSE_IMAGE_FIELDS))
     if bad:
@@ -123,7 +139,8 @@ def create_app(wam: WAM, instruction_default: str | None = None, request_map: di
 
     @app.get(protocol.HEALTH_ROUTE)
     async def health() -> dict:
-        return {"ok": True, "wam": wam.name, "chunk_length": int(wam.chunk_length), "cameras": list(wam.cameras)}
+        return {"ok": True, "wam": wam.name, "task": wam.task.name, "chunk_length": int(wam.chunk_length),
+                "cameras": list(wam.cameras)}
 
     @app.post(protocol.ROUTE)
     async def act(request: Request) -> Response:

@@ -13,10 +13,12 @@ and the three views at ``t + H``, at a small square resolution (``image_size``):
 Observation images of any size are resized to ``image_size`` (bilinear, antialiased, rounded to uint8:
 the same path in training and at deployment). Input normalisation statistics (per-channel image
 mean/std, per-dimension proprio mean/std) are buffers, so they travel in ``model.safetensors``.
-The language instruction is ignored: TinyWAM is trained on one task.
+The language instruction is ignored: TinyWAM is trained on one task, the task of its training stores, which
+its checkpoint records (``wam.task``; a checkpoint that records none: cube-insertion). Its action and proprio
+sizes and its cameras are that task's unless the config sets them (:meth:`TinyWAMConfig.for_task`).
 
     wam = load_wam("runs/tinywam")             # a checkpoint written by `wamplan wam train`
-    out = wam.predict(obs, "insert the cube")   # out.actions (16, 5) float32, out.images[cam] (64, 64, 3) uint8
+    out = wam.predict(obs, "insert the cube")   # out.actions (16, A) float32, out.images[cam] (64, 64, 3) uint8
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from __future__ import annotations
 import math
 import time
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -33,22 +35,24 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from wamplan.config import field, from_dict, require, to_dict
-from wamplan.envs.contract import ACTION_DIM, CAMERAS, PROPRIO_DIM, Observation
-from wamplan.wam.base import WAM, WAMError, WAMOutput, register_wam, register_wam_loader
+from wamplan.config import ConfigError, field, from_dict, require, to_dict
+from wamplan.envs.spec import Observation, TaskSpec, get_task
+from wamplan.wam.base import LEGACY_TASK, WAM, WAMError, WAMOutput, register_wam, register_wam_loader
 
 KIND = "tinywam"
 
 
 @dataclass(frozen=True)
 class TinyWAMConfig:
-    """Architecture of TinyWAM (stored in the checkpoint; a checkpoint rebuilds exactly this network)."""
+    """Architecture of TinyWAM (stored in the checkpoint; a checkpoint rebuilds exactly this network).
+    ``action_dim``, ``proprio_dim`` and ``cameras`` of None are the task's: :meth:`for_task` fills them."""
 
     image_size: int = field(64, "side of the square images the model reads and predicts, pixels")
     chunk_length: int = field(16, "H, actions per chunk; the images are predicted for t + H")
-    action_dim: int = field(ACTION_DIM, "A, action size (dx, dy, dz, dyaw, gripper)")
-    proprio_dim: int = field(PROPRIO_DIM, "P, proprioception size")
-    cameras: tuple[str, ...] = field(CAMERAS, "cameras read and predicted, in this order")
+    action_dim: int | None = field(None, "A, action size (default: the task's)")
+    proprio_dim: int | None = field(None, "P, proprioception size (default: the task's)")
+    cameras: tuple[str, ...] | None = field(None, "cameras read and predicted, in this order (default: the "
+                                                  "training stores' cameras)")
     channels: tuple[int, ...] = field((16, 32, 64, 128), "conv channels of the encoder stages; each stage "
                                       "halves the resolution (the decoder mirrors them)")
     latent_dim: int = field(256, "L, size of one view's token and of the proprio embedding")
@@ -64,15 +68,34 @@ class TinyWAMConfig:
                 f"got {self.image_size}: pick e.g. 64 or change --channels")
         for name in ("chunk_length", "action_dim", "proprio_dim", "latent_dim", "trunk_dim"):
             v = getattr(self, name)
-            require(isinstance(v, int) and v > 0, f"TinyWAMConfig.{name} must be a positive int, got {v!r}")
-        require(len(self.cameras) >= 1 and len(set(self.cameras)) == len(self.cameras)
-                and all(c in CAMERAS for c in self.cameras),
-                f"TinyWAMConfig.cameras must be distinct names from {list(CAMERAS)}, got {list(self.cameras)}")
+            require(v is None and name in TASK_FIELDS or isinstance(v, int) and v > 0,
+                    f"TinyWAMConfig.{name} must be a positive int, got {v!r}")
+        require(self.cameras is None or len(self.cameras) >= 1 and len(set(self.cameras)) == len(self.cameras),
+                f"TinyWAMConfig.cameras must be distinct camera names, got {self.cameras}")
 
     @property
     def grid(self) -> int:
         """Side of the encoder's last feature map."""
         return self.image_size // 2 ** len(self.channels)
+
+    def for_task(self, task: str | TaskSpec, cameras: tuple[str, ...] | None = None) -> "TinyWAMConfig":
+        """This config with the fields left None filled from ``task`` (``cameras``: the views the data holds,
+        default the task's); one line when a set field does not fit the task (another action or proprio size,
+        a camera the data lacks)."""
+        spec = get_task(task)
+        cameras = tuple(cameras) if cameras is not None else spec.cameras
+        done = replace(self, action_dim=self.action_dim or spec.action_dim,
+                       proprio_dim=self.proprio_dim or spec.proprio_dim, cameras=self.cameras or cameras)
+        for name, want in (("action_dim", spec.action_dim), ("proprio_dim", spec.proprio_dim)):
+            require(getattr(done, name) == want, f"TinyWAMConfig.{name} is {getattr(done, name)} but task "
+                                                 f"{spec.name} has {want}; leave --{name.replace('_', '-')} unset")
+        missing = [c for c in done.cameras if c not in cameras]
+        require(not missing, f"TinyWAMConfig.cameras {list(done.cameras)} are not all among task {spec.name}'s "
+                             f"cameras {list(cameras)}; pick --cameras from those (or leave it unset)")
+        return done
+
+
+TASK_FIELDS = ("action_dim", "proprio_dim", "cameras")  # TinyWAMConfig fields whose None means "the task's"
 
 
 # ----------------------------------------------------------------------------------------------- images
@@ -109,6 +132,9 @@ class TinyWAMNet(nn.Module):
 
     def __init__(self, cfg: TinyWAMConfig):
         super().__init__()
+        unset = [f"--{n.replace('_', '-')}" for n in TASK_FIELDS if getattr(cfg, n) is None]
+        require(not unset, f"TinyWAMConfig leaves {', '.join(unset)} to the task: build the network from "
+                           f"config.for_task(task)")
         self.cfg = cfg
         V, L, T, ch = len(cfg.cameras), cfg.latent_dim, cfg.trunk_dim, cfg.channels
         g = cfg.grid
@@ -183,16 +209,19 @@ class TinyWAMNet(nn.Module):
 # ----------------------------------------------------------------------------------------------- the WAM
 @register_wam("tinywam")
 class TinyWAM(WAM):
-    """TinyWAM behind the WAM interface. ``TinyWAM()`` is randomly initialised (tests, smoke runs);
-    trained ones come from ``load_wam(path)`` / :meth:`from_checkpoint`."""
+    """TinyWAM behind the WAM interface for ``task``. ``TinyWAM()`` is randomly initialised (tests, smoke
+    runs), its config's unset fields filled from the task; trained ones come from ``load_wam(path)`` /
+    :meth:`from_checkpoint`."""
 
     def __init__(self, config: TinyWAMConfig | None = None, *, net: TinyWAMNet | None = None,
-                 device: str | torch.device = "auto", provenance: dict[str, Any] | None = None):
+                 device: str | torch.device = "auto", provenance: dict[str, Any] | None = None,
+                 task: str | TaskSpec = LEGACY_TASK):
         from wamplan.device import resolve_device
 
         if net is not None and config is not None and net.cfg != config:
             raise WAMError("TinyWAM got a net and a config that differ; pass only one of them")
-        self.config = net.cfg if net is not None else (config or TinyWAMConfig())
+        self.task = task
+        self.config = (net.cfg if net is not None else config or TinyWAMConfig()).for_task(self.task)
         self.device = resolve_device(device) if isinstance(device, str) else device
         self.net = (net if net is not None else TinyWAMNet(self.config)).to(self.device).eval()
         self.chunk_length = self.config.chunk_length
@@ -209,14 +238,20 @@ class TinyWAM(WAM):
 
         path = checkpoint_dir(path)
         saved = read_config(path, KIND)
-        cfg = from_dict(TinyWAMConfig, saved["model"])
+        task = get_task((saved.get("data") or {}).get("task") or LEGACY_TASK)  # recorded since tasks exist
+        try:
+            cfg = from_dict(TinyWAMConfig, saved["model"]).for_task(task)  # a saved config has every field set
+        except ConfigError as e:
+            raise WAMError(f"{path}: {e}") from None
         net = TinyWAMNet(cfg)
         load_weights(path, net)
-        return cls(net=net, device=device, provenance={"checkpoint": str(Path(path).resolve()),
-                                                       "train": saved.get("train"), "data": saved.get("data")})
+        return cls(net=net, device=device, task=task,
+                   provenance={"checkpoint": str(Path(path).resolve()), "train": saved.get("train"),
+                               "data": saved.get("data")})
 
     def config_dict(self) -> dict[str, Any]:
-        return {"name": self.name, **to_dict(self.config), **({"provenance": self.provenance} if self.provenance else {})}
+        return {"name": self.name, "task": self.task.name, **to_dict(self.config),
+                **({"provenance": self.provenance} if self.provenance else {})}
 
     def predict(self, obs: Observation, instruction: str) -> WAMOutput:
         t0 = time.perf_counter()

@@ -10,6 +10,10 @@ for its current and its future picture, so the pair stays consistent.
 Training runs in the shared loop (``wamplan.train_loop``): ``--out`` is a run directory
 (``checkpoint/`` + ``metrics.jsonl``), re-running the same command resumes it exactly (the augmentation
 of step s is seeded by (seed, s)), and a resumed run must use the same stores, sources and options.
+
+The stores must hold one task; the model's unset action and proprio sizes and cameras are that task's
+(:meth:`TinyWAMConfig.for_task`, the cameras the stores hold), and the checkpoint records the task's name
+(``config["data"]["task"]``, what ``load_wam`` gives as ``wam.task``).
 """
 
 from __future__ import annotations
@@ -26,7 +30,6 @@ from torch.utils.data import DataLoader
 from wamplan.checkpoint import CONFIG_FILE, CheckpointError, has_training_state, load_weights, read_config
 from wamplan.config import field, from_dict, require, to_dict, with_default
 from wamplan.device import resolve_device
-from wamplan.envs.contract import CAMERAS
 from wamplan.errors import UserError
 from wamplan.train_loop import (LoopConfig, check_resume, check_run_dir, fit, read_metrics, run_paths,
                                 saved_progress)
@@ -79,11 +82,15 @@ class WAMItems:
 
 def load_items(stores: Sequence[str | Path], cfg: TinyWAMConfig, split: str, val_fraction: float,
                sources: Sequence[str] | None = None, num_workers: int = 0) -> WAMItems:
-    """Read the items of ``split`` from ``stores`` into memory at ``cfg.image_size``."""
+    """Read the items of ``split`` from ``stores`` (of one task) into memory at ``cfg.image_size``; ``cfg``'s
+    unset fields are the stores' task's."""
     from wamplan.data.readers import WAMSamples
+    from wamplan.worldmodel.stores import stores_task
 
+    task, store_cameras = stores_task(stores)
+    cfg = cfg.for_task(task, store_cameras)
     ds = WAMSamples(stores, chunk=cfg.chunk_length, split=split, val_fraction=val_fraction, sources=sources)
-    views = [CAMERAS.index(c) for c in cfg.cameras]
+    views = [store_cameras.index(c) for c in cfg.cameras]  # the samples stack the stores' cameras in order
     keys: dict[tuple[int, int], int] = {}
     frames: list[torch.Tensor] = []
     cur, fut, proprio, actions = [], [], [], []
@@ -152,20 +159,23 @@ def wam_loss(net: TinyWAMNet, batch: dict[str, torch.Tensor], cfg: WAMTrainConfi
 
 
 @torch.no_grad()
-def evaluate(net: TinyWAMNet, items: WAMItems, batch_size: int = 64) -> dict[str, float]:
-    """Validation metrics: action MSE (and its gripper part), image MSE of the clamped prediction, and the
-    image MSE of the copy-the-current-view baseline (what a model that predicts no motion would get)."""
+def evaluate(net: TinyWAMNet, items: WAMItems, batch_size: int = 64, gripper: int | None = -1) -> dict[str, float]:
+    """Validation metrics: action MSE (and that of the gripper entry ``gripper``, None: the task has none), image
+    MSE of the clamped prediction, and the image MSE of the copy-the-current-view baseline (what a model that
+    predicts no motion would get)."""
     device = next(net.parameters()).device
     was_training = net.training
     net.eval()
-    sums = {"action_mse": 0.0, "gripper_mse": 0.0, "image_mse": 0.0, "copy_image_mse": 0.0}
+    sums = {"action_mse": 0.0, **({"gripper_mse": 0.0} if gripper is not None else {}), "image_mse": 0.0,
+            "copy_image_mse": 0.0}
     for start in range(0, len(items), batch_size):
         idx = torch.arange(start, min(start + batch_size, len(items)))
         b = make_batch(items, idx, device)
         actions, future = net(b["images"], b["proprio"])  # (B, H, A), (B, V, 3, S, S)
         n = len(idx)
         sums["action_mse"] += float(F.mse_loss(actions, b["actions"])) * n
-        sums["gripper_mse"] += float(F.mse_loss(actions[..., -1], b["actions"][..., -1])) * n
+        if gripper is not None:
+            sums["gripper_mse"] += float(F.mse_loss(actions[..., gripper], b["actions"][..., gripper])) * n
         sums["image_mse"] += float(F.mse_loss(future.clamp(0, 1), b["future"])) * n
         sums["copy_image_mse"] += float(F.mse_loss(b["images"], b["future"])) * n
     net.train(was_training)
@@ -200,17 +210,20 @@ class TrainResult:
 def train_tinywam(stores: Sequence[str | Path], out: str | Path, model_cfg: TinyWAMConfig | None = None,
                   train_cfg: WAMTrainConfig | None = None, *, sources: Sequence[str] | None = None,
                   max_steps: int | None = None, progress: bool = True, log=print) -> TrainResult:
-    """Train TinyWAM on ``stores`` into the run directory ``out``, or resume it if it holds a run.
+    """Train TinyWAM on ``stores`` (of one task) into the run directory ``out``, or resume it if it holds a run.
 
     When resuming, the saved model config is used and the training config must match the saved one
     except for ``train_loop.RUN_ONLY_FIELDS``, and the data must be the same; ``model_cfg`` /
-    ``train_cfg`` of None mean "as saved" (or the defaults for a new run). ``max_steps`` stops after
-    that many optimisation steps in all (checkpointed; call again to continue)."""
+    ``train_cfg`` of None mean "as saved" (or the defaults for a new run). The model config's unset fields
+    are the stores' task's. ``max_steps`` stops after that many optimisation steps in all (checkpointed; call
+    again to continue)."""
     from wamplan.data.store import EpisodeStore, describe_stores
+    from wamplan.worldmodel.stores import stores_task
 
     out = Path(out)
     check_run_dir(out, "a TinyWAM checkpoint")
     ckpt, _ = run_paths(out)
+    task, store_cameras = stores_task(stores)  # one line for stores of different tasks
     data = describe_stores(stores, sources)
     progress_saved = saved_progress(out)
     if (ckpt / CONFIG_FILE).is_file() and progress_saved is None:
@@ -218,10 +231,10 @@ def train_tinywam(stores: Sequence[str | Path], out: str | Path, model_cfg: Tiny
                               f"new --out")
     if progress_saved is not None:
         saved = read_config(ckpt, KIND)
-        model_cfg = model_cfg or from_dict(TinyWAMConfig, saved["model"])
+        model_cfg = (model_cfg or from_dict(TinyWAMConfig, saved["model"])).for_task(task, store_cameras)
         train_cfg = train_cfg or from_dict(WAMTrainConfig, saved["train"])
         check_resume(out, KIND, {"model": to_dict(model_cfg), "train": to_dict(train_cfg)}, data)
-    model_cfg = model_cfg or TinyWAMConfig()
+    model_cfg = (model_cfg or TinyWAMConfig()).for_task(task, store_cameras)
     train_cfg = train_cfg or WAMTrainConfig()
     if progress_saved is not None and progress_saved["epoch"] >= train_cfg.epochs:  # say so before reading data
         net = TinyWAMNet(model_cfg)
@@ -248,7 +261,8 @@ def train_tinywam(stores: Sequence[str | Path], out: str | Path, model_cfg: Tiny
     if len(val_items) == 0:
         log(f"note: no validation episodes at val_fraction {train_cfg.val_fraction}; collect more episodes or raise "
             f"--val-fraction to get validation losses")
-    info = {"train_items": n, "val_items": len(val_items), "camera_size": EpisodeStore(stores[0]).env.get("camera_size")}
+    info = {"train_items": n, "val_items": len(val_items), "task": task.name,
+            "camera_size": EpisodeStore(stores[0]).env.get("camera_size")}
     config = {"model": to_dict(model_cfg), "train": to_dict(train_cfg), "data": info}
 
     torch.manual_seed(train_cfg.seed)
@@ -257,9 +271,12 @@ def train_tinywam(stores: Sequence[str | Path], out: str | Path, model_cfg: Tiny
     def fresh_stats() -> None:
         net.set_stats(*[s.to(device) for s in compute_stats(train_items)])
 
+    def validate(m: TinyWAMNet) -> dict[str, float]:
+        return evaluate(m, val_items, 2 * bs, task.gripper_index)
+
     result = fit(net, ItemBatches(train_items, device, train_cfg.shift_pixels, train_cfg.seed),
                  lambda m, b: wam_loss(m, b, train_cfg), train_cfg, run_dir=out, kind=KIND, config=config, data=data,
-                 device=device, evaluate=(lambda m: evaluate(m, val_items, 2 * bs)) if len(val_items) else None,
+                 device=device, evaluate=validate if len(val_items) else None,
                  on_fresh_start=fresh_stats, resume=progress_saved is not None, max_steps=max_steps,
                  progress=progress, desc="tinywam", log=log)
     return TrainResult(net.eval(), dict(result.state, history=result.history), finished_before=False)

@@ -1,4 +1,5 @@
-"""A WAM's predicted t+H views beside the real ones, at a few chunk boundaries of a stored episode."""
+"""A WAM's predicted t+H views beside the real ones, at a few chunk boundaries of a stored episode of the WAM's
+task, for each of the WAM's cameras."""
 
 from __future__ import annotations
 
@@ -6,9 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
-from wamplan.envs.contract import CAMERAS, Observation
-from wamplan.plot import save_figure
+from wamplan.envs.spec import Observation
 from wamplan.errors import UserError
+from wamplan.plot import save_figure
 
 
 def prediction_figure(wam, store_dir: str | Path, episode: int = 0, starts: tuple[int, ...] = (16, 48, 80),
@@ -25,6 +26,10 @@ def prediction_figure(wam, store_dir: str | Path, episode: int = 0, starts: tupl
     from wamplan.wam.tinywam import to_model_frames
 
     store = EpisodeStore(store_dir)
+    if store.task_name != wam.task.name:
+        raise UserError(f"{store_dir} holds task '{store.task_name}' but WAM '{wam.name}' acts in task "
+                        f"'{wam.task.name}'; show an episode of its task")
+    cameras = tuple(wam.cameras)
     paths = store.episode_paths()
     if not 0 <= episode < len(paths):
         raise UserError(f"--episode {episode} is out of range: {store_dir} holds {len(paths)} episodes")
@@ -33,14 +38,14 @@ def prediction_figure(wam, store_dir: str | Path, episode: int = 0, starts: tupl
     starts = tuple(t for t in starts if t in steps and min(t + h, ep.length) in steps)
     if not starts:
         raise UserError(f"no chunk start with stored images at t and t+{h} in episode {episode} ({ep.length} steps)")
-    fig, axes = plt.subplots(len(starts), 3 * len(CAMERAS), figsize=(1.6 * 3 * len(CAMERAS), 1.8 * len(starts)),
+    fig, axes = plt.subplots(len(starts), 3 * len(cameras), figsize=(1.6 * 3 * len(cameras), 1.8 * len(starts)),
                              squeeze=False)
     err: dict[str, list[float]] = {}
     for r, t in enumerate(starts):
         k, k2 = steps.index(t), steps.index(min(t + h, ep.length))
-        obs = Observation(step=t, proprio=ep.proprio[t], images={c: ep.images[c][k] for c in CAMERAS})
+        obs = Observation(step=t, proprio=ep.proprio[t], images={c: ep.images[c][k] for c in cameras})
         pred = wam.predict(obs, getattr(wam, "default_instruction", ""))
-        for v, c in enumerate(CAMERAS):
+        for v, c in enumerate(cameras):
             size = pred.images[c].shape[0]
             cur, real = (to_model_frames(torch.from_numpy(ep.images[c][j]), size).permute(1, 2, 0).numpy()
                          for j in (k, k2))

@@ -12,6 +12,9 @@ task at its boundary, read from the parent's record at that step (the last conte
 * ``carry``: ``lifted`` anywhere else;
 * ``grasp``: not ``lifted`` (approach, closing, lift-off; also a cube dropped back on the table).
 
+The phases are cube-insertion's (:data:`PHASE_TASK`): they read its stage flags (the store's task's ``stages``)
+and the cube's pose; a store of another task is one line (:func:`phase_task_of`).
+
 Per phase (and over all groups) :func:`phase_table` pools with ``train.pool_siblings`` (the ``all`` row is
 ``train.evaluate_siblings``'s): ``sib_rel_hK`` (the share of the between-sibling variation of outcomes K frames
 on that the model misses), ``sib_gain_hK`` (the slope of its predicted sibling differences on the true ones)
@@ -32,21 +35,33 @@ from torch.utils.data import Dataset
 from wamplan.data.alignment import NEAR, hole_position
 from wamplan.data.readers import BranchGroups
 from wamplan.data.store import EpisodeStore
-from wamplan.envs.contract import STAGES
+from wamplan.envs.spec import TaskSpec
+from wamplan.errors import UserError
 from wamplan.worldmodel.predictor import WorldModelPredictor
 from wamplan.worldmodel.train import pool_siblings, sibling_statistics
 
 PHASES = ("grasp", "carry", "alignment", "descent")
 ALL = "all"
-_FLAG = {s: i for i, s in enumerate(STAGES)}
+PHASE_TASK = "cube-insertion"  # the task whose stages and poses the phases are defined on
 
 
-def phase_of(stages: np.ndarray, cube_pose: np.ndarray, hole: np.ndarray, cube_half: float) -> str:
-    """The phase (module docstring) of one state: ``stages`` (5,) bool as ``STAGES``, ``cube_pose`` (7,) xyz +
-    wxyz, ``hole`` (3,) the hole's top centre (x, y, mount height), ``cube_half`` metres."""
-    if any(stages[_FLAG[s]] for s in ("aligned", "descended", "seated")):
+def phase_task_of(store: EpisodeStore) -> TaskSpec:
+    """The task of ``store`` when the phases are defined for it; one line otherwise."""
+    if store.task_name != PHASE_TASK:
+        raise UserError(f"the benchmark's phases ({', '.join(PHASES)}) are defined for task {PHASE_TASK}, but "
+                        f"{store.root} holds task '{store.task_name}'")
+    return store.task
+
+
+def phase_of(stages: np.ndarray, cube_pose: np.ndarray, hole: np.ndarray, cube_half: float,
+             names: Sequence[str]) -> str:
+    """The phase (module docstring) of one state: ``stages`` (S,) bool, the flags ``names`` (the task's
+    ``stages``, in that order), ``cube_pose`` (7,) xyz + wxyz, ``hole`` (3,) the hole's top centre (x, y, mount
+    height), ``cube_half`` metres."""
+    flag = dict(zip(names, np.asarray(stages, bool).tolist()))
+    if any(flag[s] for s in ("aligned", "descended", "seated")):
         return "descent"
-    if not stages[_FLAG["lifted"]]:
+    if not flag["lifted"]:
         return "grasp"
     xy = float(np.linalg.norm(cube_pose[:2] - hole[:2]))
     over = xy < NEAR and cube_pose[2] - cube_half > hole[2] - 0.002
@@ -54,16 +69,20 @@ def phase_of(stages: np.ndarray, cube_pose: np.ndarray, hole: np.ndarray, cube_h
 
 
 def group_phases(groups: BranchGroups) -> list[str]:
-    """The phase of every group of ``groups`` at its boundary, read from its first sibling's record."""
-    places: dict[str, tuple[np.ndarray, float]] = {}  # store -> (the hole's top centre (3,), the cube's half side)
+    """The phase of every group of ``groups`` at its boundary, read from its first sibling's record; one line
+    for a store of a task the phases are not defined for."""
+    # store -> (the hole's top centre (3,), the cube's half side, the task's stage names)
+    places: dict[str, tuple[np.ndarray, float, tuple[str, ...]]] = {}
     out = []
     for members in groups.items:
         e = groups.episodes[members[0][0]]
         boundary, start = e.branch_at  # type: ignore[misc]  # the parent's boundary, and its step at the branch's 0
         root = str(Path(e.path).parent.parent)  # DIR/episodes/<file>.h5 -> DIR
         if root not in places:
-            env = EpisodeStore(root).env
-            places[root] = hole_position(env), float(env.get("cube_half_size", 0.02))
+            store = EpisodeStore(root)
+            stages = phase_task_of(store).stages
+            env = store.env
+            places[root] = hole_position(env), float(env.get("cube_half_size", 0.02)), stages
         with h5py.File(e.path, "r") as f:
             out.append(phase_of(f["stages"][boundary - start], f["cube_pose"][boundary - start], *places[root]))
     return out

@@ -15,6 +15,7 @@ from wamplan.config import add_field_argument, field, require
 from wamplan.train_loop import AdamWConfig
 
 ACTION_CONDITIONING = ("input", "adaln")  # PredictorConfig.action_conditioning
+# The task of a world-model checkpoint that records none: every one made before tasks was trained on it.
 
 
 @dataclass(frozen=True)

@@ -45,11 +45,14 @@ each step: the reference the cached path must equal (tests assert it). Training 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Sequence
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from wamplan.envs.spec import TaskSpec, get_task
+from wamplan.errors import UserError
 from wamplan.worldmodel.config import PredictorConfig
 from wamplan.worldmodel.layers import KV, AdaLNBlock, Block, KVRing, init_weights, rope_angles
 
@@ -80,9 +83,19 @@ class PrefixCache:
 
 
 class WorldModelPredictor(nn.Module):
-    def __init__(self, cfg: PredictorConfig) -> None:
+    """The predictor of ``cfg``. ``task`` (a :class:`~wamplan.envs.spec.TaskSpec`; None: not known, e.g. a model
+    built in memory) and ``cameras`` (the camera of each of the V views, in order) say what it was trained on;
+    a checkpoint records both and ``worldmodel.train.load_predictor`` always sets ``task``."""
+
+    def __init__(self, cfg: PredictorConfig, task: str | TaskSpec | None = None,
+                 cameras: Sequence[str] | None = None) -> None:
         super().__init__()
         self.cfg = cfg
+        self.task = get_task(task) if task is not None else None
+        if cameras is not None and len(cameras) != cfg.num_views:
+            raise UserError(f"the predictor has {cfg.num_views} views but {len(cameras)} cameras {list(cameras)} "
+                            f"were given; pass one camera per view")
+        self._cameras = tuple(cameras) if cameras is not None else None
         d, e = cfg.width, cfg.head_dim
         self.proprio_proj = nn.Sequential(nn.Linear(cfg.proprio_dim, cfg.proprio_emb), nn.GELU(),
                                           nn.Linear(cfg.proprio_emb, cfg.proprio_emb))
@@ -111,6 +124,16 @@ class WorldModelPredictor(nn.Module):
                 blk.zero_init()  # adaLN-Zero: every block starts as the identity
         # The heads keep the small random init: zero-initialised delta heads (an exact copy-last start)
         # made training stall on a plateau in 3 of 4 seeds on the synthetic task.
+
+    @property
+    def cameras(self) -> tuple[str, ...] | None:
+        """The camera of each of the V views, in order: the recorded ones, else the task's when it has V cameras
+        (a checkpoint made before tasks: the cube's three), else None."""
+        if self._cameras is not None:
+            return self._cameras
+        if self.task is not None and len(self.task.cameras) == self.cfg.num_views:
+            return self.task.cameras
+        return None
 
     def _block(self) -> Block:
         cfg = self.cfg

@@ -1,19 +1,47 @@
 """Training the world model from episode stores: encode the views once (cached beside each store), build
 the windows (predictor) or frames (decoder), and train into a run directory; re-running resumes.
 
+The stores of one run hold one task (:func:`stores_task`): the predictor's views, proprio and action sizes
+are that task's and its cameras (the preset's are the cube's), and its checkpoint records the task's name
+and the cameras (``config["data"]``; ``load_predictor`` gives them as ``model.task`` and ``model.cameras``).
+
     train_predictor_on_stores(["data/expert"], "runs/wm", PredictorConfig(...), TrainConfig(...),
                               encoder="patch-pixels", encoder_kwargs={"input_size": 64, ...})
 """
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Any, Sequence
 
 from wamplan.checkpoint import CKPT_DIR, has_training_state
 from wamplan.data.features import feature_key
+from wamplan.envs.spec import TaskSpec
 from wamplan.errors import UserError
 from wamplan.worldmodel.config import DecoderConfig, DecoderTrainConfig, PredictorConfig, TrainConfig
+
+
+def stores_task(stores: Sequence[str | Path]) -> tuple[TaskSpec, tuple[str, ...]]:
+    """The task and the cameras (in the order their views are stacked) of ``stores``; one line when they hold
+    episodes of different tasks or cameras (one run trains on one task)."""
+    from wamplan.data.store import EpisodeStore
+
+    if not stores:
+        raise UserError("--data needs at least one episode store directory")
+    first = EpisodeStore(stores[0])
+    for root in stores[1:]:
+        other = EpisodeStore(root)
+        if other.task_name != first.task_name or other.cameras != first.cameras:
+            raise UserError(f"--data mixes tasks: {stores[0]} holds task '{first.task_name}' (cameras "
+                            f"{list(first.cameras)}), {root} task '{other.task_name}' (cameras {list(other.cameras)}); "
+                            f"train on the stores of one task")
+    return first.task, first.cameras
+
+
+def predictor_for_task(cfg: PredictorConfig, task: TaskSpec, cameras: Sequence[str]) -> PredictorConfig:
+    """``cfg`` with the views, proprio and action sizes of ``task``'s stores holding ``cameras``."""
+    return dataclasses.replace(cfg, num_views=len(cameras), proprio_dim=task.proprio_dim, action_dim=task.action_dim)
 
 
 def frozen_encoder(name: str, kwargs: dict[str, Any], path: str | None = None, device: str = "auto"):
@@ -82,6 +110,8 @@ def train_predictor_on_stores(stores: Sequence[str | Path], out: str | Path, pre
     from wamplan.data.readers import BranchGroups, WorldModelWindows
     from wamplan.worldmodel.train import KIND, train_predictor
 
+    task, cameras = stores_task(stores)
+    predictor = predictor_for_task(predictor, task, cameras)
     data, resume, info, key = _prepare(stores, out, KIND, encoder, encoder_kwargs, encoder_path, val_fraction,
                                        device, progress)
     kw = dict(frameskip=predictor.frameskip, history=predictor.context, horizon=train.horizon,
@@ -104,7 +134,8 @@ def train_predictor_on_stores(stores: Sequence[str | Path], out: str | Path, pre
             print(f"branch groups: {len(groups)} train, {len(val_groups)} val, of {groups.group} siblings")
     _, metrics = train_predictor(tr, predictor, train, out, val_set=va if len(va) else None, device=device,
                                  resume=resume, max_steps=max_steps, progress=progress, encoder_info=info,
-                                 data=data, init=init, group_set=groups, val_groups=val_groups)
+                                 data=data, init=init, group_set=groups, val_groups=val_groups, task=task,
+                                 cameras=cameras)
     return metrics
 
 
@@ -112,10 +143,11 @@ def train_decoder_on_stores(stores: Sequence[str | Path], out: str | Path, decod
                             train: DecoderTrainConfig, *, encoder: str, encoder_kwargs: dict[str, Any],
                             encoder_path: str | None = None, val_fraction: float = 0.1, device: str = "auto",
                             max_steps: int | None = None, progress: bool = True) -> dict[str, Any]:
-    """Train (or resume) the picture decoder on the (features, image) frames of ``stores``."""
+    """Train (or resume) the picture decoder on the (features, image) frames of ``stores`` (of one task)."""
     from wamplan.data.readers import FeatureFrames
     from wamplan.worldmodel.decoder import KIND, train_decoder
 
+    stores_task(stores)
     data, resume, info, key = _prepare(stores, out, KIND, encoder, encoder_kwargs, encoder_path, val_fraction,
                                        device, progress)
     tr = FeatureFrames(stores, key, split="train", val_fraction=val_fraction)

@@ -27,7 +27,7 @@ loss (and the planner's cost, eq. 3) is in the raw feature space the encoder pro
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import torch
 from torch.utils.data import DataLoader, Dataset
@@ -35,8 +35,10 @@ from torch.utils.data import DataLoader, Dataset
 from wamplan.checkpoint import checkpoint_dir, load_weights, read_config
 from wamplan.config import from_dict, to_dict
 from wamplan.device import resolve_device
+from wamplan.envs.spec import TaskSpec
 from wamplan.errors import UserError
 from wamplan.train_loop import DatasetBatches, fit, saved_progress
+from wamplan.envs.spec import DEFAULT_TASK as LEGACY_TASK
 from wamplan.worldmodel.config import PredictorConfig, TrainConfig
 from wamplan.worldmodel.predictor import WorldModelPredictor
 
@@ -215,6 +217,7 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
                     max_steps: int | None = None, progress: bool = True, encoder_info: dict[str, Any] | None = None,
                     data: dict[str, Any] | None = None, init: str | Path | None = None,
                     group_set: Dataset | None = None, val_groups: Dataset | None = None,
+                    task: str | TaskSpec | None = None, cameras: Sequence[str] | None = None,
                     ) -> tuple[WorldModelPredictor, dict[str, Any]]:
     """Train (or resume) a predictor into the run directory ``out_dir`` (``wamplan.train_loop``:
     ``checkpoint/`` + ``metrics.jsonl``). ``encoder_info`` (e.g. ``encoder.config_dict()``) is stored as
@@ -223,12 +226,17 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
     weights and feature statistics instead of a random initialisation and new statistics.
     ``group_set`` (``data.readers.BranchGroups``) adds ``train.sibling_weight`` times :func:`sibling_loss` on
     ``train.sibling_groups`` groups to every step's loss; ``val_groups`` adds the held-out sibling error to the
-    validation metrics (:func:`evaluate_siblings`).
+    validation metrics (:func:`evaluate_siblings`). ``task`` and ``cameras`` (one per view) say what the windows
+    show; the checkpoint records them, where given, in its ``data`` section (loading one that records no task
+    means cube-insertion).
     Returns the trained model (eval mode) and the last metrics (with ``val/...`` entries if ``val_set``)."""
     dev = resolve_device(device) if isinstance(device, str) else device
     torch.manual_seed(train.seed)
-    model = WorldModelPredictor(cfg).to(dev)
-    config = {"predictor": to_dict(cfg), "train": to_dict(train), "encoder": encoder_info}
+    model = WorldModelPredictor(cfg, task, cameras).to(dev)
+    trained_on = {**({"task": model.task.name} if model.task is not None else {}),
+                  **({"cameras": list(cameras)} if cameras is not None else {})}
+    config = {"predictor": to_dict(cfg), "train": to_dict(train), "encoder": encoder_info,
+              **({"data": trained_on} if trained_on else {})}
     if init is not None:
         config["init"] = str(Path(init).resolve())
         _check_init(init, cfg, encoder_info)
@@ -298,11 +306,15 @@ def _check_init(init: str | Path, cfg: PredictorConfig, encoder_info: dict[str, 
 
 
 def load_predictor(path: str | Path, device: str | torch.device = "cpu") -> WorldModelPredictor:
-    """A trained predictor (eval mode) from a checkpoint directory (or a training ``out_dir``)."""
+    """A trained predictor (eval mode) from a checkpoint directory (or a training ``out_dir``), with the task and
+    cameras it was trained on as ``model.task`` / ``model.cameras`` (a checkpoint that records no task:
+    cube-insertion; none records no cameras: the task's)."""
     ckpt = checkpoint_dir(path)
-    cfg = from_dict(PredictorConfig, read_config(ckpt, KIND)["predictor"])
+    saved = read_config(ckpt, KIND)
+    cfg = from_dict(PredictorConfig, saved["predictor"])
     dev = resolve_device(device) if isinstance(device, str) else device
-    model = WorldModelPredictor(cfg)
+    trained_on = saved.get("data") or {}
+    model = WorldModelPredictor(cfg, trained_on.get("task") or LEGACY_TASK, trained_on.get("cameras"))
     load_weights(ckpt, model)
     return model.to(dev).eval()
 

@@ -1,0 +1,91 @@
+"""A ManiSkill task other than the cube, end to end at tiny sizes: a trajectory file made here by ManiSkill's own
+recorder (``RecordEpisode``, ``pd_joint_pos``, as ManiSkill's motion planner writes) -> ``wamplan data import`` (converted to the task's
+``pd_ee_delta_pose`` by ManiSkill's replay tool, replayed and rendered) -> TinyWAM and world model trained a few
+steps -> conditions 1 and 6 evaluated on one episode; and the one-line errors for a task mismatch."""
+
+import json
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from wamplan.cli import main
+from wamplan.data.store import EpisodeStore
+from wamplan.evaluation.records import read_records
+
+TASK, ENV_ID, SIZE = "push-cube", "PushCube-v1", 64
+
+
+@pytest.fixture(scope="module")
+def trajectory(tmp_path_factory):
+    """Two short episodes of PushCube-v1 with joint targets wandering from the start, in ManiSkill's trajectory
+    format."""
+    import mani_skill.envs  # noqa: F401
+    from mani_skill.utils.wrappers.record import RecordEpisode
+
+    import wamplan.envs  # noqa: F401  (Vulkan set-up)
+
+    root = tmp_path_factory.mktemp("traj")
+    env = gym.make(ENV_ID, obs_mode="none", control_mode="pd_joint_pos", sim_backend="physx_cpu",
+                   render_backend="none")
+    env = RecordEpisode(env, output_dir=str(root), trajectory_name="demo", save_video=False, save_on_reset=False)
+    rng = np.random.default_rng(0)
+    for seed in (11, 12):
+        env.reset(seed=seed)
+        target = env.unwrapped.agent.robot.get_qpos()[0, :8].numpy().copy()  # (8,): 7 joints + the gripper
+        for _ in range(12):
+            target[:7] += rng.uniform(-0.02, 0.02, 7)
+            env.step(target.astype(np.float32))
+        env.flush_trajectory()
+    env.close()
+    return root / "demo.h5"
+
+
+@pytest.fixture(scope="module")
+def store(trajectory, tmp_path_factory):
+    out = tmp_path_factory.mktemp("imported") / "store"
+    assert main(["data", "import", "--format", "maniskill", str(trajectory), str(out), "--keep-failed",
+                 "--camera-size", str(SIZE), "--image-every", "2"]) == 0
+    return out
+
+
+def test_import_converts_replays_and_records_the_task(store, trajectory):
+    s = EpisodeStore(store)
+    assert s.task.name == TASK and s.cameras == ("base_camera",)
+    report = json.loads((store / "import.json").read_text())
+    assert report["controller"] == "pd_ee_delta_pose" and report["episodes"] == 2
+    assert report["replay_success"] + len(report["failed_seeds"]) == 2
+    assert trajectory.with_name("demo.none.pd_ee_delta_pose.physx_cpu.h5").is_file()  # ManiSkill's conversion
+    eps = [s.load(p) for p in s.episode_paths()]
+    assert sorted(e.seed for e in eps) == [11, 12]
+    for e in eps:
+        assert e.actions.shape[1] == 7 and e.proprio.shape[1] == 16
+        assert e.images["base_camera"].shape[1:] == (SIZE, SIZE, 3)
+
+
+def test_train_plan_and_evaluate_on_the_imported_task(store, tmp_path, capsys):
+    assert main(["wam", "train", "--data", str(store), "--out", str(tmp_path / "wam"), "--epochs", "1",
+                 "--max-steps", "2", "--batch-size", "4", "--channels", "8", "16", "--latent-dim", "32",
+                 "--trunk-dim", "64", "--no-progress", "--sources", "demo"]) == 0
+    assert main(["wm", "train", "--data", str(store), "--out", str(tmp_path / "wm"), "--epochs", "1",
+                 "--max-steps", "2", "--batch-size", "4"]) == 0
+    out = tmp_path / "eval"
+    assert main(["eval", "--task", TASK, "--conditions", "1,6", "--episodes", "1", "--seed-start", "3",
+                 "--out", str(out), "--wam", str(tmp_path / "wam"), "--wm-plain", str(tmp_path / "wm"),
+                 "--camera-size", str(SIZE), "--max-steps", "20", "--num-candidates", "4", "--iterations", "1"]) == 0
+    recs = {r["condition"]: r for r in read_records(out)}
+    assert set(recs) == {1, 6} and recs[6]["planned_chunks"] == 1
+    assert recs[1]["outcome"] in ("success", "failure")
+    capsys.readouterr()
+    # the same checkpoints on another task: one line naming both tasks
+    assert main(["eval", "--conditions", "1", "--episodes", "1", "--out", str(tmp_path / "eval_cube"),
+                 "--wam", str(tmp_path / "wam"), "--camera-size", str(SIZE), "--max-steps", "4"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "push-cube" in err and "cube-insertion" in err and len(err.splitlines()) == 1
+
+
+def test_import_refuses_a_task_that_runs_another_env(trajectory, tmp_path, capsys):
+    assert main(["data", "import", "--format", "maniskill", str(trajectory), str(tmp_path / "x"),
+                 "--task", "cube-insertion"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "PushCube-v1" in err and "cube-insertion" in err and len(err.splitlines()) == 1
