@@ -160,8 +160,25 @@ def test_reproduce_stages_wire_the_pipeline(tmp_path):
     given = dict(stages(PRESETS["mini"], tmp_path, "/ckpt/wam", 1))
     assert "train TinyWAM" not in given and "/ckpt/wam" in given["evaluate"][0]
     assert not any("--task" in cmd for cmds in st.values() for cmd in cmds)  # the default task: as before tasks
-    with pytest.raises(UserError, match="task 'peg-insertion-side' has no scripted expert"):
-        stages(PRESETS["mini"], tmp_path, None, 1, task="peg-insertion-side")
+    peg = dict(stages(PRESETS["mini"], tmp_path, None, 1, task="peg-insertion-side"))  # no expert: ManiSkill's demos
+    assert list(peg)[:5] == ["demonstrations", "import demonstrations", "import noisy", "collect pink", "train TinyWAM"]
+    assert peg["demonstrations"][0][0] == "scripts/maniskill_demos.sh"
+    imp, noisy, wam = peg["import demonstrations"][0], peg["import noisy"][0], peg["train TinyWAM"][0]
+    assert imp[imp.index("--episodes") + 1] == "100" and "--noise-std" in noisy and "--noise-std" not in imp
+    assert wam[wam.index("--sources") + 1] == "demo" and wam[wam.index("--data") + 1] == imp[5]
+    assert [cmd[cmd.index("--conditions") + 1] for cmd in peg["evaluate"]] == ["1,6,7", "5"]  # 2-4 need an expert
+    assert all(cmd[cmd.index("--task") + 1] == "peg-insertion-side" for cmd in peg["evaluate"])
+    from wamplan.envs.maniskill import maniskill_task
+    from wamplan.envs.spec import TASKS
+
+    bare = maniskill_task("PickCube-v1", name="no-demos", cameras=("base_camera",), action_dim=7, proprio_dim=16,
+                          max_episode_steps=50, instruction="pick")
+    dict.__setitem__(TASKS, "no-demos", bare)
+    try:
+        with pytest.raises(UserError, match="task 'no-demos' has neither a scripted expert nor"):
+            stages(PRESETS["mini"], tmp_path, None, 1, task="no-demos")
+    finally:
+        dict.__delitem__(TASKS, "no-demos")
 
 
 def test_report_merges_runs_of_different_conditions(tmp_path, capsys):

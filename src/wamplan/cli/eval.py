@@ -55,8 +55,8 @@ def _reproduce_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sim-episodes", type=int, default=None,
                    help="episodes for the simulator conditions 2-5 (default: the preset's; 0 skips them)")
     p.add_argument("--task", default=EnvConfig.task, choices=sorted(TASKS),
-                   help=f"the registered task every stage runs in; it needs a scripted expert (default: "
-                        f"{EnvConfig.task})")
+                   help=f"the registered task every stage runs in; it needs a scripted expert or ManiSkill's "
+                        f"motion-planning demonstrations (then conditions 2-4 are left out) (default: {EnvConfig.task})")
     p.set_defaults(func=cmd_reproduce)
 
 

@@ -27,6 +27,7 @@ from typing import Any
 from wamplan.envs.spec import TaskSpec, register_task
 
 GENERIC_ADAPTER = "wamplan.envs.adapters:ManiSkillAdapter"
+MOTION_PLANNING = "maniskill-motion-planning"  # TaskSpec.demonstrations: ManiSkill's solver makes them
 
 
 def maniskill_task(env_id: str, *, name: str, cameras: tuple[str, ...], action_dim: int, proprio_dim: int,
@@ -74,14 +75,15 @@ def spec_from_env(env_id: str, *, name: str, instruction: str, control_mode: str
 # the planner's demonstrations take 120-170 (ManiSkill's own limit, 100, is for faster policies).
 PEG_INSERTION_SIDE = register_task(maniskill_task(
     "PegInsertionSide-v1", name="peg-insertion-side", cameras=("base_camera", "hand_camera"), action_dim=7,
-    proprio_dim=16, max_episode_steps=200, instruction="insert the peg into the hole in the box, sideways"))
+    proprio_dim=16, max_episode_steps=200, instruction="insert the peg into the hole in the box, sideways",
+    demonstrations=MOTION_PLANNING))
 # Small tasks of ManiSkill's tutorial set (PushCube's Panda has no wrist camera).
 PUSH_CUBE = register_task(maniskill_task(
     "PushCube-v1", name="push-cube", cameras=("base_camera",), action_dim=7, proprio_dim=16, max_episode_steps=50,
-    instruction="push the cube to the goal region"))
+    instruction="push the cube to the goal region", demonstrations=MOTION_PLANNING))
 STACK_CUBE = register_task(maniskill_task(
     "StackCube-v1", name="stack-cube", cameras=("base_camera", "hand_camera"), action_dim=7, proprio_dim=16,
     max_episode_steps=200, instruction="stack the red cube on the green cube",
     stages=("is_cubeA_grasped", "is_cubeA_on_cubeB"),
     outcomes=(("is_cubeA_on_cubeB", "stacked_not_released"), ("is_cubeA_grasped", "grasped_not_stacked")),
-    failure="never_grasped"))
+    failure="never_grasped", demonstrations=MOTION_PLANNING))

@@ -62,6 +62,8 @@ class TaskSpec:
     env_kwargs: tuple[tuple[str, Any], ...] = field((), "extra gym.make keyword arguments, as (name, value) pairs")
     config_kwargs: tuple[str, ...] = field((), "EnvConfig fields the task's env takes as gym.make keyword arguments")
     expert: str | None = field(None, "the registered policy that solves the task from privileged state, if any")
+    demonstrations: str | None = field(None, "where demonstrations come from when there is no scripted expert: "
+                                             "'maniskill-motion-planning' (ManiSkill's solver, scripts/maniskill_demos.sh)")
     params: tuple[tuple[str, float], ...] = field((), "named task constants diagnostics may read, as (name, value) "
                                                       "pairs (the cube's align_xy_tol, say)")
 

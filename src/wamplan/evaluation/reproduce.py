@@ -8,13 +8,17 @@ trainers and evaluation records are resumable). Each stage prints the ``wamplan`
 does the same, to re-run or inspect one stage by hand.
 
 Every stage runs in one task (``task``, ``--task``; default cube-insertion): its env collects and evaluates, and
-the models learn from its stores. The pipeline starts from scripted-expert demonstrations, so the task must have
-a scripted expert (``TaskSpec.expert``): one line otherwise.
+the models learn from its stores. The pipeline starts from demonstrations: the task's scripted expert
+(``TaskSpec.expert``) and its noisy variant, or, for a task without one whose ``TaskSpec.demonstrations`` is
+ManiSkill's motion planner, that planner's solutions (``scripts/maniskill_demos.sh``, on seeds from 10000, twice
+the demonstrations needed), imported (``wamplan data import``) as the ``expert`` store (source ``demo``) and replayed
+with noise (σ 0.1 on the arm) as the ``noisy`` store. One line for a task with neither.
 """
 
 from __future__ import annotations
 
 import json
+import subprocess
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,7 +32,10 @@ from wamplan.presets import PRESETS, Preset, get_preset
 __all__ = ["PRESETS", "SEED_BASE", "Call", "Stage", "plan", "stages", "reproduce"]
 
 PAPER_PLANNER = "cem"  # the paper's experiment uses the paper's CEM (wamplan eval defaults to --planner wamplan)
-SEED_BASE = {"expert": 1000, "noisy": 2000, "pink": 3000, "on_policy": 4000}  # evaluation uses seeds 0..49
+SEED_BASE = {"expert": 1000, "noisy": 2000, "pink": 3000, "on_policy": 4000,  # evaluation uses seeds 0..49
+             "demos": 10000}
+DEMO_NOISE = 0.1  # std of the noise on the arm's entries of the noisy replays of demonstrations
+DEMOS_SCRIPT = Path(__file__).resolve().parents[3] / "scripts" / "maniskill_demos.sh"  # in a source checkout
 TIMES_FILE = "stage_times.json"
 
 
@@ -42,6 +49,10 @@ class Call:
 
     def __call__(self) -> Any:
         return self.fn(**self.kwargs)
+
+    def line(self) -> str:
+        """The shell line (a ``wamplan`` command, or a script of the checkout)."""
+        return " ".join(self.command if self.command[0].startswith("scripts/") else ("wamplan", *self.command))
 
 
 @dataclass(frozen=True)
@@ -68,6 +79,41 @@ def _collect(source: str, p: Preset, store: Path, workers: int, seeds: int, poli
                               policy=policy, image_every=p.image_every, max_steps=max_steps, loader=load_policy,
                               env=EnvConfig(task=task)),
                 tuple(cmd))
+
+
+def motion_planning_demos(task: str, seeds: range, out: Path) -> None:
+    """ManiSkill's motion-planning demonstrations of ``task`` on ``seeds`` into ``out.h5`` (kept if present)."""
+    if out.with_suffix(".h5").is_file():
+        return
+    if not DEMOS_SCRIPT.is_file():
+        raise UserError(f"ManiSkill's demonstrations are made by scripts/maniskill_demos.sh of a wamplan checkout, "
+                        f"not found at {DEMOS_SCRIPT}; run reproduce from a source checkout")
+    done = subprocess.run([str(DEMOS_SCRIPT), "--task", task, "--seeds", f"{seeds.start}-{seeds.stop - 1}",
+                           "--out", str(out)])
+    if done.returncode != 0:
+        raise UserError(f"scripts/maniskill_demos.sh failed (exit {done.returncode}); its output above says why")
+
+
+def _demo_stages(p: Preset, d: Path, workers: int, task: str) -> list[Stage]:
+    """Demonstrations by ManiSkill's motion planner, imported clean (``expert``) and replayed with noise (``noisy``)."""
+    from wamplan.data.importer import import_maniskill
+
+    n = max(p.expert, p.noisy)
+    seeds = range(SEED_BASE["demos"], SEED_BASE["demos"] + 2 * n)
+    mp, flag = d / "mp", ["--task", task]
+    common = dict(trajectory=mp.with_suffix(".h5"), task=task, workers=workers, image_every=p.image_every)
+
+    def imported(store: str, count: int, noise: float) -> Call:
+        return Call(import_maniskill, dict(common, out=d / store, limit=count, noise_std=noise),
+                    ("data", "import", "--format", "maniskill", str(mp.with_suffix(".h5")), str(d / store),
+                     "--episodes", str(count), *(["--noise-std", str(noise)] if noise else []), "--image-every",
+                     str(p.image_every), "--workers", str(workers), *flag))
+
+    return [Stage("demonstrations", (Call(motion_planning_demos, dict(task=task, seeds=seeds, out=mp),
+                                          ("scripts/maniskill_demos.sh", *flag, "--seeds",
+                                           f"{seeds.start}-{seeds.stop - 1}", "--out", str(mp))),)),
+            Stage("import demonstrations", (imported("expert", p.expert, 0.0),)),
+            Stage("import noisy", (imported("noisy", p.noisy, DEMO_NOISE),))]
 
 
 def evaluate_conditions(conditions: list[int], episodes: int, out: Path, workers: int, wam: str, wm_plain: str,
@@ -99,9 +145,10 @@ def plan(p: Preset, out: Path, wam: str | None, workers: int, sim_episodes: int 
     from wamplan.worldmodel.stores import train_decoder_on_stores, train_predictor_on_stores
 
     spec = get_task(task)
-    if spec.expert is None:
-        raise UserError(f"reproduce starts from scripted-expert demonstrations, but task '{task}' has no scripted "
-                        f"expert; collect its stores with `wamplan collect` and run the later stages by hand")
+    if spec.expert is None and spec.demonstrations is None:
+        raise UserError(f"reproduce starts from demonstrations, but task '{task}' has neither a scripted expert nor "
+                        f"a source of demonstrations; collect its stores with `wamplan collect` or `wamplan data "
+                        f"import` and run the later stages by hand")
 
     d, runs = out / "data", out / "runs"
     sim_episodes = p.sim_eval_episodes if sim_episodes is None else sim_episodes
@@ -126,17 +173,22 @@ def plan(p: Preset, out: Path, wam: str | None, workers: int, sim_episodes: int 
                      str(out / "eval"), *model_flags, "--planner", PAPER_PLANNER, "--workers", str(workers),
                      *_task_flag(task)))
 
-    out_stages = [
-        Stage("collect expert", (_collect("expert", p, d / "expert", workers, p.expert, task=task),)),
-        Stage("collect noisy", (_collect("noisy-expert", p, d / "noisy", workers, p.noisy, task=task),)),
+    if spec.expert is None:
+        out_stages = _demo_stages(p, d, workers, task)
+        demo_source = "demo"
+    else:
+        out_stages = [Stage("collect expert", (_collect("expert", p, d / "expert", workers, p.expert, task=task),)),
+                      Stage("collect noisy", (_collect("noisy-expert", p, d / "noisy", workers, p.noisy, task=task),))]
+        demo_source = "expert"
+    out_stages += [
         Stage("collect pink", (_collect("pink", p, d / "pink", workers, p.pink, max_steps=p.pink_max_steps,
                                         task=task),)),
     ]
     if wam is None:
         out_stages.append(Stage("train TinyWAM", (Call(
             train_tinywam, dict(stores=[d / "expert"], out=wam_ckpt, model_cfg=p.tinywam, train_cfg=p.tinywam_train,
-                                sources=["expert"]),
-            ("wam", "train", "--data", str(d / "expert"), "--out", wam_ckpt, "--sources", "expert", "--epochs",
+                                sources=[demo_source]),
+            ("wam", "train", "--data", str(d / "expert"), "--out", wam_ckpt, "--sources", demo_source, "--epochs",
              str(p.tinywam_train.epochs))),)))
     dec_stores = [d / s for s in p.decoder_sources]
     out_stages += [
@@ -149,7 +201,8 @@ def plan(p: Preset, out: Path, wam: str | None, workers: int, sim_episodes: int 
                                      ("wm", "train-decoder", "--data", joined(dec_stores), "--out", str(runs / "decoder"),
                                       "--preset", p.name)),)),
         Stage("evaluate", (evaluation([1, 6, 7], p.eval_episodes),
-                           *((evaluation([2, 3, 4, 5], sim_episodes),) if sim_episodes else ()))),
+                           *((evaluation([2, 3, 4, 5] if spec.expert else [5], sim_episodes),) if sim_episodes
+                             else ()))),
         Stage("report", (Call(write_report, dict(out_dir=out / "eval"), ("report", str(out / "eval"))),)),
     ]
     return out_stages
@@ -178,7 +231,7 @@ def reproduce(preset: str, out: Path, wam: str | None = None, workers: int = 1,
         t0 = time.perf_counter()
         print(f"== {stage.name}", flush=True)
         for call in stage.calls:
-            print("   wamplan " + " ".join(call.command), flush=True)
+            print("   " + call.line(), flush=True)
             try:
                 call()
             except UserError as e:
