@@ -8,6 +8,10 @@ one line per preset and the speed-up ratio.
     .venv/bin/python benchmarks/planner.py --presets mini --repeats 10
     .venv/bin/python benchmarks/planner.py --presets mini --replan-every 8   # + the re-plans of a chunk
     .venv/bin/python benchmarks/planner.py --presets paper --candidates 8 --iterations 1 --repeats 1   # CPU
+    .venv/bin/python benchmarks/planner.py --presets mini --tasks cube-insertion peg-insertion-side   # per task
+
+With several ``--tasks``, each preset is sized for each task's views, proprio and action (as ``wm train`` does for
+a task's stores) and its time is also given as a ratio to the first task's.
 """
 
 from __future__ import annotations
@@ -19,12 +23,14 @@ import statistics
 import torch
 
 from wamplan.device import resolve_device
+from wamplan.envs.spec import get_task
 from wamplan.planning import PLANNERS, make_cost, make_planner
 from wamplan.planning.dynamics import LearnedDynamics, PlanningContext
 from wamplan.planning.timing import planner_settings, timed
 from wamplan.worldmodel.config import PredictorConfig
 from wamplan.worldmodel.predictor import WorldModelPredictor
 from wamplan.presets import get_world_model_preset as get_preset
+from wamplan.worldmodel.stores import predictor_for_task
 
 CHUNK = 16
 
@@ -49,7 +55,7 @@ def time_search(dyn, ctx, target, planner, repeats: int, length: int = CHUNK) ->
     """Median seconds of one search over the first ``length`` steps of a chunk (its covered actions)."""
     cost = make_cost("patch")
     covered = dyn.covered(length)
-    seed = torch.zeros(covered, 5)
+    seed = torch.zeros(covered, dyn.model.cfg.action_dim)  # (L, A)
 
     def search(i: int) -> None:
         dyn.prepare(ctx)
@@ -71,6 +77,7 @@ def search_inputs(cfg: PredictorConfig, dev: torch.device, dtype: torch.dtype
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--presets", nargs="+", default=["mini", "paper"])
+    ap.add_argument("--tasks", nargs="+", default=["cube-insertion"], help="registered tasks to size the presets for")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--device", default="auto")
     ap.add_argument("--dtype", default="float32", choices=("float32", "bfloat16"))
@@ -87,17 +94,21 @@ def main() -> None:
           f"torch {torch.__version__}, {args.dtype}, {args.planner} {args.candidates} candidates x {args.iterations} "
           f"iterations")
     planner = make_planner(args.planner, planner_settings(args.planner, args.candidates, args.iterations))
-    for name in args.presets:
+    first: dict[str, float] = {}  # preset -> the first task's KV-cached time
+    for name, task in [(n, t) for n in args.presets for t in args.tasks]:
         torch.manual_seed(0)
-        cfg = get_preset(name).predictor
+        spec = get_task(task)
+        cfg = predictor_for_task(get_preset(name).predictor, spec, spec.cameras)
         model = WorldModelPredictor(cfg).to(dev, dtype).eval()
         ctx, target = search_inputs(cfg, dev, dtype)
         fast = time_search(LearnedDynamics(model), ctx, target, planner, args.repeats)
         slow = time_search(NaiveDynamics(model), ctx, target, planner, args.repeats)
         steps = CHUNK // cfg.frameskip
-        print(f"[{name}] {model.num_params() / 1e6:.1f} M params, {cfg.num_views}x{cfg.num_patches} tokens/frame, "
-              f"{steps} rollout steps/chunk: KV-cached search {fast:.3f} s/chunk, naive {slow:.3f} s/chunk, "
-              f"speed-up {slow / fast:.2f}x")
+        first.setdefault(name, fast)
+        versus = f", {fast / first[name]:.2f}x {args.tasks[0]}'s" if task != args.tasks[0] else ""
+        print(f"[{name} {task}] {model.num_params() / 1e6:.1f} M params, {cfg.num_views}x{cfg.num_patches} "
+              f"tokens/frame, {steps} rollout steps/chunk: KV-cached search {fast:.3f} s/chunk{versus}, naive "
+              f"{slow:.3f} s/chunk, speed-up {slow / fast:.2f}x")
         k = args.replan_every
         if not k:
             continue
