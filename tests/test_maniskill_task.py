@@ -89,3 +89,19 @@ def test_import_refuses_a_task_that_runs_another_env(trajectory, tmp_path, capsy
                  "--task", "cube-insertion"]) == 2
     err = capsys.readouterr().err.strip()
     assert "PushCube-v1" in err and "cube-insertion" in err and len(err.splitlines()) == 1
+
+
+def test_peg_spec_matches_the_env_and_reads_its_grasp_flag():
+    from wamplan.envs.config import EnvConfig
+    from wamplan.envs.core import TaskEnv
+    from wamplan.envs.maniskill import PEG_INSERTION_SIDE, spec_from_env
+
+    read = spec_from_env("PegInsertionSide-v1", name="peg-probe", instruction="-")
+    assert (read.cameras, read.action_dim, read.proprio_dim) == (PEG_INSERTION_SIDE.cameras, 7, 16)
+    env = TaskEnv(EnvConfig(task="peg-insertion-side", camera_size=32))
+    obs = env.reset(seed=1, with_images=True)
+    assert env.metrics == {"grasped": False, "success": False} and env.outcome() == "never_grasped"
+    assert obs.proprio.shape == (16,) and set(obs.images) == {"base_camera", "hand_camera"}
+    views = env.simulate(env.snapshot(), np.zeros((2, 4, 7), np.float32))
+    assert views.shape == (2, 2, 32, 32, 3)
+    env.close()

@@ -40,9 +40,13 @@ class ManiSkillAdapter:
             parts.append(_first(agent.tcp.pose.raw_pose))
         return np.concatenate(parts).astype(np.float32)
 
+    def raw_evaluation(self) -> dict[str, Any]:
+        """The env's ``evaluate()`` (batched tensors); a subclass adds the flags its task lacks."""
+        return self.base.evaluate()
+
     def evaluate(self) -> dict[str, Any]:
         """success, the spec's stage flags (bool) and metrics (float) of the current state."""
-        ev = self.base.evaluate()
+        ev = self.raw_evaluation()
         out = {s: bool(_first(ev[s])) for s in self.spec.stages}
         out.update({m: float(_first(ev[m])) for m in self.spec.metrics})
         out["success"] = bool(_first(ev["success"]))
@@ -60,3 +64,11 @@ def adapter_class(spec: TaskSpec) -> type[ManiSkillAdapter]:
     """The adapter class a spec names (``module:Class``)."""
     module, _, name = spec.adapter.partition(":")
     return getattr(importlib.import_module(module), name)
+
+
+class PegInsertionSideAdapter(ManiSkillAdapter):
+    """PegInsertionSide-v1 plus a ``grasped`` flag (ManiSkill's own grasp test on the peg, fingers within 20° of
+    its axis, as its dense reward uses), so an episode's outcome says whether the peg was ever held."""
+
+    def raw_evaluation(self) -> dict[str, Any]:
+        return dict(self.base.evaluate(), grasped=self.base.agent.is_grasping(self.base.peg, max_angle=20))

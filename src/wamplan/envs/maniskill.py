@@ -76,7 +76,8 @@ def spec_from_env(env_id: str, *, name: str, instruction: str, control_mode: str
 PEG_INSERTION_SIDE = register_task(maniskill_task(
     "PegInsertionSide-v1", name="peg-insertion-side", cameras=("base_camera", "hand_camera"), action_dim=7,
     proprio_dim=16, max_episode_steps=200, instruction="insert the peg into the hole in the box, sideways",
-    demonstrations=MOTION_PLANNING))
+    demonstrations=MOTION_PLANNING, adapter="wamplan.envs.adapters:PegInsertionSideAdapter", stages=("grasped",),
+    outcomes=(("grasped", "grasped_not_inserted"),), failure="never_grasped"))
 # Small tasks of ManiSkill's tutorial set (PushCube's Panda has no wrist camera).
 PUSH_CUBE = register_task(maniskill_task(
     "PushCube-v1", name="push-cube", cameras=("base_camera",), action_dim=7, proprio_dim=16, max_episode_steps=50,
