@@ -103,6 +103,24 @@ def validate_wam_output(out: WAMOutput, *, chunk_length: int, action_dim: int,
     return out
 
 
+class _TaskDefault:
+    """A settable attribute of a WAM that defaults to its task's field ``field`` (set values pass through ``cast``)."""
+
+    def __init__(self, field: str, cast, doc: str):
+        self.field, self.cast, self.__doc__ = field, cast, doc
+
+    def __set_name__(self, owner, name: str) -> None:
+        self.key = "_" + name
+
+    def __get__(self, wam, owner=None):
+        if wam is None:
+            return self
+        return wam.__dict__.get(self.key, getattr(wam.task, self.field))
+
+    def __set__(self, wam, value) -> None:
+        wam.__dict__[self.key] = self.cast(value)
+
+
 class WAM(abc.ABC):
     """A world action model. Subclasses set ``name`` (via ``@register_wam``) and may set ``chunk_length``,
     ``task``, ``action_dim``, ``cameras`` and ``default_instruction`` (class attributes, instance attributes or
@@ -122,32 +140,10 @@ class WAM(abc.ABC):
     def task(self, task: str | TaskSpec) -> None:
         self._task = get_task(task)
 
-    @property
-    def action_dim(self) -> int:
-        """A, the size of one action (default: the task's)."""
-        return self.__dict__.get("_action_dim", self.task.action_dim)
-
-    @action_dim.setter
-    def action_dim(self, value: int) -> None:
-        self._action_dim = int(value)
-
-    @property
-    def cameras(self) -> tuple[str, ...]:
-        """The cameras the WAM reads and predicts, in order (default: the task's)."""
-        return self.__dict__.get("_cameras", self.task.cameras)
-
-    @cameras.setter
-    def cameras(self, value: tuple[str, ...]) -> None:
-        self._cameras = tuple(value)
-
-    @property
-    def default_instruction(self) -> str:
-        """What WAMPolicy sends when given no instruction (default: the task's instruction)."""
-        return self.__dict__.get("_default_instruction", self.task.instruction)
-
-    @default_instruction.setter
-    def default_instruction(self, value: str) -> None:
-        self._default_instruction = str(value)
+    action_dim = _TaskDefault("action_dim", int, "A, the size of one action (default: the task's)")
+    cameras = _TaskDefault("cameras", tuple, "the cameras the WAM reads and predicts, in order (default: the task's)")
+    default_instruction = _TaskDefault("instruction", str, "what WAMPolicy sends when given no instruction (default: "
+                                                            "the task's instruction)")
 
     @abc.abstractmethod
     def predict(self, obs: Observation, instruction: str) -> WAMOutput:
