@@ -71,8 +71,8 @@ def spec_from_env(env_id: str, *, name: str, instruction: str, control_mode: str
                           max_episode_steps=steps, instruction=instruction, control_mode=control_mode, **more)
 
 
-# ManiSkill's peg-in-hole (3 mm clearance), solved by ManiSkill's motion planner. Its episodes run up to 200 steps:
-# the planner's demonstrations take 120-170 (ManiSkill's own limit, 100, is for faster policies).
+# ManiSkill's peg-in-hole (3 mm clearance), solved by ManiSkill's motion planner, whose demonstrations run longer
+# than ManiSkill's own 100-step limit (set for faster policies): episodes here run up to 200 steps.
 PEG_INSERTION_SIDE = register_task(maniskill_task(
     "PegInsertionSide-v1", name="peg-insertion-side", cameras=("base_camera", "hand_camera"), action_dim=7,
     proprio_dim=16, max_episode_steps=200, instruction="insert the peg into the hole in the box, sideways",
