@@ -30,6 +30,13 @@ def _tasks_options(p: argparse.ArgumentParser) -> None:
     p.set_defaults(func=cmd_tasks)
 
 
+def _demonstrations(t) -> str:
+    """Where the task's demonstrations come from: its scripted expert policy, another source, or none."""
+    if t.expert:
+        return f"scripted expert (policy '{t.expert}')"
+    return t.demonstrations or "none"
+
+
 def cmd_tasks(args: argparse.Namespace) -> int:
     from wamplan.envs.spec import TASKS
 
@@ -38,8 +45,8 @@ def cmd_tasks(args: argparse.Namespace) -> int:
     for name in names:
         t = TASKS[name]
         print(f"{name:{width}s}  env {t.env_id}  cameras {','.join(t.cameras)}  action {t.action_dim}  proprio "
-              f"{t.proprio_dim}  controller {t.control_mode}  episode {t.max_episode_steps} steps  scripted expert "
-              f"{t.expert or 'none'}")
+              f"{t.proprio_dim}  controller {t.control_mode}  episode {t.max_episode_steps} steps  demonstrations "
+              f"{_demonstrations(t)}")
     return 0
 
 
