@@ -168,6 +168,14 @@ def test_reproduce_stages_wire_the_pipeline(tmp_path):
     assert wam[wam.index("--sources") + 1] == "demo" and wam[wam.index("--data") + 1] == imp[5]
     assert [cmd[cmd.index("--conditions") + 1] for cmd in peg["evaluate"]] == ["1,6,7", "5"]  # 2-4 need an expert
     assert all(cmd[cmd.index("--task") + 1] == "peg-insertion-side" for cmd in peg["evaluate"])
+    assert not any("--camera-size" in cmd for cmds in peg.values() for cmd in cmds)  # the default size: no flag
+    small = dict(stages(PRESETS["mini"], tmp_path, None, 1, task="peg-insertion-side", camera_size=128))
+    renders = [cmd for cmds in small.values() for cmd in cmds
+               if cmd[0] in ("collect", "eval") or cmd[:2] == ["data", "import"]]
+    assert renders and all(cmd[cmd.index("--camera-size") + 1] == "128" for cmd in renders)  # every env made: 128 px
+    assert not any("--camera-size" in cmd for cmds in small.values() for cmd in cmds if cmd[0] in ("wam", "wm"))
+    with pytest.raises(UserError, match="--camera-size"):
+        stages(PRESETS["mini"], tmp_path, None, 1, task="peg-insertion-side", camera_size=8)
     from wamplan.envs.maniskill import maniskill_task
     from wamplan.envs.spec import TASKS
 

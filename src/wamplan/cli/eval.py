@@ -57,6 +57,9 @@ def _reproduce_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--task", default=EnvConfig.task, choices=sorted(TASKS),
                    help=f"the registered task every stage runs in; it needs a scripted expert or ManiSkill's "
                         f"motion-planning demonstrations (then conditions 2-4 are left out) (default: {EnvConfig.task})")
+    p.add_argument("--camera-size", type=int, default=EnvConfig.camera_size,
+                   help=f"rendered image side in pixels, every camera, in every stage that makes an env "
+                        f"(default: {EnvConfig.camera_size})")
     p.set_defaults(func=cmd_reproduce)
 
 
@@ -177,5 +180,5 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
 
     require_dir(args.out)
     reproduce(args.preset, args.out, wam=args.wam, workers=args.workers, sim_episodes=args.sim_episodes,
-              task=args.task)
+              task=args.task, camera_size=args.camera_size)
     return 0

@@ -61,23 +61,28 @@ class Stage:
     calls: tuple[Call, ...]
 
 
-def _task_flag(task: str) -> list[str]:
-    """``--task TASK`` for the printed command lines; nothing for the default task."""
-    return [] if task == EnvConfig.task else ["--task", task]
+def _camera_flag(env: EnvConfig) -> list[str]:
+    """``--camera-size N`` for the printed command lines where it is not the default."""
+    return [] if env.camera_size == EnvConfig.camera_size else ["--camera-size", str(env.camera_size)]
+
+
+def _env_flags(env: EnvConfig) -> list[str]:
+    """``--task`` and ``--camera-size`` for the printed command lines, where they differ from the defaults."""
+    return ([] if env.task == EnvConfig.task else ["--task", env.task]) + _camera_flag(env)
 
 
 def _collect(source: str, p: Preset, store: Path, workers: int, seeds: int, policy: str | None = None,
-             max_steps: int | None = None, task: str = EnvConfig.task) -> Call:
+             max_steps: int | None = None, env: EnvConfig = EnvConfig()) -> Call:
     from wamplan.data.collect import collect
     from wamplan.evaluation.build import load_policy
 
     key = "on_policy" if source == "policy" else source.removesuffix("-expert")
     cmd = ["collect", "--source", source, *(["--policy", policy] if policy else []), "--episodes", str(seeds),
            "--seed-start", str(SEED_BASE[key]), *(["--max-steps", str(max_steps)] if max_steps else []),
-           "--out", str(store), "--image-every", str(p.image_every), "--workers", str(workers), *_task_flag(task)]
+           "--out", str(store), "--image-every", str(p.image_every), "--workers", str(workers), *_env_flags(env)]
     return Call(collect, dict(source=source, episodes=seeds, out=store, seed_start=SEED_BASE[key], workers=workers,
                               policy=policy, image_every=p.image_every, max_steps=max_steps, loader=load_policy,
-                              env=EnvConfig(task=task)),
+                              env=env),
                 tuple(cmd))
 
 
@@ -94,20 +99,21 @@ def motion_planning_demos(task: str, seeds: range, out: Path) -> None:
         raise UserError(f"scripts/maniskill_demos.sh failed (exit {done.returncode}); its output above says why")
 
 
-def _demo_stages(p: Preset, d: Path, workers: int, task: str) -> list[Stage]:
+def _demo_stages(p: Preset, d: Path, workers: int, env: EnvConfig) -> list[Stage]:
     """Demonstrations by ManiSkill's motion planner, imported clean (``expert``) and replayed with noise (``noisy``)."""
     from wamplan.data.importer import import_maniskill
 
     n = max(p.expert, p.noisy)
     seeds = range(SEED_BASE["demos"], SEED_BASE["demos"] + 2 * n)
+    task = env.task
     mp, flag = d / "mp", ["--task", task]
-    common = dict(trajectory=mp.with_suffix(".h5"), task=task, workers=workers, image_every=p.image_every)
+    common = dict(trajectory=mp.with_suffix(".h5"), task=task, env=env, workers=workers, image_every=p.image_every)
 
     def imported(store: str, count: int, noise: float) -> Call:
         return Call(import_maniskill, dict(common, out=d / store, limit=count, noise_std=noise),
                     ("data", "import", "--format", "maniskill", str(mp.with_suffix(".h5")), str(d / store),
                      "--episodes", str(count), *(["--noise-std", str(noise)] if noise else []), "--image-every",
-                     str(p.image_every), "--workers", str(workers), *flag))
+                     str(p.image_every), "--workers", str(workers), *flag, *_camera_flag(env)))
 
     return [Stage("demonstrations", (Call(motion_planning_demos, dict(task=task, seeds=seeds, out=mp),
                                           ("scripts/maniskill_demos.sh", *flag, "--seeds",
@@ -117,16 +123,16 @@ def _demo_stages(p: Preset, d: Path, workers: int, task: str) -> list[Stage]:
 
 
 def evaluate_conditions(conditions: list[int], episodes: int, out: Path, workers: int, wam: str, wm_plain: str,
-                        wm_augmented: str, task: str = EnvConfig.task) -> dict[int, dict[str, int]]:
+                        wm_augmented: str, env: EnvConfig = EnvConfig()) -> dict[int, dict[str, int]]:
     """``wamplan eval`` for ``conditions`` on seeds 0 .. episodes-1 (resumable) with the paper's planner (CEM, not
-    wamplan's default) in ``task``; outcome counts of new episodes."""
+    wamplan's default) in ``env``; outcome counts of new episodes."""
     from collections import Counter
 
     from wamplan.evaluation.config import EvalConfig
     from wamplan.evaluation.runner import run_evaluation
 
     cfg = EvalConfig(wam=wam, wm_plain=wm_plain, wm_augmented=wm_augmented, planner=PAPER_PLANNER,
-                     env=EnvConfig(task=task))
+                     env=env)
     cfg.check_for(conditions)
     counts: dict[int, Counter] = {c: Counter() for c in conditions}
     for rec in run_evaluation(cfg, conditions, list(range(episodes)), out, workers=workers):
@@ -137,14 +143,15 @@ def evaluate_conditions(conditions: list[int], episodes: int, out: Path, workers
 
 
 def plan(p: Preset, out: Path, wam: str | None, workers: int, sim_episodes: int | None = None,
-         task: str = EnvConfig.task) -> list[Stage]:
-    """Every stage of the pipeline in ``task``; ``wam`` replaces TinyWAM training, ``sim_episodes`` the preset's
-    count for the simulator conditions 2-5 (0 skips them)."""
+         task: str = EnvConfig.task, camera_size: int = EnvConfig.camera_size) -> list[Stage]:
+    """Every stage of the pipeline in ``task``, its cameras rendered at ``camera_size`` px; ``wam`` replaces TinyWAM
+    training, ``sim_episodes`` the preset's count for the simulator conditions 2-5 (0 skips them)."""
     from wamplan.evaluation.report import write_report
     from wamplan.wam.train import train_tinywam
     from wamplan.worldmodel.stores import train_decoder_on_stores, train_predictor_on_stores
 
     spec = get_task(task)
+    env = EnvConfig(task=task, camera_size=camera_size)  # every stage's env (validated here, before any work)
     if spec.expert is None and spec.demonstrations is None:
         raise UserError(f"reproduce starts from demonstrations, but task '{task}' has neither a scripted expert nor "
                         f"a source of demonstrations; collect its stores with `wamplan collect` or `wamplan data "
@@ -168,21 +175,21 @@ def plan(p: Preset, out: Path, wam: str | None, workers: int, sim_episodes: int 
 
     def evaluation(conds: list[int], episodes: int) -> Call:
         return Call(evaluate_conditions, dict(conditions=conds, episodes=episodes, out=out / "eval", workers=workers,
-                                              task=task, **models),
+                                              env=env, **models),
                     ("eval", "--conditions", ",".join(map(str, conds)), "--episodes", str(episodes), "--out",
                      str(out / "eval"), *model_flags, "--planner", PAPER_PLANNER, "--workers", str(workers),
-                     *_task_flag(task)))
+                     *_env_flags(env)))
 
     if spec.expert is None:
-        out_stages = _demo_stages(p, d, workers, task)
+        out_stages = _demo_stages(p, d, workers, env)
         demo_source = "demo"
     else:
-        out_stages = [Stage("collect expert", (_collect("expert", p, d / "expert", workers, p.expert, task=task),)),
-                      Stage("collect noisy", (_collect("noisy-expert", p, d / "noisy", workers, p.noisy, task=task),))]
+        out_stages = [Stage("collect expert", (_collect("expert", p, d / "expert", workers, p.expert, env=env),)),
+                      Stage("collect noisy", (_collect("noisy-expert", p, d / "noisy", workers, p.noisy, env=env),))]
         demo_source = "expert"
     out_stages += [
         Stage("collect pink", (_collect("pink", p, d / "pink", workers, p.pink, max_steps=p.pink_max_steps,
-                                        task=task),)),
+                                        env=env),)),
     ]
     if wam is None:
         out_stages.append(Stage("train TinyWAM", (Call(
@@ -193,7 +200,7 @@ def plan(p: Preset, out: Path, wam: str | None, workers: int, sim_episodes: int 
     dec_stores = [d / s for s in p.decoder_sources]
     out_stages += [
         Stage("collect on-policy", (_collect("policy", p, d / "on_policy", workers, p.on_policy, policy=wam_ckpt,
-                                             task=task),)),
+                                             env=env),)),
         Stage("train plain world model", (wm_train(plain, runs / "wm_plain"),)),
         Stage("train augmented world model", (wm_train(aug, runs / "wm_augmented"),)),
         Stage("train decoder", (Call(train_decoder_on_stores, dict(stores=dec_stores, out=runs / "decoder",
@@ -209,17 +216,20 @@ def plan(p: Preset, out: Path, wam: str | None, workers: int, sim_episodes: int 
 
 
 def stages(p: Preset, out: Path, wam: str | None, workers: int, sim_episodes: int | None = None,
-           task: str = EnvConfig.task) -> list[tuple[str, list[list[str]]]]:
+           task: str = EnvConfig.task, camera_size: int = EnvConfig.camera_size) -> list[tuple[str, list[list[str]]]]:
     """The ``wamplan`` command lines equivalent to every stage of :func:`plan` (what reproduce prints)."""
-    return [(s.name, [list(c.command) for c in s.calls]) for s in plan(p, out, wam, workers, sim_episodes, task)]
+    return [(s.name, [list(c.command) for c in s.calls])
+            for s in plan(p, out, wam, workers, sim_episodes, task, camera_size)]
 
 
 def reproduce(preset: str, out: Path, wam: str | None = None, workers: int = 1,
-              sim_episodes: int | None = None, task: str = EnvConfig.task) -> dict[str, float]:
-    """Run every stage not yet finished, in order, in ``task``; returns seconds per stage (kept in
-    ``out/stage_times.json``)."""
+              sim_episodes: int | None = None, task: str = EnvConfig.task,
+              camera_size: int = EnvConfig.camera_size) -> dict[str, float]:
+    """Run every stage not yet finished, in order, in ``task`` (cameras at ``camera_size`` px); returns seconds per
+    stage (kept in ``out/stage_times.json``)."""
     p = get_preset(preset)
-    stage_list = plan(p, out, wam, workers, sim_episodes, task)  # a task that cannot run it fails before any work
+    # a task or a size that cannot run fails here, before any work
+    stage_list = plan(p, out, wam, workers, sim_episodes, task, camera_size)
     out.mkdir(parents=True, exist_ok=True)
     times_path = out / TIMES_FILE
     times: dict[str, float] = json.loads(times_path.read_text()) if times_path.is_file() else {}
