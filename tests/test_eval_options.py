@@ -295,4 +295,5 @@ def test_every_command_that_makes_an_env_takes_the_task(capsys):
     assert "env CubeInsertion-v1" in cube and "cameras front,side,wrist" in cube and "action 5" in cube
     assert "proprio 10" in cube and "controller pd_ee_delta_xyzyaw" in cube and "episode 300 steps" in cube
     assert "demonstrations scripted expert (policy 'expert')" in cube
-    assert "demonstrations maniskill-motion-planning" in next(line for line in lines if line.startswith("peg-insertion-side "))
+    peg = next(line for line in lines if line.startswith("peg-insertion-side "))
+    assert "demonstrations maniskill-motion-planning" in peg

@@ -8,6 +8,7 @@ import os
 import time
 from collections import Counter
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from wamplan.config import add_arguments, from_args
 from wamplan.errors import UserError, require_dir, require_file, require_seeds
@@ -25,12 +26,15 @@ def register(sub: argparse._SubParsersAction) -> None:
 def register_tasks(sub: argparse._SubParsersAction) -> None:
     add_command(sub, "tasks", _tasks_options, help="list the registered tasks (what --task accepts)")
 
+if TYPE_CHECKING:
+    from wamplan.envs.spec import TaskSpec
+
 
 def _tasks_options(p: argparse.ArgumentParser) -> None:
     p.set_defaults(func=cmd_tasks)
 
 
-def _demonstrations(t) -> str:
+def _demonstrations(t: TaskSpec) -> str:
     """Where the task's demonstrations come from: its scripted expert policy, another source, or none."""
     if t.expert:
         return f"scripted expert (policy '{t.expert}')"

@@ -72,7 +72,7 @@ def _env_flags(env: EnvConfig) -> list[str]:
 
 
 def _collect(source: str, p: Preset, store: Path, workers: int, seeds: int, policy: str | None = None,
-             max_steps: int | None = None, env: EnvConfig = EnvConfig()) -> Call:
+             max_steps: int | None = None, *, env: EnvConfig) -> Call:
     from wamplan.data.collect import collect
     from wamplan.evaluation.build import load_policy
 
