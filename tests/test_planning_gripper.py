@@ -137,7 +137,7 @@ def test_the_gripper_settings_come_from_the_task():
                            instruction="", gripper_closed=-0.5)  # the gripper last, at index 6
     cfg = CEMGripperConfig().for_task(seven)
     assert (cfg.gripper_dim, cfg.gripper_open, cfg.gripper_closed) == (6, 1.0, -0.5)
-    mine = CEMGripperConfig(gripper_dim=2, gripper_open=0.5, gripper_closed=-1.0)
+    mine = CEMGripperConfig(gripper_dim=2, gripper_open=0.5, gripper_closed=-1.0, init_std_per_dim=(0.1,) * 7)
     assert mine.for_task(seven) is mine  # settings given stay as given
     p = make_planner("cem-gripper")
     assert p.for_task(CUBE) is not p and planner(mine).for_task(seven).config is mine

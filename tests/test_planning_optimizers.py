@@ -353,3 +353,34 @@ def test_the_wamplan_preset_is_mppi_at_its_tuned_settings():
     other = make_planner("wamplan", {"temperature": TEMPERATURE * 3, "iterations": 2}).plan(seed, cost, seed=5)
     assert not torch.equal(other.actions, preset.actions) and len(other.history) == 2
     assert isinstance(make_planner("wamplan").config, WamplanConfig)
+
+
+@pytest.mark.parametrize("name", ["cem", "mppi", "wamplan", "cem-gripper", "drift"])
+def test_the_sampling_sigma_follows_the_tasks_controller(name):
+    """A task's sigma_scale multiplies init_std per action entry (ManiSkill's 10 cm-a-unit translation gets a fifth
+    of the cube's sigma, its rotation a tenth), an explicit init_std_per_dim is kept as given, and the cube's own config is untouched."""
+    from wamplan.envs.maniskill import maniskill_task
+    seven = maniskill_task("Toy-v1", name="toy", cameras=("c",), action_dim=7, proprio_dim=3, max_episode_steps=9,
+                           instruction="")  # pd_ee_delta_pose: 3 translation, 3 rotation entries, the gripper
+    assert seven.sigma_scale == (0.2, 0.2, 0.2, 0.1, 0.1, 0.1, 1.0)
+    cls = make_planner(name).config_cls
+    base = cls()
+    assert base.for_task(seven).init_std_per_dim == pytest.approx([base.init_std * s for s in seven.sigma_scale])
+    assert base.for_task(CUBE).init_std_per_dim == ()  # the unit task: nothing to scale
+    given = cls(init_std_per_dim=(0.3,) * 7)
+    assert given.for_task(seven).init_std_per_dim == (0.3,) * 7
+    if name != "drift":  # the Gaussian samplers: candidates of iteration 0 spread by the scaled sigma
+        rec = Recorder(lambda c: c.square().sum((1, 2)))
+        make_planner(name, cls(num_candidates=512, iterations=1)).for_task(seven).plan(
+            torch.zeros(H, 7), rec, seed=0)
+        spread = rec.calls[0][0][1:].std(dim=(0, 1))  # (7,) over candidates and steps, the mean left out
+        want = torch.tensor([base.init_std * s for s in seven.sigma_scale])  # (7,)
+        n = 6 if name == "cem-gripper" else 7  # cem-gripper draws the gripper from categories, not a Gaussian
+        assert torch.allclose(spread[:n], want[:n], rtol=0.1)
+
+
+def test_a_tasks_sigma_scale_is_checked():
+    from wamplan.envs.maniskill import maniskill_task
+    with pytest.raises(ValueError, match="sigma_scale needs 7 entries > 0"):
+        maniskill_task("Toy-v1", name="toy", cameras=("c",), action_dim=7, proprio_dim=3, max_episode_steps=9,
+                       instruction="", sigma_scale=(1.0, 0.0))

@@ -4,7 +4,8 @@ itself by :func:`spec_from_env`, or written out), and the built-in registrations
 The generic reading (``wamplan.envs.adapters.ManiSkillAdapter``): the task's sensors are the cameras (a robot
 with a wrist camera, ``panda_wristcam``, adds ``hand_camera``), proprio is the robot's joint positions then its
 TCP pose (xyz, wxyz), success is ``evaluate()["success"]``, and the controller is a normalised delta controller
-(``pd_ee_delta_pose`` by default: 6 arm entries, then the gripper, +1 open, -1 closed).
+(``pd_ee_delta_pose`` by default: 6 arm entries, then the gripper, +1 open, -1 closed), and the planners'
+sampling sigma is scaled to that controller's step (``TaskSpec.sigma_scale``).
 
 Bringing another task (a plug-in module registers it when imported)::
 
@@ -30,6 +31,13 @@ GENERIC_ADAPTER = "wamplan.envs.adapters:ManiSkillAdapter"
 MOTION_PLANNING = "maniskill-motion-planning"  # TaskSpec.demonstrations: ManiSkill's solver makes them
 
 
+# ManiSkill's Panda delta controllers move 10 cm and 0.1 rad a step per unit action; TaskSpec.sigma_scale is relative
+# to cube-insertion's 2 cm and 0.1 rad, so their translation entries get 0.2. Their three rotation entries get 0.1
+# (0.001 rad a step at the default sigma): sampled at the cube's yaw sigma they tilt the hand about every axis, and
+# planning lost the WAM's grasps (StackCube-v1 validation seeds, docs/results.md). The gripper entry gets 1.
+ARM_SIGMA_SCALE = {"pd_ee_delta_pos": (0.2, 0.2, 0.2), "pd_ee_delta_pose": (0.2, 0.2, 0.2, 0.1, 0.1, 0.1)}
+
+
 def maniskill_task(env_id: str, *, name: str, cameras: tuple[str, ...], action_dim: int, proprio_dim: int,
                    max_episode_steps: int, instruction: str, control_mode: str = "pd_ee_delta_pose",
                    gripper_index: int | None = -1, chunk_len: int = 16, env_kwargs: dict[str, Any] | None = None,
@@ -38,6 +46,9 @@ def maniskill_task(env_id: str, *, name: str, cameras: tuple[str, ...], action_d
     Panda controllers); ``None``: no gripper. ``more``: other :class:`TaskSpec` fields (stages, metrics, ...)."""
     if gripper_index is not None and gripper_index < 0:
         gripper_index += action_dim
+    arm = ARM_SIGMA_SCALE.get(control_mode, ())
+    if "sigma_scale" not in more and arm and len(arm) + (gripper_index is not None) == action_dim:
+        more["sigma_scale"] = arm + (1.0,) * (gripper_index is not None)  # the gripper is the last entry
     return TaskSpec(name=name, env_id=env_id, cameras=tuple(cameras), action_dim=action_dim, proprio_dim=proprio_dim,
                     control_mode=control_mode, max_episode_steps=max_episode_steps, instruction=instruction,
                     adapter=more.pop("adapter", GENERIC_ADAPTER), gripper_index=gripper_index, chunk_len=chunk_len,

@@ -53,6 +53,11 @@ class TaskSpec:
     gripper_open: float = field(1.0, "the gripper command that opens")
     gripper_closed: float = field(-1.0, "the gripper command that closes")
     chunk_len: int = field(16, "actions a WAM predicts per query (its chunk)")
+    sigma_scale: tuple[float, ...] = field(
+        (), "per action entry (length A), the planners' factor on their sampling sigma, so that one sigma moves "
+        "the robot about as far on every task: the unit is cube-insertion's controller (2 cm and 0.1 rad a step "
+        "per unit action); ManiSkill's pd_ee_delta_pose moves 10 cm a unit, hence 0.2 on its translation. "
+        "() = 1 everywhere")
     stages: tuple[str, ...] = field((), "boolean entries of evaluate() tracked per episode, in task order")
     outcomes: tuple[tuple[str, str], ...] = field(
         (), "(stage, outcome) pairs, furthest stage first: a failed episode's outcome is that of the furthest "
@@ -77,6 +82,9 @@ class TaskSpec:
                 f"action")
         require(all(s in self.stages for s, _ in self.outcomes),
                 f"task {self.name}: every outcome stage must be one of its stages {list(self.stages)}")
+        require(not self.sigma_scale or (len(self.sigma_scale) == self.action_dim and min(self.sigma_scale) > 0),
+                f"task {self.name}: sigma_scale needs {self.action_dim} entries > 0 (one per action entry), got "
+                f"{list(self.sigma_scale)}")
         require(self.chunk_len > 0 and self.max_episode_steps > 0, f"task {self.name}: chunk_len and "
                                                                    f"max_episode_steps must be > 0")
 

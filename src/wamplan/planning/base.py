@@ -111,8 +111,12 @@ class SamplingConfig:
 
     def for_task(self, task: TaskSpec) -> SamplingConfig:
         """This config with the settings it leaves to the task (None, or an empty tuple where documented) filled
-        from ``task``; a config that leaves none returns itself. One line when the task cannot fill them."""
-        return self
+        from ``task``; a config that leaves none returns itself. One line when the task cannot fill them.
+        Here: an empty ``init_std_per_dim`` becomes ``init_std`` times the task's ``sigma_scale`` (an explicit
+        ``init_std_per_dim`` is taken as it is)."""
+        if self.init_std_per_dim or all(s == 1 for s in task.sigma_scale):
+            return self
+        return dataclasses.replace(self, init_std_per_dim=tuple(round(self.init_std * s, 12) for s in task.sigma_scale))
 
 
 class Planner(abc.ABC):

@@ -72,16 +72,18 @@ class CEMGripperConfig(CEMConfig):
                 f"gripper_smoothing must be in [0, 1), got {self.gripper_smoothing}")
 
     def for_task(self, task: TaskSpec) -> CEMGripperConfig:
-        """The gripper settings left None filled from ``task``; one line if the task has no gripper."""
+        """The gripper settings left None filled from ``task``, and sigma scaled as in
+        :meth:`SamplingConfig.for_task`; one line if the task has no gripper."""
+        cfg = super().for_task(task)
         unset = {k: v for k, v in (("gripper_dim", task.gripper_index), ("gripper_open", task.gripper_open),
-                                   ("gripper_closed", task.gripper_closed)) if getattr(self, k) is None}
+                                   ("gripper_closed", task.gripper_closed)) if getattr(cfg, k) is None}
         if not unset:
-            return self
+            return cfg
         if task.gripper_index is None:
             raise ConfigError(f"planner cem-gripper searches when the gripper opens and closes, but task "
                               f"'{task.name}' has no gripper; use --planner cem (the same search without the "
                               f"gripper's categories)")
-        return dataclasses.replace(self, **unset)
+        return dataclasses.replace(cfg, **unset)
 
 
 def gripper_categories(seed_gripper: Tensor, open_: float, closed: float) -> tuple[Tensor, list[str]]:

@@ -66,8 +66,10 @@ class DriftConfig(SamplingConfig):
         require(self.ridge >= 0, f"ridge must be >= 0, got {self.ridge}")
 
     def for_task(self, task: TaskSpec) -> DriftConfig:
-        """Empty ``search_dims`` filled with ``task``'s arm entries."""
-        return self if self.search_dims else dataclasses.replace(self, search_dims=task.arm)
+        """Empty ``search_dims`` filled with ``task``'s arm entries, and sigma scaled as in
+        :meth:`SamplingConfig.for_task`."""
+        cfg = super().for_task(task)
+        return cfg if cfg.search_dims else dataclasses.replace(cfg, search_dims=task.arm)
 
 
 def quadratic_features(x: Tensor) -> Tensor:
