@@ -33,8 +33,8 @@ MOTION_PLANNING = "maniskill-motion-planning"  # TaskSpec.demonstrations: ManiSk
 
 # ManiSkill's Panda delta controllers move 10 cm and 0.1 rad a step per unit action; TaskSpec.sigma_scale is relative
 # to cube-insertion's 2 cm and 0.1 rad, so their translation entries get 0.2. Their three rotation entries get 0.1
-# (0.001 rad a step at the default sigma): sampled at the cube's yaw sigma they tilt the hand about every axis, and
-# planning lost the WAM's grasps (StackCube-v1 validation seeds, docs/results.md). The gripper entry gets 1.
+# (0.001 rad a step at the default sigma), since the cube's one rotation is a yaw and these tilt the hand about
+# every axis. The gripper entry gets 1.
 ARM_SIGMA_SCALE = {"pd_ee_delta_pos": (0.2, 0.2, 0.2), "pd_ee_delta_pose": (0.2, 0.2, 0.2, 0.1, 0.1, 0.1)}
 
 

@@ -116,7 +116,8 @@ class SamplingConfig:
         ``init_std_per_dim`` is taken as it is)."""
         if self.init_std_per_dim or all(s == 1 for s in task.sigma_scale):
             return self
-        return dataclasses.replace(self, init_std_per_dim=tuple(round(self.init_std * s, 12) for s in task.sigma_scale))
+        scaled = tuple(round(self.init_std * s, 12) for s in task.sigma_scale)  # (A,)
+        return dataclasses.replace(self, init_std_per_dim=scaled)
 
 
 class Planner(abc.ABC):
