@@ -9,6 +9,11 @@ one line per preset and the speed-up ratio.
     .venv/bin/python benchmarks/planner.py --presets mini --replan-every 8   # + the re-plans of a chunk
     .venv/bin/python benchmarks/planner.py --presets paper --candidates 8 --iterations 1 --repeats 1   # CPU
     .venv/bin/python benchmarks/planner.py --presets mini --tasks cube-insertion peg-insertion-side   # per task
+    .venv/bin/python benchmarks/planner.py --presets mini --dtypes float32 bfloat16 --compile     # arithmetic
+
+With several ``--dtypes`` and/or ``--compile`` (every transformer block through ``torch.compile``, compile time not
+counted), each arithmetic is timed on the same model and inputs and also given as a ratio to the first (eager
+``--dtypes[0]``); the naive reference is timed for the first only.
 
 With several ``--tasks``, each preset is sized for each task's views, proprio and action (as ``wm train`` does for
 a task's stores) and its time is also given as a ratio to the first task's.
@@ -80,7 +85,9 @@ def main() -> None:
     ap.add_argument("--tasks", nargs="+", default=["cube-insertion"], help="registered tasks to size the presets for")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--device", default="auto")
-    ap.add_argument("--dtype", default="float32", choices=("float32", "bfloat16"))
+    ap.add_argument("--dtypes", nargs="+", default=["float32"], choices=("float32", "bfloat16"),
+                    help="the arithmetic to time side by side (the first is the reference)")
+    ap.add_argument("--compile", action="store_true", help="also time each dtype with torch.compile'd blocks")
     ap.add_argument("--planner", default="wamplan", choices=sorted(PLANNERS), help="the search (cem: the paper's)")
     ap.add_argument("--iterations", type=int, default=4, help="search iterations (paper: 4)")
     ap.add_argument("--candidates", type=int, default=32, help="candidates per iteration (paper: 32); fewer "
@@ -89,26 +96,37 @@ def main() -> None:
                     "steps (--replan-every of wamplan eval): the boundary's search plus the shorter re-plans")
     args = ap.parse_args()
     dev = resolve_device(args.device)
-    dtype = getattr(torch, args.dtype)
+    modes = [(d, c) for d in args.dtypes for c in ((False, True) if args.compile else (False,))]
     print(f"device {dev} ({platform.processor() or platform.machine()}, {torch.get_num_threads()} threads), "
-          f"torch {torch.__version__}, {args.dtype}, {args.planner} {args.candidates} candidates x {args.iterations} "
+          f"torch {torch.__version__}, {args.planner} {args.candidates} candidates x {args.iterations} "
           f"iterations")
     planner = make_planner(args.planner, planner_settings(args.planner, args.candidates, args.iterations))
     first: dict[str, float] = {}  # preset -> the first task's KV-cached time
     for name, task in [(n, t) for n in args.presets for t in args.tasks]:
-        torch.manual_seed(0)
         spec = get_task(task)
         cfg = predictor_for_task(get_preset(name).predictor, spec, spec.cameras)
-        model = WorldModelPredictor(cfg).to(dev, dtype).eval()
-        ctx, target = search_inputs(cfg, dev, dtype)
-        fast = time_search(LearnedDynamics(model), ctx, target, planner, args.repeats)
-        slow = time_search(NaiveDynamics(model), ctx, target, planner, args.repeats)
         steps = CHUNK // cfg.frameskip
-        first.setdefault(name, fast)
-        versus = f", {fast / first[name]:.2f}x {args.tasks[0]}'s" if task != args.tasks[0] else ""
-        print(f"[{name} {task}] {model.num_params() / 1e6:.1f} M params, {cfg.num_views}x{cfg.num_patches} "
-              f"tokens/frame, {steps} rollout steps/chunk: KV-cached search {fast:.3f} s/chunk{versus}, naive "
-              f"{slow:.3f} s/chunk, speed-up {slow / fast:.2f}x")
+        reference = None  # this preset and task's first arithmetic
+        for dtype_name, compiled in modes:
+            torch.manual_seed(0)
+            dtype = getattr(torch, dtype_name)
+            model = WorldModelPredictor(cfg).to(dev, dtype).eval()
+            ctx, target = search_inputs(cfg, dev, dtype)
+            if compiled:
+                model.compile_blocks()
+            fast = time_search(LearnedDynamics(model), ctx, target, planner, args.repeats)
+            mode = dtype_name + (" compiled" if compiled else "")
+            if reference is not None:
+                print(f"[{name} {task} {mode}] KV-cached search {fast:.3f} s/chunk, {fast / reference:.2f}x "
+                      f"{modes[0][0]}'s")
+                continue
+            reference, ref_model, ref_inputs = fast, model, (ctx, target)
+            slow = time_search(NaiveDynamics(model), ctx, target, planner, args.repeats)
+            first.setdefault(name, fast)
+            versus = f", {fast / first[name]:.2f}x {args.tasks[0]}'s" if task != args.tasks[0] else ""
+            print(f"[{name} {task} {mode}] {model.num_params() / 1e6:.1f} M params, {cfg.num_views}x"
+                  f"{cfg.num_patches} tokens/frame, {steps} rollout steps/chunk: KV-cached search {fast:.3f} "
+                  f"s/chunk{versus}, naive {slow:.3f} s/chunk, speed-up {slow / fast:.2f}x")
         k = args.replan_every
         if not k:
             continue
@@ -117,12 +135,13 @@ def main() -> None:
         try:
             check_replan_every(k, CHUNK, cfg.frameskip)  # what `wamplan eval` accepts
         except PlanningError as e:
-            print(f"[{name}] not timed with re-planning: {e}")
+            print(f"[{name} {task}] not timed with re-planning: {e}")
             continue
         rests = range(CHUNK - k, 0, -k)  # what each re-plan still covers: 16 - K, 16 - 2K, ...
-        total = fast + sum(time_search(LearnedDynamics(model), ctx, target, planner, args.repeats, r) for r in rests)
-        print(f"[{name}] re-planning every {k} steps ({len(rests)} re-plan(s) of {', '.join(map(str, rests))} steps):"
-              f" {total:.3f} s/chunk KV-cached, {total / fast:.2f}x the whole-chunk search")
+        total = reference + sum(time_search(LearnedDynamics(ref_model), *ref_inputs, planner, args.repeats, r)
+                                for r in rests)  # the first arithmetic's model
+        print(f"[{name} {task}] re-planning every {k} steps ({len(rests)} re-plan(s) of {', '.join(map(str, rests))} steps):"
+              f" {total:.3f} s/chunk KV-cached, {total / reference:.2f}x the whole-chunk search")
 
 
 if __name__ == "__main__":

@@ -186,6 +186,19 @@ def test_broadcast_prefix_equals_per_candidate_context_and_is_reusable(variant):
         assert torch.allclose(g.flip(0), f, atol=1e-5)
 
 
+@torch.no_grad()
+def test_compiled_blocks_roll_out_as_the_eager_ones():
+    eager = _model()
+    compiled = _model().compile_blocks()  # the same weights, blocks through torch.compile
+    z, q, a = _frames(TINY, 1, 3)
+    a_future = _frames(TINY, 4, 3, seed=2)[2]  # (B, S, Delta*A)
+    prefix_e, prefix_c = (m.encode_prefix(z[:, :-1], q[:, :-1], a[:, :-1]) for m in (eager, compiled))
+    want = eager.rollout_from_prefix(prefix_e, z[:, -1], q[:, -1], a_future)
+    got = compiled.rollout_from_prefix(prefix_c, z[:, -1], q[:, -1], a_future)
+    for w, g in zip(want, got):
+        assert g.shape == w.shape and torch.allclose(g, w, atol=1e-4)
+
+
 # -- training -----------------------------------------------------------------------------------------------
 def test_training_beats_copy_last_frame_on_held_out_dynamics(tmp_path):
     cfg = PredictorConfig(num_views=1, num_patches=4, enc_dim=8, frameskip=2, context=3, depth=2, heads=2,

@@ -309,5 +309,13 @@ class WorldModelPredictor(nn.Module):
                 acts = torch.cat([acts, a_future[:, s + 1:s + 2].expand(b, -1, -1)], dim=1)
         return torch.cat(out_z, dim=1), torch.cat(out_q, dim=1)  # (B, S, V, N, D), (B, S, P)
 
+    def compile_blocks(self) -> "WorldModelPredictor":
+        """Compile every transformer block with ``torch.compile`` (dynamic shapes: the key length grows
+        through a rollout). The first calls compile (tens of seconds on a CPU); the outputs are those of
+        the eager blocks up to floating-point reordering. Returns self."""
+        for blk in self.blocks:
+            blk.compile(dynamic=True)
+        return self
+
     def num_params(self) -> int:
         return sum(p.numel() for p in self.parameters())
