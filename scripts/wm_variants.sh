@@ -1,0 +1,63 @@
+#!/usr/bin/env bash
+# World-model variants from scratch on one training set, judged on the fixed benchmark store (issue 41).
+#
+#   scripts/wm_variants.sh [EPOCHS]         # EPOCHS: passes over the training set for every variant (default 4,
+#                                           # the mini preset's)
+#
+# Every step is resumable (a finished one leaves DIR.done), so re-running after an interruption goes on
+# where it stopped. Two processes at a time with one thread each (the 2-core machine):
+#   1. data/wm_bench: the benchmark store (scripts/wm_benchmark_store.py, seeds 9000-9031)
+#   2. data/wm41: the shipped TinyWAM's data recipe with counterfactual branches from the start:
+#      100 expert (seeds 1000-1099) + 100 noisy-expert (2000-2099) episodes, 150 pink-noise (3000-3149),
+#      50 on-policy parents of checkpoints/mini/tinywam with 6 branches each (5100-5149)
+#   3. runs/wm41/VARIANT: `wamplan wm train --preset mini` from scratch, the same data, epochs and seed
+#      for each VARIANT (the default architecture is the control)
+#   4. runs/wm41/VARIANT/bench.json and runs/wm41/shipped/bench.json: `wamplan wm eval` on the store
+# Then: `python scripts/wm_variants_table.py runs/wm41/*/bench.json` prints the variants table.
+# DRY=1 scripts/wm_variants.sh prints the commands that are still to run and runs nothing.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+EPOCHS=${1:-4}
+export OMP_NUM_THREADS=1
+PY=.venv/bin/python
+WP=.venv/bin/wamplan
+mkdir -p runs/wm41 data/wm41
+
+once() {  # once NAME CMD...: run CMD unless NAME.done exists, then mark it done
+  local name=$1; shift
+  [ -e "$name.done" ] && return 0
+  echo "[$(date +%H:%M:%S)] $name: $*"
+  [ -n "${DRY:-}" ] && return 0
+  local t0=$SECONDS
+  "$@" > "$name.log" 2>&1
+  echo $((SECONDS - t0)) > "$name.done"  # seconds it took (the variants table reads a training run's)
+}
+
+# 1 and 2: the benchmark store beside the training data (one process each)
+once data/wm_bench $PY scripts/wm_benchmark_store.py --out data/wm_bench --workers 1 &
+(
+  once data/wm41/expert $WP collect --source expert --episodes 100 --seed-start 1000 --out data/wm41/train --workers 1
+  once data/wm41/noisy $WP collect --source noisy-expert --episodes 100 --seed-start 2000 --out data/wm41/train \
+      --workers 1
+  once data/wm41/pink $WP collect --source pink --episodes 150 --seed-start 3000 --max-steps 100 \
+      --out data/wm41/pink --workers 1
+  once data/wm41/branches $WP collect --source policy --policy checkpoints/mini/tinywam --episodes 50 \
+      --seed-start 5100 --branches 6 --out data/wm41/branches --workers 1
+) &
+wait
+
+train() {  # train NAME FLAGS...: one variant from scratch
+  local name=$1; shift
+  once runs/wm41/$name $WP wm train --data data/wm41/train,data/wm41/pink,data/wm41/branches --preset mini \
+      --out runs/wm41/$name --epochs "$EPOCHS" "$@"
+  once runs/wm41/$name/bench $WP wm eval --ckpt runs/wm41/$name/checkpoint --data data/wm_bench --split all \
+      --horizon 4 --json runs/wm41/$name/bench.json
+}
+
+mkdir -p runs/wm41/shipped
+once runs/wm41/shipped/bench $WP wm eval --ckpt checkpoints/mini/wm_augmented --data data/wm_bench --split all \
+    --horizon 4 --json runs/wm41/shipped/bench.json
+# 3 and 4: two variants at a time
+train control & train adaln --action-conditioning adaln & wait
+train adaln_change4 --action-conditioning adaln --change-weight 4 & train tokens --action-tokens & wait
+echo "[$(date +%H:%M:%S)] done: python scripts/wm_variants_table.py runs/wm41/*/bench.json"
