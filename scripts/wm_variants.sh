@@ -9,7 +9,7 @@
 #   1. data/wm_bench: the benchmark store (scripts/wm_benchmark_store.py, seeds 9000-9031)
 #   2. data/wm41: the shipped TinyWAM's data recipe with counterfactual branches from the start:
 #      100 expert (seeds 1000-1099) + 100 noisy-expert (2000-2099) episodes, 150 pink-noise (3000-3149),
-#      50 on-policy parents of checkpoints/mini/tinywam with 6 branches each (5100-5149)
+#      50 on-policy parents of checkpoints/mini/tinywam with 6 branches each (5100-5149, in two stores)
 #   3. runs/wm41/VARIANT: `wamplan wm train --preset mini` from scratch, the same data, epochs and seed
 #      for each VARIANT (the default architecture is the control)
 #   4. runs/wm41/VARIANT/bench.json and runs/wm41/shipped/bench.json: `wamplan wm eval` on the store
@@ -33,23 +33,27 @@ once() {  # once NAME CMD...: run CMD unless NAME.done exists, then mark it done
   echo $((SECONDS - t0)) > "$name.done"  # seconds it took (the variants table reads a training run's)
 }
 
-# 1 and 2: the benchmark store beside the training data (one process each)
-once data/wm_bench $PY scripts/wm_benchmark_store.py --out data/wm_bench --workers 1 &
+# 1 and 2: two processes, each about an hour on the 2-core machine
+(
+  once data/wm_bench $PY scripts/wm_benchmark_store.py --out data/wm_bench --workers 1
+  once data/wm41/pink $WP collect --source pink --episodes 150 --seed-start 3000 --max-steps 100 \
+      --out data/wm41/pink --workers 1
+  once data/wm41/branches_b $WP collect --source policy --policy checkpoints/mini/tinywam --episodes 25 \
+      --seed-start 5125 --branches 6 --out data/wm41/branches_b --workers 1
+) &
 (
   once data/wm41/expert $WP collect --source expert --episodes 100 --seed-start 1000 --out data/wm41/train --workers 1
   once data/wm41/noisy $WP collect --source noisy-expert --episodes 100 --seed-start 2000 --out data/wm41/train \
       --workers 1
-  once data/wm41/pink $WP collect --source pink --episodes 150 --seed-start 3000 --max-steps 100 \
-      --out data/wm41/pink --workers 1
-  once data/wm41/branches $WP collect --source policy --policy checkpoints/mini/tinywam --episodes 50 \
-      --seed-start 5100 --branches 6 --out data/wm41/branches --workers 1
+  once data/wm41/branches_a $WP collect --source policy --policy checkpoints/mini/tinywam --episodes 25 \
+      --seed-start 5100 --branches 6 --out data/wm41/branches_a --workers 1
 ) &
 wait
 
 train() {  # train NAME FLAGS...: one variant from scratch
   local name=$1; shift
-  once runs/wm41/$name $WP wm train --data data/wm41/train,data/wm41/pink,data/wm41/branches --preset mini \
-      --out runs/wm41/$name --epochs "$EPOCHS" "$@"
+  once runs/wm41/$name $WP wm train --data data/wm41/train,data/wm41/pink,data/wm41/branches_a,data/wm41/branches_b \
+      --preset mini --out runs/wm41/$name --epochs "$EPOCHS" "$@"
   once runs/wm41/$name/bench $WP wm eval --ckpt runs/wm41/$name/checkpoint --data data/wm_bench --split all \
       --horizon 4 --json runs/wm41/$name/bench.json
 }
