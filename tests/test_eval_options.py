@@ -103,6 +103,22 @@ def test_one_directory_holds_one_nested_configuration(tmp_path):
         _check_same_settings(tmp_path, _cfg("--planner", "cem"))
 
 
+def test_the_world_models_arithmetic_is_a_setting_of_the_directory(tmp_path, capsys):
+    assert _cfg().wm_dtype == "float32" and _cfg("--wm-dtype", "bfloat16").wm_dtype == "bfloat16"
+    with pytest.raises(ConfigError, match="wm_dtype 'float16' is not one of float32, bfloat16"):
+        EvalConfig(wm_dtype="float16")
+    with pytest.raises(SystemExit):
+        _cfg("--wm-dtype", "float16")
+    assert "invalid choice: 'float16'" in capsys.readouterr().err
+    _check_same_settings(tmp_path, _cfg())
+    stored = json.loads((tmp_path / "eval_config.json").read_text())
+    del stored["wm_dtype"]  # a directory from before the setting: it ran in float32
+    (tmp_path / "eval_config.json").write_text(json.dumps(stored))
+    _check_same_settings(tmp_path, _cfg())
+    with pytest.raises(UserError, match="wm_dtype"):
+        _check_same_settings(tmp_path, _cfg("--wm-dtype", "bfloat16"))
+
+
 def test_a_directory_from_before_a_new_setting_resumes_at_its_default(tmp_path):
     """A setting added after a directory was written (here the planner's noise_beta) does not block resuming
     it when requested at its default, which is what the older version ran with; another value still does."""

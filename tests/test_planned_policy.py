@@ -1,5 +1,7 @@
 """The planned policy and its dynamics backends, in the real env with small random models."""
 
+import copy
+
 import numpy as np
 import pytest
 import torch
@@ -55,6 +57,26 @@ def test_learned_dynamics_matches_naive_rollout(encoder):
     assert z.shape == (5, 3, encoder.num_patches, encoder.dim)
     torch.testing.assert_close(z, ref[:, -1], rtol=1e-4, atol=1e-4)
     assert dyn.covered(16) == 16 and LearnedDynamics(_paper_like(encoder)).covered(16) == 15
+
+
+def test_bfloat16_dynamics_roll_out_close_to_float32_and_return_float32(encoder):
+    model = _predictor(encoder)
+    with torch.no_grad():
+        for p in model.parameters():  # all weights random: the zero-initialised heads would predict the input
+            p.normal_(0.0, 0.2)
+    dyn32, dyn16 = LearnedDynamics(model), LearnedDynamics(copy.deepcopy(model).to(torch.bfloat16))
+    g = torch.Generator().manual_seed(1)
+    ctx = PlanningContext(z=torch.randn(3, 3, encoder.num_patches, encoder.dim, generator=g),
+                          q=torch.randn(3, 10, generator=g), a=torch.rand(2, 20, generator=g) * 2 - 1)  # float32
+    cands = torch.rand(16, 16, 5, generator=g) * 2 - 1  # (B, L, A)
+    for dyn in (dyn32, dyn16):
+        dyn.prepare(ctx)
+    z32, z16 = dyn32.terminal(cands), dyn16.terminal(cands)
+    assert dyn16.dtype == torch.bfloat16 and z16.dtype == torch.float32 and z16.shape == z32.shape
+    assert (z16 - z32).abs().mean() < 0.02 * z32.abs().mean()  # bf16 keeps about 3 significant digits
+    target = z32[0] + 0.1 * torch.randn(z32.shape[1:], generator=g)
+    c32, c16 = (make_cost("patch")(z, target) for z in (z32, z16))
+    assert torch.corrcoef(torch.stack([c32, c16]))[0, 1] > 0.99  # the candidates' costs rank alike
 
 
 def _paper_like(encoder):

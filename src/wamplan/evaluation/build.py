@@ -39,7 +39,7 @@ def plan_in_world_model(cfg: EvalConfig, wam: WAM | str, paths: Sequence[str]) -
     from wamplan.wam import load_wam
     from wamplan.worldmodel.train import load_world_model
 
-    dyn, enc = learned_dynamics([load_world_model(p, device=cfg.device) for p in paths])
+    dyn, enc = learned_dynamics([load_world_model(p, device=cfg.device, dtype=cfg.wm_dtype) for p in paths])
     wam = load_wam(wam, device=cfg.device) if isinstance(wam, (str, Path)) else wam
     return planned_policy(cfg, wam, dyn, enc, world_models=paths)
 

@@ -23,6 +23,9 @@ def _env_default() -> EnvConfig:
     return EnvConfig()
 
 
+WM_DTYPES = ("float32", "bfloat16")  # --wm-dtype's values
+
+
 def _profiles() -> tuple[str, ...]:
     """``--wam-profile``'s values: the named profiles (left out: the client's defaults)."""
     from wamplan.wam.cosmos_client import PROFILES
@@ -45,6 +48,9 @@ class EvalConfig:
                               "checkpoints form an ensemble (see --disagreement-weight); the same for --wm-plain")
     sim_encoder: str = field("", "encoder for the simulator conditions (default: the plain world model's)")
     device: str = field("auto", "torch device for the models")
+    wm_dtype: str = field("float32", "arithmetic of the world models' rollouts in the search: float32, or bfloat16 "
+                          "(faster where the CPU or GPU has bf16 units; benchmarks/planner.py --dtypes compares); "
+                          "the planning cost is computed in float32 either way", choices=WM_DTYPES)
     oracle_blend: float = field(0.0, "a diagnostic, not the method: conditions 6 and 7 plan with the world model's "
                                 "prediction moved this share of the way to the simulator's exact outcome (0: the "
                                 "model, as the paper; 1: the oracle's dynamics); every candidate is simulated, so it "
@@ -64,6 +70,7 @@ class EvalConfig:
         require(isinstance(pc, cls), f"planner '{self.planner}' needs a {cls.__name__} as planner_config, "
                 f"got {type(pc).__name__}; pass that planner's config or None")
         object.__setattr__(self, "planner_config", pc)
+        require(self.wm_dtype in WM_DTYPES, f"wm_dtype '{self.wm_dtype}' is not one of {', '.join(WM_DTYPES)}")
         require(0.0 <= self.oracle_blend <= 1.0, f"--oracle-blend {self.oracle_blend} is outside [0, 1]; 0 plans in "
                 "the world model alone, 1 with the simulator's dynamics")
 

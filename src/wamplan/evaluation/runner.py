@@ -60,7 +60,7 @@ class EvalWorker:
         from wamplan.worldmodel.train import load_world_model
 
         if path not in self._models:
-            self._models[path] = load_world_model(path, device=self.cfg.device)
+            self._models[path] = load_world_model(path, device=self.cfg.device, dtype=self.cfg.wm_dtype)
             check_world_model_task(self.cfg, path, self._models[path][0])
         return self._models[path]  # (predictor, encoder)
 

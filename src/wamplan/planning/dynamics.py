@@ -103,7 +103,8 @@ class Dynamics(abc.ABC):
 
 
 class LearnedDynamics(Dynamics):
-    """The block-causal world-model predictor (``wamplan.worldmodel``)."""
+    """The block-causal world-model predictor (``wamplan.worldmodel``), rolled out in the predictor's own dtype
+    (its parameters'); inputs are cast to it and the terminal latents come back as float32."""
 
     needs_history = True
 
@@ -120,6 +121,10 @@ class LearnedDynamics(Dynamics):
     def device(self) -> torch.device:
         return next(self.model.parameters()).device
 
+    @property
+    def dtype(self) -> torch.dtype:
+        return next(self.model.parameters()).dtype
+
     def covered(self, chunk: int) -> int:
         return self.frameskip * (chunk // self.frameskip)
 
@@ -127,17 +132,17 @@ class LearnedDynamics(Dynamics):
     def prepare(self, context: PlanningContext | None) -> None:
         if context is None:
             raise ValueError("the learned world model needs a history of frames to plan from")
-        dev = self.device
-        z, q, a = context.z.to(dev), context.q.to(dev), context.a.to(dev)
+        dev, dt = self.device, self.dtype
+        z, q, a = context.z.to(dev, dt), context.q.to(dev, dt), context.a.to(dev, dt)
         self._prefix = self.model.encode_prefix(z[None, :-1], q[None, :-1], a[None])  # batch 1, shared
         self._cur = (z[None, -1], q[None, -1])  # (1, V, N, D), (1, P)
 
     @torch.inference_mode()
     def terminal(self, actions: torch.Tensor) -> torch.Tensor:
         b, length, na = actions.shape
-        blocks = actions.to(self.device).reshape(b, length // self.frameskip, self.frameskip * na)  # (B, S, Δ·A)
-        z, _ = self.model.rollout_from_prefix(self._prefix, *self._cur, blocks)  # (B, S, V, N, D)
-        return z[:, -1]  # (B, V, N, D)
+        blocks = actions.to(self.device, self.dtype).reshape(b, length // self.frameskip, self.frameskip * na)
+        z, _ = self.model.rollout_from_prefix(self._prefix, *self._cur, blocks)  # (B, S, V, N, D); blocks (B, S, Δ·A)
+        return z[:, -1].float()  # (B, V, N, D)
 
 
 class SimulatorDynamics(Dynamics):

@@ -319,13 +319,14 @@ def load_predictor(path: str | Path, device: str | torch.device = "cpu") -> Worl
     return model.to(dev).eval()
 
 
-def load_world_model(path: str | Path, device: str | torch.device = "cpu"):
-    """(predictor, encoder) from a predictor checkpoint; the encoder is rebuilt from the stored config."""
+def load_world_model(path: str | Path, device: str | torch.device = "cpu", dtype: str | torch.dtype = "float32"):
+    """(predictor, encoder) from a predictor checkpoint; the encoder is rebuilt from the stored config. ``dtype``
+    (a torch dtype or its name): the predictor's arithmetic; the encoder stays float32."""
     from wamplan.encoders import make_encoder
 
     ckpt = checkpoint_dir(path)
     info = dict(read_config(ckpt, KIND).get("encoder") or {})
-    model = load_predictor(path, device)
+    model = load_predictor(path, device).to(getattr(torch, dtype) if isinstance(dtype, str) else dtype)
     name = info.pop("name", model.cfg.encoder)
     enc = make_encoder(name, **info).to(next(model.parameters()).device)
     if (enc.num_patches, enc.dim) != (model.cfg.num_patches, model.cfg.enc_dim):
