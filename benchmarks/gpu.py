@@ -271,7 +271,7 @@ def plan_section(s: Settings) -> dict[str, Any]:
             models[dtype] = WorldModelPredictor(cfg).to(s.device, getattr(torch, dtype)).eval()
         model = models[dtype]
         dyn = LearnedDynamics(model) if path == "cached" else bench.NaiveDynamics(model)
-        ctx, target = bench.search_inputs(cfg, s.device, getattr(torch, dtype))
+        ctx, target = bench.search_inputs(cfg, s.device)
         with compiled(model, "rollout_from_prefix" if path == "cached" else "forward", mode, s.compile_backend) as kw:
             t0 = time.perf_counter()
             sec = bench.time_search(dyn, ctx, target, planner, s.repeats)

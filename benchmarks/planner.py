@@ -52,8 +52,10 @@ class NaiveDynamics(LearnedDynamics):
         c, dev = self._ctx, self.device
         b, length, na = actions.shape
         blocks = actions.to(dev).reshape(b, length // self.frameskip, self.frameskip * na)
-        z, _ = self.model.rollout(c.z[None].to(dev), c.q[None].to(dev), c.a[None].to(dev), blocks, naive=True)
-        return z[:, -1]
+        dt = self.dtype
+        z, _ = self.model.rollout(c.z[None].to(dev, dt), c.q[None].to(dev, dt), c.a[None].to(dev, dt),
+                                  blocks.to(dt), naive=True)
+        return z[:, -1].float()  # (B, V, N, D), as LearnedDynamics returns it
 
 
 def time_search(dyn, ctx, target, planner, repeats: int, length: int = CHUNK) -> float:
@@ -69,13 +71,13 @@ def time_search(dyn, ctx, target, planner, repeats: int, length: int = CHUNK) ->
     return statistics.median([timed(lambda: search(i), dyn.device) for i in range(repeats + 1)][1:])  # 0: warm-up
 
 
-def search_inputs(cfg: PredictorConfig, dev: torch.device, dtype: torch.dtype
-                  ) -> tuple[PlanningContext, torch.Tensor]:
-    """A random chunk-boundary history (on the CPU, as the policy hands it over) and target (on ``dev``)."""
-    ctx = PlanningContext(z=torch.randn(cfg.context, cfg.num_views, cfg.num_patches, cfg.enc_dim, dtype=dtype),
-                          q=torch.randn(cfg.context, cfg.proprio_dim, dtype=dtype),
-                          a=torch.rand(cfg.context - 1, cfg.action_block_dim, dtype=dtype) * 2 - 1)
-    target = torch.randn(cfg.num_views, cfg.num_patches, cfg.enc_dim, device=dev, dtype=dtype)  # (V, N, D)
+def search_inputs(cfg: PredictorConfig, dev: torch.device) -> tuple[PlanningContext, torch.Tensor]:
+    """A random chunk-boundary history (on the CPU, as the policy hands it over) and target (on ``dev``), float32
+    as the encoder gives them whatever the world model's ``dtype`` (the dynamics cast the history)."""
+    ctx = PlanningContext(z=torch.randn(cfg.context, cfg.num_views, cfg.num_patches, cfg.enc_dim),
+                          q=torch.randn(cfg.context, cfg.proprio_dim),
+                          a=torch.rand(cfg.context - 1, cfg.action_block_dim) * 2 - 1)
+    target = torch.randn(cfg.num_views, cfg.num_patches, cfg.enc_dim, device=dev)  # (V, N, D)
     return ctx, target
 
 
@@ -111,7 +113,7 @@ def main() -> None:
             torch.manual_seed(0)
             dtype = getattr(torch, dtype_name)
             model = WorldModelPredictor(cfg).to(dev, dtype).eval()
-            ctx, target = search_inputs(cfg, dev, dtype)
+            ctx, target = search_inputs(cfg, dev)
             if compiled:
                 model.compile_blocks()
             fast = time_search(LearnedDynamics(model), ctx, target, planner, args.repeats)
@@ -140,7 +142,7 @@ def main() -> None:
         rests = range(CHUNK - k, 0, -k)  # what each re-plan still covers: 16 - K, 16 - 2K, ...
         total = reference + sum(time_search(LearnedDynamics(ref_model), *ref_inputs, planner, args.repeats, r)
                                 for r in rests)  # the first arithmetic's model
-        print(f"[{name} {task}] re-planning every {k} steps ({len(rests)} re-plan(s) of {', '.join(map(str, rests))} steps):"
+        print(f"[{name} {task} {modes[0][0]}] re-planning every {k} steps ({len(rests)} re-plan(s) of {', '.join(map(str, rests))} steps):"
               f" {total:.3f} s/chunk KV-cached, {total / reference:.2f}x the whole-chunk search")
 
 

@@ -1,10 +1,10 @@
 """The world-model variants table (issue 41) from ``wamplan wm eval --json`` reports on the benchmark store.
 
-    .venv/bin/python scripts/wm_variants_table.py runs/wm41/*/bench.json
+    .venv/bin/python scripts/wm_variants_table.py runs/wm41/e4/*/bench.json
 
 One row per report, named by its folder: ``sib_rel_h4`` / ``sib_gain_h4`` for every phase, the latent error one
 and four frames ahead (the ``all`` row: every group's siblings), the planning time per chunk that ``wm eval`` measured, and the
-training time where ``scripts/wm_variants.sh`` recorded it (the seconds in ``FOLDER.done``). Markdown on stdout.
+training time where ``scripts/wm_variants.sh`` recorded it (``FOLDER.seconds``). Markdown on stdout.
 """
 
 from __future__ import annotations
@@ -16,9 +16,10 @@ from pathlib import Path
 
 
 def training_seconds(report: Path) -> str:
-    done = report.parent.with_name(report.parent.name + ".done")
-    text = done.read_text().strip() if done.is_file() else ""
-    return f"{int(text) / 60:.0f} min" if text.isdigit() else "—"
+    """The training time ``scripts/wm_variants.sh`` recorded beside the run (``RUN.seconds``, one line per attempt)."""
+    log = report.parent.with_name(report.parent.name + ".seconds")
+    lines = log.read_text().split() if log.is_file() else []
+    return f"{sum(int(x) for x in lines) / 60:.0f} min" if lines and all(x.isdigit() for x in lines) else "—"
 
 
 def row(name: str, r: dict, phases: list[str], k: int, train: str) -> str:

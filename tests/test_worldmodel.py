@@ -188,15 +188,30 @@ def test_broadcast_prefix_equals_per_candidate_context_and_is_reusable(variant):
 
 @torch.no_grad()
 def test_compiled_blocks_roll_out_as_the_eager_ones():
+    graphs = []
+
+    def counting_backend(gm, example_inputs):  # torch.compile's backend contract: return a callable
+        graphs.append(gm)
+        return gm.forward
+
     eager = _model()
-    compiled = _model().compile_blocks()  # the same weights, blocks through torch.compile
+    compiled = _model().compile_blocks(backend=counting_backend)  # the same weights, blocks through torch.compile
     z, q, a = _frames(TINY, 1, 3)
     a_future = _frames(TINY, 4, 3, seed=2)[2]  # (B, S, Delta*A)
     prefix_e, prefix_c = (m.encode_prefix(z[:, :-1], q[:, :-1], a[:, :-1]) for m in (eager, compiled))
     want = eager.rollout_from_prefix(prefix_e, z[:, -1], q[:, -1], a_future)
     got = compiled.rollout_from_prefix(prefix_c, z[:, -1], q[:, -1], a_future)
+    assert graphs  # the blocks ran through the compiler
     for w, g in zip(want, got):
         assert g.shape == w.shape and torch.allclose(g, w, atol=1e-4)
+
+
+def test_a_bfloat16_cast_keeps_the_rotary_frequencies_in_float32():
+    m = _model()
+    want = m.inv_freq.clone()
+    m = m.to(torch.bfloat16)
+    assert m.z_head.weight.dtype == torch.bfloat16 and m.inv_freq.dtype == torch.float32
+    assert torch.equal(m.inv_freq, want)
 
 
 # -- training -----------------------------------------------------------------------------------------------

@@ -49,8 +49,8 @@ class EvalConfig:
     sim_encoder: str = field("", "encoder for the simulator conditions (default: the plain world model's)")
     device: str = field("auto", "torch device for the models")
     wm_dtype: str = field("float32", "arithmetic of the world models' rollouts in the search: float32, or bfloat16 "
-                          "(faster where the CPU or GPU has bf16 units; benchmarks/planner.py --dtypes compares); "
-                          "the planning cost is computed in float32 either way", choices=WM_DTYPES)
+                          "(benchmarks/planner.py --dtypes times both on your machine); the planning cost is "
+                          "computed in float32 either way", choices=WM_DTYPES)
     oracle_blend: float = field(0.0, "a diagnostic, not the method: conditions 6 and 7 plan with the world model's "
                                 "prediction moved this share of the way to the simulator's exact outcome (0: the "
                                 "model, as the paper; 1: the oracle's dynamics); every candidate is simulated, so it "

@@ -45,7 +45,7 @@ each step: the reference the cached path must equal (tests assert it). Training 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Any, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -309,12 +309,20 @@ class WorldModelPredictor(nn.Module):
                 acts = torch.cat([acts, a_future[:, s + 1:s + 2].expand(b, -1, -1)], dim=1)
         return torch.cat(out_z, dim=1), torch.cat(out_q, dim=1)  # (B, S, V, N, D), (B, S, P)
 
-    def compile_blocks(self) -> "WorldModelPredictor":
-        """Compile every transformer block with ``torch.compile`` (dynamic shapes: the key length grows
-        through a rollout). The first calls compile (tens of seconds on a CPU); the outputs are those of
-        the eager blocks up to floating-point reordering. Returns self."""
+    def compile_blocks(self, backend: Any = "inductor") -> "WorldModelPredictor":
+        """Compile every transformer block with ``torch.compile`` (``backend``; dynamic shapes: the key length
+        grows through a rollout). The first calls compile; the outputs are those of the eager blocks up to
+        floating-point reordering. Returns self."""
         for blk in self.blocks:
-            blk.compile(dynamic=True)
+            blk.compile(dynamic=True, backend=backend)
+        return self
+
+    def _apply(self, fn, recurse: bool = True):
+        """``nn.Module``'s device and dtype casts, except that the rotary frequencies stay float32 (a model cast
+        to bfloat16 would otherwise round them before the angles are computed)."""
+        freqs = self.inv_freq  # (e/2,) float32
+        super()._apply(fn, recurse)
+        self.inv_freq = freqs.to(self.inv_freq.device)  # the cast's device, float32 values unrounded
         return self
 
     def num_params(self) -> int:
