@@ -1,0 +1,158 @@
+"""The world-model recipe of ``scripts/wm_variants.sh`` at scale on one machine with a GPU, in one command.
+
+    python scripts/wm_scale.py OUT                         # on a GPU machine: every core collects, the GPU trains
+    python scripts/wm_scale.py OUT --collect-seconds 60 --workers 2 --render-backend cpu --device cpu \
+        --epochs 1 --arch ""                               # a small rehearsal on a CPU machine
+
+1. Collection for a fixed time (``--collect-seconds``) on ``--workers`` simulator processes, shared among the
+   recipe's four sources in its proportions: the scripted expert (seeds 20000-), the noisy expert (30000-),
+   pink noise (40000-, 100 steps) and the policy ``--policy`` with ``--branches`` counterfactual branches at
+   every chunk boundary (50000-). When the time is up the collectors are stopped; an episode is kept only
+   when its file was complete (``EpisodeStore`` writes under a temporary name), so a cut-off run is still a
+   valid training set. Re-running resumes each store from its finished seeds.
+2. ``wamplan wm encode`` of the four stores in parallel, then ``wamplan wm train`` on them with the ``mini``
+   preset and ``--arch``'s predictor flags (a larger predictor than the preset's by default), on ``--device``;
+   stopped with Ctrl-C's checkpoint after ``--train-seconds`` if it has not finished its epochs (re-running
+   resumes it).
+3. The checkpoint exported for inference in float16 (``OUT/export``, small enough to copy back), and
+   ``OUT/summary.json``: episodes per source, seconds per stage, the architecture and the training's last
+   metrics. Score the export on the benchmark store with ``wamplan wm eval --ckpt OUT/export --data
+   data/wm_bench --split all --horizon 4``.
+
+Seeds stay clear of the test (0-99), validation (500-599), benchmark (9000-9031) and other training ranges.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+# source, its --seed-start, its share of the workers, extra collect flags; the shares follow the recipe's
+# episode counts (100 expert, 100 noisy, 150 pink, 50 parents x 6 branches, the slowest per episode)
+SOURCES = (("expert", 20000, 2, ()), ("noisy-expert", 30000, 2, ()),
+           ("pink", 40000, 3, ("--max-steps", "100")), ("policy", 50000, 8, ()))
+DEFAULT_ARCH = "--heads 8 --head-dim 48 --mlp-dim 1152"  # width 384 (the preset's is 128), depth 4: ~9x parameters
+
+
+def wamplan(*args: str) -> list[str]:
+    return [sys.executable, "-m", "wamplan.cli", *args]
+
+
+def split_workers(total: int) -> list[int]:
+    """Workers per source, in proportion to the shares, at least one each."""
+    shares = [s[2] for s in SOURCES]
+    counts = [max(1, round(total * s / sum(shares))) for s in shares]
+    while sum(counts) > max(total, len(counts)):
+        counts[counts.index(max(counts))] -= 1
+    return counts
+
+
+def collect(out: Path, args: argparse.Namespace) -> dict[str, int]:
+    procs = []
+    for (source, seed, _, extra), workers in zip(SOURCES, split_workers(args.workers)):
+        cmd = wamplan("collect", "--source", source, "--episodes", "9999", "--seed-start", str(seed),
+                      "--out", str(out / "data" / source), "--workers", str(workers),
+                      "--render-backend", args.render_backend, *extra)
+        if source == "policy":
+            cmd += ["--policy", args.policy, "--branches", str(args.branches)]
+        log = open(out / f"collect-{source}.log", "a")
+        procs.append(subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, start_new_session=True))
+        print(f"collect {source}: {workers} workers, seeds from {seed}", flush=True)
+    deadline = time.time() + args.collect_seconds
+    while time.time() < deadline and any(p.poll() is None for p in procs):
+        time.sleep(2)
+    for p in procs:  # each collector and its workers are one process group
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGTERM)
+    for p in procs:
+        try:
+            p.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+    counts = {s[0]: len(list((out / "data" / s[0] / "episodes").glob("*.h5"))) for s in SOURCES}
+    bad = [s for s, n in counts.items() if n == 0]
+    if bad:
+        raise SystemExit(f"no episode of {', '.join(bad)} was collected in {args.collect_seconds} s: see "
+                         f"{out}/collect-<source>.log")
+    return counts
+
+
+def encode(out: Path, args: argparse.Namespace) -> None:
+    """The preset's encoder over each store, the four in parallel (reading the images is the cost)."""
+    procs = [subprocess.Popen(wamplan("wm", "encode", "--data", str(out / "data" / s[0]), "--preset", "mini",
+                                      "--device", args.device),
+                              stdout=open(out / f"encode-{s[0]}.log", "a"), stderr=subprocess.STDOUT) for s in SOURCES]
+    if any(p.wait() for p in procs):
+        raise SystemExit(f"encoding failed: see {out}/encode-<source>.log")
+
+
+def train(out: Path, args: argparse.Namespace) -> int:
+    data = ",".join(str(out / "data" / s[0]) for s in SOURCES)
+    cmd = wamplan("wm", "train", "--data", data, "--preset", "mini", "--out", str(out / "run"), "--epochs",
+                  str(args.epochs), "--device", args.device, "--save-every-steps", "500", *args.arch.split())
+    with open(out / "train.log", "a") as log:
+        # SIGINT at its default, so Python turns it into KeyboardInterrupt even where this script was started
+        # with SIGINT ignored (a background job of a shell)
+        p = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
+                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+        try:
+            return p.wait(timeout=args.train_seconds)
+        except subprocess.TimeoutExpired:
+            p.send_signal(signal.SIGINT)  # the training loop checkpoints on Ctrl-C
+            return p.wait()
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("out", type=Path, help="output directory (data/, run/, export/, summary.json)")
+    ap.add_argument("--collect-seconds", type=float, default=180.0)
+    ap.add_argument("--train-seconds", type=float, default=240.0)
+    ap.add_argument("--workers", type=int, default=max(1, (os.cpu_count() or 2) - 1), help="simulator processes")
+    ap.add_argument("--render-backend", default="gpu", help="ManiSkill render backend of the collectors")
+    ap.add_argument("--device", default="cuda", help="torch device of the training")
+    ap.add_argument("--policy", default="checkpoints/mini/tinywam", help="the WAM whose episodes are branched")
+    ap.add_argument("--branches", type=int, default=6)
+    ap.add_argument("--epochs", type=int, default=4, help="passes over the collected data (the recipe's: 4)")
+    ap.add_argument("--arch", default=DEFAULT_ARCH, help="predictor flags of `wamplan wm train` ('' for the preset's)")
+    args = ap.parse_args()
+    out = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    seconds: dict[str, float] = {}
+
+    t = time.time()
+    counts = collect(out, args)
+    seconds["collect"] = time.time() - t
+    print(f"collected {counts} in {seconds['collect']:.0f} s", flush=True)
+
+    t = time.time()
+    encode(out, args)
+    seconds["encode"] = time.time() - t
+
+    t = time.time()
+    status = train(out, args)
+    seconds["train"] = time.time() - t
+    print(f"training exited with {status} after {seconds['train']:.0f} s", flush=True)
+
+    t = time.time()
+    subprocess.run([sys.executable, "-c", "import sys; from wamplan.checkpoint import export_for_inference; "
+                    "export_for_inference(sys.argv[1], sys.argv[2])", str(out / "run" / "checkpoint"),
+                    str(out / "export")], check=True)
+    seconds["export"] = time.time() - t
+    metrics = [json.loads(line) for line in (out / "run" / "metrics.jsonl").read_text().splitlines() if line]
+    summary = {"episodes": counts, "seconds": seconds, "arch": args.arch, "epochs": args.epochs,
+               "workers": args.workers, "train_exit": status, "last_metrics": metrics[-1] if metrics else None}
+    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    print(json.dumps(summary), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
