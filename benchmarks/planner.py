@@ -10,6 +10,7 @@ one line per preset and the speed-up ratio.
     .venv/bin/python benchmarks/planner.py --presets paper --candidates 8 --iterations 1 --repeats 1   # CPU
     .venv/bin/python benchmarks/planner.py --presets mini --tasks cube-insertion peg-insertion-side   # per task
     .venv/bin/python benchmarks/planner.py --presets mini --dtypes float32 bfloat16 --compile     # arithmetic
+    .venv/bin/python benchmarks/planner.py --presets mini --ckpt runs/wm41/gpu/export             # a trained one's size
 
 With several ``--dtypes`` and/or ``--compile`` (every transformer block through ``torch.compile``, compile time not
 counted), each arithmetic is timed on the same model and inputs and also given as a ratio to the first (eager
@@ -17,6 +18,9 @@ counted), each arithmetic is timed on the same model and inputs and also given a
 
 With several ``--tasks``, each preset is sized for each task's views, proprio and action (as ``wm train`` does for
 a task's stores) and its time is also given as a ratio to the first task's.
+
+With ``--ckpt``, each checkpoint's architecture (its predictor config and the task it was trained on) is timed after
+the presets, with fresh random weights like them, and its time also given as a ratio to the first preset's.
 """
 
 from __future__ import annotations
@@ -34,6 +38,7 @@ from wamplan.planning.dynamics import LearnedDynamics, PlanningContext
 from wamplan.planning.timing import planner_settings, timed
 from wamplan.worldmodel.config import PredictorConfig
 from wamplan.worldmodel.predictor import WorldModelPredictor
+from wamplan.worldmodel.train import load_predictor
 from wamplan.presets import get_world_model_preset as get_preset
 from wamplan.worldmodel.stores import predictor_for_task
 
@@ -96,6 +101,7 @@ def main() -> None:
                     "makes the paper preset feasible on a CPU (the ratio is what compares)")
     ap.add_argument("--replan-every", type=int, default=None, help="also time a chunk with re-planning every K "
                     "steps (--replan-every of wamplan eval): the boundary's search plus the shorter re-plans")
+    ap.add_argument("--ckpt", nargs="+", default=[], help="also time these predictor checkpoints' architectures")
     args = ap.parse_args()
     dev = resolve_device(args.device)
     modes = [(d, c) for d in args.dtypes for c in ((False, True) if args.compile else (False,))]
@@ -104,9 +110,12 @@ def main() -> None:
           f"iterations")
     planner = make_planner(args.planner, planner_settings(args.planner, args.candidates, args.iterations))
     first: dict[str, float] = {}  # preset -> the first task's KV-cached time
-    for name, task in [(n, t) for n in args.presets for t in args.tasks]:
-        spec = get_task(task)
-        cfg = predictor_for_task(get_preset(name).predictor, spec, spec.cameras)
+    runs = [(n, t, predictor_for_task(get_preset(n).predictor, get_task(t), get_task(t).cameras))
+            for n in args.presets for t in args.tasks]
+    for path in args.ckpt:
+        trained = load_predictor(path)  # its config and task; the timing uses fresh weights as for the presets
+        runs.append((path, trained.task.name, trained.cfg))
+    for name, task, cfg in runs:
         steps = CHUNK // cfg.frameskip
         reference = None  # this preset and task's first arithmetic
         for dtype_name, compiled in modes:
@@ -124,8 +133,11 @@ def main() -> None:
                 continue
             reference, ref_model, ref_inputs = fast, model, (ctx, target)
             slow = time_search(NaiveDynamics(model), ctx, target, planner, args.repeats)
-            first.setdefault(name, fast)
-            versus = f", {fast / first[name]:.2f}x {args.tasks[0]}'s" if task != args.tasks[0] else ""
+            if name in args.ckpt:  # against the first preset's first task
+                versus = f", {fast / first[args.presets[0]]:.2f}x the {args.presets[0]} preset's"
+            else:
+                first.setdefault(name, fast)
+                versus = f", {fast / first[name]:.2f}x {args.tasks[0]}'s" if task != args.tasks[0] else ""
             print(f"[{name} {task} {mode}] {model.num_params() / 1e6:.1f} M params, {cfg.num_views}x"
                   f"{cfg.num_patches} tokens/frame, {steps} rollout steps/chunk: KV-cached search {fast:.3f} "
                   f"s/chunk{versus}, naive {slow:.3f} s/chunk, speed-up {slow / fast:.2f}x")
