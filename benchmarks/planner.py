@@ -134,7 +134,7 @@ def main() -> None:
             reference, ref_model, ref_inputs = fast, model, (ctx, target)
             slow = time_search(NaiveDynamics(model), ctx, target, planner, args.repeats)
             if name in args.ckpt:  # against the first preset's first task
-                versus = f", {fast / first[args.presets[0]]:.2f}x the {args.presets[0]} preset's"
+                versus = f", {fast / first[args.presets[0]]:.2f}x the {args.presets[0]} preset's on {args.tasks[0]}"
             else:
                 first.setdefault(name, fast)
                 versus = f", {fast / first[name]:.2f}x {args.tasks[0]}'s" if task != args.tasks[0] else ""
