@@ -74,3 +74,27 @@ def test_sibling_batches_resume_where_they_stopped():
     whole = [b["z"][:, 0, 0].tolist() for b in islice(_group_batches(groups, cfg), 7)]
     resumed = [b["z"][:, 0, 0].tolist() for b in islice(_group_batches(groups, cfg, start=4), 3)]
     assert resumed == whole[4:] and sorted(sum(whole[:3], [])) == sorted(set(sum(whole[:3], [])))  # a pass: no repeats
+
+
+def test_sibling_statistics_per_view_split_the_pooled_ones_by_view():
+    """Per view, each statistic is that view's share: the views' mean is the pooled figure (each view has as many
+    elements), and a sibling difference in one view's truth shows in that view's spread alone."""
+    from wamplan.worldmodel.train import sibling_statistics
+
+    torch.manual_seed(0)
+    cfg = PredictorConfig(num_patches=4, enc_dim=8, frameskip=4, context=3, depth=1, heads=2, head_dim=8,
+                          mlp_dim=16, proprio_emb=8, action_emb=8)
+    model = WorldModelPredictor(cfg).eval()
+    g, k = 3, 2
+    ctx = torch.randn(1, 3, 3, 4, 8).expand(g, 3, 3, 4, 8)
+    future = torch.randn(1, k, 3, 4, 8).repeat(g, 1, 1, 1, 1)  # (G, K, V, N, D): the same for every sibling
+    future[0, :, 1] += 1.0  # but the first sibling differs from the others in view 1
+    groups = [dict(z=torch.cat([ctx, future], 1), q=torch.randn(1, 3 + k, 10).expand(g, 3 + k, 10),
+                   a=torch.rand(g, 3 + k, 20) * 2 - 1)]
+    pooled = sibling_statistics(model, groups, k)
+    views = sibling_statistics(model, groups, k, per_view=True)
+    for name in pooled:
+        assert views[name].shape == (1, k, 3)
+        torch.testing.assert_close(views[name].mean(-1), pooled[name])
+    spread = views["spread"][0, -1]  # (V,)
+    assert float(spread[1]) > 0.1 and float(spread[0]) < 1e-12 and float(spread[2]) < 1e-12
