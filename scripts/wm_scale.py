@@ -61,10 +61,11 @@ def split_workers(total: int) -> list[int]:
     return counts
 
 
-def collect(out: Path, args: argparse.Namespace) -> dict[str, int]:
+def collect(out: Path, args: argparse.Namespace, seconds: float) -> dict[str, int]:
+    """Collect for ``seconds`` (0: none); the episodes per source in the stores."""
     procs = []
     try:
-        if args.collect_seconds > 0:
+        if seconds > 0:
             for (source, seed, _, extra), workers in zip(SOURCES, split_workers(args.workers)):
                 cmd = wamplan("collect", "--source", source, "--episodes", "9999", "--seed-start", str(seed),
                               "--out", str(out / "data" / source), "--workers", str(workers),
@@ -74,7 +75,7 @@ def collect(out: Path, args: argparse.Namespace) -> dict[str, int]:
                 with open(out / f"collect-{source}.log", "a") as log:
                     procs.append(subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, start_new_session=True))
                 print(f"collect {source}: {workers} workers, seeds from {seed}", flush=True)
-        deadline = time.time() + args.collect_seconds
+        deadline = time.time() + seconds
         while time.time() < deadline and any(p.poll() is None for p in procs):
             time.sleep(2)
     finally:  # also on Ctrl-C or an error: no collector outlives this script
@@ -90,7 +91,7 @@ def collect(out: Path, args: argparse.Namespace) -> dict[str, int]:
     counts = {s[0]: len(list((out / "data" / s[0] / "episodes").glob("*.h5"))) for s in SOURCES}
     bad = [s for s, n in counts.items() if n == 0]
     if bad:
-        raise SystemExit(f"no episode of {', '.join(bad)} was collected in {args.collect_seconds} s: see "
+        raise SystemExit(f"no episode of {', '.join(bad)} was collected in {seconds} s: see "
                          f"{out}/collect-<source>.log")
     return counts
 
@@ -150,7 +151,7 @@ def main() -> int:
     if resuming:  # the stores must stay as the checkpoint's training saw them
         print(f"{out / 'run'} holds a checkpoint: no collection, the training resumes", flush=True)
     t = time.time()
-    counts = collect(out, args if not resuming else argparse.Namespace(**{**vars(args), "collect_seconds": 0}))
+    counts = collect(out, args, 0 if resuming else args.collect_seconds)
     seconds["collect"] = time.time() - t
     print(f"{counts} episodes after {seconds['collect']:.0f} s of collection", flush=True)
 

@@ -16,14 +16,12 @@ import json
 import sys
 from pathlib import Path
 
-import torch
-
 from wamplan.data.features import feature_key
 from wamplan.data.readers import BranchGroups
 from wamplan.errors import UserError
-from wamplan.worldmodel.benchmark import ALL, PHASES, group_phases
+from wamplan.worldmodel.benchmark import ALL, group_phases, pool_by_phase
 from wamplan.worldmodel.stores import encode_stores, stores_task
-from wamplan.worldmodel.train import load_world_model, pool_siblings, sibling_statistics
+from wamplan.worldmodel.train import load_world_model, sibling_statistics
 
 
 def view_table(ckpt: str, data: list[Path], horizon: int) -> dict[str, dict[str, dict[str, float]]]:
@@ -38,18 +36,14 @@ def view_table(ckpt: str, data: list[Path], horizon: int) -> dict[str, dict[str,
                         f"collected with --branches (e.g. scripts/wm_benchmark_store.py)")
     labels = group_phases(groups)
     s = sibling_statistics(model, groups, horizon, per_view=True)  # each (G, K, V)
+    views = [pool_by_phase({k: x[..., v] for k, x in s.items()}, labels, horizon) for v in range(len(cameras))]
+    spread = s["spread"][:, -1]  # (G, V): how much the siblings' true outcomes differ, per view
     out: dict[str, dict[str, dict[str, float]]] = {}
-    for phase in (*PHASES, ALL):
-        idx = torch.tensor([i for i, p in enumerate(labels) if phase in (p, ALL)], dtype=torch.long)
-        if not len(idx):
-            continue
-        spread = s["spread"][idx, -1].sum(0)  # (V,)
-        out[phase] = {}
-        for v, cam in enumerate(cameras):
-            row = pool_siblings({k: x[idx, :, v] for k, x in s.items()}, horizon)
-            out[phase][cam] = {"share": float(spread[v] / spread.sum().clamp_min(1e-12)),
-                               f"sib_rel_h{horizon}": row[f"sib_rel_h{horizon}"],
-                               f"sib_gain_h{horizon}": row[f"sib_gain_h{horizon}"]}
+    for phase in views[0]:  # the phases with groups, then "all"
+        mine = spread[[i for i, p in enumerate(labels) if phase in (p, ALL)]].sum(0)  # (V,)
+        out[phase] = {cam: {"share": float(mine[v] / mine.sum().clamp_min(1e-12)),
+                            **{k: views[v][phase][k] for k in (f"sib_rel_h{horizon}", f"sib_gain_h{horizon}")}}
+                      for v, cam in enumerate(cameras)}
     return out
 
 

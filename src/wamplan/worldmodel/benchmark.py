@@ -118,7 +118,13 @@ def phase_table(model: WorldModelPredictor, groups: BranchGroups, horizon: int, 
     labels = list(phases) if phases is not None else group_phases(groups)
     if len(labels) != len(groups):
         raise ValueError(f"{len(labels)} phase labels for {len(groups)} groups")
-    s = sibling_statistics(model, groups, horizon, batch_size, device)  # each (G_total, K)
+    return pool_by_phase(sibling_statistics(model, groups, horizon, batch_size, device), labels, horizon)
+
+
+def pool_by_phase(s: dict[str, torch.Tensor], labels: Sequence[str], horizon: int) -> dict[str, dict[str, float]]:
+    """Phase (then ``"all"``) -> ``train.pool_siblings`` of the groups with that label; ``s``: each statistic
+    (G_total, K), one row per group, as ``train.sibling_statistics`` gives it (one view's ``[..., v]`` of its
+    ``per_view`` form pools that view alone)."""
     out = {}
     for phase in PHASES:
         idx = torch.tensor([i for i, p in enumerate(labels) if p == phase], dtype=torch.long)
