@@ -1,8 +1,10 @@
 """The world-model recipe of ``scripts/wm_variants.sh`` at scale on one machine with a GPU, in one command.
 
     python scripts/wm_scale.py OUT                         # on a GPU machine: every core collects, the GPU trains
+    python scripts/wm_scale.py OUT --variant adaln="--action-conditioning adaln --epochs 12" \
+        --variant dct="--action-conditioning adaln --epochs 12 --encoder-kwargs '{\"basis\": \"dct\"}'"
     python scripts/wm_scale.py OUT --collect-seconds 60 --workers 2 --render-backend cpu --device cpu \
-        --epochs 1 --arch ""                               # a small rehearsal on a CPU machine
+        --epochs 1 --variant mini=""                       # a small rehearsal on a CPU machine
 
 1. Collection for a fixed time (``--collect-seconds``) on ``--workers`` simulator processes, shared among the
    recipe's four sources in its proportions: the scripted expert (seeds 20000-), the noisy expert (30000-),
@@ -10,16 +12,20 @@
    every chunk boundary (50000-). When the time is up the collectors are stopped; an episode is kept only
    when its file was complete (``EpisodeStore`` writes under a temporary name), so a cut-off run is still a
    valid training set. ``--collect-seconds 0`` collects nothing.
-2. ``wamplan wm encode`` of the four stores in parallel, then ``wamplan wm train`` on them with the ``mini``
-   preset and ``--arch``'s predictor flags (a larger predictor than the preset's by default), on ``--device``;
-   stopped with Ctrl-C's checkpoint after ``--train-seconds`` if it has not finished its epochs.
-3. The checkpoint exported for inference in float16 (``OUT/export``, small enough to copy back), and
-   ``OUT/summary.json``: one entry per invocation with the episodes per source, seconds per stage, the
-   architecture and the training's last metrics.
+2. ``wamplan wm encode`` of the four stores in parallel, once for every encoder setting the variants use
+   (``--encoder-kwargs`` in a variant's flags).
+3. ``wamplan wm train`` of every ``--variant NAME=FLAGS`` side by side on the one GPU, on the same stores, each
+   with the ``mini`` preset overridden by its FLAGS (default: one variant ``wide``, a larger predictor than the
+   preset's) and a share of the cores as data-loading workers; each is stopped with Ctrl-C's checkpoint after
+   ``--train-seconds`` if it has not finished its epochs.
+4. Each checkpoint exported for inference in float16 (``OUT/export/NAME``, small enough to copy back), and
+   ``OUT/summary.json``: one entry per invocation with the episodes per source, seconds per stage, and each
+   variant's flags, exit status and last metrics.
 
-Re-running the same command resumes: while ``OUT/run`` holds a checkpoint, collection and encoding are skipped
-(the training resumes only on unchanged stores) and the training goes on from its checkpoint. Score the export on the benchmark store with ``wamplan wm eval --ckpt OUT/export --data
-   data/wm_bench --split all --horizon 4``.
+Re-running the same command resumes: while a variant's run ``OUT/runs/NAME`` holds a checkpoint, collection and
+encoding are skipped (the trainings resume only on unchanged stores) and each training goes on from its
+checkpoint. Score an export on the benchmark store with ``wamplan wm eval --ckpt OUT/export/NAME --data
+data/wm_bench --split all --horizon 4``.
 
 Seeds stay clear of the test (0-99), validation (500-599), benchmark (9000-9031) and other training ranges.
 """
@@ -29,6 +35,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import signal
 import subprocess
 import sys
@@ -41,7 +48,8 @@ from wamplan.train_loop import saved_progress
 # episode counts (100 expert, 100 noisy, 150 pink, 50 parents with 6 branches per chunk boundary, the slowest)
 SOURCES = (("expert", 20000, 2, ()), ("noisy-expert", 30000, 2, ()),
            ("pink", 40000, 3, ("--max-steps", "100")), ("policy", 50000, 8, ()))
-DEFAULT_ARCH = "--heads 8 --head-dim 48 --mlp-dim 1152"  # width 384 (the preset's 128), depth 4: 6.1 M params, 8.4x
+# width 384 (the preset's 128), depth 4: 6.1 M params, 8.4x the preset's
+DEFAULT_VARIANT = "wide=--heads 8 --head-dim 48 --mlp-dim 1152"
 
 
 def wamplan(*args: str) -> list[str]:
@@ -96,40 +104,73 @@ def collect(out: Path, args: argparse.Namespace, seconds: float) -> dict[str, in
     return counts
 
 
+def variant(spec: str) -> tuple[str, list[str]]:
+    """``NAME=FLAGS`` -> (NAME, FLAGS split as a shell would)."""
+    name, sep, flags = spec.partition("=")
+    if not sep or not name or "/" in name:
+        raise argparse.ArgumentTypeError(f"--variant {spec!r}: write NAME=FLAGS, "
+                                         f"e.g. adaln='--action-conditioning adaln'")
+    return name, shlex.split(flags)
+
+
+def encoder_settings(flags: list[str]) -> list[str]:
+    """The ``--encoder-kwargs`` of a variant's flags, as ``wm encode`` arguments (none: the preset's encoder)."""
+    out: list[str] = []
+    for i, arg in enumerate(flags):
+        if arg == "--encoder-kwargs":
+            out += flags[i:i + 2]
+        elif arg.startswith("--encoder-kwargs="):
+            out.append(arg)
+    return out
+
+
 def encode(out: Path, args: argparse.Namespace) -> None:
-    """The preset's encoder over each store, the four in parallel (reading the images is the cost)."""
+    """Each encoder setting the variants use over each store, all in parallel (reading the images is the cost)."""
+    settings = {tuple(encoder_settings(flags)) for _, flags in args.variant}
     procs = []
-    for s in SOURCES:
-        with open(out / f"encode-{s[0]}.log", "a") as log:
-            procs.append(subprocess.Popen(wamplan("wm", "encode", "--data", str(out / "data" / s[0]), "--preset",
-                                                  "mini", "--device", args.device), stdout=log, stderr=subprocess.STDOUT))
+    for k, setting in enumerate(sorted(settings)):
+        for s in SOURCES:
+            with open(out / f"encode-{s[0]}-{k}.log", "a") as log:
+                procs.append(subprocess.Popen(wamplan("wm", "encode", "--data", str(out / "data" / s[0]), "--preset",
+                                                      "mini", "--device", args.device, *setting),
+                                              stdout=log, stderr=subprocess.STDOUT))
     if any([p.wait() for p in procs]):  # every one waited for
-        raise SystemExit(f"encoding failed: see {out}/encode-<source>.log")
+        raise SystemExit(f"encoding failed: see {out}/encode-<source>-<k>.log")
 
 
-def train(out: Path, args: argparse.Namespace) -> int:
+def train(out: Path, args: argparse.Namespace) -> dict[str, int]:
+    """Every variant side by side until done or ``--train-seconds``; the exit status of each."""
     data = ",".join(str(out / "data" / s[0]) for s in SOURCES)
-    cmd = wamplan("wm", "train", "--data", data, "--preset", "mini", "--out", str(out / "run"), "--epochs",
-                  str(args.epochs), "--device", args.device, "--save-every-steps", "500", *args.arch.split())
-    with open(out / "train.log", "a") as log:
-        # SIGINT at its default, so Python turns it into KeyboardInterrupt even where this script was started
-        # with SIGINT ignored (a background job of a shell)
-        p = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
-                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-        try:
-            return p.wait(timeout=args.train_seconds)
-        except subprocess.TimeoutExpired:
+    loaders = max(0, args.workers // len(args.variant) - 1)  # data-loading workers per training
+    procs = {}
+    for name, flags in args.variant:
+        cmd = wamplan("wm", "train", "--data", data, "--preset", "mini", "--out", str(out / "runs" / name), "--epochs",
+                      str(args.epochs), "--device", args.device, "--save-every-steps", "500", "--num-workers",
+                      str(loaders), *flags)
+        with open(out / f"train-{name}.log", "a") as log:
+            # SIGINT at its default, so Python turns it into KeyboardInterrupt even where this script was started
+            # with SIGINT ignored (a background job of a shell)
+            procs[name] = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
+                                           preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    deadline = time.time() + args.train_seconds
+    while time.time() < deadline and any(p.poll() is None for p in procs.values()):
+        time.sleep(2)
+    for p in procs.values():
+        if p.poll() is None:
             p.send_signal(signal.SIGINT)  # the training loop checkpoints on Ctrl-C
-            try:
-                return p.wait(timeout=120)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                return p.wait()
+    status = {}
+    for name, p in procs.items():
+        try:
+            status[name] = p.wait(timeout=120)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            status[name] = p.wait()
+    return status
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("out", type=Path, help="output directory (data/, run/, export/, summary.json)")
+    ap.add_argument("out", type=Path, help="output directory (data/, runs/, export/, summary.json)")
     ap.add_argument("--collect-seconds", type=float, default=180.0, help="collection time (0: collect nothing)")
     ap.add_argument("--train-seconds", type=float, default=240.0,
                     help="training time, after which it stops with a checkpoint (re-run to go on)")
@@ -140,16 +181,21 @@ def main() -> int:
     ap.add_argument("--policy", default="checkpoints/mini/tinywam", help="the WAM whose episodes are branched")
     ap.add_argument("--branches", type=int, default=6)
     ap.add_argument("--epochs", type=int, default=4, help="passes over the collected data (the recipe's: 4)")
-    ap.add_argument("--arch", default=DEFAULT_ARCH, help="predictor flags of `wamplan wm train` ('' for the preset's)")
+    ap.add_argument("--variant", action="append", type=variant, default=None, metavar="NAME=FLAGS",
+                    help="a model to train: NAME and its `wamplan wm train` flags ('' for the preset's); repeat to "
+                         "train several side by side (default: " + DEFAULT_VARIANT + ")")
     args = ap.parse_args()
+    args.variant = args.variant or [variant(DEFAULT_VARIANT)]
+    if len({name for name, _ in args.variant}) < len(args.variant):
+        ap.error("--variant: every NAME once")
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     seconds: dict[str, float] = {}
 
-    resuming = saved_progress(out / "run") is not None
-    if resuming:  # the stores must stay as the checkpoint's training saw them
-        print(f"{out / 'run'} holds a checkpoint: no collection, the training resumes", flush=True)
+    resuming = any(saved_progress(out / "runs" / name) is not None for name, _ in args.variant)
+    if resuming:  # the stores must stay as the checkpoints' trainings saw them
+        print(f"{out / 'runs'} holds a checkpoint: no collection, the trainings resume", flush=True)
     t = time.time()
     counts = collect(out, args, 0 if resuming else args.collect_seconds)
     seconds["collect"] = time.time() - t
@@ -163,23 +209,29 @@ def main() -> int:
     t = time.time()
     status = train(out, args)
     seconds["train"] = time.time() - t
-    print(f"training exited with {status} after {seconds['train']:.0f} s", flush=True)
-    if status not in (0, 130) or saved_progress(out / "run") is None:
-        raise SystemExit(f"training failed (exit {status}) or saved no checkpoint: see {out}/train.log")
+    print(f"trainings exited with {status} after {seconds['train']:.0f} s", flush=True)
 
-    t = time.time()
-    subprocess.run([sys.executable, "-c", "import sys; from wamplan.checkpoint import export_for_inference; "
-                    "export_for_inference(sys.argv[1], sys.argv[2])", str(out / "run" / "checkpoint"),
-                    str(out / "export")], check=True)
-    seconds["export"] = time.time() - t
-    metrics = [json.loads(line) for line in (out / "run" / "metrics.jsonl").read_text().splitlines() if line]
-    entry = {"episodes": counts, "seconds": seconds, "arch": args.arch, "epochs": args.epochs, "workers": args.workers,
-             "resumed": resuming, "train_exit": status, "last_metrics": metrics[-1] if metrics else None}
+    variants = {}
+    for name, flags in args.variant:
+        run = out / "runs" / name
+        entry = {"flags": shlex.join(flags), "train_exit": status[name], "exported": False, "last_metrics": None}
+        variants[name] = entry
+        if status[name] not in (0, 130) or saved_progress(run) is None:  # one failure leaves the others' exports
+            print(f"training {name} failed (exit {status[name]}) or saved no checkpoint: see {out}/train-{name}.log",
+                  file=sys.stderr, flush=True)
+            continue
+        subprocess.run([sys.executable, "-c", "import sys; from wamplan.checkpoint import export_for_inference; "
+                        "export_for_inference(sys.argv[1], sys.argv[2])", str(run / "checkpoint"),
+                        str(out / "export" / name)], check=True)
+        metrics = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines() if line]
+        entry.update(exported=True, last_metrics=metrics[-1] if metrics else None)
+    entry = {"episodes": counts, "seconds": seconds, "epochs": args.epochs, "workers": args.workers,
+             "resumed": resuming, "variants": variants}
     path = out / "summary.json"
     runs = json.loads(path.read_text())["runs"] if path.exists() else []
     path.write_text(json.dumps({"runs": runs + [entry]}, indent=1))
     print(json.dumps(entry), flush=True)
-    return 0
+    return 0 if all(v["exported"] for v in variants.values()) else 1
 
 
 if __name__ == "__main__":

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from wamplan.encoders import (DINOV3_ENV, FrozenEncoder, PatchPixelEncoder, encoder_names, make_encoder,
+from wamplan.encoders import (DINOV3_ENV, FrozenEncoder, PatchPixelEncoder, dct_projection, encoder_names, make_encoder,
                               orthogonal_projection, register_encoder)
 from wamplan.errors import UserError
 
@@ -149,3 +149,25 @@ def test_numpy_images_are_accepted():
     imgs = _images(2).numpy()
     assert isinstance(imgs, np.ndarray)
     assert torch.equal(enc.encode(imgs), enc.encode(torch.from_numpy(imgs)))
+
+
+def test_patch_pixels_dct_basis_is_an_orthonormal_low_pass():
+    p = dct_projection(8, 48)  # (192, 48): the 16 lowest frequencies in each of 3 channels
+    assert p.shape == (192, 48) and torch.allclose(p.T @ p, torch.eye(48), atol=1e-5)
+    assert torch.allclose(p[:64, 0], torch.full((64,), 1 / 8.0))  # first column: the red channel's mean
+    enc = make_encoder("patch-pixels", input_size=32, patch_size=8, proj_dim=48, basis="dct")
+    assert enc.config_dict()["basis"] == "dct" and make_encoder(**enc.config_dict()).config_dict() == enc.config_dict()
+    assert "basis" not in make_encoder("patch-pixels").config_dict()  # the default keeps its feature key
+    ramp = torch.linspace(0, 255, 32).round().to(torch.uint8)  # a smooth horizontal ramp
+    smooth = ramp.view(1, 1, 32, 1).expand(1, 32, 32, 3).contiguous()
+    noise = _images(1, 32)  # white noise: energy at every frequency
+    raw = make_encoder("patch-pixels", input_size=32, patch_size=8, proj_dim=None)
+    kept = [float(enc.encode(x).pow(2).sum() / raw.encode(x).pow(2).sum()) for x in (smooth, noise)]
+    assert kept[0] > 0.99 and kept[1] < 0.5  # a low-pass: keeps the ramp, drops most of the noise
+    with pytest.raises(UserError, match="basis must be one of random, dct"):
+        make_encoder("patch-pixels", basis="wavelet")
+
+
+def test_unknown_encoder_settings_are_named_with_the_ones_it_takes():
+    with pytest.raises(UserError, match="encoder patch-pixels has no setting foo; it takes input_size, patch_size"):
+        make_encoder("patch-pixels", foo=1)

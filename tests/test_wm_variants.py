@@ -205,3 +205,25 @@ def test_every_variant_plans_through_the_kv_cached_dynamics(variant):
         naive, _ = model.rollout(z, q, a[:, :-1], cand.reshape(5, 4, cfg.action_block_dim), naive=True)
     torch.testing.assert_close(dyn.terminal(cand), naive[:, -1], atol=1e-5, rtol=1e-5)
     assert plan_seconds(model, ctx, z[0, -1], candidates=4, iterations=1, repeats=1, chunk=8) > 0
+
+
+def test_wm_train_encoder_kwargs_reach_the_features_and_the_checkpoint(expert_store, tmp_path, capsys):
+    import shutil
+
+    from wamplan.cli import main
+    from wamplan.data.features import feature_key
+    from wamplan.worldmodel.train import load_world_model
+
+    store = shutil.copytree(expert_store, tmp_path / "expert")  # a copy: training caches features in the store
+    dct = {"name": "patch-pixels", "input_size": 64, "patch_size": 16, "proj_dim": 128, "seed": 0, "basis": "dct"}
+    assert main(["wm", "encode", "--data", str(store), "--encoder-kwargs", '{"basis": "dct"}']) == 0
+    assert (store / "features" / feature_key(dct)).is_dir()
+    assert main(["wm", "train", "--data", str(store), "--out", str(tmp_path / "wm"), "--max-steps", "1",
+                 "--batch-size", "4", "--encoder-kwargs", '{"basis": "dct"}']) == 0
+    _, enc = load_world_model(tmp_path / "wm")  # the encoder is rebuilt with the settings it was trained on
+    assert enc.config_dict() == dct
+    capsys.readouterr()
+    assert main(["wm", "train", "--data", str(store), "--out", str(tmp_path / "bad"), "--max-steps", "1",
+                 "--encoder-kwargs", "{basis: dct}"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--encoder-kwargs '{basis: dct}' is not JSON" in err[0] and not (tmp_path / "bad").exists()

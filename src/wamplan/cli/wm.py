@@ -48,6 +48,8 @@ def _wm_commands(wm: argparse.ArgumentParser) -> None:
                 help="rank agreement of world models with the simulator on the same candidates")
 
 
+ENCODER_KWARGS_HELP = ("the preset's encoder settings, overridden by this JSON object, e.g. '{\"basis\": \"dct\"}' "
+                       "(patch-pixels: input_size, patch_size, proj_dim, seed, basis)")
 DEVICE_HELP = "torch device: auto, cpu, cuda, cuda:1, mps, ... (default: %(default)s)"
 
 
@@ -56,6 +58,7 @@ def _encode_options(p: argparse.ArgumentParser) -> None:
 
     p.add_argument("--data", required=True, help="episode stores, comma separated")
     p.add_argument("--preset", default="mini", choices=sorted(PRESETS), help="which encoder (wamplan/presets.py)")
+    p.add_argument("--encoder-kwargs", default=None, metavar="JSON", help=ENCODER_KWARGS_HELP)
     p.add_argument("--encoder-path", default=None, help="local weights directory for DINOv2/DINOv3 encoders")
     p.add_argument("--device", default="auto", help=DEVICE_HELP)
     p.set_defaults(func=cmd_encode)
@@ -70,6 +73,7 @@ def _train_options(name: str):
         p.add_argument("--out", type=Path, required=True, help="run directory (checkpoint/, metrics.jsonl)")
         p.add_argument("--preset", default="mini", choices=sorted(PRESETS),
                        help="model and training sizes (wamplan/presets.py); options below override them")
+        p.add_argument("--encoder-kwargs", default=None, metavar="JSON", help=ENCODER_KWARGS_HELP)
         p.add_argument("--encoder-path", default=None, help="local weights directory for DINOv2/DINOv3 encoders")
         p.add_argument("--val-fraction", type=float, default=0.1,
                        help="fraction of episodes held out for validation (default: 0.1)")
@@ -165,7 +169,8 @@ def cmd_encode(args: argparse.Namespace) -> int:
 
     resolve_device(args.device)
     preset = get_world_model_preset(args.preset)
-    enc = frozen_encoder(preset.encoder, preset.encoder_kwargs, args.encoder_path, args.device)
+    enc = frozen_encoder(preset.encoder, _encoder_kwargs(preset.encoder_kwargs, args.encoder_kwargs),
+                         args.encoder_path, args.device)
     encode_stores(_stores(args.data), enc)
     print(f"features cached under <store>/features/{feature_key(enc.config_dict())}/")
     return 0
@@ -181,7 +186,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     p = get_world_model_preset(args.preset)
     metrics = train_predictor_on_stores(_stores(args.data), args.out, architecture_from_args(args, p.predictor),
                                         from_args(TrainConfig, args, p.train),
-                                        encoder=p.encoder, encoder_kwargs=p.encoder_kwargs,
+                                        encoder=p.encoder,
+                                        encoder_kwargs=_encoder_kwargs(p.encoder_kwargs, args.encoder_kwargs),
                                         encoder_path=args.encoder_path, val_fraction=args.val_fraction,
                                         device=args.device, max_steps=args.max_steps, init=args.init)
     print(json.dumps(metrics))
@@ -198,7 +204,8 @@ def cmd_train_decoder(args: argparse.Namespace) -> int:
     p = get_world_model_preset(args.preset)
     metrics = train_decoder_on_stores(_stores(args.data), args.out, p.decoder,
                                       from_args(DecoderTrainConfig, args, p.decoder_train), encoder=p.encoder,
-                                      encoder_kwargs=p.encoder_kwargs, encoder_path=args.encoder_path,
+                                      encoder_kwargs=_encoder_kwargs(p.encoder_kwargs, args.encoder_kwargs),
+                                      encoder_path=args.encoder_path,
                                       val_fraction=args.val_fraction, device=args.device, max_steps=args.max_steps)
     print(json.dumps(metrics))
     return 0
@@ -273,25 +280,29 @@ def cmd_viz(args: argparse.Namespace) -> int:
 
 
 
+def _encoder_kwargs(base: dict, spec: str | None) -> dict:
+    """``base`` (a preset's encoder settings) overridden by ``spec``, a JSON object from --encoder-kwargs."""
+    kw = dict(base)
+    if spec is not None:
+        try:
+            extra = json.loads(spec)
+        except json.JSONDecodeError as e:
+            raise UserError(f"--encoder-kwargs {spec!r} is not JSON ({e}); write e.g. '{{\"patch_size\": 8}}'")
+        if not isinstance(extra, dict):
+            raise UserError(f"--encoder-kwargs {spec!r} must be a JSON object, e.g. '{{\"patch_size\": 8}}'")
+        kw.update(extra)
+    return kw
+
+
 def _probe_encoders(args: argparse.Namespace) -> list:
     from wamplan.presets import get_world_model_preset
     from wamplan.worldmodel.stores import frozen_encoder
 
     preset = get_world_model_preset(args.preset)
     name = args.encoder or preset.encoder
-    settings = []
-    for spec in args.encoder_kwargs or [None]:
-        kw = {} if args.encoder else dict(preset.encoder_kwargs)  # the preset's settings, overridden by the JSON
-        if spec is not None:
-            try:
-                extra = json.loads(spec)
-            except json.JSONDecodeError as e:
-                raise UserError(f"--encoder-kwargs {spec!r} is not JSON ({e}); write e.g. '{{\"patch_size\": 8}}'")
-            if not isinstance(extra, dict):
-                raise UserError(f"--encoder-kwargs {spec!r} must be a JSON object, e.g. '{{\"patch_size\": 8}}'")
-            kw.update(extra)
-        settings.append(frozen_encoder(name, kw, args.encoder_path, args.device))
-    return settings
+    base = {} if args.encoder else preset.encoder_kwargs  # the preset's settings, overridden by the JSON
+    return [frozen_encoder(name, _encoder_kwargs(base, spec), args.encoder_path, args.device)
+            for spec in args.encoder_kwargs or [None]]
 
 
 def cmd_probe(args: argparse.Namespace) -> int:

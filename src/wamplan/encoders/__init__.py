@@ -9,8 +9,8 @@
 from wamplan.encoders.base import (ENCODERS, IMAGENET_MEAN, IMAGENET_STD, FrozenEncoder, encoder_names,
                                    make_encoder, register_encoder)
 from wamplan.encoders.hf import DINOV2_ENV, DINOV3_ENV, HF_ENCODERS, HFViTEncoder, load_hf_model
-from wamplan.encoders.patch_pixels import PatchPixelEncoder, orthogonal_projection
+from wamplan.encoders.patch_pixels import PatchPixelEncoder, dct_projection, orthogonal_projection
 
 __all__ = ["ENCODERS", "HF_ENCODERS", "DINOV2_ENV", "DINOV3_ENV", "IMAGENET_MEAN", "IMAGENET_STD",
            "FrozenEncoder", "HFViTEncoder", "PatchPixelEncoder", "encoder_names", "load_hf_model",
-           "make_encoder", "orthogonal_projection", "register_encoder"]
+           "make_encoder", "dct_projection", "orthogonal_projection", "register_encoder"]

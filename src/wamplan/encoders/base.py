@@ -10,6 +10,7 @@ one, a CLS token ``(B, D)``). Encoders are frozen: always in eval mode, no param
 
 from __future__ import annotations
 
+import inspect
 from typing import Any, ClassVar
 
 import numpy as np
@@ -129,5 +130,13 @@ def encoder_names() -> list[str]:
 
 
 def make_encoder(name: str, **kwargs: Any) -> FrozenEncoder:
-    """Build the registered encoder ``name`` (frozen, eval mode) with ``kwargs``."""
-    return ENCODERS.lookup(name)(**kwargs).freeze()
+    """Build the registered encoder ``name`` (frozen, eval mode) with ``kwargs``; an unknown setting is a
+    UserError naming the ones it takes."""
+    factory = ENCODERS.lookup(name)
+    params = inspect.signature(factory).parameters
+    if not any(p.kind is p.VAR_KEYWORD for p in params.values()):
+        unknown = sorted(set(kwargs) - set(params))
+        if unknown:
+            raise UserError(f"encoder {name} has no setting {', '.join(unknown)}; it takes "
+                            f"{', '.join(params) or 'none'}")
+    return factory(**kwargs).freeze()

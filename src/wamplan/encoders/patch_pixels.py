@@ -2,8 +2,14 @@
 
 Each image is resized to ``input_size`` px, normalised with the ImageNet mean/std, and cut into
 non-overlapping ``patch_size`` x ``patch_size`` patches; a token is the patch's raw pixels
-(D = 3 * patch_size**2), optionally followed by a FIXED random orthogonal projection to ``proj_dim``
-(seeded, generated with numpy's frozen ``RandomState`` so every machine builds the same matrix).
+(D = 3 * patch_size**2), optionally followed by a FIXED orthogonal projection to ``proj_dim``:
+
+- ``basis="random"`` (default): a random one (seeded, generated with numpy's frozen ``RandomState`` so every
+  machine builds the same matrix), a Johnson-Lindenstrauss sketch that keeps every spatial frequency alike;
+- ``basis="dct"``: the patch's ``proj_dim`` lowest-frequency 2-D DCT-II coefficients (per colour channel,
+  ordered by u + v), a low-pass within each patch: a sub-patch shift of a smooth edge moves these
+  coefficients smoothly, while the finest detail, whose change under a shift is the hardest to predict,
+  is dropped.
 
 What it costs in quality, honestly: the tokens carry no semantics. Two images are close only if their
 downsampled pixels are close, so the world model's planning cost (eq. 3 of the paper) becomes a pixel
@@ -38,6 +44,32 @@ def orthogonal_projection(in_dim: int, out_dim: int, seed: int) -> torch.Tensor:
     return torch.from_numpy(q).float()
 
 
+def dct_projection(patch_size: int, out_dim: int) -> torch.Tensor:
+    """(3 p p, out_dim) matrix whose columns are orthonormal 2-D DCT-II basis images of one colour channel,
+    the lowest frequencies first: ordered by u + v, then u, then the channel (R, G, B), so every
+    frequency kept is kept in all three channels before a higher one. Columns index the flattened
+    (3, p, p) patch, the token layout of :class:`PatchPixelEncoder`."""
+    p = patch_size
+    n = np.arange(p)
+    c = np.cos(np.pi * (n[None, :] + 0.5) * n[:, None] / p)  # (u, x): 1-D DCT-II rows
+    c *= np.sqrt(2.0 / p)
+    c[0] /= np.sqrt(2.0)  # orthonormal rows
+    freqs = sorted(((u, v) for u in range(p) for v in range(p)), key=lambda f: (f[0] + f[1], f[0]))
+    cols = []
+    for u, v in freqs:
+        img = np.outer(c[u], c[v])  # (p, p) basis image, frequency u along y, v along x
+        for ch in range(3):
+            col = np.zeros((3, p, p))
+            col[ch] = img
+            cols.append(col.reshape(-1))
+            if len(cols) == out_dim:
+                return torch.from_numpy(np.stack(cols, axis=1)).float()  # (3 p p, out_dim)
+    raise ValueError(f"out_dim {out_dim} exceeds 3 * patch_size**2 = {3 * p * p}")
+
+
+BASES = ("random", "dct")
+
+
 @register_encoder("patch-pixels")
 class PatchPixelEncoder(FrozenEncoder):
     """Raw normalised pixels of a patch grid, optionally randomly projected. See the module doc."""
@@ -45,8 +77,10 @@ class PatchPixelEncoder(FrozenEncoder):
     name = "patch-pixels"
 
     def __init__(self, input_size: int = 64, patch_size: int = 16, proj_dim: int | None = 128,
-                 seed: int = 0) -> None:
+                 seed: int = 0, basis: str = "random") -> None:
         super().__init__(input_size)
+        if basis not in BASES:
+            raise UserError(f"patch-pixels: basis must be one of {', '.join(BASES)}, got {basis!r}")
         if input_size % patch_size:
             raise UserError(f"patch-pixels: input_size {input_size} is not a multiple of patch_size "
                             f"{patch_size}; pick sizes that divide")
@@ -58,8 +92,14 @@ class PatchPixelEncoder(FrozenEncoder):
         self.grid = input_size // patch_size
         self.proj_dim = proj_dim
         self.seed = seed
+        self.basis = basis
         self._raw_dim = raw
-        proj = orthogonal_projection(raw, proj_dim, seed) if proj_dim is not None else torch.empty(0)
+        if proj_dim is None:
+            proj = torch.empty(0)
+        elif basis == "dct":
+            proj = dct_projection(patch_size, proj_dim)
+        else:
+            proj = orthogonal_projection(raw, proj_dim, seed)
         self.register_buffer("proj", proj, persistent=False)  # (3 p p, proj_dim) or empty
 
     @property
@@ -79,5 +119,8 @@ class PatchPixelEncoder(FrozenEncoder):
         return x, None
 
     def config_dict(self) -> dict[str, Any]:
-        return {"name": self.name, "input_size": self.input_size, "patch_size": self.patch_size,
-                "proj_dim": self.proj_dim, "seed": self.seed}
+        cfg = {"name": self.name, "input_size": self.input_size, "patch_size": self.patch_size,
+               "proj_dim": self.proj_dim, "seed": self.seed}
+        if self.basis != "random":  # the default stays out, so existing feature caches keep their key
+            cfg["basis"] = self.basis
+        return cfg
