@@ -76,4 +76,8 @@ once $RUNS/shipped/bench $WP wm eval --ckpt checkpoints/mini/wm_augmented --data
 # 3 and 4: two variants at a time
 train control & a=$!; train adaln --action-conditioning adaln & b=$!; both $a $b
 train adaln_change4 --action-conditioning adaln --change-weight 4 & a=$!; train tokens --action-tokens & b=$!; both $a $b
+# the low-pass encoder and the sibling loss from scratch, then both
+train adaln_dct --action-conditioning adaln --encoder-kwargs '{"basis": "dct"}' & a=$!
+train adaln_sib4 --action-conditioning adaln --sibling-weight 4 & b=$!; both $a $b
+train adaln_dct_sib4 --action-conditioning adaln --encoder-kwargs '{"basis": "dct"}' --sibling-weight 4
 echo "[$(date +%H:%M:%S)] done: $PY scripts/wm_variants_table.py $RUNS/*/bench.json"

@@ -2,7 +2,8 @@
 
     .venv/bin/python scripts/wm_variants_table.py runs/wm41/e4/*/bench.json
 
-One row per report, named by its folder: ``sib_rel_h4`` / ``sib_gain_h4`` for every phase, the latent error one
+One row per report, named by its folder (``bench.json``) or by its folder and name (``NAME.bench.json``, as
+for the variants of ``scripts/wm_scale.py``): ``sib_rel_h4`` / ``sib_gain_h4`` for every phase, the latent error one
 and four frames ahead (the ``all`` row: every group's siblings), the planning time per chunk that ``wm eval`` measured, and the
 training time where ``scripts/wm_variants.sh`` recorded it (``FOLDER.seconds``). Markdown on stdout.
 """
@@ -20,6 +21,12 @@ def training_seconds(report: Path) -> str:
     log = report.parent.with_name(report.parent.name + ".seconds")
     lines = log.read_text().split() if log.is_file() else []
     return f"{sum(int(x) for x in lines) / 60:.0f} min" if lines and all(x.isdigit() for x in lines) else "—"
+
+
+def label(report: Path) -> str:
+    """``runs/x/adaln/bench.json`` -> ``adaln``; ``runs/x/gpu12/sib.bench.json`` -> ``gpu12/sib``."""
+    stem = report.name.removesuffix(".json").removesuffix(".bench").removesuffix("bench")
+    return f"{report.parent.name}/{stem}" if stem else report.parent.name
 
 
 def row(name: str, r: dict, phases: list[str], k: int, train: str) -> str:
@@ -55,7 +62,7 @@ def main() -> int:
           + f" | z_mse_h1 / z_mse_h{k} | plan s/chunk | training |")
     print("|---" * (len(phases) + 4) + "|")
     for path, r in reports.items():
-        print(row(path.parent.name, r, phases, k, training_seconds(path)))
+        print(row(label(path), r, phases, k, training_seconds(path)))
     return 0
 
 
