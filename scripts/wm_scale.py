@@ -113,58 +113,80 @@ def variant(spec: str) -> tuple[str, list[str]]:
     return name, shlex.split(flags)
 
 
-def encoder_settings(flags: list[str]) -> list[str]:
-    """The ``--encoder-kwargs`` of a variant's flags, as ``wm encode`` arguments (none: the preset's encoder)."""
-    out: list[str] = []
+def encoder_setting(flags: list[str]) -> str:
+    """The ``--encoder-kwargs`` of a variant's flags as one canonical JSON object (``"{}"``: the preset's encoder),
+    so that spellings of the same setting share one encoding of the stores."""
+    spec = "{}"
     for i, arg in enumerate(flags):
-        if arg == "--encoder-kwargs":
-            out += flags[i:i + 2]
+        if arg == "--encoder-kwargs" and i + 1 < len(flags):
+            spec = flags[i + 1]
         elif arg.startswith("--encoder-kwargs="):
-            out.append(arg)
-    return out
+            spec = arg.split("=", 1)[1]
+    try:
+        kw = json.loads(spec)
+    except json.JSONDecodeError as e:
+        raise argparse.ArgumentTypeError(f"--encoder-kwargs {spec!r} is not JSON ({e})")
+    if not isinstance(kw, dict):
+        raise argparse.ArgumentTypeError(f"--encoder-kwargs {spec!r} must be a JSON object")
+    return json.dumps(kw, sort_keys=True)
+
+
+def features_of(setting: str) -> str:
+    """The feature-cache key of the mini preset's encoder with ``setting`` (JSON) over its settings."""
+    from wamplan.data.features import feature_key
+    from wamplan.encoders import make_encoder
+    from wamplan.presets import get_world_model_preset
+
+    preset = get_world_model_preset("mini")
+    return feature_key(make_encoder(preset.encoder, **{**preset.encoder_kwargs, **json.loads(setting)}).config_dict())
 
 
 def encode(out: Path, args: argparse.Namespace) -> None:
-    """Each encoder setting the variants use over each store, all in parallel (reading the images is the cost)."""
-    settings = {tuple(encoder_settings(flags)) for _, flags in args.variant}
+    """Each encoder setting the variants use over each store, all in parallel (reading the images is the cost);
+    features already cached are kept, so this is quick on a resume."""
+    settings = sorted({features_of(encoder_setting(flags)): encoder_setting(flags)
+                       for _, flags in args.variant}.values())  # one per feature cache: no two writers of one
     procs = []
-    for k, setting in enumerate(sorted(settings)):
+    for k, setting in enumerate(settings):
         for s in SOURCES:
             with open(out / f"encode-{s[0]}-{k}.log", "a") as log:
                 procs.append(subprocess.Popen(wamplan("wm", "encode", "--data", str(out / "data" / s[0]), "--preset",
-                                                      "mini", "--device", args.device, *setting),
+                                                      "mini", "--device", args.device, "--encoder-kwargs", setting),
                                               stdout=log, stderr=subprocess.STDOUT))
     if any([p.wait() for p in procs]):  # every one waited for
         raise SystemExit(f"encoding failed: see {out}/encode-<source>-<k>.log")
 
 
 def train(out: Path, args: argparse.Namespace) -> dict[str, int]:
-    """Every variant side by side until done or ``--train-seconds``; the exit status of each."""
+    """Every variant side by side until done or ``--train-seconds``; the exit status of each. However this ends
+    (the deadline, Ctrl-C, an error), every training still running is stopped with its Ctrl-C checkpoint."""
     data = ",".join(str(out / "data" / s[0]) for s in SOURCES)
     loaders = max(0, args.workers // len(args.variant) - 1)  # data-loading workers per training
-    procs = {}
-    for name, flags in args.variant:
-        cmd = wamplan("wm", "train", "--data", data, "--preset", "mini", "--out", str(out / "runs" / name), "--epochs",
-                      str(args.epochs), "--device", args.device, "--save-every-steps", "500", "--num-workers",
-                      str(loaders), *flags)
-        with open(out / f"train-{name}.log", "a") as log:
-            # SIGINT at its default, so Python turns it into KeyboardInterrupt even where this script was started
-            # with SIGINT ignored (a background job of a shell)
-            procs[name] = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
-                                           preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    deadline = time.time() + args.train_seconds
-    while time.time() < deadline and any(p.poll() is None for p in procs.values()):
-        time.sleep(2)
-    for p in procs.values():
-        if p.poll() is None:
-            p.send_signal(signal.SIGINT)  # the training loop checkpoints on Ctrl-C
-    status = {}
-    for name, p in procs.items():
-        try:
-            status[name] = p.wait(timeout=120)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            status[name] = p.wait()
+    procs: dict[str, subprocess.Popen] = {}
+    status: dict[str, int] = {}
+    try:
+        for name, flags in args.variant:
+            cmd = wamplan("wm", "train", "--data", data, "--preset", "mini", "--out", str(out / "runs" / name),
+                          "--epochs", str(args.epochs), "--device", args.device, "--save-every-steps", "500",
+                          "--num-workers", str(loaders), *flags)
+            with open(out / f"train-{name}.log", "a") as log:
+                # SIGINT at its default, so Python turns it into KeyboardInterrupt even where this script was
+                # started with SIGINT ignored (a background job of a shell)
+                procs[name] = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
+                                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+        deadline = time.time() + args.train_seconds
+        while time.time() < deadline and any(p.poll() is None for p in procs.values()):
+            time.sleep(2)
+    finally:
+        for p in procs.values():
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)  # the training loop checkpoints on Ctrl-C
+        for name, p in procs.items():
+            try:
+                status[name] = p.wait(timeout=120)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                status[name] = p.wait()
     return status
 
 
@@ -175,17 +197,25 @@ def main() -> int:
     ap.add_argument("--train-seconds", type=float, default=240.0,
                     help="training time, after which it stops with a checkpoint (re-run to go on)")
     ap.add_argument("--workers", type=int, default=max(1, len(os.sched_getaffinity(0)) - 1),
-                    help="simulator processes in all, at least one per source (default: cores - 1)")
+                    help="simulator processes in all, at least one per source, and then the processes of the "
+                         "trainings: each variant gets workers / variants - 1 data-loading workers (default: "
+                         "cores - 1)")
     ap.add_argument("--render-backend", default="gpu", help="ManiSkill render backend of the collectors")
     ap.add_argument("--device", default="cuda", help="torch device of the training")
     ap.add_argument("--policy", default="checkpoints/mini/tinywam", help="the WAM whose episodes are branched")
     ap.add_argument("--branches", type=int, default=6)
-    ap.add_argument("--epochs", type=int, default=4, help="passes over the collected data (the recipe's: 4)")
+    ap.add_argument("--epochs", type=int, default=4,
+                    help="passes over the collected data (the recipe's: 4); a variant's own --epochs wins")
     ap.add_argument("--variant", action="append", type=variant, default=None, metavar="NAME=FLAGS",
                     help="a model to train: NAME and its `wamplan wm train` flags ('' for the preset's); repeat to "
                          "train several side by side (default: " + DEFAULT_VARIANT + ")")
     args = ap.parse_args()
     args.variant = args.variant or [variant(DEFAULT_VARIANT)]
+    for _, flags in args.variant:
+        try:
+            encoder_setting(flags)
+        except argparse.ArgumentTypeError as e:
+            ap.error(f"--variant: {e}")
     if len({name for name, _ in args.variant}) < len(args.variant):
         ap.error("--variant: every NAME once")
     out = args.out
@@ -195,16 +225,15 @@ def main() -> int:
 
     resuming = any(saved_progress(out / "runs" / name) is not None for name, _ in args.variant)
     if resuming:  # the stores must stay as the checkpoints' trainings saw them
-        print(f"{out / 'runs'} holds a checkpoint: no collection, the trainings resume", flush=True)
+        print(f"{out / 'runs'} holds a checkpoint: no collection; trainings with a checkpoint resume", flush=True)
     t = time.time()
     counts = collect(out, args, 0 if resuming else args.collect_seconds)
     seconds["collect"] = time.time() - t
     print(f"{counts} episodes after {seconds['collect']:.0f} s of collection", flush=True)
 
-    if not resuming:
-        t = time.time()
-        encode(out, args)
-        seconds["encode"] = time.time() - t
+    t = time.time()
+    encode(out, args)  # also on a resume: a new variant's encoder, or nothing to do
+    seconds["encode"] = time.time() - t
 
     t = time.time()
     status = train(out, args)
@@ -220,11 +249,13 @@ def main() -> int:
             print(f"training {name} failed (exit {status[name]}) or saved no checkpoint: see {out}/train-{name}.log",
                   file=sys.stderr, flush=True)
             continue
-        subprocess.run([sys.executable, "-c", "import sys; from wamplan.checkpoint import export_for_inference; "
-                        "export_for_inference(sys.argv[1], sys.argv[2])", str(run / "checkpoint"),
-                        str(out / "export" / name)], check=True)
+        done = subprocess.run([sys.executable, "-c", "import sys; from wamplan.checkpoint import export_for_inference; "
+                               "export_for_inference(sys.argv[1], sys.argv[2])", str(run / "checkpoint"),
+                               str(out / "export" / name)])
         metrics = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines() if line]
-        entry.update(exported=True, last_metrics=metrics[-1] if metrics else None)
+        entry.update(exported=done.returncode == 0, last_metrics=metrics[-1] if metrics else None)
+        if done.returncode:
+            print(f"export of {name} failed (exit {done.returncode})", file=sys.stderr, flush=True)
     entry = {"episodes": counts, "seconds": seconds, "epochs": args.epochs, "workers": args.workers,
              "resumed": resuming, "variants": variants}
     path = out / "summary.json"

@@ -1,12 +1,14 @@
 """Where the chunk's effect is seen, view by view: the sibling statistics of ``wamplan wm eval`` split by camera.
 
     python scripts/wm_sibling_views.py checkpoints/mini/wm_augmented runs/wm41/e4/adaln/checkpoint \
-        --data data/wm_bench [--json views.json]
+        --data data/wm_bench [--tokens descent] [--json views.json]
 
 For each checkpoint, phase (grasp, carry, alignment, descent, all) and camera: ``share``, that view's part of how
 much the sibling chunks' true outcomes differ (the spread, summed over the views = 1: where the world shows the
 chunk's effect), and the model's ``sib_rel_hK`` / ``sib_gain_hK`` on that view alone (``wamplan wm eval``'s
 definitions, `worldmodel/train.py`). A view with a large share and a low gain is where the model misses most.
+``--tokens PHASE`` also prints, for that phase, each view's patch grid: every token's share of the spread (of all
+views together) and the model's ``sib_gain_hK`` on that token alone.
 """
 
 from __future__ import annotations
@@ -16,16 +18,18 @@ import json
 import sys
 from pathlib import Path
 
+import torch
+
 from wamplan.data.features import feature_key
 from wamplan.data.readers import BranchGroups
 from wamplan.errors import UserError
-from wamplan.worldmodel.benchmark import ALL, group_phases, pool_by_phase
+from wamplan.worldmodel.benchmark import ALL, PHASES, group_phases, pool_by_phase
 from wamplan.worldmodel.stores import encode_stores, stores_task
 from wamplan.worldmodel.train import load_world_model, sibling_statistics
 
 
-def view_table(ckpt: str, data: list[Path], horizon: int) -> dict[str, dict[str, dict[str, float]]]:
-    """phase -> camera -> {share, sib_rel_hK, sib_gain_hK} of one checkpoint on the stores ``data``."""
+def token_statistics(ckpt: str, data: list[Path], horizon: int):
+    """(statistics per token, each (G, K, V, N); the groups' phase labels; the cameras) of one checkpoint."""
     model, enc = load_world_model(ckpt)
     _, cameras = stores_task(data)
     encode_stores(data, enc)
@@ -34,8 +38,13 @@ def view_table(ckpt: str, data: list[Path], horizon: int) -> dict[str, dict[str,
     if not len(groups):
         raise UserError(f"{', '.join(map(str, data))} holds no counterfactual branch groups: score a store "
                         f"collected with --branches (e.g. scripts/wm_benchmark_store.py)")
-    labels = group_phases(groups)
-    s = sibling_statistics(model, groups, horizon, per_view=True)  # each (G, K, V)
+    return sibling_statistics(model, groups, horizon, per="token"), group_phases(groups), cameras
+
+
+def view_table(s: dict[str, torch.Tensor], labels: list[str], cameras, horizon: int
+               ) -> dict[str, dict[str, dict[str, float]]]:
+    """phase -> camera -> {share, sib_rel_hK, sib_gain_hK} from the per-token statistics ``s``."""
+    s = {k: x.mean(-1) for k, x in s.items()}  # (G, K, V): a view's figure is its tokens' mean (equal sizes)
     views = [pool_by_phase({k: x[..., v] for k, x in s.items()}, labels, horizon) for v in range(len(cameras))]
     spread = s["spread"][:, -1]  # (G, V): how much the siblings' true outcomes differ, per view
     out: dict[str, dict[str, dict[str, float]]] = {}
@@ -47,16 +56,36 @@ def view_table(ckpt: str, data: list[Path], horizon: int) -> dict[str, dict[str,
     return out
 
 
+def token_grids(s: dict[str, torch.Tensor], labels: list[str], cameras, phase: str) -> dict[str, dict]:
+    """camera -> {share, sib_gain}: (g, g) lists, row-major patch grid, of the groups in ``phase``."""
+    idx = [i for i, p in enumerate(labels) if phase in (p, ALL)]
+    if not idx:
+        raise UserError(f"no branch group in phase {phase!r}; the store's phases: {', '.join(sorted(set(labels)))}")
+    spread, cross = (s[k][idx, -1].sum(0) for k in ("spread", "cross"))  # (V, N)
+    share, gain = spread / spread.sum().clamp_min(1e-12), cross / spread.clamp_min(1e-12)
+    g = int(round(spread.shape[-1] ** 0.5))
+    return {cam: {"share": share[v].view(g, g).tolist(), "sib_gain": gain[v].view(g, g).tolist()}
+            for v, cam in enumerate(cameras)}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("ckpt", nargs="+", help="predictor checkpoints or run directories")
     ap.add_argument("--data", required=True, help="episode stores with branch groups, comma separated")
     ap.add_argument("--horizon", type=int, default=4)
-    ap.add_argument("--json", type=Path, default=None, help="also write every figure to this JSON file")
+    ap.add_argument("--tokens", default=None, choices=(*PHASES, ALL), metavar="PHASE",
+                    help="also each view's patch grid at this phase (grasp, carry, alignment, descent, all)")
+    ap.add_argument("--json", type=Path, default=None,
+                    help="also write every figure to this JSON file ({views: ..., tokens: ...})")
     args = ap.parse_args()
     data = [Path(d) for d in args.data.split(",") if d]
+    tables, grids = {}, {}
     try:
-        tables = {c: view_table(c, data, args.horizon) for c in args.ckpt}
+        for c in args.ckpt:
+            s, labels, cameras = token_statistics(c, data, args.horizon)
+            tables[c] = view_table(s, labels, cameras, args.horizon)
+            if args.tokens:
+                grids[c] = token_grids(s, labels, cameras, args.tokens)
     except UserError as e:
         print(f"wm_sibling_views: {e}", file=sys.stderr)
         return 2
@@ -68,8 +97,15 @@ def main() -> int:
         for phase, row in table.items():
             print(f"| {phase} | " + " | ".join(f"{row[c]['share']:.2f} / {row[c][f'sib_rel_h{k}']:.2f} / "
                                             f"{row[c][f'sib_gain_h{k}']:.2f}" for c in cams) + " |")
+    for ckpt, grid in grids.items():
+        print(f"\n{ckpt}, {args.tokens}: each view's patch grid, every cell the token's share of the spread (all "
+              f"views) / its sib_gain_h{k}")
+        for cam, cells in grid.items():
+            print(f"{cam}:")
+            for shares, gains in zip(cells["share"], cells["sib_gain"]):
+                print("  " + "  ".join(f"{a:.3f} / {b:+.2f}" for a, b in zip(shares, gains)))
     if args.json:
-        args.json.write_text(json.dumps(tables, indent=1) + "\n")
+        args.json.write_text(json.dumps({"views": tables, "tokens": grids}, indent=1) + "\n")
     return 0
 
 

@@ -31,9 +31,14 @@ def test_the_worker_split_sums_to_the_total_with_one_per_source_at_least(wm_scal
 def test_variants_parse_like_a_shell_and_name_their_encoders(wm_scale):
     name, flags = wm_scale.variant("""dct=--action-conditioning adaln --encoder-kwargs '{"basis": "dct"}'""")
     assert name == "dct" and flags == ["--action-conditioning", "adaln", "--encoder-kwargs", '{"basis": "dct"}']
-    assert wm_scale.encoder_settings(flags) == ["--encoder-kwargs", '{"basis": "dct"}']
-    assert wm_scale.encoder_settings(["--encoder-kwargs={}", "--depth", "2"]) == ["--encoder-kwargs={}"]
-    assert wm_scale.variant("mini=") == ("mini", []) and wm_scale.encoder_settings([]) == []
+    assert wm_scale.encoder_setting(flags) == '{"basis": "dct"}'
+    assert wm_scale.encoder_setting(["--encoder-kwargs={}", "--depth", "2"]) == "{}"
+    assert wm_scale.variant("mini=") == ("mini", []) and wm_scale.encoder_setting([]) == "{}"
+    spellings = ("{}", '{"basis": "random"}', '{"seed": 0, "basis": "random"}')  # one encoder, one feature cache
+    assert len({wm_scale.features_of(x) for x in spellings}) == 1
+    assert wm_scale.features_of('{"basis":"dct"}') != wm_scale.features_of("{}")
+    with pytest.raises(argparse.ArgumentTypeError, match="is not JSON"):
+        wm_scale.encoder_setting(["--encoder-kwargs", "{basis: dct}"])
     for bad in ("no-equals", "=--depth 2", "a/b=--depth 2"):
         with pytest.raises(argparse.ArgumentTypeError, match="NAME=FLAGS"):
             wm_scale.variant(bad)

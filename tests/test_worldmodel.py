@@ -424,3 +424,16 @@ def test_init_fine_tunes_from_a_checkpoint_and_refuses_another_architecture(tmp_
     wider = dataclasses.replace(TINY, mlp_dim=64)
     with pytest.raises(UserError, match="is another predictor .*mlp_dim"):
         train_predictor(other, wider, TRAIN, tmp_path / "bad", device="cpu", progress=False, init=tmp_path / "base")
+
+
+def test_a_decoder_draws_only_the_tokens_of_the_encoder_it_was_trained_on():
+    from pathlib import Path
+
+    from wamplan.encoders import make_encoder
+
+    shipped = Path(__file__).parents[1] / "checkpoints" / "mini" / "decoder"
+    mini = make_encoder("patch-pixels", input_size=64, patch_size=16, proj_dim=128, seed=0)
+    assert load_decoder(shipped, encoder=mini).cfg == PRESETS["mini"].decoder  # the shipped pair matches
+    low_pass = make_encoder("patch-pixels", input_size=64, patch_size=16, proj_dim=128, basis="dct")
+    with pytest.raises(UserError, match="trained on the tokens of encoder .* pass a decoder trained with the same"):
+        load_decoder(shipped, encoder=low_pass)

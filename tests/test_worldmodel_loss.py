@@ -76,7 +76,7 @@ def test_sibling_batches_resume_where_they_stopped():
     assert resumed == whole[4:] and sorted(sum(whole[:3], [])) == sorted(set(sum(whole[:3], [])))  # a pass: no repeats
 
 
-def test_sibling_statistics_per_view_split_the_pooled_ones_by_view():
+def test_sibling_statistics_per_view_and_token_split_the_pooled_ones():
     """Per view, each statistic is that view's share: the views' mean is the pooled figure (each view has as many
     elements), and a sibling difference in one view's truth shows in that view's spread alone."""
     from wamplan.worldmodel.train import sibling_statistics
@@ -92,9 +92,11 @@ def test_sibling_statistics_per_view_split_the_pooled_ones_by_view():
     groups = [dict(z=torch.cat([ctx, future], 1), q=torch.randn(1, 3 + k, 10).expand(g, 3 + k, 10),
                    a=torch.rand(g, 3 + k, 20) * 2 - 1)]
     pooled = sibling_statistics(model, groups, k)
-    views = sibling_statistics(model, groups, k, per_view=True)
+    views = sibling_statistics(model, groups, k, per="view")
+    tokens = sibling_statistics(model, groups, k, per="token")
     for name in pooled:
-        assert views[name].shape == (1, k, 3)
+        assert views[name].shape == (1, k, 3) and tokens[name].shape == (1, k, 3, 4)
         torch.testing.assert_close(views[name].mean(-1), pooled[name])
+        torch.testing.assert_close(tokens[name].mean(-1), views[name], rtol=1e-5, atol=1e-6)  # a view: its tokens
     spread = views["spread"][0, -1]  # (V,)
     assert float(spread[1]) > 0.1 and float(spread[0]) < 1e-12 and float(spread[2]) < 1e-12

@@ -290,6 +290,9 @@ def _encoder_kwargs(base: dict, spec: str | None) -> dict:
             raise UserError(f"--encoder-kwargs {spec!r} is not JSON ({e}); write e.g. '{{\"patch_size\": 8}}'")
         if not isinstance(extra, dict):
             raise UserError(f"--encoder-kwargs {spec!r} must be a JSON object, e.g. '{{\"patch_size\": 8}}'")
+        for key, where in (("name", "--preset (or --encoder where there is one)"), ("path", "--encoder-path")):
+            if key in extra:
+                raise UserError(f"--encoder-kwargs cannot set {key!r}: use {where}")
         kw.update(extra)
     return kw
 

@@ -136,6 +136,8 @@ def make_encoder(name: str, **kwargs: Any) -> FrozenEncoder:
     params = inspect.signature(factory).parameters
     if not any(p.kind is p.VAR_KEYWORD for p in params.values()):
         unknown = sorted(set(kwargs) - set(params))
+        if unknown == ["path"]:
+            raise UserError(f"encoder {name} loads no weights: drop --encoder-path (it is for DINOv2/DINOv3)")
         if unknown:
             raise UserError(f"encoder {name} has no setting {', '.join(unknown)}; it takes "
                             f"{', '.join(params) or 'none'}")

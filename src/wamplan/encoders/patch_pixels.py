@@ -6,10 +6,11 @@ non-overlapping ``patch_size`` x ``patch_size`` patches; a token is the patch's 
 
 - ``basis="random"`` (default): a random one (seeded, generated with numpy's frozen ``RandomState`` so every
   machine builds the same matrix), a Johnson-Lindenstrauss sketch that keeps every spatial frequency alike;
-- ``basis="dct"``: the patch's ``proj_dim`` lowest-frequency 2-D DCT-II coefficients (per colour channel,
-  ordered by u + v), a low-pass within each patch: a sub-patch shift of a smooth edge moves these
-  coefficients smoothly, while the finest detail, whose change under a shift is the hardest to predict,
-  is dropped.
+- ``basis="dct"``: the patch's ``proj_dim`` lowest-frequency 2-D DCT-II coefficients in all (frequencies
+  ordered by u + v, then u, each in R, G and B before the next: 128 of a 16-px patch are 42 frequencies in
+  all three colours and a 43rd in two), a low-pass within each patch: a sub-patch shift of a smooth edge
+  moves these coefficients smoothly, while the finest detail, whose change under a shift is the hardest to
+  predict, is dropped. ``seed`` plays no part.
 
 What it costs in quality, honestly: the tokens carry no semantics. Two images are close only if their
 downsampled pixels are close, so the world model's planning cost (eq. 3 of the paper) becomes a pixel
@@ -72,15 +73,25 @@ BASES = ("random", "dct")
 
 @register_encoder("patch-pixels")
 class PatchPixelEncoder(FrozenEncoder):
-    """Raw normalised pixels of a patch grid, optionally randomly projected. See the module doc."""
+    """Raw normalised pixels of a patch grid, optionally projected (random or DCT basis). See the module doc."""
 
     name = "patch-pixels"
 
     def __init__(self, input_size: int = 64, patch_size: int = 16, proj_dim: int | None = 128,
                  seed: int = 0, basis: str = "random") -> None:
+        for key, value in (("input_size", input_size), ("patch_size", patch_size), ("seed", seed),
+                           ("proj_dim", 1 if proj_dim is None else proj_dim)):
+            if not isinstance(value, int) or isinstance(value, bool):
+                raise UserError(f"patch-pixels: {key} must be a whole number{' or None' if key == 'proj_dim' else ''}, "
+                                f"got {value!r}")
+        if patch_size <= 0:
+            raise UserError(f"patch-pixels: patch_size must be > 0, got {patch_size}")
         super().__init__(input_size)
         if basis not in BASES:
             raise UserError(f"patch-pixels: basis must be one of {', '.join(BASES)}, got {basis!r}")
+        if basis == "dct" and proj_dim is None:
+            raise UserError("patch-pixels: basis 'dct' keeps proj_dim coefficients; give proj_dim (e.g. 128), "
+                            "or drop basis for raw pixels")
         if input_size % patch_size:
             raise UserError(f"patch-pixels: input_size {input_size} is not a multiple of patch_size "
                             f"{patch_size}; pick sizes that divide")

@@ -124,7 +124,7 @@ def phase_table(model: WorldModelPredictor, groups: BranchGroups, horizon: int, 
 def pool_by_phase(s: dict[str, torch.Tensor], labels: Sequence[str], horizon: int) -> dict[str, dict[str, float]]:
     """Phase (then ``"all"``) -> ``train.pool_siblings`` of the groups with that label; ``s``: each statistic
     (G_total, K), one row per group, as ``train.sibling_statistics`` gives it (one view's ``[..., v]`` of its
-    ``per_view`` form pools that view alone)."""
+    ``per="view"`` form pools that view alone)."""
     out = {}
     for phase in PHASES:
         idx = torch.tensor([i for i, p in enumerate(labels) if p == phase], dtype=torch.long)

@@ -23,6 +23,7 @@ from torch.utils.data import DataLoader, Dataset
 from wamplan.checkpoint import checkpoint_dir, load_weights, read_config
 from wamplan.config import from_dict, require, to_dict
 from wamplan.device import resolve_device
+from wamplan.errors import UserError
 from wamplan.train_loop import DatasetBatches, fit
 from wamplan.worldmodel.config import DecoderConfig, DecoderTrainConfig, TrainConfig
 from wamplan.worldmodel.layers import Block, init_weights
@@ -120,10 +121,19 @@ def train_decoder(train_set: Dataset, cfg: DecoderConfig, train: DecoderTrainCon
     return model.eval(), result.metrics
 
 
-def load_decoder(path: str | Path, device: str | torch.device = "cpu") -> Decoder:
-    """A trained decoder (eval mode) from a checkpoint directory (or a training ``out_dir``)."""
+def load_decoder(path: str | Path, device: str | torch.device = "cpu", encoder: Any = None) -> Decoder:
+    """A trained decoder (eval mode) from a checkpoint directory (or a training ``out_dir``). ``encoder``: the
+    frozen encoder whose tokens it will draw; a decoder trained on another encoder's tokens is refused."""
+    from wamplan.data.features import feature_key
+
     ckpt = checkpoint_dir(path)
-    cfg = from_dict(DecoderConfig, read_config(ckpt, KIND)["decoder"])
+    config = read_config(ckpt, KIND)
+    theirs = config.get("encoder")
+    if encoder is not None and theirs and feature_key(theirs) != feature_key(encoder.config_dict()):
+        mine = {k: v for k, v in encoder.config_dict().items() if k != "path"}
+        raise UserError(f"decoder {path} was trained on the tokens of encoder {theirs}, the world model encodes "
+                        f"with {mine}; pass a decoder trained with the same encoder settings")
+    cfg = from_dict(DecoderConfig, config["decoder"])
     model = Decoder(cfg)
     load_weights(ckpt, model)
     return model.to(resolve_device(device) if isinstance(device, str) else device).eval()

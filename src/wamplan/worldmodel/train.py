@@ -91,12 +91,18 @@ def window_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], hori
     return loss, logs
 
 
+SIBLING_SPLITS = {"group": 3, "view": 4, "token": 5}  # the dim of (B, G, K, V, N, D) from which elements are pooled
+
+
 def _sibling_errors(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int,
-                    per_view: bool = False) -> dict[str, torch.Tensor]:
+                    per: str = "group") -> dict[str, torch.Tensor]:
     """Per group of a batch of branch groups (z (B, G, T, V, N, D), ...), each (B, K), a mean over the siblings
-    and elements (with ``per_view``, each (B, K, V), a mean over the siblings and each view's elements): ``err`` the squared error of the sibling-relative prediction, ``spread`` that of predicting no
-    difference, ``cross`` the product of the predicted and true sibling differences (the gain: cross / spread),
-    ``z_mse`` the siblings' plain latent error and ``copy_z_mse`` that of copying the current frame."""
+    and elements (``per="view"``: each (B, K, V), a mean over the siblings and each view's elements;
+    ``per="token"``: each (B, K, V, N), over the siblings and each token's features): ``err`` the squared error of
+    the sibling-relative prediction, ``spread`` that of predicting no difference, ``cross`` the product of the
+    predicted and true sibling differences (the gain: cross / spread), ``z_mse`` the siblings' plain latent error
+    and ``copy_z_mse`` that of copying the current frame."""
+    start = SIBLING_SPLITS[per]
     b, g = batch["z"].shape[:2]
     flat = {k: batch[k].flatten(0, 1) for k in ("z", "q", "a")}  # (B G, T, ...)
     (zc, qc, ac), a_future, (zt, _) = _split(model, flat, horizon)
@@ -105,8 +111,8 @@ def _sibling_errors(model: WorldModelPredictor, batch: dict[str, torch.Tensor], 
     zp, zt, copy = (x.unflatten(0, (b, g)) for x in (zp, zt, copy))  # (B, G, K, V, N, D)
     dp, dt = zp - zp.mean(dim=1, keepdim=True), zt - zt.mean(dim=1, keepdim=True)  # relative to the group mean
 
-    def per_group(x: torch.Tensor) -> torch.Tensor:  # (B, G, K, V, N, D) -> (B, K), or (B, K, V) per view
-        return x.flatten(4 if per_view else 3).mean(dim=-1).mean(dim=1)
+    def per_group(x: torch.Tensor) -> torch.Tensor:  # (B, G, K, V, N, D) -> (B, K) [, V [, N]]
+        return x.flatten(start).mean(dim=-1).mean(dim=1)
 
     return {"err": per_group((dp - dt).pow(2)), "spread": per_group(dt.pow(2)), "cross": per_group(dp * dt),
             "z_mse": per_group((zp - zt).pow(2)), "copy_z_mse": per_group((copy - zt).pow(2))}
@@ -129,16 +135,19 @@ def sibling_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], hor
 
 @torch.no_grad()
 def sibling_statistics(model: WorldModelPredictor, groups: Dataset, horizon: int, batch_size: int = 8,
-                       device: torch.device | None = None, per_view: bool = False) -> dict[str, torch.Tensor]:
+                       device: torch.device | None = None, per: str = "group") -> dict[str, torch.Tensor]:
     """Each statistic of :func:`_sibling_errors` for every group of ``groups``, (G_total, K) float64 on the CPU;
-    with ``per_view``, (G_total, K, V): each view's own (:func:`pool_siblings` pools one view's ``[..., v]``)."""
+    ``per="view"``: (G_total, K, V), each view's own; ``per="token"``: (G_total, K, V, N), each token's
+    (:func:`pool_siblings` pools one view's ``[..., v]`` or one token's ``[..., v, n]``)."""
+    if per not in SIBLING_SPLITS:
+        raise ValueError(f"per must be one of {', '.join(SIBLING_SPLITS)}, got {per!r}")
     device = device or next(model.parameters()).device
     was_training = model.training
     model.eval()
     parts: dict[str, list[torch.Tensor]] = {}
     for batch in DataLoader(groups, batch_size=batch_size, shuffle=False):
-        for k, v in _sibling_errors(model, {k: v.to(device) for k, v in batch.items()}, horizon, per_view).items():
-            parts.setdefault(k, []).append(v.double().cpu())  # (B, K) or (B, K, V)
+        for k, v in _sibling_errors(model, {k: v.to(device) for k, v in batch.items()}, horizon, per).items():
+            parts.setdefault(k, []).append(v.double().cpu())  # (B, K) [, V [, N]]
     model.train(was_training)
     return {k: torch.cat(v) for k, v in parts.items()}
 
