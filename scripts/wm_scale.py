@@ -42,6 +42,7 @@ import sys
 import time
 from pathlib import Path
 
+from wamplan.errors import UserError
 from wamplan.train_loop import saved_progress
 
 # source, its --seed-start, its share of the workers, extra collect flags; the shares follow the recipe's
@@ -213,8 +214,8 @@ def main() -> int:
     args.variant = args.variant or [variant(DEFAULT_VARIANT)]
     for _, flags in args.variant:
         try:
-            encoder_setting(flags)
-        except argparse.ArgumentTypeError as e:
+            features_of(encoder_setting(flags))  # the setting parses and builds an encoder
+        except (argparse.ArgumentTypeError, UserError) as e:
             ap.error(f"--variant: {e}")
     if len({name for name, _ in args.variant}) < len(args.variant):
         ap.error("--variant: every NAME once")
