@@ -145,8 +145,8 @@ def features_of(setting: str) -> str:
 def encode(out: Path, args: argparse.Namespace) -> None:
     """Each encoder setting the variants use over each store, all in parallel (reading the images is the cost);
     features already cached are kept, so this is quick on a resume."""
-    settings = sorted({features_of(encoder_setting(flags)): encoder_setting(flags)
-                       for _, flags in args.variant}.values())  # one per feature cache: no two writers of one
+    wanted = (encoder_setting(flags) for _, flags in args.variant)
+    settings = sorted({features_of(s): s for s in wanted}.values())  # one per feature cache: no two writers of one
     procs = []
     for k, setting in enumerate(settings):
         for s in SOURCES:
@@ -257,12 +257,12 @@ def main() -> int:
         entry.update(exported=done.returncode == 0, last_metrics=metrics[-1] if metrics else None)
         if done.returncode:
             print(f"export of {name} failed (exit {done.returncode})", file=sys.stderr, flush=True)
-    entry = {"episodes": counts, "seconds": seconds, "epochs": args.epochs, "workers": args.workers,
-             "resumed": resuming, "variants": variants}
+    record = {"episodes": counts, "seconds": seconds, "epochs": args.epochs, "workers": args.workers,
+              "resumed": resuming, "variants": variants}
     path = out / "summary.json"
     runs = json.loads(path.read_text())["runs"] if path.exists() else []
-    path.write_text(json.dumps({"runs": runs + [entry]}, indent=1))
-    print(json.dumps(entry), flush=True)
+    path.write_text(json.dumps({"runs": runs + [record]}, indent=1))
+    print(json.dumps(record), flush=True)
     return 0 if all(v["exported"] for v in variants.values()) else 1
 
 

@@ -41,6 +41,11 @@ def token_statistics(ckpt: str, data: list[Path], horizon: int):
     return sibling_statistics(model, groups, horizon, per="token"), group_phases(groups), cameras
 
 
+def in_phase(labels: list[str], phase: str) -> list[int]:
+    """The indices of the groups of ``phase`` (every group for ``"all"``)."""
+    return [i for i, p in enumerate(labels) if phase in (p, ALL)]
+
+
 def view_table(s: dict[str, torch.Tensor], labels: list[str], cameras, horizon: int
                ) -> dict[str, dict[str, dict[str, float]]]:
     """phase -> camera -> {share, sib_rel_hK, sib_gain_hK} from the per-token statistics ``s``."""
@@ -49,7 +54,7 @@ def view_table(s: dict[str, torch.Tensor], labels: list[str], cameras, horizon: 
     spread = s["spread"][:, -1]  # (G, V): how much the siblings' true outcomes differ, per view
     out: dict[str, dict[str, dict[str, float]]] = {}
     for phase in views[0]:  # the phases with groups, then "all"
-        mine = spread[[i for i, p in enumerate(labels) if phase in (p, ALL)]].sum(0)  # (V,)
+        mine = spread[in_phase(labels, phase)].sum(0)  # (V,)
         out[phase] = {cam: {"share": float(mine[v] / mine.sum().clamp_min(1e-12)),
                             **{k: views[v][phase][k] for k in (f"sib_rel_h{horizon}", f"sib_gain_h{horizon}")}}
                       for v, cam in enumerate(cameras)}
@@ -58,7 +63,7 @@ def view_table(s: dict[str, torch.Tensor], labels: list[str], cameras, horizon: 
 
 def token_grids(s: dict[str, torch.Tensor], labels: list[str], cameras, phase: str) -> dict[str, dict]:
     """camera -> {share, sib_gain}: (g, g) lists, row-major patch grid, of the groups in ``phase``."""
-    idx = [i for i, p in enumerate(labels) if phase in (p, ALL)]
+    idx = in_phase(labels, phase)
     if not idx:
         raise UserError(f"no branch group in phase {phase!r}; the store's phases: {', '.join(sorted(set(labels)))}")
     spread, cross = (s[k][idx, -1].sum(0) for k in ("spread", "cross"))  # (V, N)

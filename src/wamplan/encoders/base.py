@@ -129,16 +129,17 @@ def encoder_names() -> list[str]:
     return sorted(ENCODERS)
 
 
+def encoder_settings(name: str) -> list[str] | None:
+    """The settings the registered encoder ``name`` takes (None: any, its factory takes ``**kwargs``)."""
+    params = inspect.signature(ENCODERS.lookup(name)).parameters
+    return None if any(p.kind is p.VAR_KEYWORD for p in params.values()) else list(params)
+
+
 def make_encoder(name: str, **kwargs: Any) -> FrozenEncoder:
     """Build the registered encoder ``name`` (frozen, eval mode) with ``kwargs``; an unknown setting is a
     UserError naming the ones it takes."""
-    factory = ENCODERS.lookup(name)
-    params = inspect.signature(factory).parameters
-    if not any(p.kind is p.VAR_KEYWORD for p in params.values()):
-        unknown = sorted(set(kwargs) - set(params))
-        if unknown == ["path"]:
-            raise UserError(f"encoder {name} loads no weights: drop --encoder-path (it is for DINOv2/DINOv3)")
-        if unknown:
-            raise UserError(f"encoder {name} has no setting {', '.join(unknown)}; it takes "
-                            f"{', '.join(params) or 'none'}")
-    return factory(**kwargs).freeze()
+    takes = encoder_settings(name)
+    unknown = sorted(set(kwargs) - set(takes)) if takes is not None else []
+    if unknown:
+        raise UserError(f"encoder {name} has no setting {', '.join(unknown)}; it takes {', '.join(takes) or 'none'}")
+    return ENCODERS.lookup(name)(**kwargs).freeze()

@@ -48,7 +48,11 @@ def frozen_encoder(name: str, kwargs: dict[str, Any], path: str | None = None, d
     """The frozen encoder ``name`` (``path``: local weights for DINOv2/DINOv3) on ``device``."""
     from wamplan.device import resolve_device
     from wamplan.encoders import make_encoder
+    from wamplan.encoders.base import encoder_settings
 
+    takes = encoder_settings(name)
+    if path and takes is not None and "path" not in takes:
+        raise UserError(f"encoder {name} loads no weights: drop --encoder-path (it is for DINOv2/DINOv3)")
     kw = dict(kwargs, **({"path": path} if path else {}))
     return make_encoder(name, **kw).to(resolve_device(device))
 
