@@ -76,9 +76,11 @@ def test_sibling_batches_resume_where_they_stopped():
     assert resumed == whole[4:] and sorted(sum(whole[:3], [])) == sorted(set(sum(whole[:3], [])))  # a pass: no repeats
 
 
-def test_sibling_statistics_per_view_and_token_split_the_pooled_ones():
+def test_sibling_statistics_per_view_token_and_feature_split_the_pooled_ones():
     """Per view, each statistic is that view's share: the views' mean is the pooled figure (each view has as many
-    elements), and a sibling difference in one view's truth shows in that view's spread alone."""
+    elements), and a sibling difference in one view's truth shows in that view's spread alone; per token and per
+    feature, the mean over a view's tokens or features is the view's figure, and a difference in one feature shows
+    in that feature alone."""
     from wamplan.worldmodel.train import sibling_statistics
 
     torch.manual_seed(0)
@@ -89,14 +91,22 @@ def test_sibling_statistics_per_view_and_token_split_the_pooled_ones():
     ctx = torch.randn(1, 3, 3, 4, 8).expand(g, 3, 3, 4, 8)
     future = torch.randn(1, k, 3, 4, 8).repeat(g, 1, 1, 1, 1)  # (G, K, V, N, D): the same for every sibling
     future[0, :, 1] += 1.0  # but the first sibling differs from the others in view 1
+    future[0, :, 2, :, 5] += 1.0  # and in view 2's feature 5
     groups = [dict(z=torch.cat([ctx, future], 1), q=torch.randn(1, 3 + k, 10).expand(g, 3 + k, 10),
                    a=torch.rand(g, 3 + k, 20) * 2 - 1)]
     pooled = sibling_statistics(model, groups, k)
     views = sibling_statistics(model, groups, k, per="view")
     tokens = sibling_statistics(model, groups, k, per="token")
+    features = sibling_statistics(model, groups, k, per="feature")
     for name in pooled:
         assert views[name].shape == (1, k, 3) and tokens[name].shape == (1, k, 3, 4)
+        assert features[name].shape == (1, k, 3, 8)
         torch.testing.assert_close(views[name].mean(-1), pooled[name])
         torch.testing.assert_close(tokens[name].mean(-1), views[name], rtol=1e-5, atol=1e-6)  # a view: its tokens
+        torch.testing.assert_close(features[name].mean(-1), views[name], rtol=1e-5, atol=1e-6)  # and its features
     spread = views["spread"][0, -1]  # (V,)
-    assert float(spread[1]) > 0.1 and float(spread[0]) < 1e-12 and float(spread[2]) < 1e-12
+    assert float(spread[1]) > 0.1 and float(spread[0]) < 1e-12 and float(spread[2]) > 0.01
+    in_view2 = features["spread"][0, -1, 2]  # (D,)
+    assert float(in_view2[5]) > 0.1 and float(torch.cat([in_view2[:5], in_view2[6:]]).abs().max()) < 1e-12
+    with pytest.raises(ValueError, match="per must be one of"):
+        sibling_statistics(model, groups, k, per="pixel")

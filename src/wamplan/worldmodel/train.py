@@ -91,18 +91,26 @@ def window_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], hori
     return loss, logs
 
 
-SIBLING_SPLITS = {"group": 3, "view": 4, "token": 5}  # the dim of (B, G, K, V, N, D) from which elements are pooled
+SIBLING_SPLITS = ("group", "view", "token", "feature")  # how :func:`_sibling_errors` splits a group's elements
+
+
+def _pool_elements(x: torch.Tensor, per: str) -> torch.Tensor:
+    """(B, G, K, V, N, D) -> the mean over the siblings G and the elements of each part ``per`` splits into:
+    (B, K) a group, (B, K, V) a view, (B, K, V, N) a token, (B, K, V, D) a feature of a view (over its tokens)."""
+    if per == "feature":
+        return x.mean(dim=4).mean(dim=1)
+    return x.flatten({"group": 3, "view": 4, "token": 5}[per]).mean(dim=-1).mean(dim=1)
 
 
 def _sibling_errors(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int,
                     per: str = "group") -> dict[str, torch.Tensor]:
     """Per group of a batch of branch groups (z (B, G, T, V, N, D), ...), each (B, K), a mean over the siblings
     and elements (``per="view"``: each (B, K, V), a mean over the siblings and each view's elements;
-    ``per="token"``: each (B, K, V, N), over the siblings and each token's features): ``err`` the squared error of
+    ``per="token"``: each (B, K, V, N), over the siblings and each token's features; ``per="feature"``: each
+    (B, K, V, D), over the siblings and a view's tokens, feature by feature): ``err`` the squared error of
     the sibling-relative prediction, ``spread`` that of predicting no difference, ``cross`` the product of the
     predicted and true sibling differences (the gain: cross / spread), ``z_mse`` the siblings' plain latent error
     and ``copy_z_mse`` that of copying the current frame."""
-    start = SIBLING_SPLITS[per]
     b, g = batch["z"].shape[:2]
     flat = {k: batch[k].flatten(0, 1) for k in ("z", "q", "a")}  # (B G, T, ...)
     (zc, qc, ac), a_future, (zt, _) = _split(model, flat, horizon)
@@ -111,11 +119,9 @@ def _sibling_errors(model: WorldModelPredictor, batch: dict[str, torch.Tensor], 
     zp, zt, copy = (x.unflatten(0, (b, g)) for x in (zp, zt, copy))  # (B, G, K, V, N, D)
     dp, dt = zp - zp.mean(dim=1, keepdim=True), zt - zt.mean(dim=1, keepdim=True)  # relative to the group mean
 
-    def per_group(x: torch.Tensor) -> torch.Tensor:  # (B, G, K, V, N, D) -> (B, K) [, V [, N]]
-        return x.flatten(start).mean(dim=-1).mean(dim=1)
-
-    return {"err": per_group((dp - dt).pow(2)), "spread": per_group(dt.pow(2)), "cross": per_group(dp * dt),
-            "z_mse": per_group((zp - zt).pow(2)), "copy_z_mse": per_group((copy - zt).pow(2))}
+    return {"err": _pool_elements((dp - dt).pow(2), per), "spread": _pool_elements(dt.pow(2), per),
+            "cross": _pool_elements(dp * dt, per), "z_mse": _pool_elements((zp - zt).pow(2), per),
+            "copy_z_mse": _pool_elements((copy - zt).pow(2), per)}
 
 
 def sibling_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int,
@@ -137,8 +143,9 @@ def sibling_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], hor
 def sibling_statistics(model: WorldModelPredictor, groups: Dataset, horizon: int, batch_size: int = 8,
                        device: torch.device | None = None, per: str = "group") -> dict[str, torch.Tensor]:
     """Each statistic of :func:`_sibling_errors` for every group of ``groups``, (G_total, K) float64 on the CPU;
-    ``per="view"``: (G_total, K, V), each view's own; ``per="token"``: (G_total, K, V, N), each token's
-    (:func:`pool_siblings` pools one view's ``[..., v]`` or one token's ``[..., v, n]``)."""
+    ``per="view"``: (G_total, K, V), each view's own; ``per="token"``: (G_total, K, V, N), each token's;
+    ``per="feature"``: (G_total, K, V, D), each feature dimension's within a view (:func:`pool_siblings` pools one
+    view's ``[..., v]``, one token's ``[..., v, n]``; a sum over the last dim pools several)."""
     if per not in SIBLING_SPLITS:
         raise ValueError(f"per must be one of {', '.join(SIBLING_SPLITS)}, got {per!r}")
     device = device or next(model.parameters()).device
