@@ -20,7 +20,7 @@
    ``--train-seconds`` if it has not finished its epochs.
 4. Each checkpoint exported for inference in float16 (``OUT/export/NAME``, small enough to copy back), and
    ``OUT/summary.json``: one entry per invocation with the episodes per source, seconds per stage, and each
-   variant's flags, exit status and last metrics.
+   variant's flags, epochs it was set to, exit status and last metrics (the epoch it reached).
 
 Re-running the same command resumes: while a variant's run ``OUT/runs/NAME`` holds a checkpoint, collection and
 encoding are skipped (the trainings resume only on unchanged stores) and each training goes on from its
@@ -254,10 +254,12 @@ def main() -> int:
                                "export_for_inference(sys.argv[1], sys.argv[2])", str(run / "checkpoint"),
                                str(out / "export" / name)])
         metrics = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines() if line]
-        entry.update(exported=done.returncode == 0, last_metrics=metrics[-1] if metrics else None)
+        saved = json.loads((run / "checkpoint" / "config.json").read_text())["config"]["train"]
+        entry.update(exported=done.returncode == 0, last_metrics=metrics[-1] if metrics else None,
+                     epochs=saved["epochs"])  # the epochs it was set to (its own --epochs wins over the script's)
         if done.returncode:
             print(f"export of {name} failed (exit {done.returncode})", file=sys.stderr, flush=True)
-    record = {"episodes": counts, "seconds": seconds, "epochs": args.epochs, "workers": args.workers,
+    record = {"episodes": counts, "seconds": seconds, "default_epochs": args.epochs, "workers": args.workers,
               "resumed": resuming, "variants": variants}
     path = out / "summary.json"
     runs = json.loads(path.read_text())["runs"] if path.exists() else []
