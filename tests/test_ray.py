@@ -158,3 +158,18 @@ def test_backend_options():
         Backend("dask")
     with pytest.raises(ValueError, match="only for the ray backend"):
         Backend("processes", "auto")
+
+
+def test_worker_threads_split_the_cores_and_keep_under_omp_num_threads(monkeypatch):
+    """Process workers share the cores, and a user's OMP_NUM_THREADS caps each (jobs started side by side)."""
+    from wamplan.parallel import threads_per_worker
+
+    monkeypatch.setattr("os.cpu_count", lambda: 16)
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    assert [threads_per_worker(n) for n in (1, 2, 3, 16, 32)] == [16, 8, 5, 1, 1]
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    assert threads_per_worker(2) == 1
+    monkeypatch.setenv("OMP_NUM_THREADS", "4")
+    assert [threads_per_worker(n) for n in (1, 2, 8)] == [4, 4, 2]
+    monkeypatch.setenv("OMP_NUM_THREADS", "")  # unset-like values leave the even split
+    assert threads_per_worker(2) == 8

@@ -95,6 +95,14 @@ def _serve(make_worker: Callable[[], Callable[[T], R]], items: "mp.Queue", resul
         results.put(_Refused(e))
 
 
+def threads_per_worker(workers: int) -> int:
+    """torch threads for each of ``workers`` processes: the cores split evenly, and never more than the user's
+    ``OMP_NUM_THREADS`` (so several jobs started side by side with ``OMP_NUM_THREADS=1`` stay one thread each)."""
+    threads = max(1, (os.cpu_count() or 1) // max(1, workers))
+    cap = os.environ.get("OMP_NUM_THREADS", "").strip()
+    return min(threads, int(cap)) if cap.isdigit() and int(cap) > 0 else threads
+
+
 def imap_workers(make_worker: Callable[[], Callable[[T], R]], items: list[T], workers: int = 1,
                  backend: Backend = Backend()) -> Iterator[R]:
     """Yield ``work(item)`` for every item, computed by ``workers`` processes (inline when 1) or Ray actors."""
@@ -115,7 +123,7 @@ def imap_workers(make_worker: Callable[[], Callable[[T], R]], items: list[T], wo
         item_q.put(it)
     for _ in range(n):
         item_q.put(None)
-    threads = max(1, (os.cpu_count() or 1) // n)
+    threads = threads_per_worker(n)
     procs = [ctx.Process(target=_serve, args=(make_worker, item_q, res_q, os.getpid(), threads), daemon=True)
              for _ in range(n)]
     for p in procs:
