@@ -79,5 +79,7 @@ train adaln_change4 --action-conditioning adaln --change-weight 4 & a=$!; train 
 # the low-pass encoder and the sibling loss from scratch, then both
 train adaln_dct --action-conditioning adaln --encoder-kwargs '{"basis": "dct"}' & a=$!
 train adaln_sib4 --action-conditioning adaln --sibling-weight 4 & b=$!; both $a $b
-train adaln_dct_sib4 --action-conditioning adaln --encoder-kwargs '{"basis": "dct"}' --sibling-weight 4
+train adaln_dct_sib4 --action-conditioning adaln --encoder-kwargs '{"basis": "dct"}' --sibling-weight 4 & a=$!
+train adaln_dct_sib16 --action-conditioning adaln --encoder-kwargs '{"basis": "dct"}' --sibling-weight 16 & b=$!
+both $a $b
 echo "[$(date +%H:%M:%S)] done: $PY scripts/wm_variants_table.py $RUNS/*/bench.json"
