@@ -23,31 +23,16 @@ from pathlib import Path
 
 import torch
 
-from wamplan.data.features import feature_key
-from wamplan.data.readers import BranchGroups
 from wamplan.errors import UserError
-from wamplan.worldmodel.benchmark import ALL, PHASES, group_phases, pool_by_phase
-from wamplan.worldmodel.stores import encode_stores, stores_task
-from wamplan.worldmodel.train import load_world_model, sibling_statistics
+from wamplan.worldmodel.benchmark import ALL, PHASES, in_phase, load_benchmark, pool_by_phase
+from wamplan.worldmodel.train import sibling_statistics
 
 
 def split_statistics(ckpt: str, data: list[Path], horizon: int, per: str = "token"):
     """(statistics per token, each (G, K, V, N), or per feature, each (G, K, V, D); the groups' phase labels; the
     cameras) of one checkpoint."""
-    model, enc = load_world_model(ckpt)
-    _, cameras = stores_task(data)
-    encode_stores(data, enc)
-    groups = BranchGroups(data, model.cfg.frameskip, model.cfg.context, horizon, split="all",
-                          features=feature_key(enc.config_dict()))
-    if not len(groups):
-        raise UserError(f"{', '.join(map(str, data))} holds no counterfactual branch groups: score a store "
-                        f"collected with --branches (e.g. scripts/wm_benchmark_store.py)")
-    return sibling_statistics(model, groups, horizon, per=per), group_phases(groups), cameras
-
-
-def in_phase(labels: list[str], phase: str) -> list[int]:
-    """The indices of the groups of ``phase`` (every group for ``"all"``)."""
-    return [i for i, p in enumerate(labels) if phase in (p, ALL)]
+    model, groups, labels, cameras = load_benchmark(ckpt, data, horizon)
+    return sibling_statistics(model, groups, horizon, per=per), labels, cameras
 
 
 def view_table(s: dict[str, torch.Tensor], labels: list[str], cameras, horizon: int

@@ -110,3 +110,41 @@ def test_sibling_statistics_per_view_token_and_feature_split_the_pooled_ones():
     assert float(in_view2[5]) > 0.1 and float(torch.cat([in_view2[:5], in_view2[6:]]).abs().max()) < 1e-12
     with pytest.raises(ValueError, match="per must be one of"):
         sibling_statistics(model, groups, k, per="pixel")
+
+
+def test_rank_siblings_scores_a_planner_s_pick():
+    """Ranking by the true outcomes is perfect (rho 1, regret 0, top-1 1); the reversed order is the worst
+    (rho -1, the worst pick: regret above chance's 1); a shared offset in every prediction can reorder the
+    siblings, which is what removing the shared error undoes."""
+    from wamplan.worldmodel.train import _rank_siblings
+
+    torch.manual_seed(0)
+    true = torch.randn(5, 6, 12)  # (B, G, F)
+    best = _rank_siblings(true, true)
+    torch.testing.assert_close(best, torch.tensor([[1.0, 0.0, 1.0]] * 5, dtype=torch.float64))
+    line = torch.arange(6, dtype=torch.float64)[None, :, None] * torch.ones(1, 1, 3)  # siblings on a line
+    far = line[:, [5, 4, 3, 2, 1, 0]]  # each one predicted at its mirror image
+    worst = _rank_siblings(far, line)[0]
+    assert float(worst[0]) < 0 and float(worst[1]) > 1 and float(worst[2]) < 0.5
+    shifted = _rank_siblings(true + 3.0, true)  # the same offset for every sibling
+    assert float(shifted[:, 0].mean()) < 0.9
+
+
+def test_sibling_ranking_per_group_with_and_without_the_shared_error():
+    from wamplan.worldmodel.train import RANKING, sibling_ranking
+
+    torch.manual_seed(0)
+    cfg = PredictorConfig(num_patches=4, enc_dim=8, frameskip=4, context=3, depth=1, heads=2, head_dim=8,
+                          mlp_dim=16, proprio_emb=8, action_emb=8)
+    model = WorldModelPredictor(cfg).train()
+    g, k = 4, 2
+    groups = [dict(z=torch.cat([torch.randn(1, 3, 3, 4, 8).expand(g, 3, 3, 4, 8), torch.randn(g, k, 3, 4, 8)], 1),
+                   q=torch.randn(1, 3 + k, 10).expand(g, 3 + k, 10), a=torch.rand(g, 3 + k, 20) * 2 - 1)
+              for _ in range(3)]
+    r = sibling_ranking(model, groups, k)
+    assert model.training  # left as it was
+    assert set(r) == {*RANKING, *(f"{n}_sib" for n in RANKING)}
+    for name, v in r.items():
+        assert v.shape == (3,) and v.dtype == torch.float64
+        low, high = (-1.0, 1.0) if "rho" in name else (0.0, 1.0) if "top1" in name else (0.0, float("inf"))
+        assert bool(((v >= low - 1e-9) & (v <= high + 1e-9)).all()), name

@@ -33,12 +33,14 @@ import torch
 from torch.utils.data import Dataset
 
 from wamplan.data.alignment import NEAR, hole_position
+from wamplan.data.features import feature_key
 from wamplan.data.readers import BranchGroups
 from wamplan.data.store import EpisodeStore
 from wamplan.envs.spec import TaskSpec
 from wamplan.errors import UserError
 from wamplan.worldmodel.predictor import WorldModelPredictor
-from wamplan.worldmodel.train import pool_siblings, sibling_statistics
+from wamplan.worldmodel.stores import encode_stores, stores_task
+from wamplan.worldmodel.train import load_world_model, pool_siblings, sibling_statistics
 
 PHASES = ("grasp", "carry", "alignment", "descent")
 ALL = "all"
@@ -102,6 +104,27 @@ def store_fingerprint(root: str | Path) -> str:
             for key in ("actions", "proprio", "stages", "cube_pose", "tcp_pose", "image_steps"):
                 h.update(np.ascontiguousarray(f[key][:]).tobytes())
     return h.hexdigest()
+
+
+def load_benchmark(ckpt: str | Path, data: Sequence[Path], horizon: int
+                   ) -> tuple[WorldModelPredictor, BranchGroups, list[str], tuple[str, ...]]:
+    """A checkpoint's model (eval mode) and every branch group of the stores ``data`` in its encoder's features
+    (encoded first where missing), with the groups' phases and the stores' cameras; one line when the stores hold
+    no branch groups."""
+    model, enc = load_world_model(str(ckpt))
+    _, cameras = stores_task(list(data))
+    encode_stores(list(data), enc)
+    groups = BranchGroups(list(data), model.cfg.frameskip, model.cfg.context, horizon, split="all",
+                          features=feature_key(enc.config_dict()))
+    if not len(groups):
+        raise UserError(f"{', '.join(map(str, data))} holds no counterfactual branch groups: score a store "
+                        f"collected with --branches (e.g. scripts/wm_benchmark_store.py)")
+    return model.eval(), groups, group_phases(groups), tuple(cameras)
+
+
+def in_phase(labels: Sequence[str], phase: str) -> list[int]:
+    """The indices of the groups labelled ``phase`` (every group for ``"all"``)."""
+    return [i for i, p in enumerate(labels) if phase in (p, ALL)]
 
 
 def phase_counts(root: str | Path, frameskip: int = 4, history: int = 3, horizon: int = 4) -> dict[str, int]:

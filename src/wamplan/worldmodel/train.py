@@ -102,6 +102,72 @@ def _pool_elements(x: torch.Tensor, per: str) -> torch.Tensor:
     return x.flatten({"group": 3, "view": 4, "token": 5}[per]).mean(dim=-1).mean(dim=1)
 
 
+def _sibling_futures(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int
+                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A batch of branch groups (z (B, G, T, V, N, D), ...) -> the predicted, the true and the copied (current
+    frame) futures, each (B, G, K, V, N, D)."""
+    b, g = batch["z"].shape[:2]
+    flat = {k: batch[k].flatten(0, 1) for k in ("z", "q", "a")}  # (B G, T, ...)
+    (zc, qc, ac), a_future, (zt, _) = _split(model, flat, horizon)
+    zp, _ = model.rollout(zc, qc, ac, a_future)  # (B G, K, V, N, D)
+    copy = zc[:, -1:].expand_as(zt)  # (B G, K, V, N, D)
+    return tuple(x.unflatten(0, (b, g)) for x in (zp, zt, copy))  # type: ignore[return-value]
+
+
+def _ranks(x: torch.Tensor) -> torch.Tensor:
+    """Ranks (0 = smallest) along the last dim."""
+    return x.argsort(dim=-1).argsort(dim=-1).to(x.dtype)
+
+
+def _rank_siblings(pred: torch.Tensor, true: torch.Tensor) -> torch.Tensor:
+    """pred, true (B, G, F) outcomes of each group's G siblings -> (B, 3): Spearman's rho, the regret and the top-1
+    hit of ranking the other siblings by predicted cost to each sibling's true outcome in turn, means over the G
+    targets (see :func:`sibling_ranking`)."""
+    g = pred.shape[1]
+    p = torch.cdist(pred.double(), true.double()).pow(2)  # (B, i, j): predicted cost of sibling i to target j
+    r = torch.cdist(true.double(), true.double()).pow(2)  # (B, i, j): its true cost
+    out = []
+    for j in range(g):
+        others = [i for i in range(g) if i != j]
+        pj, rj = p[:, others, j], r[:, others, j]  # (B, G-1)
+        n = g - 1
+        rho = 1 - 6 * (_ranks(pj) - _ranks(rj)).pow(2).sum(-1) / (n * (n * n - 1))  # (B,)
+        best, pick = rj.min(dim=1).values, rj.gather(1, pj.argmin(dim=1, keepdim=True))[:, 0]  # (B,)
+        regret = (pick - best) / (rj.mean(dim=1) - best).clamp_min(1e-12)  # 0: the best; 1: a random pick on average
+        out.append(torch.stack([rho, regret, (pj.argmin(dim=1) == rj.argmin(dim=1)).double()], dim=-1))
+    return torch.stack(out, dim=1).mean(dim=1)  # (B, 3)
+
+
+RANKING = ("rank_rho", "rank_regret", "rank_top1")
+
+
+@torch.no_grad()
+def sibling_ranking(model: WorldModelPredictor, groups: Dataset, horizon: int, batch_size: int = 8,
+                    device: torch.device | None = None) -> dict[str, torch.Tensor]:
+    """How well the model ranks a group's siblings for a planner, per group (G_total,) float64 on the CPU.
+
+    Each sibling's true outcome K frames on is, in turn, the target; the other siblings are ranked by the squared
+    distance of their predicted outcome to it (the planner's cost) and compared with their true distance:
+    ``rank_rho`` (Spearman's rho of the two orders; 1 = the same order), ``rank_regret`` (the true cost of the
+    sibling the model picks above the best one's, over that of an average pick: 0 = it picks the best, 1 = no better
+    than chance) and ``rank_top1`` (it picks the best), each a mean over the targets. The same three with the
+    suffix ``_sib`` replace the predictions' group mean by the true one: the ranking if only how the prediction
+    moves with the chunk (what ``sib_rel_hK`` scores) counted, without the error the siblings share."""
+    device = device or next(model.parameters()).device
+    was_training = model.training
+    model.eval()
+    parts: list[torch.Tensor] = []
+    for batch in DataLoader(groups, batch_size=batch_size, shuffle=False):
+        zp, zt, _ = _sibling_futures(model, {k: v.to(device) for k, v in batch.items()}, horizon)
+        zp, zt = zp[:, :, -1].flatten(2), zt[:, :, -1].flatten(2)  # (B, G, V N D) at step K
+        shared_removed = zp - zp.mean(dim=1, keepdim=True) + zt.mean(dim=1, keepdim=True)
+        parts.append(torch.cat([_rank_siblings(zp, zt), _rank_siblings(shared_removed, zt)], dim=-1).cpu())
+    model.train(was_training)
+    x = torch.cat(parts)  # (G_total, 6)
+    names = [*RANKING, *(f"{n}_sib" for n in RANKING)]
+    return {n: x[:, i] for i, n in enumerate(names)}
+
+
 def _sibling_errors(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int,
                     per: str = "group") -> dict[str, torch.Tensor]:
     """Per group of a batch of branch groups (z (B, G, T, V, N, D), ...), each (B, K), a mean over the siblings
@@ -111,12 +177,7 @@ def _sibling_errors(model: WorldModelPredictor, batch: dict[str, torch.Tensor], 
     the sibling-relative prediction, ``spread`` that of predicting no difference, ``cross`` the product of the
     predicted and true sibling differences (the gain: cross / spread), ``z_mse`` the siblings' plain latent error
     and ``copy_z_mse`` that of copying the current frame."""
-    b, g = batch["z"].shape[:2]
-    flat = {k: batch[k].flatten(0, 1) for k in ("z", "q", "a")}  # (B G, T, ...)
-    (zc, qc, ac), a_future, (zt, _) = _split(model, flat, horizon)
-    zp, _ = model.rollout(zc, qc, ac, a_future)  # (B G, K, V, N, D)
-    copy = zc[:, -1:].expand_as(zt)  # (B G, K, V, N, D)
-    zp, zt, copy = (x.unflatten(0, (b, g)) for x in (zp, zt, copy))  # (B, G, K, V, N, D)
+    zp, zt, copy = _sibling_futures(model, batch, horizon)  # (B, G, K, V, N, D) each
     dp, dt = zp - zp.mean(dim=1, keepdim=True), zt - zt.mean(dim=1, keepdim=True)  # relative to the group mean
 
     return {"err": _pool_elements((dp - dt).pow(2), per), "spread": _pool_elements(dt.pow(2), per),
