@@ -9,6 +9,9 @@ WAM's predicted images (`worldmodel.train.sibling_ranking`). Per checkpoint and 
 of the predicted and true orders), ``rank_regret`` (0 = picks the best sibling, 1 = no better than chance) and
 ``rank_top1``; then the same with the predictions' group mean replaced by the true one (``*_sib``): how the ranking
 would be if only the error the siblings share were removed. ``sib_rel_hK`` scores only the latter part.
+``--wam CKPT`` ranks every group's siblings against that WAM's predicted views instead, queried on the group's
+boundary observation (the parent's stored images and proprio at the branch step) and encoded with each model's
+encoder: the planner's own target.
 """
 
 from __future__ import annotations
@@ -18,15 +21,39 @@ import json
 import sys
 from pathlib import Path
 
+import h5py
+import numpy as np
+import torch
+
+from wamplan.data.readers import BranchGroups
+from wamplan.encoders.base import FrozenEncoder
+from wamplan.envs.spec import Observation
 from wamplan.errors import UserError
+from wamplan.wam.base import WAM, load_wam
 from wamplan.worldmodel.benchmark import ALL, PHASES, in_phase, load_benchmark
-from wamplan.worldmodel.train import RANKING, sibling_ranking
+from wamplan.worldmodel.train import RANKING, load_world_model, sibling_ranking
 
 
-def ranking_table(ckpt: str, data: list[Path], horizon: int) -> dict[str, dict[str, float]]:
+def wam_targets(wam: WAM, groups: BranchGroups, encoder: FrozenEncoder, cameras) -> torch.Tensor:
+    """(G_total, V, N, D): the WAM's predicted views of each group's boundary, encoded (the planner's target)."""
+    out = []
+    for members in groups.items:
+        e = groups.episodes[members[0][0]]
+        boundary, start = e.branch_at  # type: ignore[misc]  # the parent's boundary, and its step at the branch's 0
+        k = list(e.image_steps).index(boundary - start)  # the stored frame at the boundary
+        with h5py.File(e.path, "r") as f:
+            obs = Observation(step=boundary, proprio=f["proprio"][boundary - start],
+                              images={c: f["images"][c][k] for c in cameras})
+        pred = wam.predict(obs, wam.default_instruction)
+        out.append(encoder.encode(np.stack([pred.images[c] for c in cameras])))  # (V, N, D)
+    return torch.stack(out)
+
+
+def ranking_table(ckpt: str, data: list[Path], horizon: int, wam: WAM | None = None) -> dict[str, dict[str, float]]:
     """phase (then "all") -> every figure of `sibling_ranking`, the mean over that phase's groups, and ``groups``."""
-    model, groups, labels, _ = load_benchmark(ckpt, data, horizon)
-    r = sibling_ranking(model, groups, horizon)
+    model, groups, labels, cameras = load_benchmark(ckpt, data, horizon)
+    targets = None if wam is None else wam_targets(wam, groups, load_world_model(ckpt)[1], cameras)
+    r = sibling_ranking(model, groups, horizon, targets=targets)
     out = {}
     for phase in (*PHASES, ALL):
         idx = in_phase(labels, phase)
@@ -40,13 +67,16 @@ def main() -> int:
     ap.add_argument("ckpt", nargs="+", help="predictor checkpoints or run directories")
     ap.add_argument("--data", required=True, help="episode stores with branch groups, comma separated")
     ap.add_argument("--horizon", type=int, default=4)
+    ap.add_argument("--wam", default=None,
+                    help="rank against this WAM checkpoint's predicted views (e.g. checkpoints/mini/tinywam)")
     ap.add_argument("--json", type=Path, default=None, help="also write every figure to this JSON file")
     args = ap.parse_args()
     data = [Path(d) for d in args.data.split(",") if d]
     tables = {}
     try:
+        wam = None if args.wam is None else load_wam(args.wam, device="cpu")
         for c in args.ckpt:
-            tables[c] = ranking_table(c, data, args.horizon)
+            tables[c] = ranking_table(c, data, args.horizon, wam)
     except UserError as e:
         print(f"wm_ranking: {e}", file=sys.stderr)
         return 2

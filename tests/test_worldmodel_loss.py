@@ -128,6 +128,10 @@ def test_rank_siblings_scores_a_planner_s_pick():
     assert float(worst[0]) < 0 and float(worst[1]) > 1 and float(worst[2]) < 0.5
     shifted = _rank_siblings(true + 3.0, true)  # the same offset for every sibling
     assert float(shifted[:, 0].mean()) < 0.9
+    target = torch.randn(5, 12)  # one target per group: every sibling ranked against it
+    torch.testing.assert_close(_rank_siblings(true, true, target), best)
+    beyond = torch.full((1, 3), -1.0)  # a target past sibling 0's end of the line
+    assert float(_rank_siblings(far, line, beyond)[0, 1]) > 1  # the mirrored predictions pick the farthest
 
 
 def test_sibling_ranking_per_group_with_and_without_the_shared_error():
@@ -143,6 +147,10 @@ def test_sibling_ranking_per_group_with_and_without_the_shared_error():
               for _ in range(3)]
     r = sibling_ranking(model, groups, k)
     assert model.training  # left as it was
+    own = sibling_ranking(model, groups, k, targets=torch.randn(3, 3, 4, 8))
+    assert set(own) == set(r) and all(v.shape == (3,) for v in own.values())
+    with pytest.raises(ValueError, match="2 targets for 3 groups"):
+        sibling_ranking(model, groups, k, targets=torch.randn(2, 3, 4, 8))
     assert set(r) == {*RANKING, *(f"{n}_sib" for n in RANKING)}
     for name, v in r.items():
         assert v.shape == (3,) and v.dtype == torch.float64

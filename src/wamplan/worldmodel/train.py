@@ -119,22 +119,32 @@ def _ranks(x: torch.Tensor) -> torch.Tensor:
     return x.argsort(dim=-1).argsort(dim=-1).to(x.dtype)
 
 
-def _rank_siblings(pred: torch.Tensor, true: torch.Tensor) -> torch.Tensor:
-    """pred, true (B, G, F) outcomes of each group's G siblings -> (B, 3): Spearman's rho, the regret and the top-1
-    hit of ranking the other siblings by predicted cost to each sibling's true outcome in turn, means over the G
-    targets (see :func:`sibling_ranking`)."""
+def _rank_scores(p: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
+    """Predicted and true costs (B, n) of n candidates -> (B, 3): Spearman's rho of the two orders, the regret (the
+    true cost of the predicted best above the best one's, over an average pick's: 0 = the best, 1 = chance) and the
+    top-1 hit."""
+    n = p.shape[1]
+    rho = 1 - 6 * (_ranks(p) - _ranks(r)).pow(2).sum(-1) / (n * (n * n - 1))  # (B,)
+    best, pick = r.min(dim=1).values, r.gather(1, p.argmin(dim=1, keepdim=True))[:, 0]  # (B,)
+    regret = (pick - best) / (r.mean(dim=1) - best).clamp_min(1e-12)
+    return torch.stack([rho, regret, (p.argmin(dim=1) == r.argmin(dim=1)).to(p.dtype)], dim=-1)
+
+
+def _rank_siblings(pred: torch.Tensor, true: torch.Tensor, target: torch.Tensor | None = None) -> torch.Tensor:
+    """pred, true (B, G, F) outcomes of each group's G siblings -> (B, 3) :func:`_rank_scores` of ranking them by
+    predicted cost (squared distance) to ``target`` (B, F); without one, of ranking the other siblings to each
+    sibling's true outcome in turn, the mean over the G targets (see :func:`sibling_ranking`)."""
+    pred, true = pred.double(), true.double()
+    if target is not None:
+        t = target.double()[:, None]  # (B, 1, F)
+        return _rank_scores((pred - t).pow(2).sum(-1), (true - t).pow(2).sum(-1))
     g = pred.shape[1]
-    p = torch.cdist(pred.double(), true.double()).pow(2)  # (B, i, j): predicted cost of sibling i to target j
-    r = torch.cdist(true.double(), true.double()).pow(2)  # (B, i, j): its true cost
+    p = torch.cdist(pred, true).pow(2)  # (B, i, j): predicted cost of sibling i to target j
+    r = torch.cdist(true, true).pow(2)  # (B, i, j): its true cost
     out = []
     for j in range(g):
         others = [i for i in range(g) if i != j]
-        pj, rj = p[:, others, j], r[:, others, j]  # (B, G-1)
-        n = g - 1
-        rho = 1 - 6 * (_ranks(pj) - _ranks(rj)).pow(2).sum(-1) / (n * (n * n - 1))  # (B,)
-        best, pick = rj.min(dim=1).values, rj.gather(1, pj.argmin(dim=1, keepdim=True))[:, 0]  # (B,)
-        regret = (pick - best) / (rj.mean(dim=1) - best).clamp_min(1e-12)  # 0: the best; 1: a random pick on average
-        out.append(torch.stack([rho, regret, (pj.argmin(dim=1) == rj.argmin(dim=1)).double()], dim=-1))
+        out.append(_rank_scores(p[:, others, j], r[:, others, j]))
     return torch.stack(out, dim=1).mean(dim=1)  # (B, 3)
 
 
@@ -143,11 +153,14 @@ RANKING = ("rank_rho", "rank_regret", "rank_top1")
 
 @torch.no_grad()
 def sibling_ranking(model: WorldModelPredictor, groups: Dataset, horizon: int, batch_size: int = 8,
-                    device: torch.device | None = None) -> dict[str, torch.Tensor]:
+                    device: torch.device | None = None, targets: torch.Tensor | None = None
+                    ) -> dict[str, torch.Tensor]:
     """How well the model ranks a group's siblings for a planner, per group (G_total,) float64 on the CPU.
 
-    Each sibling's true outcome K frames on is, in turn, the target; the other siblings are ranked by the squared
-    distance of their predicted outcome to it (the planner's cost) and compared with their true distance:
+    Each sibling's true outcome K frames on is, in turn, the target (or, with ``targets`` (G_total, V, N, D), each
+    group's own target, e.g. the WAM's predicted views at the boundary, encoded); the other siblings (all of them
+    with ``targets``) are ranked by the squared distance of their predicted outcome to it (the planner's cost) and
+    compared with their true distance:
     ``rank_rho`` (Spearman's rho of the two orders; 1 = the same order), ``rank_regret`` (the true cost of the
     sibling the model picks above the best one's, over that of an average pick: 0 = it picks the best, 1 = no better
     than chance) and ``rank_top1`` (it picks the best), each a mean over the targets. The same three with the
@@ -156,12 +169,17 @@ def sibling_ranking(model: WorldModelPredictor, groups: Dataset, horizon: int, b
     device = device or next(model.parameters()).device
     was_training = model.training
     model.eval()
+    if targets is not None and len(targets) != len(groups):  # type: ignore[arg-type]
+        raise ValueError(f"{len(targets)} targets for {len(groups)} groups")  # type: ignore[arg-type]
     parts: list[torch.Tensor] = []
+    done = 0
     for batch in DataLoader(groups, batch_size=batch_size, shuffle=False):
         zp, zt, _ = _sibling_futures(model, {k: v.to(device) for k, v in batch.items()}, horizon)
         zp, zt = zp[:, :, -1].flatten(2), zt[:, :, -1].flatten(2)  # (B, G, V N D) at step K
+        t = None if targets is None else targets[done:done + len(zp)].flatten(1).to(zp.device)  # (B, V N D)
+        done += len(zp)
         shared_removed = zp - zp.mean(dim=1, keepdim=True) + zt.mean(dim=1, keepdim=True)
-        parts.append(torch.cat([_rank_siblings(zp, zt), _rank_siblings(shared_removed, zt)], dim=-1).cpu())
+        parts.append(torch.cat([_rank_siblings(zp, zt, t), _rank_siblings(shared_removed, zt, t)], dim=-1).cpu())
     model.train(was_training)
     x = torch.cat(parts)  # (G_total, 6)
     names = [*RANKING, *(f"{n}_sib" for n in RANKING)]
