@@ -52,7 +52,17 @@ def wam_targets(wam: WAM, groups: BranchGroups, encoder: FrozenEncoder, cameras)
 def ranking_table(ckpt: str, data: list[Path], horizon: int, wam: WAM | None = None) -> dict[str, dict[str, float]]:
     """phase (then "all") -> every figure of `sibling_ranking`, the mean over that phase's groups, and ``groups``."""
     model, groups, labels, cameras = load_benchmark(ckpt, data, horizon)
-    targets = None if wam is None else wam_targets(wam, groups, load_world_model(ckpt)[1], cameras)
+    targets = None
+    if wam is not None:
+        steps = horizon * model.cfg.frameskip
+        if steps != wam.chunk_length:
+            raise UserError(f"the siblings are scored {steps} steps on (--horizon {horizon} x frameskip "
+                            f"{model.cfg.frameskip}) but the WAM predicts {wam.chunk_length} steps on; give --horizon "
+                            f"{wam.chunk_length // model.cfg.frameskip}")
+        missing = [c for c in cameras if c not in wam.cameras]
+        if missing:
+            raise UserError(f"the WAM predicts no view for the stores' cameras {missing}; use a WAM of this task")
+        targets = wam_targets(wam, groups, load_world_model(ckpt)[1], cameras)
     r = sibling_ranking(model, groups, horizon, targets=targets)
     out = {}
     for phase in (*PHASES, ALL):

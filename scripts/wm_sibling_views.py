@@ -10,7 +10,7 @@ definitions, `worldmodel/train.py`). A view with a large share and a low gain is
 ``--tokens PHASE`` also prints, for that phase, each view's patch grid: every token's share of the spread (of all
 views together) and the model's ``sib_gain_hK`` on that token alone. ``--bands PHASE`` prints, for that phase, the
 model's figures on each view's first K feature dimensions only (``--band-dims``): with the low-pass encoder
-(``{"basis": "dct"}``) the first K are a token's K lowest frequencies, so the table says how well the model follows
+(``{"basis": "dct"}``) the first K are a token's K/3 lowest frequencies (each in R, G and B), so the table says how well the model follows
 the chunk's effect on the coarse picture and how much of the spread the finer detail holds.
 """
 

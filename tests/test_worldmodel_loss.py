@@ -135,7 +135,7 @@ def test_rank_siblings_scores_a_planner_s_pick():
 
 
 def test_sibling_ranking_per_group_with_and_without_the_shared_error():
-    from wamplan.worldmodel.train import RANKING, sibling_ranking
+    from wamplan.worldmodel.train import RANKING, _rank_siblings, _sibling_futures, sibling_ranking
 
     torch.manual_seed(0)
     cfg = PredictorConfig(num_patches=4, enc_dim=8, frameskip=4, context=3, depth=1, heads=2, head_dim=8,
@@ -147,10 +147,23 @@ def test_sibling_ranking_per_group_with_and_without_the_shared_error():
               for _ in range(3)]
     r = sibling_ranking(model, groups, k)
     assert model.training  # left as it was
-    own = sibling_ranking(model, groups, k, targets=torch.randn(3, 3, 4, 8))
+    targets = torch.randn(3, 3, 4, 8)
+    own = sibling_ranking(model, groups, k, targets=targets)
     assert set(own) == set(r) and all(v.shape == (3,) for v in own.values())
+    small = sibling_ranking(model, groups, k, batch_size=2, targets=targets)  # targets sliced across batches
+    for name in own:
+        torch.testing.assert_close(small[name], own[name])
+    # group 2 by hand: its siblings ranked against its own target
+    model.eval()
+    with torch.no_grad():
+        zp, zt, _ = _sibling_futures(model, {n: x[None] for n, x in groups[2].items()}, k)
+    by_hand = _rank_siblings(zp[:, :, -1].flatten(2), zt[:, :, -1].flatten(2), targets[2].flatten()[None])[0]
+    torch.testing.assert_close(torch.stack([own[n][2] for n in RANKING]), by_hand)
     with pytest.raises(ValueError, match="2 targets for 3 groups"):
         sibling_ranking(model, groups, k, targets=torch.randn(2, 3, 4, 8))
+    pairs = [{n: x[:2] for n, x in grp.items()} for grp in groups]
+    with pytest.raises(ValueError, match="too few candidates"):
+        sibling_ranking(model, pairs, k)
     assert set(r) == {*RANKING, *(f"{n}_sib" for n in RANKING)}
     for name, v in r.items():
         assert v.shape == (3,) and v.dtype == torch.float64

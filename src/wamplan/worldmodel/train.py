@@ -173,14 +173,19 @@ def sibling_ranking(model: WorldModelPredictor, groups: Dataset, horizon: int, b
         raise ValueError(f"{len(targets)} targets for {len(groups)} groups")  # type: ignore[arg-type]
     parts: list[torch.Tensor] = []
     done = 0
-    for batch in DataLoader(groups, batch_size=batch_size, shuffle=False):
-        zp, zt, _ = _sibling_futures(model, {k: v.to(device) for k, v in batch.items()}, horizon)
-        zp, zt = zp[:, :, -1].flatten(2), zt[:, :, -1].flatten(2)  # (B, G, V N D) at step K
-        t = None if targets is None else targets[done:done + len(zp)].flatten(1).to(zp.device)  # (B, V N D)
-        done += len(zp)
-        shared_removed = zp - zp.mean(dim=1, keepdim=True) + zt.mean(dim=1, keepdim=True)
-        parts.append(torch.cat([_rank_siblings(zp, zt, t), _rank_siblings(shared_removed, zt, t)], dim=-1).cpu())
-    model.train(was_training)
+    try:
+        for batch in DataLoader(groups, batch_size=batch_size, shuffle=False):
+            g = batch["z"].shape[1]
+            if g < (2 if targets is not None else 3):
+                raise ValueError(f"groups of {g} siblings rank too few candidates; collect with --branches 3 or more")
+            zp, zt, _ = _sibling_futures(model, {k: v.to(device) for k, v in batch.items()}, horizon)
+            zp, zt = zp[:, :, -1].flatten(2), zt[:, :, -1].flatten(2)  # (B, G, V N D) at step K
+            t = None if targets is None else targets[done:done + len(zp)].flatten(1).to(zp.device)  # (B, V N D)
+            done += len(zp)
+            shared_removed = zp - zp.mean(dim=1, keepdim=True) + zt.mean(dim=1, keepdim=True)
+            parts.append(torch.cat([_rank_siblings(zp, zt, t), _rank_siblings(shared_removed, zt, t)], dim=-1).cpu())
+    finally:
+        model.train(was_training)
     x = torch.cat(parts)  # (G_total, 6)
     names = [*RANKING, *(f"{n}_sib" for n in RANKING)]
     return {n: x[:, i] for i, n in enumerate(names)}
