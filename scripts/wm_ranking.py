@@ -16,7 +16,6 @@ encoder: the planner's own target.
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from pathlib import Path
@@ -30,8 +29,8 @@ from wamplan.encoders.base import FrozenEncoder
 from wamplan.envs.spec import Observation
 from wamplan.errors import UserError
 from wamplan.wam.base import WAM, load_wam
-from wamplan.worldmodel.benchmark import ALL, PHASES, in_phase, load_benchmark
-from wamplan.worldmodel.train import RANKING, load_world_model, sibling_ranking
+from wamplan.worldmodel.benchmark import ALL, PHASES, benchmark_parser, in_phase, load_benchmark
+from wamplan.worldmodel.train import RANKING, sibling_ranking
 
 
 def wam_targets(wam: WAM, groups: BranchGroups, encoder: FrozenEncoder, cameras) -> torch.Tensor:
@@ -51,7 +50,7 @@ def wam_targets(wam: WAM, groups: BranchGroups, encoder: FrozenEncoder, cameras)
 
 def ranking_table(ckpt: str, data: list[Path], horizon: int, wam: WAM | None = None) -> dict[str, dict[str, float]]:
     """phase (then "all") -> every figure of `sibling_ranking`, the mean over that phase's groups, and ``groups``."""
-    model, groups, labels, cameras = load_benchmark(ckpt, data, horizon)
+    model, encoder, groups, labels, cameras = load_benchmark(ckpt, data, horizon)
     targets = None
     if wam is not None:
         steps = horizon * model.cfg.frameskip
@@ -62,7 +61,7 @@ def ranking_table(ckpt: str, data: list[Path], horizon: int, wam: WAM | None = N
         missing = [c for c in cameras if c not in wam.cameras]
         if missing:
             raise UserError(f"the WAM predicts no view for the stores' cameras {missing}; use a WAM of this task")
-        targets = wam_targets(wam, groups, load_world_model(ckpt)[1], cameras)
+        targets = wam_targets(wam, groups, encoder, cameras)
     r = sibling_ranking(model, groups, horizon, targets=targets)
     out = {}
     for phase in (*PHASES, ALL):
@@ -73,15 +72,12 @@ def ranking_table(ckpt: str, data: list[Path], horizon: int, wam: WAM | None = N
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("ckpt", nargs="+", help="predictor checkpoints or run directories")
-    ap.add_argument("--data", required=True, help="episode stores with branch groups, comma separated")
-    ap.add_argument("--horizon", type=int, default=4)
+    ap = benchmark_parser(__doc__.split("\n\n")[0])
     ap.add_argument("--wam", default=None,
                     help="rank against this WAM checkpoint's predicted views (e.g. checkpoints/mini/tinywam)")
     ap.add_argument("--json", type=Path, default=None, help="also write every figure to this JSON file")
     args = ap.parse_args()
-    data = [Path(d) for d in args.data.split(",") if d]
+    data = args.data
     tables = {}
     try:
         wam = None if args.wam is None else load_wam(args.wam, device="cpu")

@@ -16,7 +16,6 @@ the chunk's effect on the coarse picture and how much of the spread the finer de
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from pathlib import Path
@@ -24,14 +23,14 @@ from pathlib import Path
 import torch
 
 from wamplan.errors import UserError
-from wamplan.worldmodel.benchmark import ALL, PHASES, in_phase, load_benchmark, pool_by_phase
+from wamplan.worldmodel.benchmark import ALL, PHASES, benchmark_parser, in_phase, load_benchmark, pool_by_phase
 from wamplan.worldmodel.train import sibling_statistics
 
 
 def split_statistics(ckpt: str, data: list[Path], horizon: int, per: str = "token"):
     """(statistics per token, each (G, K, V, N), or per feature, each (G, K, V, D); the groups' phase labels; the
     cameras) of one checkpoint."""
-    model, groups, labels, cameras = load_benchmark(ckpt, data, horizon)
+    model, _, groups, labels, cameras = load_benchmark(ckpt, data, horizon)
     return sibling_statistics(model, groups, horizon, per=per), labels, cameras
 
 
@@ -85,10 +84,7 @@ def band_table(s: dict[str, torch.Tensor], labels: list[str], cameras, phase: st
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("ckpt", nargs="+", help="predictor checkpoints or run directories")
-    ap.add_argument("--data", required=True, help="episode stores with branch groups, comma separated")
-    ap.add_argument("--horizon", type=int, default=4)
+    ap = benchmark_parser(__doc__.split("\n\n")[0])
     ap.add_argument("--tokens", default=None, choices=(*PHASES, ALL), metavar="PHASE",
                     help="also each view's patch grid at this phase (grasp, carry, alignment, descent, all)")
     ap.add_argument("--bands", default=None, choices=(*PHASES, ALL), metavar="PHASE",
@@ -98,7 +94,7 @@ def main() -> int:
     ap.add_argument("--json", type=Path, default=None,
                     help="also write every figure to this JSON file ({views: ..., tokens: ..., bands: ...})")
     args = ap.parse_args()
-    data = [Path(d) for d in args.data.split(",") if d]
+    data = args.data
     try:
         dims = sorted({int(k) for k in args.band_dims.split(",") if k.strip()})
     except ValueError:

@@ -24,6 +24,7 @@ as ``wm eval``'s ``z_mse``) with ``copy_z_mse_hK`` (copying the current frame) f
 
 from __future__ import annotations
 
+import argparse
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -36,6 +37,7 @@ from wamplan.data.alignment import NEAR, hole_position
 from wamplan.data.features import feature_key
 from wamplan.data.readers import BranchGroups
 from wamplan.data.store import EpisodeStore
+from wamplan.encoders.base import FrozenEncoder
 from wamplan.envs.spec import TaskSpec
 from wamplan.errors import UserError
 from wamplan.worldmodel.predictor import WorldModelPredictor
@@ -106,11 +108,22 @@ def store_fingerprint(root: str | Path) -> str:
     return h.hexdigest()
 
 
+def benchmark_parser(description: str) -> argparse.ArgumentParser:
+    """A command line over checkpoints scored on branch-group stores: ``ckpt`` (one or more), ``--data`` (stores,
+    comma separated, parsed to a list of paths) and ``--horizon``; the caller adds its own options."""
+    ap = argparse.ArgumentParser(description=description)
+    ap.add_argument("ckpt", nargs="+", help="predictor checkpoints or run directories")
+    ap.add_argument("--data", required=True, type=lambda s: [Path(d) for d in s.split(",") if d],
+                    help="episode stores with branch groups, comma separated")
+    ap.add_argument("--horizon", type=int, default=4)
+    return ap
+
+
 def load_benchmark(ckpt: str | Path, data: Sequence[Path], horizon: int
-                   ) -> tuple[WorldModelPredictor, BranchGroups, list[str], tuple[str, ...]]:
-    """A checkpoint's model (eval mode) and every branch group of the stores ``data`` in its encoder's features
-    (encoded first where missing), with the groups' phases and the stores' cameras; one line when the stores hold
-    no branch groups."""
+                   ) -> tuple[WorldModelPredictor, FrozenEncoder, BranchGroups, list[str], tuple[str, ...]]:
+    """A checkpoint's model (eval mode) and encoder, and every branch group of the stores ``data`` in that
+    encoder's features (encoded first where missing), with the groups' phases and the stores' cameras; one line
+    when the stores hold no branch groups."""
     model, enc = load_world_model(str(ckpt))
     _, cameras = stores_task(list(data))
     encode_stores(list(data), enc)
@@ -119,7 +132,7 @@ def load_benchmark(ckpt: str | Path, data: Sequence[Path], horizon: int
     if not len(groups):
         raise UserError(f"{', '.join(map(str, data))} holds no counterfactual branch groups: score a store "
                         f"collected with --branches (e.g. scripts/wm_benchmark_store.py)")
-    return model.eval(), groups, group_phases(groups), tuple(cameras)
+    return model.eval(), enc, groups, group_phases(groups), tuple(cameras)
 
 
 def in_phase(labels: Sequence[str], phase: str) -> list[int]:
