@@ -106,3 +106,47 @@ def test_fidelity_cli_refuses_labels_that_collide_before_loading_anything(capsys
     assert "a appears twice" in capsys.readouterr().err
     assert main(base + ["--wm", f"x={wm},x+bias={wm}", "--bias-correction", "0.5"]) == 2
     assert "x+bias appears twice" in capsys.readouterr().err
+
+
+def test_each_models_own_plan_is_scored_and_one_model_can_drive_the_episode(env):
+    """plan=True runs each model's search at the scored boundaries without changing the states (the WAM's chunks
+    still run); execute=LABEL runs that model's plans to the episode's end, so later boundaries are other states."""
+    wam = load_wam("checkpoints/mini/tinywam", device="cpu")
+    model, enc = load_world_model("checkpoints/mini/wm_augmented")
+    models = [Scored("augmented", LearnedDynamics(model), enc)]
+    cfg = FidelityConfig(num_candidates=4, top_k=2, boundaries=(2, 3))
+    plain = run_fidelity(env, wam, models, [500], cfg)
+    planned = run_fidelity(env, wam, models, [500], dataclasses.replace(cfg, plan=True))
+    for a, b in zip(plain["records"], planned["records"]):
+        assert b["models"]["augmented"]["model_costs"] == pytest.approx(a["models"]["augmented"]["model_costs"])
+        assert "plan_gain" not in a["models"]["augmented"]
+        row = b["models"]["augmented"]
+        assert row["plan_beats_wam"] == float(row["plan_gain"] > 0)
+        assert row["plan_gain_ref"] == pytest.approx(row["plan_gain"])  # one model: its cost is the first's
+        assert len(b["task"]["cand_xy_mm"]) == 5  # the 4 candidates, then the plan
+        assert row["plan_xy_change_mm"] == pytest.approx(b["task"]["cand_xy_mm"][4] - b["task"]["cand_xy_mm"][0])
+    s = planned["summary"]["augmented"]
+    assert s["plans"] == 2 and s["plan_gain_mean"] == pytest.approx(
+        np.mean([r["models"]["augmented"]["plan_gain"] for r in planned["records"]]))
+    assert "its own search's plan" in format_fidelity(planned["summary"], 2)
+    assert plain["episodes"][0]["length"] == 3 * 16 + 1  # open loop: stopped after the last scored boundary
+    driven = run_fidelity(env, wam, models, [500], dataclasses.replace(cfg, execute="augmented"))
+    ep = driven["episodes"][0]
+    assert ep["success"] or ep["length"] == env.max_episode_steps  # its closed loop, to the end
+    assert ep["length"] > 3 * 16 + 1
+    first = driven["records"][0]["models"]["augmented"]
+    assert "plan_gain" in first  # the executed plan is scored, with plan=False too
+    # boundary 2 follows a planned chunk from boundary 1: the state differs from the open-loop episode's
+    assert first["model_costs"] != pytest.approx(plain["records"][0]["models"]["augmented"]["model_costs"])
+    with pytest.raises(ValueError, match="names no scored model"):
+        run_fidelity(env, wam, models, [500], dataclasses.replace(cfg, execute="other"))
+
+
+def test_fidelity_cli_checks_execute_and_oracle_blend_before_loading(capsys):
+    from wamplan.cli import main
+
+    base = ["wm", "fidelity", "--wam", "checkpoints/mini/tinywam", "--seeds", "500", "--wm", "a=/no/such/dir"]
+    assert main(base + ["--execute", "b"]) == 2
+    assert "--execute b names no --wm model" in capsys.readouterr().err
+    assert main(base + ["--oracle-blend", "1.5"]) == 2
+    assert "--oracle-blend 1.5 is outside (0, 1]" in capsys.readouterr().err

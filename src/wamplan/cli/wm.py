@@ -157,6 +157,15 @@ def _fidelity_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bias-correction", type=float, default=None, metavar="A",
                    help="also score every model with `eval --bias-correction A` (its error on the chunk just run "
                         "added to its predictions), as LABEL+bias; the same candidates, dynamics and references")
+    p.add_argument("--oracle-blend", type=float, default=None, metavar="W",
+                   help="also score the first --wm model with its predictions moved W of the way to the simulator's "
+                        "(as `eval --oracle-blend`; a diagnostic at the oracle's price), as LABEL@W")
+    p.add_argument("--plan", action="store_true",
+                   help="also run each model's own search (eval's default planner) at every scored boundary and score "
+                        "its plan in the simulator: the true-cost gain planning in that model buys there")
+    p.add_argument("--execute", default="", metavar="LABEL",
+                   help="run the episodes with this --wm model's plans (condition 7's closed loop, to the episode's "
+                        "end) instead of the WAM's chunks, so every model is scored at the states that model reaches")
     p.add_argument("--device", default="cpu", help=DEVICE_HELP)
     p.add_argument("--json", type=Path, default=None, help="also write every boundary's scores to this JSON file")
     p.set_defaults(func=cmd_fidelity)
@@ -347,7 +356,8 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
 
     cfg = FidelityConfig(num_candidates=args.candidates, sigma=args.sigma, noise_beta=args.noise_beta,
                          top_k=args.top_k,
-                         boundaries=tuple(_seed_list(args.boundaries, "--boundaries")), seed=args.sample_seed)
+                         boundaries=tuple(_seed_list(args.boundaries, "--boundaries")), seed=args.sample_seed,
+                         plan=args.plan, execute=args.execute)
     seeds = _seed_list(args.seeds)
     for seed in (min(seeds), max(seeds)):
         require_seeds(seed, flag="--seeds")
@@ -362,6 +372,15 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
     labels = [lab for lab, _ in specs]
     if args.bias_correction is not None:
         labels += [twin(lab) for lab in labels]
+    blend = f"{labels[0]}@{args.oracle_blend:g}" if args.oracle_blend is not None and labels else None
+    if blend:
+        if not 0 < args.oracle_blend <= 1:
+            raise UserError(f"--oracle-blend {args.oracle_blend:g} is outside (0, 1]; 0.25 removes a quarter of the "
+                            f"model's error on every candidate, 1 is the simulator")
+        labels.append(blend)
+    if args.execute and args.execute not in labels:
+        raise UserError(f"--execute {args.execute} names no --wm model; pass one of the labels {', '.join(labels)} "
+                        f"(name a model with LABEL=PATH)")
     dup = sorted(lab for lab, n in Counter(labels).items() if n > 1)
     if dup:
         raise UserError(f"--wm labels must differ (the corrected twins are LABEL+bias): {', '.join(dup)} appears "
@@ -381,11 +400,18 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
             raise UserError(f"--wm {path} was trained on task '{task}' but --wam {args.wam} acts in task "
                             f"'{wam.task.name}'; score world models of the WAM's task")
     env = TaskEnv(EnvConfig(task=wam.task.name, camera_size=args.camera_size))
+    if blend:  # the first model's dynamics shared, its prediction moved toward the simulator's with its encoder
+        from wamplan.planning.dynamics import BlendedDynamics, SimulatorDynamics
+
+        first = models[0]
+        models.append(Scored(blend, BlendedDynamics(first.dynamics, SimulatorDynamics(env, first.encoder),
+                                                    args.oracle_blend), first.encoder))
 
     def progress(seed, result, records):
         mine = [r for r in records if r["seed"] == seed]
         sp = {m.label: [round(r["models"][m.label]["spearman"], 2) for r in mine] for m in models}
-        print(f"seed {seed}: {len(mine)} boundaries, {result.length} steps, Spearman {sp}", flush=True)
+        run = f" ({args.execute}'s plans: {result.outcome})" if args.execute else ""
+        print(f"seed {seed}: {len(mine)} boundaries, {result.length} steps{run}, Spearman {sp}", flush=True)
 
     try:
         from wamplan.planning.costs import CostConfig
@@ -395,6 +421,9 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
     finally:
         env.close()
     print(format_fidelity(out["summary"], cfg.top_k))
+    if args.execute:
+        won = sum(e["success"] for e in out["episodes"])
+        print(f"{args.execute}'s closed loop: {won}/{len(out['episodes'])} episodes succeeded")
     if args.json:
         from wamplan.config import to_dict
 

@@ -11,7 +11,7 @@ are scored toward the WAM's own predicted views
 * in the simulator (``SimulatorDynamics`` with that model's own encoder and the same target), the
   "true" cost.
 
-Then the WAM's own chunk is executed, so the episode stays open loop. Per model and boundary:
+Then the WAM's own chunk is executed, so the episode stays open loop (unless ``execute``). Per model and boundary:
 Spearman rank correlation of the two cost vectors, overlap of the two top-k sets, whether the model's
 pick beats the WAM's chunk in the simulator (and how often a random sample does), the true-cost change
 of the model's pick and of the simulator's own best candidate, relative to the WAM's chunk, and the
@@ -20,6 +20,12 @@ record the cube's xy distance to the hole axis after it: whether the true cost i
 align the cube (Spearman of true cost against that distance, at boundaries where the cube is lifted), and
 how far the model's pick moves the cube relative to the WAM's chunk; a task that does not measure the
 cube's xy error (:data:`TASK_METRIC` among its metrics) is scored without it.
+
+With ``plan``, each model also runs its own search (the evaluation's default planner, as condition 7 plans) at
+every scored boundary, and the simulator scores that plan too: its true-cost gain over the WAM's chunk, in the
+model's encoder's cost and in the first model's (one yardstick across encoders), and the cube's xy change. With
+``execute`` = a model's label, the episode runs that model's plans instead of the WAM's chunks, to the episode's
+end: the boundaries are then the states its own closed loop reaches, and ``episodes`` records its outcomes.
 
 One WAM query per boundary feeds every policy (:class:`OnceWAM`), so a stochastic WAM cannot give the
 models different chunks or targets. Scoring in the simulator restores the boundary snapshot afterwards;
@@ -36,8 +42,9 @@ import numpy as np
 import torch
 
 from wamplan.config import field, require
-from wamplan.planning.base import IterationStats, PlanResult, candidate_noise
+from wamplan.planning.base import IterationStats, Planner, PlanResult, candidate_noise, make_planner
 from wamplan.planning.costs import CostFn, make_cost
+from wamplan.planning.defaults import DEFAULT_PLANNER
 from wamplan.planning.dynamics import Dynamics, SimulatorDynamics
 from wamplan.planning.policy import PlannedPolicy
 from wamplan.planning.policy_config import PlannedPolicyConfig
@@ -61,6 +68,11 @@ class FidelityConfig:
     seed: int = field(0, "base seed of the candidate samples")
     task_metric: bool = field(True, "also step every candidate without rendering (~2 s a boundary) and record the "
                                     "cube's xy distance to the hole axis after it (mm): what alignment needs")
+    plan: bool = field(False, "also run each model's own search (the evaluation's default planner) at every scored "
+                              "boundary and score its plan in the simulator: what planning in the model gains there")
+    execute: str = field("", "label of the model whose plans the episode executes, so the boundaries are the states "
+                             "its own closed loop (condition 7) reaches (its executed plans are scored as with plan); '' runs "
+                             "the WAM's chunks open loop")
 
     def __post_init__(self):
         require(self.num_candidates >= 2, f"num_candidates must be >= 2, got {self.num_candidates}")
@@ -133,6 +145,14 @@ def boundary_stats(model: torch.Tensor, true: torch.Tensor, k: int, shift: torch
                 true_spread=float(true.std(correction=0) / true.mean()), pick=pick)
 
 
+def plan_stats(plan: torch.Tensor, wam: torch.Tensor, plan_ref: torch.Tensor, wam_ref: torch.Tensor
+               ) -> dict[str, float]:
+    """A model's own plan against the WAM's chunk, both scored in the simulator: in the model's encoder's cost
+    (``plan``, ``wam``) and in the first model's (``*_ref``), one yardstick for models of different encoders."""
+    return dict(plan_gain=float((wam - plan) / wam), plan_beats_wam=float(plan < wam),
+                plan_gain_ref=float((wam_ref - plan_ref) / wam_ref))
+
+
 def task_stats(model: torch.Tensor, true: torch.Tensor, xy: torch.Tensor) -> dict[str, float]:
     """Costs (N,), (N,) against the cube's xy distance to the hole after each candidate, xy (N,) mm."""
     pick, sim_pick = int(torch.argmin(model.double())), int(torch.argmin(true.double()))
@@ -142,24 +162,41 @@ def task_stats(model: torch.Tensor, true: torch.Tensor, xy: torch.Tensor) -> dic
 
 
 class _Scorer:
-    """A 'planner' that scores the fixed candidates it is given (their first L actions) and returns the seed."""
+    """A 'planner' that scores the fixed candidates it is given (their first L actions) and returns the chunk the
+    driver executes: the seed (the WAM's chunk), ``execute`` when the driver set one, or with ``own`` its own
+    search's plan. With a ``planner`` and ``search`` set it also runs that search (the model's own plan, kept in
+    ``planned``)."""
 
     config = None
 
-    def __init__(self):
+    def __init__(self, planner: Planner | None = None):
+        self.planner = planner  # the model's own search (None: score the fixed candidates only)
         self.candidates: torch.Tensor | None = None  # (N, H, A), set by the driver before each boundary
         self.costs: torch.Tensor | None = None  # (N,) after plan()
+        self.search = False  # set by the driver: run the planner at this boundary
+        self.own = False  # set by the driver: return the planner's result (this model drives the episode)
+        self.execute: torch.Tensor | None = None  # (H, A) set by the driver: the chunk another model's plan runs
+        self.planned: torch.Tensor | None = None  # (L, A) the planner's plan at this boundary (None: no search)
 
     def for_task(self, task) -> _Scorer:
-        return self  # nothing of it depends on the task
+        if self.planner is not None:
+            self.planner = self.planner.for_task(task)  # the planner's task settings, as the planned policy's
+        return self
 
     def plan(self, seed_actions: torch.Tensor, objective, *, generator=None, seed=None) -> PlanResult:
         cands = self.candidates[:, :seed_actions.shape[0]].to(seed_actions.device)  # (N, L, A)
         costs = objective(cands).detach().double().cpu()  # (N,)
         self.costs = costs
+        self.planned = None
+        if self.search and self.planner is not None:
+            result = self.planner.plan(seed_actions, objective, generator=generator, seed=seed)
+            self.planned = result.actions.detach().cpu()  # (L, A)
+            if self.own:
+                return result
         c0, cmin = float(costs[0]), float(costs.min())
         stats = IterationStats(0, float(costs.mean()), cmin, cmin, c0, 0.0)
-        return PlanResult(actions=seed_actions.clone(), mean=seed_actions.clone(), std=torch.zeros_like(seed_actions),
+        run = seed_actions if self.execute is None else self.execute[:seed_actions.shape[0]].to(seed_actions)
+        return PlanResult(actions=run.clone(), mean=run.clone(), std=torch.zeros_like(run),
                           best_actions=cands[int(costs.argmin())], best_cost=cmin, history=[stats],
                           num_evaluations=len(cands))
 
@@ -188,7 +225,11 @@ class FidelityPolicy(Policy):
         self.task_metric = config.task_metric and TASK_METRIC in env.task.metrics
         cost = cost or make_cost("patch")
         self.labels = [m.label for m in models]
-        self.scorers = {m.label: _Scorer() for m in models}
+        if config.execute and config.execute not in self.labels:
+            raise ValueError(f"execute={config.execute!r} names no scored model; choose one of {self.labels}")
+        searching = {m.label for m in models if config.plan or m.label == config.execute}
+        self.scorers = {m.label: _Scorer(make_planner(DEFAULT_PLANNER) if m.label in searching else None)
+                        for m in models}
         self.policies = {m.label: PlannedPolicy(self.wam, self.scorers[m.label], m.dynamics, m.encoder, cost,
                                                 config=m.policy) for m in models}
         self.reference: dict[str, str] = {}  # label -> simulator reference key (one per distinct encoder)
@@ -223,40 +264,81 @@ class FidelityPolicy(Policy):
         t = obs.step
         scored = self._scored(t)
         if t % self.chunk == 0:
-            out = self.wam.predict(obs, self.wam.default_instruction)
-            chunk = np.clip(out.actions, -1, 1).astype(np.float32)  # (H, A)
-            self._queue = list(chunk)
-            base = torch.from_numpy(chunk)  # (H, A)
-            cands = base[None]  # (1, H, A): an unscored boundary only keeps every policy's history going
-            if scored:
-                g = torch.Generator().manual_seed(self.cfg.seed * 1_000_003 + self._seed * 1000 + t)
-                noise = candidate_noise((self.cfg.num_candidates - 1, *base.shape), g, base.device,
-                                        self.cfg.noise_beta)  # (N-1, H, A)
-                cands = torch.cat([base[None], (base + self.cfg.sigma * noise).clamp(-1, 1)])  # (N, H, A)
-            for s in self.scorers.values():
-                s.candidates, s.costs = cands, None
-        for p in self._all():  # every policy sees every step (its history frames); at a scored boundary it scores
+            self._queue = self._boundary(obs, scored)
+        else:
+            for p in self._all():  # every policy sees every step (its history frames)
+                p.act(obs)
+        return self._queue.pop(0)
+
+    def _boundary(self, obs: Observation, scored: bool) -> list[np.ndarray]:
+        """Build the candidates, let every policy score them (the models first, the executing one before the
+        others), record the scores at a scored boundary, and return the chunk to execute (H of (A,))."""
+        t = obs.step
+        out = self.wam.predict(obs, self.wam.default_instruction)
+        chunk = np.clip(out.actions, -1, 1).astype(np.float32)  # (H, A)
+        base = torch.from_numpy(chunk)  # (H, A)
+        cands = base[None]  # (1, H, A): an unscored boundary only keeps every policy's history going
+        if scored:
+            g = torch.Generator().manual_seed(self.cfg.seed * 1_000_003 + self._seed * 1000 + t)
+            noise = candidate_noise((self.cfg.num_candidates - 1, *base.shape), g, base.device,
+                                    self.cfg.noise_beta)  # (N-1, H, A)
+            cands = torch.cat([base[None], (base + self.cfg.sigma * noise).clamp(-1, 1)])  # (N, H, A)
+        for label, s in self.scorers.items():
+            s.candidates, s.costs, s.execute = cands, None, None
+            s.own = label == self.cfg.execute
+            s.search = s.own or (scored and self.cfg.plan)
+        executed = chunk
+        if self.cfg.execute:  # its policy decides the chunk; every other policy's history records that chunk
+            ex = self.policies[self.cfg.execute]
+            ex.act(obs)
+            executed = ex.last_decision.executed.astype(np.float32)  # (H, A)
+            for label, s in self.scorers.items():
+                s.execute = None if label == self.cfg.execute else torch.from_numpy(executed)
+        for label, p in self.policies.items():
+            if label != self.cfg.execute:
+                p.act(obs)
+        plans = {label: torch.cat([self.scorers[label].planned, base[self.scorers[label].planned.shape[0]:]])
+                 for label in self.labels if scored and self.scorers[label].planned is not None}  # label -> (H, A)
+        if plans:  # the simulator scores every model's plan after the fixed candidates
+            extended = torch.cat([cands, torch.stack(list(plans.values()))])  # (N + M, H, A)
+            for key in self.sim_policies:
+                self.scorers["sim:" + key].candidates = extended
+        for p in self.sim_policies.values():
             p.act(obs)
         if scored:
-            rec = dict(seed=self._seed, step=t, models={})
-            cands = self.scorers[self.labels[0]].candidates  # (N, H, A), the same for every scorer
+            self.records.append(self._score(t, cands, plans))
+        return list(executed)
+
+    def _score(self, t: int, cands: torch.Tensor, plans: dict[str, torch.Tensor]) -> dict[str, Any]:
+        """One scored boundary's record: per model, its costs of the N candidates against the simulator's, and
+        with ``plans`` (label -> (H, A)) each plan's true cost and gain over the WAM's chunk."""
+        n = len(cands)
+        rec = dict(seed=self._seed, step=t, models={})
+        first = "sim:" + self.reference[self.labels[0]]
+        for label in self.labels:
+            model = self.scorers[label].costs
+            true_all = self.scorers["sim:" + self.reference[label]].costs  # (N [+ M],)
+            true = true_all[:n]
+            covered = self.policies[label].dynamics.covered(self.chunk)  # the steps this model scores
+            shift = (cands - cands[:1])[:, :covered].sum(dim=1)[:, self.arm]  # (N, arm entries): end-point shift
+            d = self.policies[label].last_decision  # this boundary's
+            bias = {k: v for k, v in (("bias", d.bias), ("bias_left", d.bias_left)) if v is not None}
+            rec["models"][label] = dict(boundary_stats(model, true, self.cfg.top_k, shift), **bias,
+                                        model_costs=model.tolist(), true_costs=true.tolist())
+            if label in plans:
+                j = n + list(plans).index(label)
+                ref = self.scorers[first].costs
+                rec["models"][label].update(plan_stats(true_all[j], true[0], ref[j], ref[0]))
+        if self.task_metric:
+            rec["task"] = self._task(torch.cat([cands, *[p[None] for p in plans.values()]]))
+            xy = rec["task"]["cand_xy_mm"]
             for label in self.labels:
-                model = self.scorers[label].costs
-                true = self.scorers["sim:" + self.reference[label]].costs
-                n = self.policies[label].dynamics.covered(self.chunk)  # the steps this model scores
-                shift = (cands - cands[:1])[:, :n].sum(dim=1)[:, self.arm]  # (N, arm entries): the end-point shift
-                d = self.policies[label].last_decision  # this boundary's
-                bias = {k: v for k, v in (("bias", d.bias), ("bias_left", d.bias_left)) if v is not None}
-                rec["models"][label] = dict(boundary_stats(model, true, self.cfg.top_k, shift), **bias,
-                                            model_costs=model.tolist(), true_costs=true.tolist())
-            if self.task_metric:
-                rec["task"] = self._task(self.scorers[self.labels[0]].candidates)
-                for label in self.labels:
-                    rec["models"][label].update(task_stats(torch.tensor(rec["models"][label]["model_costs"]),
-                                                           torch.tensor(rec["models"][label]["true_costs"]),
-                                                           torch.tensor(rec["task"]["cand_xy_mm"])))
-            self.records.append(rec)
-        return self._queue.pop(0)
+                row = rec["models"][label]
+                row.update(task_stats(torch.tensor(row["model_costs"]), torch.tensor(row["true_costs"]),
+                                      torch.tensor(xy[:n])))
+                if label in plans:
+                    row["plan_xy_change_mm"] = float(xy[n + list(plans).index(label)] - xy[0])
+        return rec
 
     def _task(self, cands: torch.Tensor) -> dict[str, Any]:
         """Step each candidate (N, H, A) from the boundary state, state only; the state is restored after."""
@@ -282,17 +364,21 @@ class FidelityPolicy(Policy):
 
 def run_fidelity(env, wam: WAM, models: Sequence[Scored], seeds: Sequence[int], config: FidelityConfig | None = None,
                  progress=None, cost: CostFn | None = None) -> dict[str, Any]:
-    """Score every model at the ``boundaries`` of each seed's open-loop WAM episode that it reaches (the episode
-    stops after the last boundary's first step or at success). Returns {"records": [...], "summary": {...}}."""
+    """Score every model at the ``boundaries`` of each seed's episode that it reaches. The episode runs the WAM's
+    chunks open loop and stops after the last boundary's first step or at success; with ``config.execute`` it runs
+    that model's plans to the episode's end (its closed loop), and ``episodes`` records each one's outcome.
+    Returns {"records": [...], "summary": {...}, "episodes": [...]}."""
     from wamplan.policies.rollout import run_episode
 
     cfg = config or FidelityConfig()
     pol = FidelityPolicy(wam, models, env, cfg, cost=cost)
+    episodes = []
     for seed in seeds:
-        r = run_episode(env, pol, seed, max_steps=max(cfg.boundaries) * pol.chunk + 1)
+        r = run_episode(env, pol, seed, max_steps=None if cfg.execute else max(cfg.boundaries) * pol.chunk + 1)
+        episodes.append(dict(seed=seed, success=r.success, outcome=r.outcome, length=r.length))
         if progress is not None:
             progress(seed, r, pol.records)
-    return dict(records=pol.records, summary=summarize(pol.records, pol.labels, cfg))
+    return dict(records=pol.records, summary=summarize(pol.records, pol.labels, cfg), episodes=episodes)
 
 
 def _median(a: np.ndarray, p: float = 50) -> float:
@@ -319,7 +405,23 @@ def _aggregate(records: Sequence[dict[str, Any]], label: str, cfg: FidelityConfi
         out.update(lifted_boundaries=len(lifted), **{
             f"{k}_median": _median(np.array([row[k] for row in lifted], float)) for k in
             ("true_vs_xy", "model_vs_xy", "pick_xy_change_mm", "sim_pick_xy_change_mm", "best_xy_change_mm")})
+    planned = [row for row in rows if "plan_gain" in row]
+    if planned:
+        out.update(plans=len(planned), plan_beats_wam=mean(np.array([row["plan_beats_wam"] for row in planned])),
+                   **_mean_se("plan_gain", planned), **_mean_se("plan_gain_ref", planned))
+        moved = [row for row in lifted if "plan_xy_change_mm" in row]
+        if moved:
+            out.update(**_mean_se("plan_xy_change_mm", moved))
     return out
+
+
+def _mean_se(key: str, rows: Sequence[dict[str, Any]]) -> dict[str, float]:
+    """The mean of ``key`` over ``rows``, its standard error and median, as KEY_mean, KEY_se, KEY_median."""
+    a = np.array([row[key] for row in rows], float)
+    a = a[np.isfinite(a)]
+    se = float(a.std(ddof=1) / np.sqrt(len(a))) if len(a) > 1 else float("nan")
+    return {f"{key}_mean": float(a.mean()) if len(a) else float("nan"), f"{key}_se": se,
+            f"{key}_median": _median(a)}
 
 
 def summarize(records: Sequence[dict[str, Any]], labels: Sequence[str], cfg: FidelityConfig) -> dict[str, Any]:
@@ -359,4 +461,13 @@ def format_fidelity(summary: dict[str, Any], top_k: int = 8) -> str:
                          f"{s['pick_xy_change_mm_median']:+.1f}, simulator's pick "
                          f"{s['sim_pick_xy_change_mm_median']:+.1f}, "
                          f"best candidate {s['best_xy_change_mm_median']:+.1f}")
+    for label, s in rows:
+        if s.get("plans"):
+            label = label if "step" not in s else f"{label} step {s['step']}"
+            xy = (f"; the cube's xy change vs the WAM's chunk {s['plan_xy_change_mm_mean']:+.2f} "
+                  f"± {s['plan_xy_change_mm_se']:.2f} mm (lifted)" if "plan_xy_change_mm_mean" in s else "")
+            lines.append(f"{label}: its own search's plan, {s['plans']} boundaries: beats the WAM's chunk in the "
+                         f"simulator {s['plan_beats_wam']:.0%}; true-cost gain {s['plan_gain_mean']:+.2%} "
+                         f"± {s['plan_gain_se']:.2%} (median {s['plan_gain_median']:+.2%}), in the first model's "
+                         f"cost {s['plan_gain_ref_mean']:+.2%} ± {s['plan_gain_ref_se']:.2%}{xy}")
     return "\n".join(lines)
