@@ -150,3 +150,21 @@ def test_fidelity_cli_checks_execute_and_oracle_blend_before_loading(capsys):
     assert "--execute b names no --wm model" in capsys.readouterr().err
     assert main(base + ["--oracle-blend", "1.5"]) == 2
     assert "--oracle-blend 1.5 is outside (0, 1]" in capsys.readouterr().err
+
+
+def test_the_summary_pairs_each_models_plan_gain_with_the_first_models():
+    from wamplan.evaluation.fidelity import summarize
+
+    def row(gain):
+        return dict(spearman=0.5, top_overlap=0.5, pick_beats_wam=1.0, random_beats_wam=0.5, pick_gain=0.0,
+                    best_gain=0.1, true_spread=0.1, slope_cosine=0.5, plan_gain=gain, plan_beats_wam=float(gain > 0),
+                    plan_gain_ref=gain)
+
+    gains = [(0.02, 0.05), (0.04, 0.05), (-0.01, 0.03)]  # (first, second) at three boundaries
+    recs = [dict(seed=0, step=16 * (i + 1), models=dict(a=row(a), b=row(b))) for i, (a, b) in enumerate(gains)]
+    s = summarize(recs, ["a", "b"], FidelityConfig(num_candidates=4, top_k=2))
+    d = np.array([b - a for a, b in gains])
+    assert s["b"]["plan_gain_ref_vs_first_mean"] == pytest.approx(d.mean())
+    assert s["b"]["plan_gain_ref_vs_first_se"] == pytest.approx(d.std(ddof=1) / np.sqrt(3))
+    assert "plan_gain_ref_vs_first_mean" not in s["a"] and s["a"]["plan_beats_wam"] == pytest.approx(2 / 3)
+    assert "minus the first model's" in format_fidelity(s, 2)

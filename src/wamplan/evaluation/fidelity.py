@@ -409,6 +409,11 @@ def _aggregate(records: Sequence[dict[str, Any]], label: str, cfg: FidelityConfi
     if planned:
         out.update(plans=len(planned), plan_beats_wam=mean(np.array([row["plan_beats_wam"] for row in planned])),
                    **_mean_se("plan_gain", planned), **_mean_se("plan_gain_ref", planned))
+        first = [(row, r["models"][next(iter(r["models"]))]) for r, row in zip(records, rows)]
+        paired = [dict(d=row["plan_gain_ref"] - ref["plan_gain_ref"]) for row, ref in first
+                  if "plan_gain_ref" in row and "plan_gain_ref" in ref and row is not ref]
+        if paired:  # against the first model at the same boundaries: the paired difference and its error
+            out.update({k.replace("d_", "plan_gain_ref_vs_first_"): v for k, v in _mean_se("d", paired).items()})
         moved = [row for row in lifted if "plan_xy_change_mm" in row]
         if moved:
             out.update(**_mean_se("plan_xy_change_mm", moved))
@@ -469,5 +474,7 @@ def format_fidelity(summary: dict[str, Any], top_k: int = 8) -> str:
             lines.append(f"{label}: its own search's plan, {s['plans']} boundaries: beats the WAM's chunk in the "
                          f"simulator {s['plan_beats_wam']:.0%}; true-cost gain {s['plan_gain_mean']:+.2%} "
                          f"± {s['plan_gain_se']:.2%} (median {s['plan_gain_median']:+.2%}), in the first model's "
-                         f"cost {s['plan_gain_ref_mean']:+.2%} ± {s['plan_gain_ref_se']:.2%}{xy}")
+                         f"cost {s['plan_gain_ref_mean']:+.2%} ± {s['plan_gain_ref_se']:.2%}{xy}"
+                         + (f"; minus the first model's at the same boundaries {s['plan_gain_ref_vs_first_mean']:+.2%}"
+                            f" ± {s['plan_gain_ref_vs_first_se']:.2%}" if "plan_gain_ref_vs_first_mean" in s else ""))
     return "\n".join(lines)
