@@ -1,0 +1,81 @@
+"""Merge `wamplan wm fidelity --json` files of one model set (e.g. seeds split over processes) and print one row per
+model: its own plan's gain in the simulator, paired against the first model, with the ranking scores beside it.
+
+    python scripts/fidelity_table.py runs/fid41/screen_500-505.json runs/fid41/screen_506-511.json [--markdown]
+
+Every file must score the same models in the same order (the first is the reference of the paired column) with the
+same candidate settings; a boundary (seed, step) found in two files is one error line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+
+def load(paths: list[Path]) -> tuple[list[dict], list[str], dict]:
+    """(records, model labels, config) of the merged files."""
+    records, labels, config, seen = [], None, None, set()
+    for path in paths:
+        if not path.is_file():
+            sys.exit(f"error: {path} does not exist; pass files written by `wamplan wm fidelity --json`")
+        out = json.loads(path.read_text())
+        if not out.get("records"):
+            sys.exit(f"error: {path} holds no scored boundaries; pass files written by `wamplan wm fidelity --json`")
+        mine = list(out["records"][0]["models"])
+        if labels is not None and mine != labels:
+            sys.exit(f"error: {path} scores models {mine}, the first file {labels}; merge runs of one --wm list")
+        cfg = {k: v for k, v in out["config"].items() if k not in ("boundaries", "execute")}
+        if config is not None and cfg != config:
+            sys.exit(f"error: {path} was scored with other candidate settings ({cfg} against {config}); merge runs "
+                     f"of one setting")
+        for r in out["records"]:
+            key = (r["seed"], r["step"])
+            if key in seen:
+                sys.exit(f"error: seed {key[0]} step {key[1]} is in two files; merge runs of disjoint seeds")
+            seen.add(key)
+        records += out["records"]
+        labels, config = mine, cfg
+    return records, labels, config
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("files", nargs="+", type=Path, help="fidelity JSON files (wamplan wm fidelity --json)")
+    p.add_argument("--markdown", action="store_true", help="print a markdown table")
+    args = p.parse_args(argv)
+    from wamplan.evaluation.fidelity import FidelityConfig, summarize
+
+    records, labels, config = load(args.files)
+    cfg = FidelityConfig(num_candidates=config["num_candidates"], top_k=config["top_k"])
+    summary = summarize(records, labels, cfg)
+    if not all("plans" in summary[lab] for lab in labels):
+        sys.exit("error: some models have no scored plans; run `wamplan wm fidelity` with --plan")
+    seeds = sorted({r["seed"] for r in records})
+    print(f"{len(records)} boundaries, seeds {seeds[0]}-{seeds[-1]} ({len(seeds)}), steps "
+          f"{sorted({r['step'] for r in records})}; paired: minus {labels[0]}'s at the same boundaries")
+    head = ["model", "plan gain (%)", f"paired vs {labels[0]}", "mean - 2 SE", "plan beats WAM", "Spearman med",
+            "pick gain med"]
+    rows = []
+    for lab in labels:
+        s = summary[lab]
+        d, se = s.get("plan_gain_ref_vs_first_mean"), s.get("plan_gain_ref_vs_first_se")
+        rows.append([lab, f"{100 * s['plan_gain_ref_mean']:+.2f} ± {100 * s['plan_gain_ref_se']:.2f}",
+                     "—" if d is None else f"{100 * d:+.2f} ± {100 * se:.2f}",
+                     "—" if d is None else f"{100 * (d - 2 * se):+.2f}", f"{s['plan_beats_wam']:.0%}",
+                     f"{s['spearman_median']:.2f}", f"{100 * s['pick_gain_median']:+.1f}"])
+    if args.markdown:
+        print("| " + " | ".join(head) + " |\n|" + "---|" * len(head))
+        for r in rows:
+            print("| " + " | ".join(r) + " |")
+    else:
+        widths = [max(len(str(x)) for x in col) for col in zip(head, *rows)]
+        for r in [head, *rows]:
+            print("  ".join(str(x).ljust(w) for x, w in zip(r, widths)))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

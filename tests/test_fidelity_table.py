@@ -1,0 +1,52 @@
+"""scripts/fidelity_table.py: fidelity JSON files of split seeds merged into one paired table."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+SCRIPT = Path(__file__).parents[1] / "scripts" / "fidelity_table.py"
+
+
+@pytest.fixture(scope="module")
+def table():
+    spec = importlib.util.spec_from_file_location("fidelity_table", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _row(gain: float) -> dict:
+    return dict(spearman=0.5, top_overlap=0.5, pick_beats_wam=1.0, random_beats_wam=0.5, pick_gain=0.0, best_gain=0.1,
+                true_spread=0.1, slope_cosine=0.5, plan_gain=gain, plan_beats_wam=float(gain > 0), plan_gain_ref=gain)
+
+
+def _write(path: Path, seed: int, gains: list[tuple[float, float]], labels=("a", "b")) -> Path:
+    recs = [dict(seed=seed, step=16 * (i + 1), models={labels[0]: _row(x), labels[1]: _row(y)})
+            for i, (x, y) in enumerate(gains)]
+    path.write_text(json.dumps(dict(records=recs, config=dict(num_candidates=4, top_k=2, boundaries=[1, 2]))))
+    return path
+
+
+def test_split_runs_merge_into_one_paired_row(table, tmp_path, capsys):
+    one = _write(tmp_path / "one.json", 500, [(0.02, 0.05), (0.04, 0.05)])
+    two = _write(tmp_path / "two.json", 501, [(-0.01, 0.03), (0.00, 0.04)])
+    assert table.main([str(one), str(two), "--markdown"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("4 boundaries, seeds 500-501 (2)")
+    row = next(line for line in out.splitlines() if line.startswith("| b |"))
+    assert "+3.00 ± 0.71" in row  # the paired differences 3, 1, 4, 4 points: mean 3, SD 1.41, SE 0.71
+
+
+def test_overlapping_or_mismatched_files_are_one_line(table, tmp_path):
+    one = _write(tmp_path / "one.json", 500, [(0.02, 0.05)])
+    with pytest.raises(SystemExit, match="seed 500 step 16 is in two files"):
+        table.main([str(one), str(one)])
+    other = _write(tmp_path / "other.json", 501, [(0.02, 0.05)], labels=("a", "c"))
+    with pytest.raises(SystemExit, match="scores models"):
+        table.main([str(one), str(other)])
+    with pytest.raises(SystemExit, match="does not exist"):
+        table.main([str(tmp_path / "none.json")])
