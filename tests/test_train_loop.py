@@ -235,3 +235,22 @@ def test_reproduce_calls_match_their_printed_commands(tmp_path, preset):
                 assert args.max_steps == kw["max_steps"] and args.policy == kw["policy"]
     names = [s.name for s in stages]
     assert names[-2:] == ["evaluate", "report"] and len(stages[names.index("evaluate")].calls) == 2
+
+
+def test_evaluating_restores_the_mode_the_model_had_even_on_an_error():
+    from torch import nn
+
+    from wamplan.train_loop import evaluating
+
+    net = nn.Sequential(nn.Linear(2, 2), nn.Dropout(0.5))
+    with evaluating(net) as m:
+        assert m is net and not net.training and not net[1].training
+    assert net.training  # it was training
+    with pytest.raises(RuntimeError, match="boom"):
+        with evaluating(net):
+            raise RuntimeError("boom")
+    assert net.training
+    net.eval()
+    with evaluating(net):
+        pass
+    assert not net.training  # an eval-mode model stays in eval mode

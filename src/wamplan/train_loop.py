@@ -26,9 +26,10 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterable, Protocol, Sequence
+from typing import Any, Callable, Iterable, Iterator, Protocol, Sequence
 
 import torch
 from torch import nn
@@ -333,10 +334,8 @@ def fit(model: nn.Module, batches: Batches, step_fn: StepFn, cfg: LoopConfig, *,
                        "lr": sched.get_last_lr()[0], **{f"train/{k}": v / max(1, count) for k, v in sums.items()},
                        "samples_per_s": seen / max(1e-9, time.perf_counter() - t0)}
             if evaluate is not None:
-                model.eval()
-                with torch.no_grad():
+                with evaluating(model), torch.no_grad():
                     metrics.update({f"val/{k}": v for k, v in evaluate(model).items()})
-                model.train()
             write(metrics)
             save()
             say(f"{desc} epoch {epoch + 1}: " + " ".join(f"{k}={v:.4g}" for k, v in metrics.items()
@@ -348,3 +347,15 @@ def fit(model: nn.Module, batches: Batches, step_fn: StepFn, cfg: LoopConfig, *,
         say(f"interrupted: checkpoint saved at step {state['global_step']}; re-run the same command to resume")
         raise
     return FitResult(dict(state), metrics, read_metrics(run, "epoch"))
+
+
+@contextmanager
+def evaluating(model: nn.Module) -> Iterator[nn.Module]:
+    """``model`` in eval mode inside the block (validation, scoring); the mode it had is restored after, on an
+    error too."""
+    was_training = model.training
+    model.eval()
+    try:
+        yield model
+    finally:
+        model.train(was_training)

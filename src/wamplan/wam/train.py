@@ -31,7 +31,7 @@ from wamplan.checkpoint import CONFIG_FILE, CheckpointError, has_training_state,
 from wamplan.config import field, from_dict, require, to_dict, with_default
 from wamplan.device import resolve_device
 from wamplan.errors import UserError
-from wamplan.train_loop import (LoopConfig, check_resume, check_run_dir, fit, read_metrics, run_paths,
+from wamplan.train_loop import (LoopConfig, check_resume, check_run_dir, evaluating, fit, read_metrics, run_paths,
                                 saved_progress)
 from wamplan.wam.tinywam import KIND, TinyWAMConfig, TinyWAMNet, to_model_frames
 
@@ -164,21 +164,19 @@ def evaluate(net: TinyWAMNet, items: WAMItems, batch_size: int = 64, gripper: in
     MSE of the clamped prediction, and the image MSE of the copy-the-current-view baseline (what a model that
     predicts no motion would get)."""
     device = next(net.parameters()).device
-    was_training = net.training
-    net.eval()
     sums = {"action_mse": 0.0, **({"gripper_mse": 0.0} if gripper is not None else {}), "image_mse": 0.0,
             "copy_image_mse": 0.0}
-    for start in range(0, len(items), batch_size):
-        idx = torch.arange(start, min(start + batch_size, len(items)))
-        b = make_batch(items, idx, device)
-        actions, future = net(b["images"], b["proprio"])  # (B, H, A), (B, V, 3, S, S)
-        n = len(idx)
-        sums["action_mse"] += float(F.mse_loss(actions, b["actions"])) * n
-        if gripper is not None:
-            sums["gripper_mse"] += float(F.mse_loss(actions[..., gripper], b["actions"][..., gripper])) * n
-        sums["image_mse"] += float(F.mse_loss(future.clamp(0, 1), b["future"])) * n
-        sums["copy_image_mse"] += float(F.mse_loss(b["images"], b["future"])) * n
-    net.train(was_training)
+    with evaluating(net):
+        for start in range(0, len(items), batch_size):
+            idx = torch.arange(start, min(start + batch_size, len(items)))
+            b = make_batch(items, idx, device)
+            actions, future = net(b["images"], b["proprio"])  # (B, H, A), (B, V, 3, S, S)
+            n = len(idx)
+            sums["action_mse"] += float(F.mse_loss(actions, b["actions"])) * n
+            if gripper is not None:
+                sums["gripper_mse"] += float(F.mse_loss(actions[..., gripper], b["actions"][..., gripper])) * n
+            sums["image_mse"] += float(F.mse_loss(future.clamp(0, 1), b["future"])) * n
+            sums["copy_image_mse"] += float(F.mse_loss(b["images"], b["future"])) * n
     return {k: v / max(1, len(items)) for k, v in sums.items()}
 
 

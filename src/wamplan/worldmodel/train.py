@@ -37,7 +37,7 @@ from wamplan.config import from_dict, to_dict
 from wamplan.device import resolve_device
 from wamplan.envs.spec import TaskSpec
 from wamplan.errors import UserError
-from wamplan.train_loop import DatasetBatches, fit, saved_progress
+from wamplan.train_loop import DatasetBatches, evaluating, fit, saved_progress
 from wamplan.envs.spec import DEFAULT_TASK as LEGACY_TASK
 from wamplan.worldmodel.config import PredictorConfig, TrainConfig
 from wamplan.worldmodel.predictor import WorldModelPredictor
@@ -167,13 +167,11 @@ def sibling_ranking(model: WorldModelPredictor, groups: Dataset, horizon: int, b
     suffix ``_sib`` replace the predictions' group mean by the true one: the ranking if only how the prediction
     moves with the chunk (what ``sib_rel_hK`` scores) counted, without the error the siblings share."""
     device = device or next(model.parameters()).device
-    was_training = model.training
-    model.eval()
     if targets is not None and len(targets) != len(groups):  # type: ignore[arg-type]
         raise ValueError(f"{len(targets)} targets for {len(groups)} groups")  # type: ignore[arg-type]
     parts: list[torch.Tensor] = []
     done = 0
-    try:
+    with evaluating(model):
         for batch in DataLoader(groups, batch_size=batch_size, shuffle=False):
             g = batch["z"].shape[1]
             if g < (2 if targets is not None else 3):
@@ -184,8 +182,6 @@ def sibling_ranking(model: WorldModelPredictor, groups: Dataset, horizon: int, b
             done += len(zp)
             shared_removed = zp - zp.mean(dim=1, keepdim=True) + zt.mean(dim=1, keepdim=True)
             parts.append(torch.cat([_rank_siblings(zp, zt, t), _rank_siblings(shared_removed, zt, t)], dim=-1).cpu())
-    finally:
-        model.train(was_training)
     x = torch.cat(parts)  # (G_total, 6)
     names = [*RANKING, *(f"{n}_sib" for n in RANKING)]
     return {n: x[:, i] for i, n in enumerate(names)}
@@ -233,13 +229,11 @@ def sibling_statistics(model: WorldModelPredictor, groups: Dataset, horizon: int
     if per not in SIBLING_SPLITS:
         raise ValueError(f"per must be one of {', '.join(SIBLING_SPLITS)}, got {per!r}")
     device = device or next(model.parameters()).device
-    was_training = model.training
-    model.eval()
     parts: dict[str, list[torch.Tensor]] = {}
-    for batch in DataLoader(groups, batch_size=batch_size, shuffle=False):
-        for k, v in _sibling_errors(model, {k: v.to(device) for k, v in batch.items()}, horizon, per).items():
-            parts.setdefault(k, []).append(v.double().cpu())  # (B, K) [, V [, N]]
-    model.train(was_training)
+    with evaluating(model):
+        for batch in DataLoader(groups, batch_size=batch_size, shuffle=False):
+            for k, v in _sibling_errors(model, {k: v.to(device) for k, v in batch.items()}, horizon, per).items():
+                parts.setdefault(k, []).append(v.double().cpu())  # (B, K) [, V [, N]]
     return {k: torch.cat(v) for k, v in parts.items()}
 
 
@@ -272,21 +266,19 @@ def evaluate_predictor(model: WorldModelPredictor, dataset: Dataset, horizon: in
                        batch_size: int = 64, device: torch.device | None = None) -> dict[str, float]:
     """Per-horizon MSEs of the model and of the copy-the-last-context-frame baseline, and the loss."""
     device = device or next(model.parameters()).device
-    was_training = model.training
-    model.eval()
     sums: dict[str, torch.Tensor] = {}
     count = 0
-    for batch in DataLoader(dataset, batch_size=batch_size, shuffle=False):
-        batch = {k: v.to(device) for k, v in batch.items()}
-        (zc, qc, ac), a_future, (zt, qt) = _split(model, batch, horizon)
-        zp, qp = model.rollout(zc, qc, ac, a_future)  # (B, K, V, N, D), (B, K, P)
-        parts = {"z_mse": per_horizon_mse(zp, zt), "q_mse": per_horizon_mse(qp, qt),
-                 "copy_z_mse": per_horizon_mse(zc[:, -1:].expand_as(zt), zt),
-                 "copy_q_mse": per_horizon_mse(qc[:, -1:].expand_as(qt), qt)}  # each (B, K)
-        for k, v in parts.items():
-            sums[k] = sums.get(k, 0) + v.sum(dim=0).double()  # (K,)
-        count += zc.shape[0]
-    model.train(was_training)
+    with evaluating(model):
+        for batch in DataLoader(dataset, batch_size=batch_size, shuffle=False):
+            batch = {k: v.to(device) for k, v in batch.items()}
+            (zc, qc, ac), a_future, (zt, qt) = _split(model, batch, horizon)
+            zp, qp = model.rollout(zc, qc, ac, a_future)  # (B, K, V, N, D), (B, K, P)
+            parts = {"z_mse": per_horizon_mse(zp, zt), "q_mse": per_horizon_mse(qp, qt),
+                     "copy_z_mse": per_horizon_mse(zc[:, -1:].expand_as(zt), zt),
+                     "copy_q_mse": per_horizon_mse(qc[:, -1:].expand_as(qt), qt)}  # each (B, K)
+            for k, v in parts.items():
+                sums[k] = sums.get(k, 0) + v.sum(dim=0).double()  # (K,)
+            count += zc.shape[0]
     w = gamma ** torch.arange(horizon, dtype=torch.float64)
     out: dict[str, float] = {}
     for k, v in sums.items():
