@@ -41,10 +41,38 @@ def load(paths: list[Path]) -> tuple[list[dict], list[str], dict]:
     return records, labels, config
 
 
+def plot_by_step(summary: dict, drawn: list[str], first: str, out: Path) -> Path:
+    """Each drawn model's paired plan gain over ``first`` per boundary step (mean ± SE), one line a model."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from wamplan.plot import save_figure
+
+    fig, ax = plt.subplots(figsize=(6.4, 3.6))
+    for i, lab in enumerate(drawn):
+        steps = sorted(summary[lab]["by_step"], key=int)
+        rows = [summary[lab]["by_step"][s] for s in steps]
+        x = [int(s) + (i - (len(drawn) - 1) / 2) * 1.5 for s in steps]  # a small offset keeps the bars apart
+        ax.errorbar(x, [100 * r.get("plan_gain_ref_vs_first_mean", float("nan")) for r in rows],
+                    yerr=[100 * r.get("plan_gain_ref_vs_first_se", float("nan")) for r in rows], marker="o",
+                    capsize=3, label=lab)
+    ax.axhline(0, color="grey", lw=0.8)
+    ax.set_xlabel("chunk boundary (step)")
+    ax.set_ylabel(f"plan gain minus {first}'s (points)")
+    ax.set_title("the plan's true-cost gain in the simulator, paired per boundary", fontsize=9)
+    ax.legend(fontsize=7)
+    return save_figure(fig, out)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("files", nargs="+", type=Path, help="fidelity JSON files (wamplan wm fidelity --json)")
     p.add_argument("--markdown", action="store_true", help="print a markdown table")
+    p.add_argument("--plot", type=Path, default=None, metavar="PNG",
+                   help="also draw each model's paired plan gain against the first model per boundary step")
+    p.add_argument("--models", default="", help="comma-separated labels to draw (default: all but the first)")
     args = p.parse_args(argv)
     from wamplan.evaluation.fidelity import FidelityConfig, summarize
 
@@ -66,6 +94,12 @@ def main(argv: list[str] | None = None) -> int:
                      "—" if d is None else f"{100 * d:+.2f} ± {100 * se:.2f}",
                      "—" if d is None else f"{100 * (d - 2 * se):+.2f}", f"{s['plan_beats_wam']:.0%}",
                      f"{s['spearman_median']:.2f}", f"{100 * s['pick_gain_median']:+.1f}"])
+    if args.plot:
+        drawn = [m for m in args.models.split(",") if m] or labels[1:]
+        unknown = sorted(set(drawn) - set(labels))
+        if unknown:
+            sys.exit(f"error: --models {', '.join(unknown)} not among the files' models {labels}")
+        print(f"wrote {plot_by_step(summary, drawn, labels[0], args.plot)}")
     if args.markdown:
         print("| " + " | ".join(head) + " |\n|" + "---|" * len(head))
         for r in rows:

@@ -50,3 +50,11 @@ def test_overlapping_or_mismatched_files_are_one_line(table, tmp_path):
         table.main([str(one), str(other)])
     with pytest.raises(SystemExit, match="does not exist"):
         table.main([str(tmp_path / "none.json")])
+
+
+def test_the_plot_draws_the_named_models_and_refuses_unknown_ones(table, tmp_path, capsys):
+    one = _write(tmp_path / "one.json", 500, [(0.02, 0.05), (0.04, 0.05)])
+    assert table.main([str(one), "--plot", str(tmp_path / "g.png")]) == 0
+    assert (tmp_path / "g.png").stat().st_size > 0 and "wrote" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match="--models z not among"):
+        table.main([str(one), "--plot", str(tmp_path / "h.png"), "--models", "b,z"])
