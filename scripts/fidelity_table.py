@@ -27,10 +27,10 @@ def load(paths: list[Path]) -> tuple[list[dict], list[str], dict]:
         mine = list(out["records"][0]["models"])
         if labels is not None and mine != labels:
             sys.exit(f"error: {path} scores models {mine}, the first file {labels}; merge runs of one --wm list")
-        cfg = {k: v for k, v in out["config"].items() if k not in ("boundaries", "execute")}
+        cfg = {k: v for k, v in out["config"].items() if k != "boundaries"}
         if config is not None and cfg != config:
-            sys.exit(f"error: {path} was scored with other candidate settings ({cfg} against {config}); merge runs "
-                     f"of one setting")
+            sys.exit(f"error: {path} was scored with other settings ({cfg} against {config}); merge runs of one "
+                     f"setting (the same --execute: open-loop and closed-loop states do not pool)")
         for r in out["records"]:
             key = (r["seed"], r["step"])
             if key in seen:
@@ -80,7 +80,8 @@ def main(argv: list[str] | None = None) -> int:
     cfg = FidelityConfig(num_candidates=config["num_candidates"], top_k=config["top_k"])
     summary = summarize(records, labels, cfg)
     if not all("plans" in summary[lab] for lab in labels):
-        sys.exit("error: some models have no scored plans; run `wamplan wm fidelity` with --plan")
+        sys.exit("error: some models have no scored plans; run `wamplan wm fidelity` with --plan (with --execute "
+                 "alone only the executing model's plans are scored)")
     seeds = sorted({r["seed"] for r in records})
     print(f"{len(records)} boundaries, seeds {seeds[0]}-{seeds[-1]} ({len(seeds)}), steps "
           f"{sorted({r['step'] for r in records})}; paired: minus {labels[0]}'s at the same boundaries")

@@ -48,6 +48,12 @@ def test_overlapping_or_mismatched_files_are_one_line(table, tmp_path):
     other = _write(tmp_path / "other.json", 501, [(0.02, 0.05)], labels=("a", "c"))
     with pytest.raises(SystemExit, match="scores models"):
         table.main([str(one), str(other)])
+    closed = _write(tmp_path / "closed.json", 502, [(0.02, 0.05)])
+    cfg = json.loads(closed.read_text())
+    cfg["config"]["execute"] = "a"
+    closed.write_text(json.dumps(cfg))
+    with pytest.raises(SystemExit, match="open-loop and closed-loop states do not pool"):
+        table.main([str(one), str(closed)])
     with pytest.raises(SystemExit, match="does not exist"):
         table.main([str(tmp_path / "none.json")])
 

@@ -284,7 +284,7 @@ class FidelityPolicy(Policy):
                                     self.cfg.noise_beta)  # (N-1, H, A)
             cands = torch.cat([base[None], (base + self.cfg.sigma * noise).clamp(-1, 1)])  # (N, H, A)
         for label, s in self.scorers.items():
-            s.candidates, s.costs, s.execute = cands, None, None
+            s.candidates, s.costs, s.execute, s.planned = cands, None, None, None
             s.own = label == self.cfg.execute
             s.search = s.own or (scored and self.cfg.plan)
         executed = chunk
@@ -297,8 +297,14 @@ class FidelityPolicy(Policy):
         for label, p in self.policies.items():
             if label != self.cfg.execute:
                 p.act(obs)
+                if self.cfg.execute and not np.allclose(p.last_decision.executed, executed, atol=1e-6):
+                    raise ValueError(f"model {label!r} would record another chunk than {self.cfg.execute!r}'s plan "
+                                     f"at step {t} (its rollout covers fewer steps, or its policy settings damp, "
+                                     f"gate or re-plan); score models of one frameskip with the default settings")
         plans = {label: torch.cat([self.scorers[label].planned, base[self.scorers[label].planned.shape[0]:]])
                  for label in self.labels if scored and self.scorers[label].planned is not None}  # label -> (H, A)
+        if self.cfg.execute in plans:  # what ran, should the executor's settings have put the WAM's chunk instead
+            plans[self.cfg.execute] = torch.from_numpy(executed)
         if plans:  # the simulator scores every model's plan after the fixed candidates
             extended = torch.cat([cands, torch.stack(list(plans.values()))])  # (N + M, H, A)
             for key in self.sim_policies:
