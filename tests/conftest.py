@@ -1,6 +1,23 @@
+import importlib.util
 from pathlib import Path
+from types import ModuleType
 
 import pytest
+
+REPO = Path(__file__).parents[1]
+
+
+@pytest.fixture(scope="session")
+def repo_script():
+    """Load a script of the repository (``scripts/...``, ``benchmarks/...``; a path from the repository's root) as a
+    module, so a test can call its functions."""
+    def load(path: str) -> ModuleType:
+        spec = importlib.util.spec_from_file_location(Path(path).stem, REPO / path)
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        return module
+
+    return load
 
 
 def pytest_collection_modifyitems(config, items):

@@ -3,7 +3,6 @@ per-phase table of sibling statistics, latent errors and planning time."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
@@ -18,17 +17,14 @@ from wamplan.worldmodel.benchmark import ALL, PHASES, phase_of
 
 STAGES = get_task("cube-insertion").stages
 
-SCRIPT = Path(__file__).parents[1] / "scripts" / "wm_benchmark_store.py"
 # the expert (as the policy) on one seed, every boundary branched twice, at 64 px (~20 s)
 TINY_STORE = ["--policy", "expert", "--plan-with", "", "--episodes", "1", "--seed-start", "3", "--branches", "2",
               "--max-steps", "160", "--camera-size", "64", "--workers", "1"]
 
 
-def _script():
-    spec = importlib.util.spec_from_file_location("wm_benchmark_store", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+@pytest.fixture(scope="module")
+def bench_script(repo_script):
+    return repo_script("scripts/wm_benchmark_store.py")
 
 
 def _flags(*names: str) -> np.ndarray:
@@ -66,10 +62,10 @@ def test_the_phases_are_the_cube_tasks_and_another_task_is_one_line(tmp_path):
 
 
 @pytest.fixture(scope="module")
-def bench_store(tmp_path_factory) -> tuple[Path, dict]:
+def bench_store(tmp_path_factory, bench_script) -> tuple[Path, dict]:
     """A tiny benchmark-style store made by the benchmark's script (another policy and size: not the benchmark)."""
     out = tmp_path_factory.mktemp("bench") / "store"
-    mod = _script()
+    mod = bench_script
     assert mod.main(["--out", str(out), *TINY_STORE]) == 0
     return out, mod
 
@@ -95,11 +91,11 @@ def test_the_benchmark_command_is_the_documented_one_and_labels_the_phases(bench
     assert [branched.episodes[m[0][0]].branch_at[0] for m in branched.items] == list(range(16, 145, 16))
 
 
-def test_collection_is_deterministic(tmp_path):
+def test_collection_is_deterministic(tmp_path, bench_script):
     """Two collections with the same settings record the same trajectories (the script's fingerprint)."""
     from wamplan.worldmodel.benchmark import store_fingerprint
 
-    mod = _script()
+    mod = bench_script
     short = [a if a != "160" else "56" for a in TINY_STORE]  # boundaries 16 and 32 only
     for run in ("a", "b"):
         assert mod.main(["--out", str(tmp_path / run), *short]) == 0

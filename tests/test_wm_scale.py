@@ -4,20 +4,14 @@
 from __future__ import annotations
 
 import argparse
-import importlib.util
-from pathlib import Path
 
 import pytest
 
-SCRIPT = Path(__file__).parents[1] / "scripts" / "wm_scale.py"
 
 
 @pytest.fixture(scope="module")
-def wm_scale():
-    spec = importlib.util.spec_from_file_location("wm_scale", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def wm_scale(repo_script):
+    return repo_script("scripts/wm_scale.py")
 
 
 def test_the_worker_split_sums_to_the_total_with_one_per_source_at_least(wm_scale):

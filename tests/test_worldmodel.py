@@ -85,14 +85,8 @@ def test_paper_preset_is_table_3_and_mini_divides_the_chunk():
         get_preset("huge")
 
 
-def test_preset_stats_counts_params_and_flops():
-    import importlib.util
-    from pathlib import Path
-    path = Path(__file__).parents[1] / "benchmarks" / "profile_worldmodel.py"
-    spec = importlib.util.spec_from_file_location("profile_worldmodel", path)
-    profile = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(profile)
-    preset_stats = profile.preset_stats
+def test_preset_stats_counts_params_and_flops(repo_script):
+    preset_stats = repo_script("benchmarks/profile_worldmodel.py").preset_stats
     s = preset_stats("mini")
     m = WorldModelPredictor(PRESETS["mini"].predictor)
     assert s["predictor"]["params"] == m.num_params()
