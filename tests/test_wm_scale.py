@@ -8,7 +8,6 @@ import argparse
 import pytest
 
 
-
 @pytest.fixture(scope="module")
 def wm_scale(repo_script):
     return repo_script("scripts/wm_scale.py")
