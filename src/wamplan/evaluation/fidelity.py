@@ -71,8 +71,8 @@ class FidelityConfig:
     plan: bool = field(False, "also run each model's own search (the evaluation's default planner) at every scored "
                               "boundary and score its plan in the simulator: what planning in the model gains there")
     execute: str = field("", "label of the model whose plans the episode executes, so the boundaries are the states "
-                             "its own closed loop (condition 7) reaches (its executed plans are scored as with plan); '' runs "
-                             "the WAM's chunks open loop")
+                             "its own closed loop (condition 7) reaches (its executed plans are scored as with "
+                             "plan); '' runs the WAM's chunks open loop")
 
     def __post_init__(self):
         require(self.num_candidates >= 2, f"num_candidates must be >= 2, got {self.num_candidates}")
@@ -305,7 +305,7 @@ class FidelityPolicy(Policy):
                  for label in self.labels if scored and self.scorers[label].planned is not None}  # label -> (H, A)
         if self.cfg.execute in plans:  # what ran, should the executor's settings have put the WAM's chunk instead
             plans[self.cfg.execute] = torch.from_numpy(executed)
-        if plans:  # the simulator scores every model's plan after the fixed candidates
+        if plans:  # the simulator scores every model's plan after the fixed candidates, in the order of ``plans``
             extended = torch.cat([cands, torch.stack(list(plans.values()))])  # (N + M, H, A)
             for key in self.sim_policies:
                 self.scorers["sim:" + key].candidates = extended
@@ -319,6 +319,7 @@ class FidelityPolicy(Policy):
         """One scored boundary's record: per model, its costs of the N candidates against the simulator's, and
         with ``plans`` (label -> (H, A)) each plan's true cost and gain over the WAM's chunk."""
         n = len(cands)
+        slot = {label: n + i for i, label in enumerate(plans)}  # each plan's index after the N candidates
         rec = dict(seed=self._seed, step=t, models={})
         first = "sim:" + self.reference[self.labels[0]]
         for label in self.labels:
@@ -331,9 +332,8 @@ class FidelityPolicy(Policy):
             bias = {k: v for k, v in (("bias", d.bias), ("bias_left", d.bias_left)) if v is not None}
             rec["models"][label] = dict(boundary_stats(model, true, self.cfg.top_k, shift), **bias,
                                         model_costs=model.tolist(), true_costs=true.tolist())
-            if label in plans:
-                j = n + list(plans).index(label)
-                ref = self.scorers[first].costs
+            if label in slot:
+                j, ref = slot[label], self.scorers[first].costs
                 rec["models"][label].update(plan_stats(true_all[j], true[0], ref[j], ref[0]))
         if self.task_metric:
             rec["task"] = self._task(torch.cat([cands, *[p[None] for p in plans.values()]]))
@@ -342,8 +342,8 @@ class FidelityPolicy(Policy):
                 row = rec["models"][label]
                 row.update(task_stats(torch.tensor(row["model_costs"]), torch.tensor(row["true_costs"]),
                                       torch.tensor(xy[:n])))
-                if label in plans:
-                    row["plan_xy_change_mm"] = float(xy[n + list(plans).index(label)] - xy[0])
+                if label in slot:
+                    row["plan_xy_change_mm"] = float(xy[slot[label]] - xy[0])
         return rec
 
     def _task(self, cands: torch.Tensor) -> dict[str, Any]:
@@ -414,21 +414,22 @@ def _aggregate(records: Sequence[dict[str, Any]], label: str, cfg: FidelityConfi
     planned = [row for row in rows if "plan_gain" in row]
     if planned:
         out.update(plans=len(planned), plan_beats_wam=mean(np.array([row["plan_beats_wam"] for row in planned])),
-                   **_mean_se("plan_gain", planned), **_mean_se("plan_gain_ref", planned))
-        first = [(row, r["models"][next(iter(r["models"]))]) for r, row in zip(records, rows)]
-        paired = [dict(d=row["plan_gain_ref"] - ref["plan_gain_ref"]) for row, ref in first
-                  if "plan_gain_ref" in row and "plan_gain_ref" in ref and row is not ref]
+                   **_mean_se("plan_gain", [row["plan_gain"] for row in planned]),
+                   **_mean_se("plan_gain_ref", [row["plan_gain_ref"] for row in planned]))
+        refs = [r["models"][next(iter(r["models"]))] for r in records]  # the first model's row, per boundary
+        paired = [row["plan_gain_ref"] - ref["plan_gain_ref"] for row, ref in zip(rows, refs)
+                  if row is not ref and "plan_gain_ref" in row and "plan_gain_ref" in ref]
         if paired:  # against the first model at the same boundaries: the paired difference and its error
-            out.update({k.replace("d_", "plan_gain_ref_vs_first_"): v for k, v in _mean_se("d", paired).items()})
-        moved = [row for row in lifted if "plan_xy_change_mm" in row]
+            out.update(_mean_se("plan_gain_ref_vs_first", paired))
+        moved = [row["plan_xy_change_mm"] for row in lifted if "plan_xy_change_mm" in row]
         if moved:
-            out.update(**_mean_se("plan_xy_change_mm", moved))
+            out.update(_mean_se("plan_xy_change_mm", moved))
     return out
 
 
-def _mean_se(key: str, rows: Sequence[dict[str, Any]]) -> dict[str, float]:
-    """The mean of ``key`` over ``rows``, its standard error and median, as KEY_mean, KEY_se, KEY_median."""
-    a = np.array([row[key] for row in rows], float)
+def _mean_se(key: str, values: Sequence[float]) -> dict[str, float]:
+    """The mean of ``values`` (the finite ones), its standard error and median, as KEY_mean, KEY_se, KEY_median."""
+    a = np.array(values, float)
     a = a[np.isfinite(a)]
     se = float(a.std(ddof=1) / np.sqrt(len(a))) if len(a) > 1 else float("nan")
     return {f"{key}_mean": float(a.mean()) if len(a) else float("nan"), f"{key}_se": se,
