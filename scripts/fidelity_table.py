@@ -2,6 +2,7 @@
 model: its own plan's gain in the simulator, paired against the first model, with the ranking scores beside it.
 
     python scripts/fidelity_table.py runs/fid41/screen_500-505.json runs/fid41/screen_506-511.json [--markdown]
+    python scripts/fidelity_table.py runs/fid41/descent.json --steps 128-160     # one phase's boundaries only
 
 Every file must score the same models in the same order (the first is the reference of the paired column) with the
 same candidate settings; a boundary (seed, step) found in two files is one error line.
@@ -73,10 +74,23 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--plot", type=Path, default=None, metavar="PNG",
                    help="also draw each model's paired plan gain against the first model per boundary step")
     p.add_argument("--models", default="", help="comma-separated labels to draw (default: all but the first)")
+    p.add_argument("--steps", default="", help="keep only the boundaries at these steps, e.g. 128-160 or 32,128 "
+                                               "(default: all)")
     args = p.parse_args(argv)
+    from wamplan.config import int_list
+    from wamplan.errors import UserError
     from wamplan.evaluation.fidelity import FidelityConfig, summarize
 
     records, labels, config = load(args.files)
+    if args.steps:
+        try:
+            keep = set(int_list(args.steps, "--steps"))
+        except UserError as e:
+            sys.exit(f"error: {e}")
+        records = [r for r in records if r["step"] in keep]
+        if not records:
+            sys.exit(f"error: no scored boundary lies at --steps {args.steps}; the files hold steps "
+                     f"{sorted({r['step'] for r in load(args.files)[0]})}")
     cfg = FidelityConfig(num_candidates=config["num_candidates"], top_k=config["top_k"])
     summary = summarize(records, labels, cfg)
     if not all("plans" in summary[lab] for lab in labels):

@@ -114,6 +114,17 @@ def test_seeds_outside_32_bits(tmp_path, capsys, argv, flag):
     assert not out.exists()
 
 
+def test_number_lists_parse_ranges_and_refuse_garbage_in_one_line():
+    from wamplan.config import int_list
+    from wamplan.errors import UserError
+
+    assert int_list("500-502, 510,7") == [500, 501, 502, 510, 7]
+    with pytest.raises(UserError, match="--boundaries '2-x' is not a list like 500-503 or 500,510"):
+        int_list("2-x", "--boundaries")
+    with pytest.raises(UserError, match="--seeds needs at least one number"):
+        int_list(" , ")
+
+
 @pytest.mark.skipif(__import__("torch").cuda.is_available(), reason="this machine has CUDA")
 def test_cuda_where_torch_has_none(ckpts, tmp_path, capsys):
     for argv in (["eval", "--conditions", "1", "--episodes", "1", "--out", tmp_path / "e", "--wam",

@@ -58,3 +58,16 @@ def test_the_plot_draws_the_named_models_and_refuses_unknown_ones(table, tmp_pat
     assert (tmp_path / "g.png").stat().st_size > 0 and "wrote" in capsys.readouterr().out
     with pytest.raises(SystemExit, match="--models z not among"):
         table.main([str(one), "--plot", str(tmp_path / "h.png"), "--models", "b,z"])
+
+
+def test_steps_keep_one_phase_and_name_the_steps_there_are(table, tmp_path, capsys):
+    one = _write(tmp_path / "one.json", 500, [(0.02, 0.05), (0.04, 0.05), (0.00, 0.10)])
+    assert table.main([str(one), "--steps", "32-48", "--markdown"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("2 boundaries, seeds 500-500 (1), steps [32, 48]")
+    row = next(line for line in out.splitlines() if line.startswith("| b |"))
+    assert "+5.50 ± 4.50" in row  # steps 32 and 48: differences 1 and 10 points
+    with pytest.raises(SystemExit, match=r"no scored boundary lies at --steps 64; the files hold steps \[16, 32, 48\]"):
+        table.main([str(one), "--steps", "64"])
+    with pytest.raises(SystemExit, match="--steps 'x' is not a list"):
+        table.main([str(one), "--steps", "x"])

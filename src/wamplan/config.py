@@ -82,6 +82,22 @@ def from_dict(cls: type[T], data: dict[str, Any]) -> T:
     return cls(**kwargs)
 
 
+def int_list(spec: str, flag: str = "--seeds") -> list[int]:
+    """The integers of a command-line list such as ``500-503,510`` (ranges inclusive), in the order given.
+
+    A malformed or empty ``spec`` raises :class:`UserError` naming ``flag`` and the expected form."""
+    out: list[int] = []
+    try:
+        for part in (p.strip() for p in spec.split(",") if p.strip()):
+            lo, _, hi = part.partition("-")
+            out.extend(range(int(lo), int(hi or lo) + 1))
+    except ValueError:
+        raise UserError(f"{flag} '{spec}' is not a list like 500-503 or 500,510") from None
+    if not out:
+        raise UserError(f"{flag} needs at least one number, e.g. 500-503")
+    return out
+
+
 def save_json(cfg: Any, path: str | Path) -> None:
     Path(path).write_text(json.dumps(to_dict(cfg), indent=2) + "\n")
 

@@ -7,7 +7,7 @@ import json
 from collections import Counter
 from pathlib import Path
 
-from wamplan.config import add_arguments, from_args
+from wamplan.config import add_arguments, from_args, int_list
 from wamplan.errors import UserError, require_dir, require_file, require_paths, require_seeds
 from wamplan.cli.main import add_command, add_group, register_command
 
@@ -332,19 +332,6 @@ def cmd_probe(args: argparse.Namespace) -> int:
     return 0
 
 
-def _seed_list(spec: str, flag: str = "--seeds") -> list[int]:
-    seeds: list[int] = []
-    try:
-        for part in (p.strip() for p in spec.split(",") if p.strip()):
-            lo, _, hi = part.partition("-")
-            seeds.extend(range(int(lo), int(hi or lo) + 1))
-    except ValueError:
-        raise UserError(f"{flag} '{spec}' is not a list like 500-503 or 500,510") from None
-    if not seeds:
-        raise UserError(f"{flag} needs at least one number, e.g. 500-503")
-    return seeds
-
-
 def cmd_fidelity(args: argparse.Namespace) -> int:
     from wamplan.envs.config import EnvConfig
     from wamplan.envs.core import TaskEnv
@@ -356,9 +343,9 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
 
     cfg = FidelityConfig(num_candidates=args.candidates, sigma=args.sigma, noise_beta=args.noise_beta,
                          top_k=args.top_k,
-                         boundaries=tuple(_seed_list(args.boundaries, "--boundaries")), seed=args.sample_seed,
+                         boundaries=tuple(int_list(args.boundaries, "--boundaries")), seed=args.sample_seed,
                          plan=args.plan, execute=args.execute)
-    seeds = _seed_list(args.seeds)
+    seeds = int_list(args.seeds)
     for seed in (min(seeds), max(seeds)):
         require_seeds(seed, flag="--seeds")
     require_file(args.json, "--json")
