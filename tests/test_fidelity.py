@@ -97,6 +97,22 @@ def test_a_bias_corrected_twin_scores_the_same_candidates_with_its_correction(en
     assert "bias_left" not in fixed[0] and fixed[1]["bias_left"] > 0
 
 
+def test_a_twin_with_its_own_view_weights_ranks_and_plans_in_its_cost_and_is_scored_in_the_runs(env):
+    """Scored(cost=...) sharing the model's dynamics: the same candidates and simulator (yardstick) costs, its own
+    model costs of them, and its own search's plan scored by the simulator after the other model's."""
+    from wamplan.planning.costs import make_cost
+
+    wam = load_wam("checkpoints/mini/tinywam", device="cpu")
+    model, enc = load_world_model("checkpoints/mini/wm_augmented")
+    dyn = LearnedDynamics(model)
+    models = [Scored("augmented", dyn, enc), Scored("augmented+views", dyn, enc, cost=make_cost("patch", (1, 1, 0.25)))]
+    cfg = FidelityConfig(num_candidates=4, top_k=2, boundaries=(3,), plan=True)
+    rec = run_fidelity(env, wam, models, [502], cfg)["records"][0]
+    plain, viewed = rec["models"]["augmented"], rec["models"]["augmented+views"]
+    assert plain["true_costs"] == viewed["true_costs"] and plain["model_costs"] != pytest.approx(viewed["model_costs"])
+    assert len(rec["task"]["cand_xy_mm"]) == 4 + 2 and viewed["plan_gain"] != pytest.approx(plain["plan_gain"])
+
+
 def test_fidelity_cli_refuses_labels_that_collide_before_loading_anything(capsys):
     from wamplan.cli import main
 
@@ -106,6 +122,13 @@ def test_fidelity_cli_refuses_labels_that_collide_before_loading_anything(capsys
     assert "a appears twice" in capsys.readouterr().err
     assert main(base + ["--wm", f"x={wm},x+bias={wm}", "--bias-correction", "0.5"]) == 2
     assert "x+bias appears twice" in capsys.readouterr().err
+    assert main(base + ["--wm", f"x={wm},x+views={wm}", "--plan-view-weights", "1", "1", "0.5"]) == 2
+    assert "x+views appears twice" in capsys.readouterr().err
+    assert main(base + ["--wm", "x=/no/such/dir", "--plan-view-weights", "1", "-1", "1"]) == 2
+    assert "view_weights must be >= 0" in capsys.readouterr().err
+    assert main(base + ["--wm", f"x={wm}", "--plan-view-weights", "1", "1"]) == 2  # before the episodes run
+    assert "--plan-view-weights has 2 weights for the task's 3 cameras ['front', 'side', 'wrist']" in \
+        capsys.readouterr().err
 
 
 def test_each_models_own_plan_is_scored_and_one_model_can_drive_the_episode(env):

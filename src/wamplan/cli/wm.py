@@ -157,6 +157,9 @@ def _fidelity_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bias-correction", type=float, default=None, metavar="A",
                    help="also score every model with `eval --bias-correction A` (its error on the chunk just run "
                         "added to its predictions), as LABEL+bias; the same candidates, dynamics and references")
+    p.add_argument("--plan-view-weights", type=float, nargs="+", default=None, metavar="W",
+                   help="also score every model ranking and planning with these per-view cost weights (front side "
+                        "wrist), as LABEL+views; the simulator's yardstick keeps --cost-view-weights")
     p.add_argument("--oracle-blend", type=float, default=None, metavar="W",
                    help="also score the first --wm model with its predictions moved W of the way to the simulator's "
                         "(as `eval --oracle-blend`; a diagnostic at the oracle's price), as LABEL@W")
@@ -335,6 +338,7 @@ def cmd_probe(args: argparse.Namespace) -> int:
 def cmd_fidelity(args: argparse.Namespace) -> int:
     from wamplan.envs.config import EnvConfig
     from wamplan.envs.core import TaskEnv
+    from wamplan.planning.costs import CostConfig
     from wamplan.planning.dynamics import learned_dynamics
     from wamplan.evaluation.fidelity import FidelityConfig, Scored, format_fidelity, run_fidelity
     from wamplan.planning.policy import PlannedPolicyConfig
@@ -355,10 +359,13 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
         label, _, paths = spec.rpartition("=")
         members = paths.split("+")  # A+B+C: an ensemble, its mean prediction scored (as --wm-augmented A,B,C)
         specs.append((label or "+".join(Path(p).name for p in members), members))
-    twin = "{}+bias".format  # the label of a model's bias-corrected twin
+    twin, viewed = "{}+bias".format, "{}+views".format  # the labels of a model's bias-corrected and re-weighted twins
     labels = [lab for lab, _ in specs]
     if args.bias_correction is not None:
-        labels += [twin(lab) for lab in labels]
+        labels += [twin(lab) for lab, _ in specs]
+    if args.plan_view_weights is not None:
+        labels += [viewed(lab) for lab, _ in specs]
+        plan_cost = CostConfig(view_weights=tuple(args.plan_view_weights)).build()
     blend = f"{labels[0]}@{args.oracle_blend:g}" if args.oracle_blend is not None and labels else None
     if blend:
         if not 0 < args.oracle_blend <= 1:
@@ -381,7 +388,16 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
         if args.bias_correction is not None:  # the same model (and dynamics object), scored as the corrected policy
             models.append(Scored(twin(label), models[-1].dynamics, models[-1].encoder,
                                  PlannedPolicyConfig(bias_correction=args.bias_correction)))
+    for label, _ in specs if args.plan_view_weights is not None else ():  # after the twins: the first model leads
+        first = next(m for m in models if m.label == label)
+        models.append(Scored(viewed(label), first.dynamics, first.encoder, cost=plan_cost))
     wam = load_wam(args.wam, device=args.device)
+    cams = list(wam.task.cameras)
+    for flag, weights in (("--cost-view-weights", args.cost_view_weights), ("--plan-view-weights",
+                                                                            args.plan_view_weights)):
+        if weights and len(weights) != len(cams):
+            raise UserError(f"{flag} has {len(weights)} weights for the task's {len(cams)} cameras {cams}; give "
+                            f"one weight per camera")
     for path, task in tasks.items():
         if task != wam.task.name:
             raise UserError(f"--wm {path} was trained on task '{task}' but --wam {args.wam} acts in task "
@@ -401,8 +417,6 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
         print(f"seed {seed}: {len(mine)} boundaries, {result.length} steps{run}, Spearman {sp}", flush=True)
 
     try:
-        from wamplan.planning.costs import CostConfig
-
         cost = CostConfig(view_weights=tuple(args.cost_view_weights or ())).build()
         out = run_fidelity(env, wam, models, seeds, cfg, progress=progress, cost=cost)
     finally:

@@ -209,6 +209,7 @@ class Scored:
     dynamics: Dynamics
     encoder: Any
     policy: PlannedPolicyConfig | None = None  # e.g. bias_correction: the model scored as that policy would
+    cost: CostFn | None = None  # the model's own planning cost (its ranking and search); None: the run's cost
 
 
 class FidelityPolicy(Policy):
@@ -230,8 +231,8 @@ class FidelityPolicy(Policy):
         searching = {m.label for m in models if config.plan or m.label == config.execute}
         self.scorers = {m.label: _Scorer(make_planner(DEFAULT_PLANNER) if m.label in searching else None)
                         for m in models}
-        self.policies = {m.label: PlannedPolicy(self.wam, self.scorers[m.label], m.dynamics, m.encoder, cost,
-                                                config=m.policy) for m in models}
+        self.policies = {m.label: PlannedPolicy(self.wam, self.scorers[m.label], m.dynamics, m.encoder,
+                                                m.cost or cost, config=m.policy) for m in models}
         self.reference: dict[str, str] = {}  # label -> simulator reference key (one per distinct encoder)
         self.sim_policies: dict[str, PlannedPolicy] = {}
         for m in models:
