@@ -66,7 +66,8 @@ def test_fidelity_of_a_world_model_and_of_the_simulator_against_itself(env):
     s = out["summary"]
     assert s["simulator"]["spearman_median"] == pytest.approx(1.0) and s["augmented"]["boundaries"] == 2
     assert "augmented" in format_fidelity(s, 2)
-    # a wrist-only cost (`--cost-view-weights 0 0 1`) scores the same candidates otherwise, in the model and the simulator
+    # a wrist-only cost (`--cost-view-weights 0 0 1`) scores the same candidates otherwise, in the model and the
+    # simulator
     from wamplan.planning.costs import make_cost
 
     wrist = run_fidelity(env, wam, models, [500], dataclasses.replace(cfg, boundaries=(1,), task_metric=False),
