@@ -87,10 +87,10 @@ def main(argv: list[str] | None = None) -> int:
             keep = set(int_list(args.steps, "--steps"))
         except UserError as e:
             sys.exit(f"error: {e}")
+        held = sorted({r["step"] for r in records})
         records = [r for r in records if r["step"] in keep]
         if not records:
-            sys.exit(f"error: no scored boundary lies at --steps {args.steps}; the files hold steps "
-                     f"{sorted({r['step'] for r in load(args.files)[0]})}")
+            sys.exit(f"error: no scored boundary lies at --steps {args.steps}; the files hold steps {held}")
     cfg = FidelityConfig(num_candidates=config["num_candidates"], top_k=config["top_k"])
     summary = summarize(records, labels, cfg)
     if not all("plans" in summary[lab] for lab in labels):

@@ -118,11 +118,13 @@ def test_number_lists_parse_ranges_and_refuse_garbage_in_one_line():
     from wamplan.config import int_list
     from wamplan.errors import UserError
 
-    assert int_list("500-502, 510,7") == [500, 501, 502, 510, 7]
+    assert int_list("500-502, 510,7", "--seeds") == [500, 501, 502, 510, 7]
     with pytest.raises(UserError, match="--boundaries '2-x' is not a list like 500-503 or 500,510"):
         int_list("2-x", "--boundaries")
     with pytest.raises(UserError, match="--seeds needs at least one number"):
-        int_list(" , ")
+        int_list(" , ", "--seeds")
+    with pytest.raises(UserError, match="--steps '160-128': the range 160-128 runs backwards; write 128-160"):
+        int_list("160-128", "--steps")
 
 
 @pytest.mark.skipif(__import__("torch").cuda.is_available(), reason="this machine has CUDA")

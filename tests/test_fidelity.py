@@ -126,10 +126,14 @@ def test_fidelity_cli_refuses_labels_that_collide_before_loading_anything(capsys
     assert main(base + ["--wm", f"x={wm},x+views={wm}", "--plan-view-weights", "1", "1", "0.5"]) == 2
     assert "x+views appears twice" in capsys.readouterr().err
     assert main(base + ["--wm", "x=/no/such/dir", "--plan-view-weights", "1", "-1", "1"]) == 2
-    assert "view_weights must be >= 0" in capsys.readouterr().err
+    assert "--plan-view-weights 1 -1 1: give weights >= 0 with a positive sum" in capsys.readouterr().err
     assert main(base + ["--wm", f"x={wm}", "--plan-view-weights", "1", "1"]) == 2  # before the episodes run
     assert "--plan-view-weights has 2 weights for the task's 3 cameras ['front', 'side', 'wrist']" in \
         capsys.readouterr().err
+    assert main(base + ["--wm", f"x={wm}", "--cost-view-weights", "0", "0", "0"]) == 2  # before anything loads
+    assert "--cost-view-weights 0 0 0: give weights >= 0 with a positive sum" in capsys.readouterr().err
+    assert main(base + ["--wm", f"x={wm}", "--cost-view-weights", "1", "1"]) == 2
+    assert "--cost-view-weights has 2 weights for the task's 3 cameras" in capsys.readouterr().err
 
 
 def test_each_models_own_plan_is_scored_and_one_model_can_drive_the_episode(env):

@@ -82,17 +82,20 @@ def from_dict(cls: type[T], data: dict[str, Any]) -> T:
     return cls(**kwargs)
 
 
-def int_list(spec: str, flag: str = "--seeds") -> list[int]:
+def int_list(spec: str, flag: str) -> list[int]:
     """The integers of a command-line list such as ``500-503,510`` (ranges inclusive), in the order given.
 
-    A malformed or empty ``spec`` raises :class:`UserError` naming ``flag`` and the expected form."""
+    A malformed, backward or empty ``spec`` raises :class:`UserError` naming ``flag`` and the expected form."""
     out: list[int] = []
-    try:
-        for part in (p.strip() for p in spec.split(",") if p.strip()):
-            lo, _, hi = part.partition("-")
-            out.extend(range(int(lo), int(hi or lo) + 1))
-    except ValueError:
-        raise UserError(f"{flag} '{spec}' is not a list like 500-503 or 500,510") from None
+    for part in (p.strip() for p in spec.split(",") if p.strip()):
+        lo, _, hi = part.partition("-")
+        try:
+            first, last = int(lo), int(hi or lo)
+        except ValueError:
+            raise UserError(f"{flag} '{spec}' is not a list like 500-503 or 500,510") from None
+        if last < first:
+            raise UserError(f"{flag} '{spec}': the range {part} runs backwards; write {last}-{first}")
+        out.extend(range(first, last + 1))
     if not out:
         raise UserError(f"{flag} needs at least one number, e.g. 500-503")
     return out

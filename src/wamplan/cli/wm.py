@@ -158,8 +158,9 @@ def _fidelity_options(p: argparse.ArgumentParser) -> None:
                    help="also score every model with `eval --bias-correction A` (its error on the chunk just run "
                         "added to its predictions), as LABEL+bias; the same candidates, dynamics and references")
     p.add_argument("--plan-view-weights", type=float, nargs="+", default=None, metavar="W",
-                   help="also score every model ranking and planning with these per-view cost weights (front side "
-                        "wrist), as LABEL+views; the simulator's yardstick keeps --cost-view-weights")
+                   help="also score every model ranking (and, with --plan, searching) with these per-view cost weights "
+                        "(front side wrist), as LABEL+views, without --bias-correction; the simulator's yardstick "
+                        "keeps --cost-view-weights")
     p.add_argument("--oracle-blend", type=float, default=None, metavar="W",
                    help="also score the first --wm model with its predictions moved W of the way to the simulator's "
                         "(as `eval --oracle-blend`; a diagnostic at the oracle's price), as LABEL@W")
@@ -335,10 +336,20 @@ def cmd_probe(args: argparse.Namespace) -> int:
     return 0
 
 
+def _view_cost(flag: str, weights: list[float] | None):
+    """The patch cost with ``weights`` per camera (None: uniform, the paper's); one line for weights below 0 or
+    summing to 0."""
+    from wamplan.planning.costs import CostConfig
+
+    if weights and (min(weights) < 0 or sum(weights) <= 0):
+        raise UserError(f"{flag} {' '.join(f'{w:g}' for w in weights)}: give weights >= 0 with a positive sum, one "
+                        f"per camera (e.g. 1 1 0.5)")
+    return CostConfig(view_weights=tuple(weights or ())).build()
+
+
 def cmd_fidelity(args: argparse.Namespace) -> int:
     from wamplan.envs.config import EnvConfig
     from wamplan.envs.core import TaskEnv
-    from wamplan.planning.costs import CostConfig
     from wamplan.planning.dynamics import learned_dynamics
     from wamplan.evaluation.fidelity import FidelityConfig, Scored, format_fidelity, run_fidelity
     from wamplan.planning.policy import PlannedPolicyConfig
@@ -349,7 +360,7 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
                          top_k=args.top_k,
                          boundaries=tuple(int_list(args.boundaries, "--boundaries")), seed=args.sample_seed,
                          plan=args.plan, execute=args.execute)
-    seeds = int_list(args.seeds)
+    seeds = int_list(args.seeds, "--seeds")
     for seed in (min(seeds), max(seeds)):
         require_seeds(seed, flag="--seeds")
     require_file(args.json, "--json")
@@ -365,7 +376,8 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
         labels += [twin(lab) for lab, _ in specs]
     if args.plan_view_weights is not None:
         labels += [viewed(lab) for lab, _ in specs]
-        plan_cost = CostConfig(view_weights=tuple(args.plan_view_weights)).build()
+    cost, plan_cost = (_view_cost(flag, weights) for flag, weights in (
+        ("--cost-view-weights", args.cost_view_weights), ("--plan-view-weights", args.plan_view_weights)))
     blend = f"{labels[0]}@{args.oracle_blend:g}" if args.oracle_blend is not None and labels else None
     if blend:
         if not 0 < args.oracle_blend <= 1:
@@ -377,8 +389,8 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
                         f"(name a model with LABEL=PATH)")
     dup = sorted(lab for lab, n in Counter(labels).items() if n > 1)
     if dup:
-        raise UserError(f"--wm labels must differ (the corrected twins are LABEL+bias): {', '.join(dup)} appears "
-                        f"twice; name each model, e.g. --wm shipped=DIR,new=DIR")
+        raise UserError(f"--wm labels must differ (twins are LABEL+bias, LABEL+views, LABEL@W): {', '.join(dup)} "
+                        f"appears twice; name each model, e.g. --wm shipped=DIR,new=DIR")
     models, tasks = [], {}  # world-model path -> the task it was trained on
     for label, members in specs:
         require_paths(members, "--wm", "pass a world-model checkpoint directory")
@@ -388,9 +400,10 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
         if args.bias_correction is not None:  # the same model (and dynamics object), scored as the corrected policy
             models.append(Scored(twin(label), models[-1].dynamics, models[-1].encoder,
                                  PlannedPolicyConfig(bias_correction=args.bias_correction)))
-    for label, _ in specs if args.plan_view_weights is not None else ():  # after the twins: the first model leads
-        first = next(m for m in models if m.label == label)
-        models.append(Scored(viewed(label), first.dynamics, first.encoder, cost=plan_cost))
+    if args.plan_view_weights is not None:  # each model's twin, sharing its dynamics, planning without a correction
+        plain = {m.label: m for m in models}
+        models += [Scored(viewed(label), plain[label].dynamics, plain[label].encoder, cost=plan_cost)
+                   for label, _ in specs]
     wam = load_wam(args.wam, device=args.device)
     cams = list(wam.task.cameras)
     for flag, weights in (("--cost-view-weights", args.cost_view_weights), ("--plan-view-weights",
@@ -417,7 +430,6 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
         print(f"seed {seed}: {len(mine)} boundaries, {result.length} steps{run}, Spearman {sp}", flush=True)
 
     try:
-        cost = CostConfig(view_weights=tuple(args.cost_view_weights or ())).build()
         out = run_fidelity(env, wam, models, seeds, cfg, progress=progress, cost=cost)
     finally:
         env.close()

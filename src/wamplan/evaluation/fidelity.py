@@ -232,7 +232,7 @@ class FidelityPolicy(Policy):
         self.scorers = {m.label: _Scorer(make_planner(DEFAULT_PLANNER) if m.label in searching else None)
                         for m in models}
         self.policies = {m.label: PlannedPolicy(self.wam, self.scorers[m.label], m.dynamics, m.encoder,
-                                                m.cost or cost, config=m.policy) for m in models}
+                                                cost if m.cost is None else m.cost, config=m.policy) for m in models}
         self.reference: dict[str, str] = {}  # label -> simulator reference key (one per distinct encoder)
         self.sim_policies: dict[str, PlannedPolicy] = {}
         for m in models:
