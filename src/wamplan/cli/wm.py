@@ -337,14 +337,16 @@ def cmd_probe(args: argparse.Namespace) -> int:
 
 
 def _view_cost(flag: str, weights: list[float] | None):
-    """The patch cost with ``weights`` per camera (None: uniform, the paper's); one line for weights below 0 or
-    summing to 0."""
+    """The patch cost with ``weights`` per camera (None: uniform, the paper's); CostConfig's refusal of weights
+    below 0 or summing to 0 as one line naming ``flag``."""
+    from wamplan.config import ConfigError
     from wamplan.planning.costs import CostConfig
 
-    if weights and (min(weights) < 0 or sum(weights) <= 0):
-        raise UserError(f"{flag} {' '.join(f'{w:g}' for w in weights)}: give weights >= 0 with a positive sum, one "
-                        f"per camera (e.g. 1 1 0.5)")
-    return CostConfig(view_weights=tuple(weights or ())).build()
+    try:
+        return CostConfig(view_weights=tuple(weights or ())).build()
+    except ConfigError:
+        raise UserError(f"{flag} {' '.join(f'{w:g}' for w in weights or ())}: give weights >= 0 with a positive sum, "
+                        f"one per camera (e.g. 1 1 0.5)") from None
 
 
 def cmd_fidelity(args: argparse.Namespace) -> int:
