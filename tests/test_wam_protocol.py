@@ -547,16 +547,40 @@ def test_client_maps_the_cameras_of_its_task():
     peg = CosmosPolicyClient(CosmosClientConfig(task="peg-insertion-side", **fields))
     assert peg.task.name == "peg-insertion-side" and peg.cameras == ("base_camera", "hand_camera")
     assert peg.action_dim == 7 and peg.default_instruction == peg.task.instruction
+    by_position = CosmosPolicyClient(CosmosClientConfig(task="peg-insertion-side"))  # unset: the task's own
+    assert by_position.config.request_map == peg.config.request_map
+    assert by_position.config.response_map == peg.config.response_map and by_position.action_dim == 7
     with pytest.raises(ConfigError, match=r"unknown camera 'front'.*\['base_camera', 'hand_camera'\]"):
-        CosmosClientConfig(task="peg-insertion-side")  # the defaults map the cube's cameras
+        profile_config("cosmos-aloha", task="peg-insertion-side")  # the profiles map the cube's cameras
     with pytest.raises(ConfigError, match="unknown camera 'base_camera'"):
         CosmosClientConfig(**fields)
     with pytest.raises(UserError, match="unknown task 'no-such-task'"):
         CosmosClientConfig(task="no-such-task")
 
 
+def test_client_flags_take_lists_and_unset_ones_follow_the_task():
+    """``tuple[...] | None`` fields become list flags (``--wam-action-indices 0 1 ...``); unset, they follow the
+    task: its action size and its cameras by position."""
+    import argparse
+
+    from wamplan.config import add_arguments, from_args
+    from wamplan.envs.spec import get_task
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser, CosmosClientConfig, prefix="wam_")
+    args = parser.parse_args(["--wam-task", "peg-insertion-side", "--wam-action-indices", "6", "0", "1",
+                              "--wam-response-fields", "hand_camera=future_image"])
+    cfg = from_args(CosmosClientConfig, args, prefix="wam_")
+    assert cfg.action_columns == (6, 0, 1) and cfg.response_map == {"hand_camera": "future_image"}
+    assert cfg.request_map["primary_image"] == "base_camera"
+    push = CosmosClientConfig(task="push-cube")  # one camera fills all three request images
+    assert set(push.request_map.values()) == {"base_camera"} and push.response_map == {"base_camera": "future_image"}
+    assert push.action_columns == tuple(range(get_task("push-cube").action_dim))
+    assert CosmosClientConfig().action_columns == (0, 1, 2, 3, 4)
+
+
 def test_server_maps_other_cameras_by_position():
-    from wamplan.wam.server import DEFAULT_REQUEST_MAP, DEFAULT_RESPONSE_MAP, default_maps
+    from wamplan.wam.protocol import DEFAULT_REQUEST_MAP, DEFAULT_RESPONSE_MAP, default_maps
 
     assert default_maps(CAMERAS) == (DEFAULT_REQUEST_MAP, DEFAULT_RESPONSE_MAP)
     request, response = default_maps(("base_camera", "hand_camera"))

@@ -135,7 +135,7 @@ def add_field_argument(parser: Any, flag: str, dest: str, f: dataclasses.Field, 
         metavar = "{" + ",".join(str(c) for c in choices if c != "") + "}"
     if st is bool:
         parser.add_argument(flag, dest=dest, default=None, action=argparse.BooleanOptionalAction, help=help_)
-    elif typing.get_origin(t) is tuple:
+    elif tuple in (typing.get_origin(t), *(typing.get_origin(a) for a in typing.get_args(t))):  # tuple[...] | None too
         parser.add_argument(flag, dest=dest, default=None, nargs="+", type=st, metavar=metavar, help=help_,
                             choices=choices)
     else:

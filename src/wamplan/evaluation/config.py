@@ -108,7 +108,8 @@ class EvalConfig:
         if self.wam_url:
             from wamplan.wam.cosmos_client import profile_config
 
-            profile_config(self.wam_profile, url=self.wam_url)  # a bad URL or profile fails now, in one line
+            # a bad URL, profile or camera mapping for the task fails now, in one line
+            profile_config(self.wam_profile, url=self.wam_url, task=self.env.task)
         spec = self.env.spec
         expert = [c for c in conditions if "expert" in (CONDITIONS[c].seed, CONDITIONS[c].target)]
         if expert and spec.expert is None:

@@ -6,7 +6,9 @@
 The client adapts wamplan's observation to what the server was trained on (camera -> request field,
 proprio length, chunk length, which action columns are wamplan's action) and maps the predicted
 views back to wamplan cameras. It acts in the task of its config (``task``, default cube-insertion; ``wam.task``):
-the cameras it maps are that task's (the defaults and the profiles map cube-insertion's). Every failure (server
+the cameras it maps are that task's. Unset fields map the task's cameras by position
+(``protocol.default_maps``, as ``wamplan wam serve`` does) and take the task's action size; the profiles map
+cube-insertion's cameras. Every failure (server
 down, timeout, HTTP error, the "error" answer, a malformed or non-finite answer) raises :class:`WAMServerError`
 with one line naming the fix.
 
@@ -71,15 +73,17 @@ class CosmosClientConfig:
     task: str = field("cube-insertion", "the task the served model acts in (its cameras are the ones mapped)",
                       choices=lambda: TASKS)
     url: str = field(f"http://127.0.0.1:{protocol.DEFAULT_PORT}{protocol.ROUTE}", "the server's /act endpoint")
-    request_fields: tuple[str, ...] = field(
-        ("front=primary_image", "side=left_wrist_image", "wrist=right_wrist_image"),
-        "CAMERA=FIELD: which camera of the task fills each request image (all three fields are required)")
-    response_fields: tuple[str, ...] = field(
-        ("front=future_image", "side=future_wrist_image", "wrist=future_wrist_image2"),
-        "CAMERA=FIELD: which predicted future image becomes each camera's target")
+    request_fields: tuple[str, ...] | None = field(
+        None, "CAMERA=FIELD: which camera of the task fills each request image (all three fields are required); "
+        "unset: the task's cameras in order fill primary_image, left_wrist_image, right_wrist_image (the last "
+        "camera the fields left over)")
+    response_fields: tuple[str, ...] | None = field(
+        None, "CAMERA=FIELD: which predicted future image becomes each camera's target; unset: the task's cameras "
+        "in order take future_image, future_wrist_image, future_wrist_image2")
     chunk_length: int = field(16, "actions per chunk the server returns (H); the images are for t + H")
-    action_indices: tuple[int, ...] = field((0, 1, 2, 3, 4), "columns of the server's actions that form "
-                                            "the task's action (the cube's: dx, dy, dz, dyaw, gripper)")
+    action_indices: tuple[int, ...] | None = field(
+        None, "columns of the server's actions that form the task's action; unset: the first A columns, A the "
+        "task's action size (the cube's 5: dx, dy, dz, dyaw, gripper)")
     clip_actions: bool = field(True, "clip actions into [-1, 1] (sampled actions can overshoot slightly); "
                                "off: an out-of-range action is an error")
     proprio_dim: int | None = field(None, "proprio length the server expects (truncate or pad the task's "
@@ -97,25 +101,28 @@ class CosmosClientConfig:
         get_task(self.task)  # one line naming the registered tasks if unknown
         require(self.url.startswith(("http://", "https://")),
                 f"{_flag('url')} must be an http(s) URL such as http://127.0.0.1:8777/act, got '{self.url}'")
-        req = _pairs(self.request_fields, "request_fields", self.cameras)
+        n_fields = len(protocol.REQUEST_IMAGE_FIELDS)
+        require(self.request_fields is not None or len(self.cameras) <= n_fields,
+                f"task {self.task} has {len(self.cameras)} cameras {list(self.cameras)} but a request carries "
+                f"{n_fields} images; choose them with {_flag('request_fields')} and {_flag('response_fields')}")
+        req = _pairs(self.request_pairs, "request_fields", self.cameras)
         names = sorted(n for _, n in req)
         require(any(names == sorted(fs) for fs in protocol.REQUEST_IMAGE_FIELD_SETS),
                 f"{_flag('request_fields')} must fill each field of one of {[list(fs) for fs in protocol.REQUEST_IMAGE_FIELD_SETS]} "
-                f"exactly once, got {list(self.request_fields)}")
-        resp = _pairs(self.response_fields, "response_fields", self.cameras)
+                f"exactly once, got {list(self.request_pairs)}")
+        resp = _pairs(self.response_pairs, "response_fields", self.cameras)
         require(len(resp) > 0, f"{_flag('response_fields')} must map at least one camera")
         cams = [c for c, _ in resp]
         require(len(set(cams)) == len(cams),
-                f"{_flag('response_fields')} maps a camera twice: {list(self.response_fields)}")
+                f"{_flag('response_fields')} maps a camera twice: {list(self.response_pairs)}")
         for _, name in resp:
             require(name in protocol.KNOWN_RESPONSE_IMAGE_FIELDS,
                     f"{_flag('response_fields')}: unknown field '{name}'; Cosmos Policy predicts "
                     f"{list(protocol.KNOWN_RESPONSE_IMAGE_FIELDS)}")
         require(self.chunk_length >= 1, f"{_flag('chunk_length')} must be >= 1, got {self.chunk_length}")
-        require(len(self.action_indices) >= 1 and min(self.action_indices) >= 0
-                and len(set(self.action_indices)) == len(self.action_indices),
-                f"{_flag('action_indices')} must be distinct non-negative column indices, "
-                f"got {self.action_indices}")
+        cols = self.action_columns
+        require(len(cols) >= 1 and min(cols) >= 0 and len(set(cols)) == len(cols),
+                f"{_flag('action_indices')} must be distinct non-negative column indices, got {cols}")
         for name in ("proprio_dim", "send_image_size", "image_size"):
             v = getattr(self, name)
             require(v is None or v >= 1, f"{_flag(name)} must be >= 1 (or unset), got {v}")
@@ -130,14 +137,35 @@ class CosmosClientConfig:
         return get_task(self.task).cameras
 
     @property
+    def request_pairs(self) -> tuple[str, ...]:
+        """``request_fields``, or (unset) the task's cameras mapped by position (``protocol.default_maps``)."""
+        if self.request_fields is not None:
+            return self.request_fields
+        return tuple(f"{cam}={name}" for name, cam in protocol.default_maps(self.cameras)[0].items())
+
+    @property
+    def response_pairs(self) -> tuple[str, ...]:
+        """``response_fields``, or (unset) the task's cameras mapped by position (``protocol.default_maps``)."""
+        if self.response_fields is not None:
+            return self.response_fields
+        return tuple(f"{cam}={name}" for cam, name in protocol.default_maps(self.cameras)[1].items())
+
+    @property
+    def action_columns(self) -> tuple[int, ...]:
+        """``action_indices``, or (unset) the first A columns, A the task's action size."""
+        if self.action_indices is not None:
+            return self.action_indices
+        return tuple(range(get_task(self.task).action_dim))
+
+    @property
     def request_map(self) -> dict[str, str]:
         """request field -> camera."""
-        return {name: cam for cam, name in _pairs(self.request_fields, "request_fields", self.cameras)}
+        return {name: cam for cam, name in _pairs(self.request_pairs, "request_fields", self.cameras)}
 
     @property
     def response_map(self) -> dict[str, str]:
         """camera -> response field."""
-        return dict(_pairs(self.response_fields, "response_fields", self.cameras))
+        return dict(_pairs(self.response_pairs, "response_fields", self.cameras))
 
 
 _ROBOCASA = dict(request_fields=("front=primary_image", "side=secondary_image", "wrist=wrist_image"),
@@ -216,7 +244,7 @@ class CosmosPolicyClient(WAM):
         self.config = base
         self.task = base.task
         self.chunk_length = base.chunk_length
-        self.action_dim = len(base.action_indices)
+        self.action_dim = len(base.action_columns)
         self.cameras = tuple(base.response_map)
         self._request_map = base.request_map  # field -> camera
         self._response_map = base.response_map  # camera -> field
@@ -324,11 +352,12 @@ class CosmosPolicyClient(WAM):
             raise WAMServerError(f"{self._where} returned {H}-step chunks but {_flag('chunk_length')} is "
                                  f"{cfg.chunk_length}; pass {_flag('chunk_length')} {H} or serve a model "
                                  f"trained with {cfg.chunk_length}-step chunks")
-        if max(cfg.action_indices) >= A_srv:
+        cols = list(cfg.action_columns)
+        if max(cols) >= A_srv:
             raise WAMServerError(f"{self._where} returned {A_srv}-D actions but {_flag('action_indices')} "
-                                 f"{list(cfg.action_indices)} needs column {max(cfg.action_indices)}; pick "
+                                 f"{cols} needs column {max(cols)}; pick "
                                  f"columns below {A_srv}")
-        actions = ans.actions[:, list(cfg.action_indices)].astype(np.float32)  # (H, A)
+        actions = ans.actions[:, cols].astype(np.float32)  # (H, A)
         if cfg.clip_actions:
             actions = np.clip(actions, -1.0, 1.0)
         images = {}

@@ -34,6 +34,8 @@ from typing import Any
 import json_numpy
 import numpy as np
 
+from wamplan.errors import UserError
+
 ROUTE = "/act"
 DEFAULT_PORT = 8777
 REQUEST_IMAGE_FIELDS = ("primary_image", "left_wrist_image", "right_wrist_image")  # ALOHA's deploy script
@@ -182,3 +184,22 @@ def decode_response(body: bytes | str) -> ActResponse:
     if value is not None:
         value = float(_numbers([value], "'value_prediction'", ndim=1).reshape(-1)[0])
     return ActResponse(actions=actions, future_images=future, value=value)
+
+
+# request field -> camera, and camera -> response field, for cube-insertion's cameras: the defaults of both ends.
+DEFAULT_REQUEST_MAP = {"primary_image": "front", "left_wrist_image": "side", "right_wrist_image": "wrist"}
+DEFAULT_RESPONSE_MAP = {"front": "future_image", "side": "future_wrist_image", "wrist": "future_wrist_image2"}
+
+
+def default_maps(cameras: tuple[str, ...]) -> tuple[dict[str, str], dict[str, str]]:
+    """The request and response maps for a WAM reading ``cameras`` when none are given: the defaults above for
+    cube-insertion's cameras; for other cameras, camera i fills request field i of the defaults (the last camera
+    the fields left over) and its prediction is response field i."""
+    if all(c in DEFAULT_REQUEST_MAP.values() for c in cameras):
+        return dict(DEFAULT_REQUEST_MAP), dict(DEFAULT_RESPONSE_MAP)
+    fields, futures = list(DEFAULT_REQUEST_MAP), list(DEFAULT_RESPONSE_MAP.values())
+    if len(cameras) > len(fields):
+        raise UserError(f"the WAM reads {len(cameras)} cameras {list(cameras)} but a request carries {len(fields)} "
+                        f"images; pass a request map for the cameras to serve")
+    request = {f: cameras[min(i, len(cameras) - 1)] for i, f in enumerate(fields)}
+    return request, {c: futures[i] for i, c in enumerate(cameras)}

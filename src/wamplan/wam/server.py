@@ -44,25 +44,6 @@ log = logging.getLogger(__name__)
 
 DEFAULT_HOST = "127.0.0.1"  # loopback: other machines reach the server only when --host says so
 
-# request field -> camera, and camera -> response field: the client's defaults, for cube-insertion's cameras.
-DEFAULT_REQUEST_MAP = {"primary_image": "front", "left_wrist_image": "side", "right_wrist_image": "wrist"}
-DEFAULT_RESPONSE_MAP = {"front": "future_image", "side": "future_wrist_image", "wrist": "future_wrist_image2"}
-
-
-def default_maps(cameras: tuple[str, ...]) -> tuple[dict[str, str], dict[str, str]]:
-    """The request and response maps of a server for a WAM reading ``cameras`` when none are given: the client's
-    defaults for cube-insertion's cameras; for other cameras, camera i fills request field i of the defaults (the
-    last camera the fields left over) and its prediction is response field i."""
-    if all(c in DEFAULT_REQUEST_MAP.values() for c in cameras):
-        return dict(DEFAULT_REQUEST_MAP), dict(DEFAULT_RESPONSE_MAP)
-    fields, futures = list(DEFAULT_REQUEST_MAP), list(DEFAULT_RESPONSE_MAP.values())
-    if len(cameras) > len(fields):
-        raise UserError(f"the WAM reads {len(cameras)} cameras {list(cameras)} but a request carries {len(fields)} "
-                        f"images; pass a request map for the cameras to serve")
-    request = {f: cameras[min(i, len(cameras) - 1)] for i, f in enumerate(fields)}
-    return request, {c: futures[i] for i, c in enumerate(cameras)}
-
-
 class _Refused(Exception):
     def __init__(self, status: int, message: str):
         super().__init__(message)
@@ -99,8 +80,8 @@ def create_app(wam: WAM, instruction_default: str | None = None, request_map: di
     """A FastAPI app answering ``POST /act`` with ``wam``'s predictions, and ``GET /health``.
 
     ``instruction_default`` (default: the WAM's ``default_instruction``) is used when a request's
-    ``task_description`` is empty; ``request_map`` / ``response_map`` default to :func:`default_maps` of the WAM's
-    cameras. ``secret`` (None or empty: none) must come with every ``/act`` request;
+    ``task_description`` is empty; ``request_map`` / ``response_map`` default to :func:`protocol.default_maps`
+    of the WAM's cameras. ``secret`` (None or empty: none) must come with every ``/act`` request;
     bodies over ``max_request_bytes`` are refused (413). Queries are serialised (one at a time), since a WAM
     may keep state and hold a single model. A request that fails is answered 400 / 422 / 500 with
     ``{"error": reason}`` (module docstring), or, with ``bare_errors``, as Cosmos Policy does: HTTP 200, ``"error"``.
@@ -108,7 +89,7 @@ def create_app(wam: WAM, instruction_default: str | None = None, request_map: di
     if max_request_bytes < 1:
         raise UserError(f"the request size limit must be >= 1 byte, got {max_request_bytes}")
     secret = secret or None
-    default_request, default_response = default_maps(tuple(wam.cameras))
+    default_request, default_response = protocol.default_maps(tuple(wam.cameras))
     request_map = dict(request_map or default_request)
     response_map = dict(response_map or default_response)
     bad = sorted(set(request_map) - {f for fs in protocol.REQUEST_IMAGE_FIELD_SETS for f in fs})
