@@ -551,7 +551,14 @@ def test_client_maps_the_cameras_of_its_task():
     assert by_position.config.request_map == peg.config.request_map
     assert by_position.config.response_map == peg.config.response_map and by_position.action_dim == 7
     with pytest.raises(ConfigError, match=r"unknown camera 'front'.*\['base_camera', 'hand_camera'\]"):
-        profile_config("cosmos-aloha", task="peg-insertion-side")  # the profiles map the cube's cameras
+        profile_config("cosmos-robocasa", task="peg-insertion-side")  # it names the cube's cameras
+    aloha = profile_config("cosmos-aloha", task="peg-insertion-side")  # ALOHA's field names, the task's cameras
+    assert aloha.request_map == by_position.config.request_map and aloha.chunk_length == 50
+    cube = profile_config("cosmos-aloha")  # the cube's mapping, as the profile spelled it out before
+    assert cube.request_pairs == ("front=primary_image", "side=left_wrist_image", "wrist=right_wrist_image")
+    assert cube.response_pairs == ("front=future_image", "side=future_wrist_image", "wrist=future_wrist_image2")
+    recorded = CosmosPolicyClient(cube).config_dict()  # the record holds the mapping in use
+    assert recorded["request_fields"] == list(cube.request_pairs) and recorded["action_indices"] == [0, 1, 2, 3, 4]
     with pytest.raises(ConfigError, match="unknown camera 'base_camera'"):
         CosmosClientConfig(**fields)
     with pytest.raises(UserError, match="unknown task 'no-such-task'"):
@@ -587,6 +594,9 @@ def test_server_maps_other_cameras_by_position():
     assert request == {"primary_image": "base_camera", "left_wrist_image": "hand_camera",
                        "right_wrist_image": "hand_camera"}
     assert response == {"base_camera": "future_image", "hand_camera": "future_wrist_image"}
+    request, response = default_maps(("front", "wrist"))  # a subset of the cube's names maps by position too
+    assert set(request.values()) == {"front", "wrist"} and response == {"front": "future_image",
+                                                                        "wrist": "future_wrist_image"}
 
 
 def test_a_wam_that_names_no_task_acts_in_the_cube_task():

@@ -42,7 +42,8 @@ class EvalConfig:
     wam_url: str = field("", "a served WAM's /act endpoint (Cosmos Policy protocol) instead of --wam, "
                          "e.g. http://127.0.0.1:8777/act")
     wam_profile: str = field("", "with --wam-url: the server's field mapping and sizes by name "
-                             "(cosmos-robocasa, cosmos-aloha); left out: the client's defaults", choices=_profiles)
+                             "(cosmos-robocasa, cosmos-aloha); left out: ALOHA's field names with the task's cameras by "
+                             "position and the task's action size", choices=_profiles)
     wm_plain: str = field("", "plain world model checkpoint (condition 6)")
     wm_augmented: str = field("", "augmented world model checkpoint (condition 7); several comma-separated "
                               "checkpoints form an ensemble (see --disagreement-weight); the same for --wm-plain")
@@ -108,8 +109,15 @@ class EvalConfig:
         if self.wam_url:
             from wamplan.wam.cosmos_client import profile_config
 
-            # a bad URL, profile or camera mapping for the task fails now, in one line
-            profile_config(self.wam_profile, url=self.wam_url, task=self.env.task)
+            from wamplan.config import ConfigError
+
+            try:  # a bad URL, profile or camera mapping for the task fails now, in one line
+                profile_config(self.wam_profile, url=self.wam_url, task=self.env.task)
+            except ConfigError as e:
+                if not self.wam_profile or "unknown camera" not in str(e):
+                    raise
+                raise UserError(f"--wam-profile {self.wam_profile} names cube-insertion's cameras, not task "
+                                f"{self.env.task}'s; leave it out to map the task's cameras by position") from None
         spec = self.env.spec
         expert = [c for c in conditions if "expert" in (CONDITIONS[c].seed, CONDITIONS[c].target)]
         if expert and spec.expert is None:

@@ -7,8 +7,8 @@ The client adapts wamplan's observation to what the server was trained on (camer
 proprio length, chunk length, which action columns are wamplan's action) and maps the predicted
 views back to wamplan cameras. It acts in the task of its config (``task``, default cube-insertion; ``wam.task``):
 the cameras it maps are that task's. Unset fields map the task's cameras by position
-(``protocol.default_maps``, as ``wamplan wam serve`` does) and take the task's action size; the profiles map
-cube-insertion's cameras. Every failure (server
+(``protocol.default_maps``, as ``wamplan wam serve`` does) and take the task's action size; ``cosmos-robocasa``
+names cube-insertion's cameras. Every failure (server
 down, timeout, HTTP error, the "error" answer, a malformed or non-finite answer) raises :class:`WAMServerError`
 with one line naming the fix.
 
@@ -76,7 +76,7 @@ class CosmosClientConfig:
     request_fields: tuple[str, ...] | None = field(
         None, "CAMERA=FIELD: which camera of the task fills each request image (all three fields are required); "
         "unset: the task's cameras in order fill primary_image, left_wrist_image, right_wrist_image (the last "
-        "camera the fields left over)")
+        "camera fills any fields left over)")
     response_fields: tuple[str, ...] | None = field(
         None, "CAMERA=FIELD: which predicted future image becomes each camera's target; unset: the task's cameras "
         "in order take future_image, future_wrist_image, future_wrist_image2")
@@ -101,8 +101,9 @@ class CosmosClientConfig:
         get_task(self.task)  # one line naming the registered tasks if unknown
         require(self.url.startswith(("http://", "https://")),
                 f"{_flag('url')} must be an http(s) URL such as http://127.0.0.1:8777/act, got '{self.url}'")
-        n_fields = len(protocol.REQUEST_IMAGE_FIELDS)
-        require(self.request_fields is not None or len(self.cameras) <= n_fields,
+        n_fields = len(protocol.DEFAULT_REQUEST_MAP)
+        positional = self.request_fields is None or self.response_fields is None
+        require(not positional or len(self.cameras) <= n_fields,
                 f"task {self.task} has {len(self.cameras)} cameras {list(self.cameras)} but a request carries "
                 f"{n_fields} images; choose them with {_flag('request_fields')} and {_flag('response_fields')}")
         req = _pairs(self.request_pairs, "request_fields", self.cameras)
@@ -171,9 +172,8 @@ class CosmosClientConfig:
 _ROBOCASA = dict(request_fields=("front=primary_image", "side=secondary_image", "wrist=wrist_image"),
                  response_fields=("front=future_image", "side=future_image2", "wrist=future_wrist_image"),
                  chunk_length=16, action_indices=(0, 1, 2, 3, 4), proprio_dim=None, send_image_size=224)
-_ALOHA = dict(request_fields=("front=primary_image", "side=left_wrist_image", "wrist=right_wrist_image"),
-              response_fields=("front=future_image", "side=future_wrist_image", "wrist=future_wrist_image2"),
-              chunk_length=50, action_indices=(0, 1, 2, 3, 4), proprio_dim=14, send_image_size=224)
+# ALOHA's fields are the client's defaults: left unset, they map any task's cameras by position.
+_ALOHA = dict(chunk_length=50, proprio_dim=14, send_image_size=224)
 PROFILES: dict[str, dict[str, Any]] = {"cosmos-robocasa": _ROBOCASA, "cosmos-aloha": _ALOHA}
 
 
@@ -262,7 +262,10 @@ class CosmosPolicyClient(WAM):
         return f"Cosmos Policy server at {self.config.url}"
 
     def config_dict(self) -> dict[str, Any]:
-        return {"name": self.name, **to_dict(self.config)}
+        """The config with the mapping in use (unset fields resolved for the task)."""
+        cfg = self.config
+        return {"name": self.name, **to_dict(dataclasses.replace(
+            cfg, request_fields=cfg.request_pairs, response_fields=cfg.response_pairs, action_indices=cfg.action_columns))}
 
     def close(self) -> None:
         self._session.close()

@@ -194,8 +194,8 @@ DEFAULT_RESPONSE_MAP = {"front": "future_image", "side": "future_wrist_image", "
 def default_maps(cameras: tuple[str, ...]) -> tuple[dict[str, str], dict[str, str]]:
     """The request and response maps for a WAM reading ``cameras`` when none are given: the defaults above for
     cube-insertion's cameras; for other cameras, camera i fills request field i of the defaults (the last camera
-    the fields left over) and its prediction is response field i."""
-    if all(c in DEFAULT_REQUEST_MAP.values() for c in cameras):
+    fills any fields left over) and its prediction is response field i."""
+    if set(cameras) == set(DEFAULT_REQUEST_MAP.values()):
         return dict(DEFAULT_REQUEST_MAP), dict(DEFAULT_RESPONSE_MAP)
     fields, futures = list(DEFAULT_REQUEST_MAP), list(DEFAULT_RESPONSE_MAP.values())
     if len(cameras) > len(fields):
