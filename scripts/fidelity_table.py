@@ -1,5 +1,6 @@
 """Merge `wamplan wm fidelity --json` files of one model set (e.g. seeds split over processes) and print one row per
-model: its own plan's gain in the simulator, paired against the first model, with the ranking scores beside it.
+model: its own plan's gain in the simulator, paired against the first model, with the ranking scores, the gains in the
+model's own cost and the cube's xy change beside it.
 
     python scripts/fidelity_table.py runs/fid41/screen_500-505.json runs/fid41/screen_506-511.json [--markdown]
     python scripts/fidelity_table.py runs/fid41/descent.json --steps 128-160     # one phase's boundaries only
@@ -40,6 +41,32 @@ def load(paths: list[Path]) -> tuple[list[dict], list[str], dict]:
         records += out["records"]
         labels, config = mine, cfg
     return records, labels, config
+
+
+def _mean_se(xs: list[float]) -> tuple[float, float]:
+    n = len(xs)
+    mean = sum(xs) / n
+    return mean, (sum((x - mean) ** 2 for x in xs) / (n - 1) / n) ** 0.5 if n > 1 else float("nan")
+
+
+def own_cost(records: list[dict], lab: str) -> str:
+    """The model's plan gain and the best candidate's gain, both in the model's own encoder's cost (means, %):
+    how much of what its own cost can reach among the candidates its plan gets."""
+    plan = [r["models"][lab]["plan_gain"] for r in records if "plan_gain" in r["models"][lab]]
+    best = [r["models"][lab]["best_gain"] for r in records]
+    return f"{100 * sum(plan) / len(plan):+.2f} / {100 * sum(best) / len(best):+.2f}" if plan else "—"
+
+
+def xy_vs(records: list[dict], lab: str, first: str) -> str:
+    """The change of the cube's xy distance to the hole under the model's plan minus under ``first``'s (mean ±
+    SE over boundaries, mm; < 0: the plan ends nearer the hole), a yardstick no encoder defines."""
+    key = "plan_xy_change_mm"
+    d = [r["models"][lab][key] - r["models"][first][key] for r in records
+         if key in r["models"][lab] and key in r["models"][first]]
+    if len(d) < 2:
+        return "—"
+    mean, se = _mean_se(d)
+    return f"{mean:+.2f} ± {se:.2f}"
 
 
 def plot_by_step(summary: dict, drawn: list[str], first: str, out: Path) -> Path:
@@ -100,7 +127,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{len(records)} boundaries, seeds {seeds[0]}-{seeds[-1]} ({len(seeds)}), steps "
           f"{sorted({r['step'] for r in records})}; paired: minus {labels[0]}'s at the same boundaries")
     head = ["model", "plan gain (%)", f"paired vs {labels[0]}", "mean - 2 SE", "plan beats WAM", "Spearman med",
-            "pick gain med"]
+            "pick gain med", "own cost: plan / best (%)", f"cube xy vs {labels[0]} (mm)"]
     rows = []
     for lab in labels:
         s = summary[lab]
@@ -108,7 +135,8 @@ def main(argv: list[str] | None = None) -> int:
         rows.append([lab, f"{100 * s['plan_gain_ref_mean']:+.2f} ± {100 * s['plan_gain_ref_se']:.2f}",
                      "—" if d is None else f"{100 * d:+.2f} ± {100 * se:.2f}",
                      "—" if d is None else f"{100 * (d - 2 * se):+.2f}", f"{s['plan_beats_wam']:.0%}",
-                     f"{s['spearman_median']:.2f}", f"{100 * s['pick_gain_median']:+.1f}"])
+                     f"{s['spearman_median']:.2f}", f"{100 * s['pick_gain_median']:+.1f}",
+                     own_cost(records, lab), "—" if lab == labels[0] else xy_vs(records, lab, labels[0])])
     if args.plot:
         drawn = [m for m in args.models.split(",") if m] or labels[1:]
         unknown = sorted(set(drawn) - set(labels))

@@ -15,7 +15,8 @@ def table(repo_script):
 
 def _row(gain: float) -> dict:
     return dict(spearman=0.5, top_overlap=0.5, pick_beats_wam=1.0, random_beats_wam=0.5, pick_gain=0.0, best_gain=0.1,
-                true_spread=0.1, slope_cosine=0.5, plan_gain=gain, plan_beats_wam=float(gain > 0), plan_gain_ref=gain)
+                true_spread=0.1, slope_cosine=0.5, plan_gain=gain, plan_beats_wam=float(gain > 0), plan_gain_ref=gain,
+                plan_xy_change_mm=-100 * gain)
 
 
 def _write(path: Path, seed: int, gains: list[tuple[float, float]], labels=("a", "b")) -> Path:
@@ -33,6 +34,9 @@ def test_split_runs_merge_into_one_paired_row(table, tmp_path, capsys):
     assert out.startswith("4 boundaries, seeds 500-501 (2)")
     row = next(line for line in out.splitlines() if line.startswith("| b |"))
     assert "+3.00 ± 0.71" in row  # the paired differences 3, 1, 4, 4 points: mean 3, SD 1.41, SE 0.71
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[-2] == "+4.25 / +10.00"  # own cost: b's plan gains 5, 5, 3, 4 %; the best candidate 10 % each
+    assert cells[-1] == "-3.00 ± 0.71"  # cube xy: -100 x gain, so 3 mm nearer on average, paired as the gain
 
 
 def test_overlapping_or_mismatched_files_are_one_line(table, tmp_path):
