@@ -153,7 +153,8 @@ def test_a_served_wam_is_chosen_with_url_and_profile(tmp_path):
         _cfg("--wam-url", "http://h:1/act", "--wam-profile", "cosmos-libero")
     # another task: the client maps its cameras by position; the profiles name the cube's cameras
     _cfg("--wam-url", "http://127.0.0.1:8777/act", "--task", "peg-insertion-side").check_for([1])
-    _cfg("--wam-url", "http://127.0.0.1:8777/act", "--wam-profile", "cosmos-aloha", "--task", "push-cube").check_for([1])
+    _cfg("--wam-url", "http://127.0.0.1:8777/act", "--wam-profile", "cosmos-aloha",
+         "--task", "push-cube").check_for([1])
     with pytest.raises(UserError, match="--wam-profile cosmos-robocasa names cube-insertion's cameras.*leave it out"):
         _cfg("--wam-url", "http://127.0.0.1:8777/act", "--wam-profile", "cosmos-robocasa",
              "--task", "peg-insertion-side").check_for([1])

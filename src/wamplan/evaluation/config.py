@@ -7,7 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from wamplan.config import field, from_dict, require
+from wamplan.config import ConfigError, field, from_dict, require
 from wamplan.envs.config import EnvConfig
 from wamplan.evaluation.conditions import CONDITIONS
 from wamplan.planning import PLANNERS, CostConfig
@@ -42,8 +42,8 @@ class EvalConfig:
     wam_url: str = field("", "a served WAM's /act endpoint (Cosmos Policy protocol) instead of --wam, "
                          "e.g. http://127.0.0.1:8777/act")
     wam_profile: str = field("", "with --wam-url: the server's field mapping and sizes by name "
-                             "(cosmos-robocasa, cosmos-aloha); left out: ALOHA's field names with the task's cameras by "
-                             "position and the task's action size", choices=_profiles)
+                             "(cosmos-robocasa, cosmos-aloha); left out: ALOHA's field names with the task's "
+                             "cameras by position and the task's action size", choices=_profiles)
     wm_plain: str = field("", "plain world model checkpoint (condition 6)")
     wm_augmented: str = field("", "augmented world model checkpoint (condition 7); several comma-separated "
                               "checkpoints form an ensemble (see --disagreement-weight); the same for --wm-plain")
@@ -108,8 +108,6 @@ class EvalConfig:
             raise UserError("--wam-profile needs --wam-url (a profile describes a served WAM)")
         if self.wam_url:
             from wamplan.wam.cosmos_client import profile_config
-
-            from wamplan.config import ConfigError
 
             try:  # a bad URL, profile or camera mapping for the task fails now, in one line
                 profile_config(self.wam_profile, url=self.wam_url, task=self.env.task)

@@ -264,8 +264,9 @@ class CosmosPolicyClient(WAM):
     def config_dict(self) -> dict[str, Any]:
         """The config with the mapping in use (unset fields resolved for the task)."""
         cfg = self.config
-        return {"name": self.name, **to_dict(dataclasses.replace(
-            cfg, request_fields=cfg.request_pairs, response_fields=cfg.response_pairs, action_indices=cfg.action_columns))}
+        used = dataclasses.replace(cfg, request_fields=cfg.request_pairs, response_fields=cfg.response_pairs,
+                                   action_indices=cfg.action_columns)
+        return {"name": self.name, **to_dict(used)}
 
     def close(self) -> None:
         self._session.close()
