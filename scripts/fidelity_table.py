@@ -1,6 +1,6 @@
 """Merge `wamplan wm fidelity --json` files of one model set (e.g. seeds split over processes) and print one row per
 model: its own plan's gain in the simulator, paired against the first model, with the ranking scores, the gains in the
-model's own cost and the cube's xy change beside it.
+model's own cost, the cube's xy change and the paired median with a sign test beside it.
 
     python scripts/fidelity_table.py runs/fid41/screen_500-505.json runs/fid41/screen_506-511.json [--markdown]
     python scripts/fidelity_table.py runs/fid41/descent.json --steps 128-160     # one phase's boundaries only
@@ -69,6 +69,21 @@ def xy_vs(records: list[dict], lab: str, first: str) -> str:
     return f"{mean:+.2f} ± {se:.2f}"
 
 
+def wins_vs(records: list[dict], lab: str, first: str) -> str:
+    """The median paired plan gain over ``first`` (points) and the boundaries where it is above and below, with
+    the two-sided sign test: a reading of the paired column that one far-off boundary cannot swing."""
+    from wamplan.evaluation.report import sign_test
+
+    d = sorted(100 * (r["models"][lab]["plan_gain_ref"] - r["models"][first]["plan_gain_ref"]) for r in records
+               if "plan_gain_ref" in r["models"][lab] and "plan_gain_ref" in r["models"][first])
+    if not d:
+        return "—"
+    n = len(d)
+    median = d[n // 2] if n % 2 else (d[n // 2 - 1] + d[n // 2]) / 2
+    won, lost = sum(x > 0 for x in d), sum(x < 0 for x in d)
+    return f"{median:+.2f}, {won}-{lost} (p = {sign_test(won, lost):.3f})"
+
+
 def plot_by_step(summary: dict, drawn: list[str], first: str, out: Path) -> Path:
     """Each drawn model's paired plan gain over ``first`` per boundary step (mean ± SE), one line a model."""
     import matplotlib
@@ -127,7 +142,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{len(records)} boundaries, seeds {seeds[0]}-{seeds[-1]} ({len(seeds)}), steps "
           f"{sorted({r['step'] for r in records})}; paired: minus {labels[0]}'s at the same boundaries")
     head = ["model", "plan gain (%)", f"paired vs {labels[0]}", "mean - 2 SE", "plan beats WAM", "Spearman med",
-            "pick gain med", "own cost: plan / best (%)", f"cube xy vs {labels[0]} (mm)"]
+            "pick gain med", "own cost: plan / best (%)", f"cube xy vs {labels[0]} (mm)",
+            f"paired median, wins-losses (sign p)"]
     rows = []
     for lab in labels:
         s = summary[lab]
@@ -136,7 +152,8 @@ def main(argv: list[str] | None = None) -> int:
                      "—" if d is None else f"{100 * d:+.2f} ± {100 * se:.2f}",
                      "—" if d is None else f"{100 * (d - 2 * se):+.2f}", f"{s['plan_beats_wam']:.0%}",
                      f"{s['spearman_median']:.2f}", f"{100 * s['pick_gain_median']:+.1f}",
-                     own_cost(records, lab), "—" if lab == labels[0] else xy_vs(records, lab, labels[0])])
+                     own_cost(records, lab), "—" if lab == labels[0] else xy_vs(records, lab, labels[0]),
+                     "—" if lab == labels[0] else wins_vs(records, lab, labels[0])])
     if args.plot:
         drawn = [m for m in args.models.split(",") if m] or labels[1:]
         unknown = sorted(set(drawn) - set(labels))

@@ -35,8 +35,9 @@ def test_split_runs_merge_into_one_paired_row(table, tmp_path, capsys):
     row = next(line for line in out.splitlines() if line.startswith("| b |"))
     assert "+3.00 ± 0.71" in row  # the paired differences 3, 1, 4, 4 points: mean 3, SD 1.41, SE 0.71
     cells = [c.strip() for c in row.strip("|").split("|")]
-    assert cells[-2] == "+4.25 / +10.00"  # own cost: b's plan gains 5, 5, 3, 4 %; the best candidate 10 % each
-    assert cells[-1] == "-3.00 ± 0.71"  # cube xy: -100 x gain, so 3 mm nearer on average, paired as the gain
+    assert cells[-3] == "+4.25 / +10.00"  # own cost: b's plan gains 5, 5, 3, 4 %; the best candidate 10 % each
+    assert cells[-2] == "-3.00 ± 0.71"  # cube xy: -100 x gain, so 3 mm nearer on average, paired as the gain
+    assert cells[-1] == "+3.50, 4-0 (p = 0.125)"  # differences 3, 1, 4, 4: median 3.5, above at all 4 boundaries
 
 
 def test_overlapping_or_mismatched_files_are_one_line(table, tmp_path):
