@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import statistics
 import sys
 from pathlib import Path
 
@@ -43,10 +44,10 @@ def load(paths: list[Path]) -> tuple[list[dict], list[str], dict]:
     return records, labels, config
 
 
-def _mean_se(xs: list[float]) -> tuple[float, float]:
-    n = len(xs)
-    mean = sum(xs) / n
-    return mean, (sum((x - mean) ** 2 for x in xs) / (n - 1) / n) ** 0.5 if n > 1 else float("nan")
+def _paired(records: list[dict], lab: str, first: str, key: str) -> list[float]:
+    """``key`` of ``lab`` minus ``key`` of ``first``, over the boundaries where both have it."""
+    return [r["models"][lab][key] - r["models"][first][key] for r in records
+            if key in r["models"][lab] and key in r["models"][first]]
 
 
 def own_cost(records: list[dict], lab: str) -> str:
@@ -54,19 +55,16 @@ def own_cost(records: list[dict], lab: str) -> str:
     how much of what its own cost can reach among the candidates its plan gets."""
     plan = [r["models"][lab]["plan_gain"] for r in records if "plan_gain" in r["models"][lab]]
     best = [r["models"][lab]["best_gain"] for r in records]
-    return f"{100 * sum(plan) / len(plan):+.2f} / {100 * sum(best) / len(best):+.2f}" if plan else "—"
+    return f"{100 * statistics.mean(plan):+.2f} / {100 * statistics.mean(best):+.2f}" if plan else "—"
 
 
 def xy_vs(records: list[dict], lab: str, first: str) -> str:
     """The change of the cube's xy distance to the hole under the model's plan minus under ``first``'s (mean ±
     SE over boundaries, mm; < 0: the plan ends nearer the hole), a yardstick no encoder defines."""
-    key = "plan_xy_change_mm"
-    d = [r["models"][lab][key] - r["models"][first][key] for r in records
-         if key in r["models"][lab] and key in r["models"][first]]
+    d = _paired(records, lab, first, "plan_xy_change_mm")
     if len(d) < 2:
         return "—"
-    mean, se = _mean_se(d)
-    return f"{mean:+.2f} ± {se:.2f}"
+    return f"{statistics.mean(d):+.2f} ± {statistics.stdev(d) / len(d) ** 0.5:.2f}"
 
 
 def wins_vs(records: list[dict], lab: str, first: str) -> str:
@@ -74,14 +72,11 @@ def wins_vs(records: list[dict], lab: str, first: str) -> str:
     the two-sided sign test: a reading of the paired column that one far-off boundary cannot swing."""
     from wamplan.evaluation.report import sign_test
 
-    d = sorted(100 * (r["models"][lab]["plan_gain_ref"] - r["models"][first]["plan_gain_ref"]) for r in records
-               if "plan_gain_ref" in r["models"][lab] and "plan_gain_ref" in r["models"][first])
+    d = [100 * x for x in _paired(records, lab, first, "plan_gain_ref")]
     if not d:
         return "—"
-    n = len(d)
-    median = d[n // 2] if n % 2 else (d[n // 2 - 1] + d[n // 2]) / 2
     won, lost = sum(x > 0 for x in d), sum(x < 0 for x in d)
-    return f"{median:+.2f}, {won}-{lost} (p = {sign_test(won, lost):.3f})"
+    return f"{statistics.median(d):+.2f}, {won}-{lost} (p = {sign_test(won, lost):.3f})"
 
 
 def plot_by_step(summary: dict, drawn: list[str], first: str, out: Path) -> Path:

@@ -7,7 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from wamplan.config import ConfigError, field, from_dict, require
+from wamplan.config import field, from_dict, require
 from wamplan.envs.config import EnvConfig
 from wamplan.evaluation.conditions import CONDITIONS
 from wamplan.planning import PLANNERS, CostConfig
@@ -109,13 +109,8 @@ class EvalConfig:
         if self.wam_url:
             from wamplan.wam.cosmos_client import profile_config
 
-            try:  # a bad URL, profile or camera mapping for the task fails now, in one line
-                profile_config(self.wam_profile, url=self.wam_url, task=self.env.task)
-            except ConfigError as e:
-                if not self.wam_profile or "unknown camera" not in str(e):
-                    raise
-                raise UserError(f"--wam-profile {self.wam_profile} names cube-insertion's cameras, not task "
-                                f"{self.env.task}'s; leave it out to map the task's cameras by position") from None
+            # a bad URL, profile or camera mapping for the task fails now, in one line
+            profile_config(self.wam_profile, url=self.wam_url, task=self.env.task)
         spec = self.env.spec
         expert = [c for c in conditions if "expert" in (CONDITIONS[c].seed, CONDITIONS[c].target)]
         if expert and spec.expert is None:

@@ -185,6 +185,14 @@ def profile_config(profile: str = "", **overrides: Any) -> CosmosClientConfig:
     unknown = sorted(set(overrides) - known)
     require(not unknown, f"CosmosPolicyClient: unknown option(s) {unknown}; known: {sorted(known)}")
     kw = {**PROFILES.get(profile, {}), **{k: tuple(v) if isinstance(v, list) else v for k, v in overrides.items()}}
+    task = kw.get("task", CosmosClientConfig.task)
+    cameras = get_task(task).cameras
+    named = [item.partition("=")[0] for k in ("request_fields", "response_fields") if k not in overrides
+             for item in PROFILES.get(profile, {}).get(k, ())]  # cameras the profile itself names
+    foreign = [c for c in dict.fromkeys(named) if c not in cameras]
+    require(not foreign, f"{_flag('profile')} {profile} names cube-insertion's cameras, not task {task}'s (unknown "
+                         f"camera '{foreign[0] if foreign else ''}'; the task's cameras are {list(cameras)}); leave it "
+                         f"out to map the task's cameras by position")
     return CosmosClientConfig(**kw)
 
 
