@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from wamplan.cli import main
-from wamplan.data.readers import WAMSamples, WorldModelWindows, split_of
-from wamplan.data.store import EpisodeStore, StoreError
+from wamplan.data.readers import H5Cache, WAMSamples, WorldModelWindows, open_file_budget, split_of
+from wamplan.data.store import EpisodeStore, StoreError, reading
 from wamplan.envs.contract import CAMERAS, CUBE_INSERTION
 
 SMALL = ["--camera-size", "64"]
@@ -318,3 +318,26 @@ def test_windows_may_end_on_the_episodes_last_frame(store):
         real = ep.actions[int(item["steps"][0]):]
         np.testing.assert_array_equal(acts[:len(real)], real)
         assert (acts[len(real):] == real[-1]).all()
+
+
+def test_open_files_are_bounded_least_recently_read_closed_first(store):
+    """A dataset of more files than the open-file limit reads: the cache closes the least recently read file."""
+    paths = sorted(str(p) for p in (store / "episodes").glob("*.h5"))
+    assert len(paths) >= 4
+    cache = H5Cache(max_open=2)
+    lengths = {p: int(cache.get(p).attrs["length"]) for p in paths}
+    assert len(cache) == 2
+    first = cache.get(paths[0])  # re-opened after it was closed, and still reads
+    assert int(first.attrs["length"]) == lengths[paths[0]]
+    kept = cache.get(paths[-1])
+    cache.get(paths[1])  # evicts paths[0], the least recently read, not paths[-1]
+    assert kept.id.valid and not first.id.valid and len(cache) == 2
+    assert open_file_budget() >= 16
+
+
+def test_too_many_open_files_is_not_called_damage():
+    with pytest.raises(StoreError) as e:
+        with reading("ep.h5"):
+            raise OSError("Unable to open file (unable to open file: name = 'ep.h5', errno = 24, error message = "
+                          "'Too many open files', flags = 0, o_flags = 0)")
+    assert "too many open files" in str(e.value) and "not damaged" in str(e.value) and "ulimit -n" in str(e.value)

@@ -19,7 +19,8 @@ from __future__ import annotations
 
 import hashlib
 import json
-from collections import Counter
+import resource
+from collections import Counter, OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -96,20 +97,35 @@ def stores_cameras(stores: Sequence[str | Path]) -> tuple[str, ...]:
     return EpisodeStore(stores[0]).cameras if stores else ()
 
 
-class _H5Cache:
-    """Open HDF5 files lazily, per process (h5py handles must not cross a fork)."""
+def open_file_budget() -> int:
+    """How many HDF5 files one process keeps open: half its soft limit on open files (``ulimit -n``), at least 16,
+    so that a dataset of more files than the limit reads without "Too many open files"."""
+    return max(16, resource.getrlimit(resource.RLIMIT_NOFILE)[0] // 2)
 
-    def __init__(self):
-        self._files: dict[str, h5py.File] = {}
+
+class H5Cache:
+    """Open HDF5 files lazily, per process (h5py handles must not cross a fork), at most ``max_open`` at a time:
+    the least recently read one is closed to make room (re-opening one costs well under a millisecond)."""
+
+    def __init__(self, max_open: int | None = None):
+        self.max_open = max_open or open_file_budget()
+        self._files: OrderedDict[str, h5py.File] = OrderedDict()
 
     def get(self, path: str) -> h5py.File:
         f = self._files.get(path)
-        if f is None:
-            f = self._files[path] = h5py.File(path, "r")
+        if f is not None:
+            self._files.move_to_end(path)
+            return f
+        while len(self._files) >= self.max_open:
+            self._files.popitem(last=False)[1].close()
+        f = self._files[path] = h5py.File(path, "r")
         return f
 
+    def __len__(self) -> int:
+        return len(self._files)
+
     def __getstate__(self):
-        return {"_files": {}}
+        return {"max_open": self.max_open, "_files": OrderedDict()}
 
 
 _ITEM_FIX = ("`wamplan data check STORE` names every damaged episode: delete those and re-run the `wamplan collect` "
@@ -125,7 +141,7 @@ class _EpisodeDataset(Dataset):
         self.episodes = index_episodes(stores, split, val_fraction, features=features, sources=sources)
         self.cameras = stores_cameras(stores)  # the views' order
         self.items: list[tuple[int, ...]] = []
-        self._h5 = _H5Cache()
+        self._h5 = H5Cache()
 
     def _require_stride(self, every: int, what: str, fix: str = "") -> None:
         """Every episode's image stride must divide ``every`` (a chunk length or a frameskip)."""

@@ -42,9 +42,11 @@ WAM's chunk length H must be multiples of it (Δ=4, H=16 with the default 4; the
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import re
+import resource
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -82,6 +84,10 @@ def reading(path: str | Path, fix: str = RECOLLECT) -> Iterator[None]:
     try:
         yield
     except (OSError, KeyError, ValueError, RuntimeError) as e:
+        if isinstance(e, OSError) and (e.errno == errno.EMFILE or "Too many open files" in str(e)):
+            raise StoreError(f"too many open files while reading {path} (the files are not damaged): raise the "
+                             f"limit (`ulimit -n`, now {resource.getrlimit(resource.RLIMIT_NOFILE)[0]}) and run it "
+                             f"again") from None
         raise StoreError(f"{path} is damaged, a read failed ({reason(e)}); {fix}") from None
 
 
