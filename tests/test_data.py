@@ -335,6 +335,28 @@ def test_open_files_are_bounded_least_recently_read_closed_first(store):
     assert open_file_budget() >= 16
 
 
+def _open_in_child(cache, path, out):
+    f = cache.get(path)
+    out.put((len(cache), int(f.attrs["length"])))
+
+
+def test_a_forked_worker_opens_its_own_files(store):
+    """A DataLoader worker forked after the parent read keeps none of the parent's HDF5 handles."""
+    import multiprocessing as mp
+
+    paths = sorted(str(p) for p in (store / "episodes").glob("*.h5"))
+    cache = H5Cache(max_open=4)
+    parent_file = cache.get(paths[0])
+    ctx = mp.get_context("fork")
+    out = ctx.Queue()
+    child = ctx.Process(target=_open_in_child, args=(cache, paths[1], out))
+    child.start()
+    opened, length = out.get(timeout=60)
+    child.join(timeout=60)
+    assert child.exitcode == 0 and opened == 1 and length > 0  # only the file the child opened itself
+    assert parent_file.id.valid and len(cache) == 1  # the parent's handle is untouched
+
+
 def test_too_many_open_files_is_not_called_damage():
     with pytest.raises(StoreError) as e:
         with reading("ep.h5"):

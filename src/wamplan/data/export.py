@@ -46,7 +46,7 @@ import h5py
 import numpy as np
 
 from wamplan.config import field, require
-from wamplan.data.store import EpisodeData, EpisodeStore, atomic_h5, source_tag
+from wamplan.data.store import IMAGE_COMPRESSION, EpisodeData, EpisodeStore, atomic_h5, source_tag
 from wamplan.envs.spec import TaskSpec
 from wamplan.errors import UserError
 
@@ -119,7 +119,7 @@ def _meta(ep: EpisodeData) -> dict[str, Any]:
 def _images(group: h5py.Group, names: dict[str, str], images: dict[str, np.ndarray]) -> None:
     for cam, name in names.items():
         arr = images[cam]  # (N, S, S, 3) uint8
-        group.create_dataset(name, data=arr, chunks=(1, *arr.shape[1:]), compression="gzip", compression_opts=4)
+        group.create_dataset(name, data=arr, chunks=(1, *arr.shape[1:]), **IMAGE_COMPRESSION)
 
 
 def _is_demo(ep: EpisodeData, split: str) -> bool:

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import resource
 from collections import Counter, OrderedDict
 from dataclasses import dataclass
@@ -111,8 +112,11 @@ class H5Cache:
     def __init__(self, max_open: int | None = None):
         self.max_open = max_open or open_file_budget()
         self._files: OrderedDict[str, h5py.File] = OrderedDict()
+        self._pid = os.getpid()
 
     def get(self, path: str) -> h5py.File:
+        if os.getpid() != self._pid:  # a forked worker: the parent's handles are not ours to read or close
+            self._files, self._pid = OrderedDict(), os.getpid()
         f = self._files.get(path)
         if f is not None:
             self._files.move_to_end(path)
@@ -126,7 +130,7 @@ class H5Cache:
         return len(self._files)
 
     def __getstate__(self):
-        return {"max_open": self.max_open, "_files": OrderedDict()}
+        return {"max_open": self.max_open, "_files": OrderedDict(), "_pid": -1}
 
 
 _ITEM_FIX = ("`wamplan data check STORE` names every damaged episode: delete those and re-run the `wamplan collect` "

@@ -9,15 +9,14 @@ process, so an episode's record depends only on its seed and its policy.
 
 ``simulate`` is a planner's fast path (the simulator oracle): it rolls candidate chunks out from a
 snapshot with the controller and physics only (ManiSkill's ``_step_action``: no per-step evaluation,
-observation or reward) and renders only the final frame, skipping for each
-camera the bodies that lie wholly outside its view frustum. Its terminal states and pictures are
+observation or reward) and renders only the final frame. Its terminal states and pictures are
 bit-identical to ``restore``, ``step`` and ``render``. One restore is as exact as several: PhysX's hidden
 state carries over from the previous rollout (cached contacts, we believe), and no number of
 ``set_state_dict`` calls clears it.
 
 Rendering cost is dominated by shading the robot's meshes on the calling thread, whatever the resolution, so
-culling bodies outside a camera's frustum is what pays (profile: ``benchmarks/oracle.py --profile``; figures in
-docs/results.md).
+culling bodies outside a camera's frustum is what pays, and every render culls by default (the same pixels;
+profile: ``benchmarks/oracle.py --profile``; figures in docs/results.md).
 """
 
 from __future__ import annotations
@@ -173,10 +172,13 @@ class TaskEnv:
     def drive_targets(self) -> np.ndarray:
         return self.base.agent.robot.get_drive_targets()[0].numpy().astype(np.float32)
 
-    def render(self, cameras: tuple[str, ...] | None = None, cull: bool = False) -> dict[str, np.ndarray]:
-        """Render the current state: camera -> (H, W, 3) uint8 (default: the task's cameras). ``cull`` hides, per camera, the bodies wholly
-        outside its view frustum while it draws (the same pixels, drawn faster; ``simulate`` uses it)."""
+    def render(self, cameras: tuple[str, ...] | None = None, cull: bool | None = None) -> dict[str, np.ndarray]:
+        """Render the current state: camera -> (H, W, 3) uint8 (default: the task's cameras). ``cull`` hides, per
+        camera, the bodies wholly outside its view frustum while it draws: the same pixels, drawn faster. By default
+        it culls unless a light of the scene casts shadows (a body outside the view could shade a pixel in it)."""
         b = self.base
+        if cull is None:
+            cull = not self._casts_shadows()
         b.scene.update_render(update_sensors=True, update_human_render_cameras=False)
         out = {}
         for name in cameras or self.task.cameras:
@@ -192,6 +194,9 @@ class TaskEnv:
             rgb = cam.get_obs(rgb=True, depth=False, position=False, segmentation=False)["rgb"]  # (1, H, W, 3)
             out[name] = rgb[0].cpu().numpy().copy()  # a GPU render backend returns CUDA tensors
         return out
+
+    def _casts_shadows(self) -> bool:
+        return any(light.shadow for light in self.base.scene.sub_scenes[0].render_system.lights)
 
     def _outside_frustum(self, cam) -> list:
         """The visible render bodies whose world AABB lies wholly outside ``cam``'s frustum (conservative: a
@@ -277,7 +282,7 @@ class TaskEnv:
             self._mid_rollout = True
             for a in cand:
                 self.base._step_action(a[None])  # (1, A): controller + physics, as in base.step
-            frames = self.render(cameras, cull=True)
+            frames = self.render(cameras)
             views.append(np.stack([frames[c] for c in cameras]))  # (V, H, W, 3)
         return np.stack(views)  # (B, V, H, W, 3)
 
