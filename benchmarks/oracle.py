@@ -42,7 +42,7 @@ class FullStepDynamics(SimulatorDynamics):
             self.restore()
             for a in cand:
                 self.env.step(a)
-            frames = self.env.render(self.cameras)
+            frames = self.env.render(self.cameras, cull=False)
             views.append(np.stack([frames[c] for c in self.cameras]))  # (V, H, W, 3)
         self.restore()
         self.restore()
@@ -72,7 +72,7 @@ def profile(sizes: tuple[int, ...], repeats: int) -> None:
                 "restore": (env, snap, 1, lambda e=env, sn=snap: e.restore(sn)),
                 "restore, physics only (simulate)": (env, snap, 1, lambda e=env, sn=snap: e._restore_sim(sn)),
             })
-        calls[f"render 3 cameras, {s} px"] = (env, snap, 1, lambda e=env: e.render())
+        calls[f"render 3 cameras, {s} px"] = (env, snap, 1, lambda e=env: e.render(cull=False))
         calls[f"render 3 cameras, {s} px, culled"] = (env, snap, 1, lambda e=env: e.render(cull=True))
     times = {k: [] for k in calls}
     for _ in range(repeats):

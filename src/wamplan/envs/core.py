@@ -82,7 +82,7 @@ class TaskEnv:
         self.reached = {s: False for s in self.task.stages}
         self._last: dict[str, Any] = {}
         self._mid_rollout = False  # set by simulate(): physics moved on without stage tracking
-        self._bodies: list | None = None  # render bodies, for frustum culling (see render)
+        self._bodies: tuple | None = None  # (scene, its render bodies), for frustum culling (see render)
         self._stepped = False  # physics stepped since the scene was built: reset rebuilds it (see reset)
 
     # ------------------------------------------------------------------ episode
@@ -94,8 +94,6 @@ class TaskEnv:
         hidden solver state across ``reset`` (an episode run after others could run differently; docs/results.md)."""
         self.seed = int(seed)
         self.base.reset(seed=self.seed, options=dict(reconfigure=self._stepped))
-        if self._stepped:
-            self._bodies = None  # the rebuilt scene has new render bodies
         self._stepped = False
         self._mid_rollout = False
         self.step_count = 0
@@ -175,18 +173,19 @@ class TaskEnv:
     def render(self, cameras: tuple[str, ...] | None = None, cull: bool | None = None) -> dict[str, np.ndarray]:
         """Render the current state: camera -> (H, W, 3) uint8 (default: the task's cameras). ``cull`` hides, per
         camera, the bodies wholly outside its view frustum while it draws: the same pixels, drawn faster. By default
-        it culls unless a light of the scene casts shadows (a body outside the view could shade a pixel in it)."""
+        it culls unless a light of the scene casts shadows (a body outside the view could shade a pixel in it) or the
+        physics runs on a GPU (whose poses the CPU side does not read back)."""
         b = self.base
         if cull is None:
-            cull = not self._casts_shadows()
+            cull = not (b.gpu_sim_enabled or self._casts_shadows())
         b.scene.update_render(update_sensors=True, update_human_render_cameras=False)
         out = {}
         for name in cameras or self.task.cameras:
             cam = b.scene.sensors[name]
             hidden = self._outside_frustum(cam.camera._render_cameras[0]) if cull else []
-            for body in hidden:
-                body.visibility = 0.0
             try:
+                for body in hidden:
+                    body.visibility = 0.0
                 cam.capture()  # records and submits the draw now: visibility is read here
             finally:
                 for body in hidden:
@@ -203,12 +202,14 @@ class TaskEnv:
         body is hidden only if all 8 corners of its box fail one clip-space half-space)."""
         import sapien
 
-        if self._bodies is None:
-            comps = (e.find_component_by_type(sapien.render.RenderBodyComponent)
-                     for e in self.base.scene.sub_scenes[0].entities)
-            self._bodies = [c for c in comps if c is not None]
+        scene = self.base.scene.sub_scenes[0]  # a new object whenever ManiSkill rebuilds the scene
+        if self._bodies is None or self._bodies[0] is not scene:
+            comps = (e.find_component_by_type(sapien.render.RenderBodyComponent) for e in scene.entities)
+            self._bodies = (scene, [c for c in comps if c is not None])
         pv = cam.get_projection_matrix() @ np.linalg.inv(cam.get_model_matrix())  # (4, 4) world -> clip
-        bodies = [c for c in self._bodies if c.visibility == 1.0]
+        bodies = [c for c in self._bodies[1] if c.visibility == 1.0]
+        if not bodies:
+            return []
         boxes = np.array([c.get_global_aabb_fast() for c in bodies])  # (K, 2, 3) min, max
         corners = boxes[:, _CORNERS, [0, 1, 2]]  # (K, 8, 3)
         x, y, z, w = (np.concatenate([corners, np.ones_like(corners[..., :1])], -1) @ pv.T).transpose(2, 0, 1)
