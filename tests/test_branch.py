@@ -124,6 +124,9 @@ def test_branch_groups_stack_the_siblings_of_each_boundary(tmp_path, capsys):
                  "--sibling-weight", "1", "--sibling-groups", "2", "--log-every-steps", "1"]) == 0
     logged = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
     assert any("train/sib_mse_h4" in m for m in logged)
+    # in bfloat16 autocast too: the groups' float16 features are read and stacked outside it
+    assert main(["wm", "train", "--data", str(out), "--out", str(tmp_path / "wm_bf16"), "--max-steps", "1",
+                 "--batch-size", "4", "--sibling-weight", "1", "--sibling-groups", "2", "--precision", "bfloat16"]) == 0
     # `wm eval` scores the same groups: the share of the siblings' differences the model misses
     assert main(["wm", "eval", "--ckpt", str(run / "checkpoint"), "--data", str(out), "--split", "all",
                  "--json", str(tmp_path / "eval.json")]) == 0

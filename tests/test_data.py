@@ -8,6 +8,7 @@ import subprocess
 import sys
 import time
 
+import h5py
 import numpy as np
 import pytest
 
@@ -355,6 +356,20 @@ def test_a_forked_worker_opens_its_own_files(store):
     child.join(timeout=60)
     assert child.exitcode == 0 and opened == 1 and length > 0  # only the file the child opened itself
     assert parent_file.id.valid and len(cache) == 1  # the parent's handle is untouched
+
+
+def test_an_error_after_the_read_is_not_called_damage(store):
+    """Only a failure inside h5py names the file as damaged; a computation's error passes through unchanged."""
+    path = sorted((store / "episodes").glob("*.h5"))[0]
+    with pytest.raises(RuntimeError, match="not a read"):
+        with reading(path):
+            with h5py.File(path, "r") as f:
+                f["actions"][()]
+            raise RuntimeError("not a read")
+    with pytest.raises(StoreError, match="is damaged"):
+        with reading(path):
+            with h5py.File(path, "r") as f:
+                f["no such dataset"]
 
 
 def test_too_many_open_files_is_not_called_damage():

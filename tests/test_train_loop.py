@@ -254,3 +254,32 @@ def test_evaluating_restores_the_mode_the_model_had_even_on_an_error():
     with evaluating(net):
         pass
     assert not net.training  # an eval-mode model stays in eval mode
+
+
+def test_bfloat16_precision_runs_the_step_in_autocast_and_keeps_float32_weights(tmp_path):
+    """--precision bfloat16: the step's matrix products run in bfloat16, the weights and their updates stay
+    float32; an unknown precision is refused with the flag to pass."""
+    import torch
+
+    import wamplan.train_loop as loop
+    from wamplan.config import ConfigError
+    from wamplan.worldmodel.config import TrainConfig
+
+    with pytest.raises(ConfigError, match="pass --precision float32 or bfloat16"):
+        TrainConfig(precision="float16")
+    data = torch.utils.data.TensorDataset(torch.randn(8, 3))
+    for precision in ("float32", "bfloat16"):
+        seen = []
+
+        def step(m, b):
+            out = m(b[0])  # (B, 1)
+            seen.append(out.dtype)
+            return out.float().pow(2).mean(), {}
+
+        torch.manual_seed(0)
+        model = torch.nn.Linear(3, 1)
+        before = model.weight.detach().clone()
+        loop.fit(model, loop.DatasetBatches(data), step, TrainConfig(epochs=1, batch_size=4, precision=precision),
+                 run_dir=tmp_path / precision, kind="test", config={}, progress=False, log=None)
+        assert set(seen) == {getattr(torch, precision)}
+        assert model.weight.dtype == torch.float32 and not torch.equal(model.weight, before)

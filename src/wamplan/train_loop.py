@@ -44,7 +44,9 @@ from wamplan.progress import progress_bar
 
 METRICS_FILE = "metrics.jsonl"
 # fields of a config's "train" section that may change when a run is resumed (everything else must match)
-RUN_ONLY_FIELDS = ("epochs", "num_workers", "device", "save_every_steps", "log_every_steps")
+RUN_ONLY_FIELDS = ("epochs", "num_workers", "device", "save_every_steps", "log_every_steps", "precision")
+
+PRECISIONS = ("float32", "bfloat16")
 
 StepFn = Callable[[nn.Module, Any], tuple[torch.Tensor, dict[str, float]]]
 
@@ -67,6 +69,9 @@ class LoopConfig:
     save_every_steps: int = field(0, "also checkpoint every this many steps (0: at epoch ends only)")
     log_every_steps: int = field(0, "also log the running training losses to metrics.jsonl every this many steps "
                                      "(0: at epoch ends only)")
+    precision: str = field("float32", "arithmetic of the forward pass and the loss: 'float32', or 'bfloat16' "
+                                      "(autocast: matrix products in bfloat16; weights, gradients and the "
+                                      "optimiser stay float32), on a CPU or a GPU")
 
     def __post_init__(self) -> None:
         name = type(self).__name__
@@ -83,6 +88,8 @@ class LoopConfig:
                                              f"one in that range")
         for k in ("num_workers", "save_every_steps", "log_every_steps"):
             require(getattr(self, k) >= 0, f"{name}.{k} must be >= 0, got {getattr(self, k)}")
+        require(self.precision in PRECISIONS, f"{name}.precision must be one of {', '.join(PRECISIONS)}, got "
+                                              f"{self.precision!r}; pass --precision float32 or bfloat16")
 
 
 @dataclass(frozen=True)
@@ -303,7 +310,8 @@ def fit(model: nn.Module, batches: Batches, step_fn: StepFn, cfg: LoopConfig, *,
             window: dict[str, float] = {}  # sums since the last step record
             count, window_n, t0, seen = 0, 0, time.perf_counter(), 0
             for batch in batches.epoch(order, bs, state["global_step"]):
-                loss, logs = step_fn(model, _to_device(batch, device))
+                with torch.autocast(device.type, torch.bfloat16, enabled=cfg.precision == "bfloat16"):
+                    loss, logs = step_fn(model, _to_device(batch, device))
                 optimizer_step(model, opt, sched, loss, cfg.grad_clip)
                 state["global_step"] += 1
                 state["step_in_epoch"] += 1

@@ -83,7 +83,8 @@ CHECKSUMMED_FORMAT = ("v110", "v110")
 @contextmanager
 def reading(path: str | Path, fix: str = RECOLLECT) -> Iterator[None]:
     """Turn a failed read of the HDF5 file ``path`` (a checksum mismatch, a damaged chunk, a missing dataset) into
-    a one-line :class:`StoreError` that names the file and ``fix``."""
+    a one-line :class:`StoreError` that names the file and ``fix``. Only a failure raised inside h5py counts as a
+    failed read: any other error of the ``with`` body (a computation on what was read) passes through unchanged."""
     try:
         yield
     except (OSError, KeyError, ValueError, RuntimeError) as e:
@@ -91,7 +92,17 @@ def reading(path: str | Path, fix: str = RECOLLECT) -> Iterator[None]:
             raise StoreError(f"too many open files while reading {path} (the files are not damaged): raise the "
                              f"limit (`ulimit -n`, now {resource.getrlimit(resource.RLIMIT_NOFILE)[0]}) and run it "
                              f"again") from None
+        if not _raised_in_h5py(e):
+            raise
         raise StoreError(f"{path} is damaged, a read failed ({reason(e)}); {fix}") from None
+
+
+def _raised_in_h5py(e: BaseException) -> bool:
+    """Whether the innermost Python frame of ``e``'s traceback is h5py's (a read of the file failed)."""
+    tb = e.__traceback__
+    while tb is not None and tb.tb_next is not None:
+        tb = tb.tb_next
+    return tb is not None and str(tb.tb_frame.f_globals.get("__name__", "")).startswith("h5py")
 
 
 BRANCH_SEED_FACTOR = 1000  # a counterfactual branch j of parent seed s has seed s * 1000 + j (wamplan.data.branch)

@@ -357,8 +357,9 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
     def step(m: WorldModelPredictor, b: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, float]]:
         loss, logs = window_loss(m, b, train.horizon, train.gamma, train.loss_form, train.change_weight)
         if groups is not None:
-            sib, sib_logs = sibling_loss(m, {k: v.to(dev) for k, v in next(groups).items()}, train.sibling_horizon,
-                                         train.gamma)
+            with torch.autocast(dev.type, enabled=False):  # --precision bfloat16: read and stack as stored
+                g = {k: v.to(dev) for k, v in next(groups).items()}
+            sib, sib_logs = sibling_loss(m, g, train.sibling_horizon, train.gamma)
             loss, logs = loss + train.sibling_weight * sib, {**logs, **sib_logs}
         return loss, logs
 
