@@ -70,13 +70,15 @@ class StoreError(UserError):
 
 
 RECOLLECT = "delete it and re-run the same `wamplan collect` command to re-collect that seed"
+
+# Camera frames (K, H, W, 3) uint8, one chunk a frame. gzip level 1 writes 1.5x faster than level 4 and, on these
+# noisy renders, a smaller file; reading is as fast (docs/results.md, Timings, "Collection").
+IMAGE_COMPRESSION = dict(compression="gzip", compression_opts=1)
+
 # the HDF5 file format of new episode files: 1.10's, whose metadata and chunk indexes carry checksums (h5py's
 # default, the earliest format, has none; 1.8's leaves the chunk index unchecked); HDF5 >= 1.10 (2016) reads it.
 # With fletcher32 on every dataset, a damaged chunk or index fails to read instead of returning other numbers
 # (measured: docs/results.md).
-# Camera frames (K, H, W, 3) uint8, one chunk a frame. gzip level 1 writes 1.5x faster than level 4 and, on these
-# noisy renders, a smaller file; reading is as fast (docs/results.md, "Collection speed").
-IMAGE_COMPRESSION = dict(compression="gzip", compression_opts=1)
 CHECKSUMMED_FORMAT = ("v110", "v110")
 
 
