@@ -100,8 +100,8 @@ def stores_cameras(stores: Sequence[str | Path]) -> tuple[str, ...]:
 
 def open_file_budget() -> int:
     """How many HDF5 files one process keeps open: 512, or half its soft limit on open files (``ulimit -n``) where
-    that is lower (at least 16). More open files cost memory and slow every read (thousands of open episode files
-    doubled a training step's time), and a dataset of more files than the limit must still read."""
+    that is lower (at least 16). More open files cost memory and slow every read, and a dataset of more files than
+    the limit must still read."""
     return max(16, min(512, resource.getrlimit(resource.RLIMIT_NOFILE)[0] // 2))
 
 

@@ -71,8 +71,8 @@ class StoreError(UserError):
 
 RECOLLECT = "delete it and re-run the same `wamplan collect` command to re-collect that seed"
 
-# Camera frames (K, H, W, 3) uint8, one chunk a frame. gzip level 1 writes 1.5x faster than level 4 and, on these
-# noisy renders, a smaller file; reading is as fast (docs/results.md, Timings, "Collection").
+# Camera frames (K, H, W, 3) uint8, one chunk a frame; gzip level 1: on these noisy renders faster to write than
+# higher levels and no larger (docs/results.md, Timings).
 IMAGE_COMPRESSION = dict(compression="gzip", compression_opts=1)
 
 # the HDF5 file format of new episode files: 1.10's, whose metadata and chunk indexes carry checksums (h5py's
