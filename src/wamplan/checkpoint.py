@@ -141,10 +141,17 @@ def load_tensors(path: str | Path, device: str | torch.device = "cpu") -> dict[s
                               f"checkpoint again") from None
 
 
-def load_weights(path: str | Path, model: torch.nn.Module, device: str | torch.device = "cpu") -> None:
+def load_weights(path: str | Path, model: torch.nn.Module, device: str | torch.device = "cpu",
+                 new: tuple[str, ...] = ()) -> None:
     """Load ``path``'s weights into ``model`` (built from the same checkpoint's config.json); weights that do not
-    fit the model are a one-line error naming the checkpoint."""
+    fit the model are a one-line error naming the checkpoint. Weights whose names start with one of ``new`` may be
+    missing from the file (the model keeps its own) or from the model (the file's are dropped): parts a fine-tune
+    adds to or removes from the checkpoint it starts from."""
     weights = load_tensors(Path(path) / MODEL_FILE, device)
+    if new:
+        own = model.state_dict()
+        weights = {k: v for k, v in weights.items() if k in own or not k.startswith(new)}
+        weights.update({k: v for k, v in own.items() if k not in weights and k.startswith(new)})
     try:
         model.load_state_dict(weights)
     except RuntimeError as e:  # size mismatch, missing or unexpected keys: the config no longer fits the weights

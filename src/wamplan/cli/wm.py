@@ -161,6 +161,11 @@ def _fidelity_options(p: argparse.ArgumentParser) -> None:
                    help="also score every model ranking (and, with --plan, searching) with these per-view cost weights "
                         "(front side wrist), as LABEL+views, without --bias-correction; the simulator's yardstick "
                         "keeps --cost-view-weights")
+    p.add_argument("--plan-state-weight", type=float, default=None, metavar="W",
+                   help="also score every model that has a state head (`wm train --state-weight`) ranking and "
+                        "searching with the pose term added to its cost, W times the squared distance (cm^2) between "
+                        "the head's reading of each candidate's outcome and of the target (as `eval "
+                        "--cost-state-weight W`), as LABEL+pose; the simulator's yardstick keeps the plain cost")
     p.add_argument("--oracle-blend", type=float, default=None, metavar="W",
                    help="also score the first --wm model with its predictions moved W of the way to the simulator's "
                         "(as `eval --oracle-blend`; a diagnostic at the oracle's price), as LABEL@W")
@@ -372,12 +377,14 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
         label, _, paths = spec.rpartition("=")
         members = paths.split("+")  # A+B+C: an ensemble, its mean prediction scored (as --wm-augmented A,B,C)
         specs.append((label or "+".join(Path(p).name for p in members), members))
-    twin, viewed = "{}+bias".format, "{}+views".format  # the labels of a model's bias-corrected and re-weighted twins
+    twin, viewed, posed = "{}+bias".format, "{}+views".format, "{}+pose".format  # labels of a model's twins
     labels = [lab for lab, _ in specs]
     if args.bias_correction is not None:
         labels += [twin(lab) for lab, _ in specs]
     if args.plan_view_weights is not None:
         labels += [viewed(lab) for lab, _ in specs]
+    if args.plan_state_weight is not None and not args.plan_state_weight > 0:
+        raise UserError(f"--plan-state-weight {args.plan_state_weight:g} must be above 0 (e.g. 0.05)")
     cost, plan_cost = (_view_cost(flag, weights) for flag, weights in (
         ("--cost-view-weights", args.cost_view_weights), ("--plan-view-weights", args.plan_view_weights)))
     blend = f"{labels[0]}@{args.oracle_blend:g}" if args.oracle_blend is not None and labels else None
@@ -406,6 +413,17 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
         plain = {m.label: m for m in models}
         models += [Scored(viewed(label), plain[label].dynamics, plain[label].encoder, cost=plan_cost)
                    for label, _ in specs]
+    if args.plan_state_weight is not None:  # each model with a state head, planning with the pose term
+        from wamplan.planning.costs import CostConfig
+
+        headed = [m for m in models if m.label in dict(specs) and getattr(m.dynamics, "read_state", None)]
+        if not headed:
+            raise UserError("--plan-state-weight needs a --wm model with a state head (`wamplan wm train "
+                            "--state-weight W`); none of these has one")
+        pose = CostConfig(view_weights=tuple(args.cost_view_weights or ()), state_weight=args.plan_state_weight)
+        models += [Scored(posed(m.label), m.dynamics, m.encoder, cost=pose.build(m.dynamics.read_state))
+                   for m in headed]
+        labels += [posed(m.label) for m in headed]
     wam = load_wam(args.wam, device=args.device)
     cams = list(wam.task.cameras)
     for flag, weights in (("--cost-view-weights", args.cost_view_weights), ("--plan-view-weights",

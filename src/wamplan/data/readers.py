@@ -137,6 +137,23 @@ _ITEM_FIX = ("`wamplan data check STORE` names every damaged episode: delete tho
              "(or `wamplan wm encode`) that wrote them")
 
 
+# What a world model's training-only state head predicts of each frame (:func:`state_targets`), in cm so the
+# numbers sit near unit scale: the held object's position relative to the gripper's TCP, and its position in the
+# world (relative to the task's fixed target: the cube task's hole never moves, so the two differ by a constant).
+STATE_QUANTITIES = ("obj_tcp_x", "obj_tcp_y", "obj_tcp_z", "obj_x", "obj_y", "obj_z")
+STATE_UNIT_MM = 10.0  # millimetres per unit of the state targets
+
+
+def state_targets(f: h5py.File, steps: Sequence[int], path: str = "") -> np.ndarray:
+    """The :data:`STATE_QUANTITIES` of an episode file's ``steps``: (T, 6) float32 in cm, from its privileged
+    ``cube_pose`` and ``tcp_pose``; a store whose task records neither is refused."""
+    if "cube_pose" not in f or "tcp_pose" not in f:
+        raise StoreError(f"{path or f.filename} records no privileged cube and TCP poses, which the world model's "
+                         f"state head learns from; train without --state-weight on this store")
+    obj, tcp = f["cube_pose"][steps][:, :3], f["tcp_pose"][steps][:, :3]  # (T, 3) each, metres
+    return (np.concatenate([obj - tcp, obj], axis=1) * 100.0).astype(np.float32)  # (T, 6) cm
+
+
 class _EpisodeDataset(Dataset):
     """The body every reader shares: the indexed episodes of ``stores``, a flat list of items (each a tuple
     whose first entry is the episode index), and HDF5 files opened lazily per process."""
@@ -205,7 +222,8 @@ class WAMSamples(_EpisodeDataset):
 
 class WorldModelWindows(_EpisodeDataset):
     """Items: ``q`` (T, P), ``a`` (T, Δ·A), and ``z`` (T, V, N, D) cached features (with ``features``) or
-    ``images`` (T, V, H, W, 3) uint8, where T = history + horizon frames at stride Δ (``frameskip``).
+    ``images`` (T, V, H, W, 3) uint8, where T = history + horizon frames at stride Δ (``frameskip``); with
+    ``state=True`` also ``s`` (T, 6), the frames' privileged :data:`STATE_QUANTITIES` (training only).
 
     ``a[i]`` is the block of Δ actions executed from frame i's step, so frame i+1 = step(frame i, a[i]).
     With ``window_end="frame"`` the last frame may be the episode's last frame on the Δ grid, so the final
@@ -214,12 +232,12 @@ class WorldModelWindows(_EpisodeDataset):
 
     def __init__(self, stores: Sequence[str | Path], frameskip: int = 4, history: int = 3, horizon: int = 2,
                  split: str = "train", val_fraction: float = 0.1, features: str | None = None,
-                 sources: Sequence[str] | None = None, window_end: str = "block"):
+                 sources: Sequence[str] | None = None, window_end: str = "block", state: bool = False):
         if window_end not in ("block", "frame"):
             raise ValueError(f"window_end must be block or frame, got {window_end!r}")
         super().__init__(stores, split, val_fraction, features=features, sources=sources)
         self.frameskip, self.frames = frameskip, history + horizon
-        self.features = features
+        self.features, self.state = features, state
         self._require_stride(frameskip, "frameskip", "; collect with --image-every dividing it")
         span = self.frames * frameskip  # steps covered by the frames and the last action block
         if window_end == "frame":
@@ -242,6 +260,8 @@ class WorldModelWindows(_EpisodeDataset):
         out = dict(q=torch.from_numpy(f["proprio"][steps]),  # (T, P)
                    a=torch.from_numpy(acts.reshape(self.frames, -1).astype(np.float32)),  # (T, Δ·A)
                    steps=torch.tensor(steps))
+        if self.state:
+            out["s"] = torch.from_numpy(state_targets(f, steps, e.path))  # (T, 6) cm
         if self.features is not None:
             cache = self._h5.get(e.features)
             out["z"] = torch.from_numpy(cache["z"][ks])  # (T, V, N, D) float16
@@ -286,8 +306,9 @@ class BranchGroups(WorldModelWindows):
 
     def __init__(self, stores: Sequence[str | Path], frameskip: int = 4, history: int = 3, horizon: int = 4,
                  group: int | None = None, split: str = "train", val_fraction: float = 0.1,
-                 features: str | None = None):
-        super().__init__(stores, frameskip, history, horizon, split, val_fraction, features, window_end="frame")
+                 features: str | None = None, state: bool = False):
+        super().__init__(stores, frameskip, history, horizon, split, val_fraction, features, window_end="frame",
+                         state=state)
         span = (self.frames - 1) * frameskip  # steps from the first frame to the last
         groups: dict[tuple, list[tuple[int, int]]] = {}
         for i, e in enumerate(self.episodes):

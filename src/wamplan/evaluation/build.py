@@ -27,7 +27,8 @@ def planned_policy(cfg: EvalConfig, wam: WAM, dynamics: Dynamics, encoder: Any, 
     from wamplan.planning import make_planner
     from wamplan.planning.policy import PlannedPolicy
 
-    return PlannedPolicy(wam, make_planner(cfg.planner, cfg.planner_config), dynamics, encoder, cfg.cost.build(),
+    cost = cfg.cost.build(getattr(dynamics, "read_state", None))  # the pose term reads the model's state head
+    return PlannedPolicy(wam, make_planner(cfg.planner, cfg.planner_config), dynamics, encoder, cost,
                          target_wam=target_wam, config=cfg.policy,
                          world_models=tuple(str(Path(p).resolve()) for p in world_models))
 

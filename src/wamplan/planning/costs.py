@@ -10,6 +10,11 @@ Optional ``view_weights`` (V,) pool the per-view MSEs by a weighted average inst
 sum 1; uniform weights give eq. 3 exactly); a zero weight drops a camera, e.g. (0, 0, 1) = wrist only.
 Costs are computed in float32 whatever the prediction dtype (bf16 squared distances are too coarse
 to rank candidates).
+
+A world model trained with a state head (``wm train --state-weight``) can add a pose term
+(:func:`with_state_term`, ``CostConfig.state_weight``): the squared distance between the head's reading of each
+candidate's predicted outcome and its reading of the target, i.e. where the model says the object ends against
+where the WAM's predicted images show it.
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ from wamplan.config import field, require
 from wamplan.registry import Registry
 
 CostFn = Callable[[Tensor, Tensor], Tensor]  # (pred (B, V, ...), target (V, ...)) -> (B,)
+StateReader = Callable[[Tensor], Tensor]  # a world model's state head: z (..., V, N, D) -> (..., S)
 COSTS = Registry("cost")
 register_cost = COSTS.register  # decorator: ``fn(pred, target, view_weights=None) -> (B,)`` by name
 
@@ -76,18 +82,40 @@ def make_cost(name: str = "patch", view_weights: Sequence[float] | None = None) 
     return functools.partial(fn, view_weights=weights)
 
 
+def with_state_term(cost: CostFn, read_state: StateReader, weight: float) -> CostFn:
+    """``cost`` plus ``weight`` times the pose term: the mean over the S state quantities of the squared difference
+    between ``read_state`` of each prediction and of the target (cm^2 for wamplan's state head).
+    pred (B, V, N, D), target (V, N, D) -> (B,)."""
+    def fn(pred: Tensor, target: Tensor) -> Tensor:
+        pose = (read_state(pred).float() - read_state(target[None]).float()).square().mean(dim=-1)  # (B,)
+        return cost(pred, target) + weight * pose.to(pred.device)
+
+    return fn
+
+
 @dataclass(frozen=True)
 class CostConfig:
     """Which planning cost to use (paper: the patch cost over all three cameras)."""
 
     name: str = field("patch", "planning cost: 'patch' (eq. 3) or 'cls' (class tokens)", choices=lambda: sorted(COSTS))
     view_weights: tuple[float, ...] = field((), "per-camera weights (empty = uniform, the paper)")
+    state_weight: float = field(0.0, "weight of the pose term (0: off): the squared distance (cm^2) between the "
+                                     "world model's state-head reading of each candidate's predicted outcome and of "
+                                     "the target; needs a world model trained with `wm train --state-weight`")
 
     def __post_init__(self) -> None:
         require(self.name in COSTS, f"unknown cost '{self.name}'; choose one of {sorted(COSTS)}")
         require(all(w >= 0 for w in self.view_weights) and
                 (not self.view_weights or sum(self.view_weights) > 0),
                 f"view_weights must be >= 0 with a positive sum, got {self.view_weights}")
+        require(self.state_weight >= 0, f"state_weight must be a number >= 0 (0: off), got {self.state_weight}")
 
-    def build(self) -> CostFn:
-        return make_cost(self.name, self.view_weights or None)
+    def build(self, read_state: StateReader | None = None) -> CostFn:
+        """The cost; with ``state_weight`` > 0, plus the pose term read by ``read_state`` (a world model's state
+        head: ``LearnedDynamics.read_state``)."""
+        cost = make_cost(self.name, self.view_weights or None)
+        if not self.state_weight:
+            return cost
+        require(read_state is not None, f"a pose term (state_weight {self.state_weight:g}) needs a world model with "
+                                        f"a state head (`wamplan wm train --state-weight W`); this one has none")
+        return with_state_term(cost, read_state, self.state_weight)

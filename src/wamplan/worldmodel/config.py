@@ -55,12 +55,17 @@ class PredictorConfig:
     action_tokens: bool = field(False, "also give each frame Delta tokens of its own, one per control step of its "
                                        "action block (that step's action through an MLP plus a learned step "
                                        "embedding), which its visual tokens attend to; nothing reads them out")
+    state_dim: int = field(0, "S, privileged state quantities a training-only state head reads from any frame's "
+                              "latent, true or predicted (0: no head); set by `wm train --state-weight`, and "
+                              "nothing privileged is read at test time")
 
     def __post_init__(self) -> None:
         for name in ("num_views", "num_patches", "enc_dim", "proprio_dim", "action_dim", "frameskip",
                      "context", "depth", "heads", "head_dim", "mlp_dim", "proprio_emb", "action_emb"):
             v = getattr(self, name)
             require(isinstance(v, int) and v > 0, f"PredictorConfig.{name} must be a positive int, got {v!r}")
+        require(isinstance(self.state_dim, int) and self.state_dim >= 0,
+                f"PredictorConfig.state_dim must be an int >= 0 (0: no state head), got {self.state_dim!r}")
         require(self.head_dim % 2 == 0, f"PredictorConfig.head_dim must be even (rotary pairs), got {self.head_dim}")
         require(self.rope_base > 1.0, f"PredictorConfig.rope_base must be > 1, got {self.rope_base}")
         require(0.0 <= self.dropout < 1.0, f"PredictorConfig.dropout must be in [0, 1), got {self.dropout}")
@@ -169,6 +174,10 @@ class TrainConfig(AdamWConfig):
                                       "1 + W * (its squared change from the current frame) / (the mean of that "
                                       "over the window's tokens), divided by 1 + W so the loss keeps its scale "
                                       "(0: off, every token weighs the same)")
+    state_weight: float = field(0.0, "weight of the state-head loss (0: off): a small head learns the frames' "
+                                     "privileged poses (the held object relative to the gripper and in the world, "
+                                     "cm) from their true latents and from the predicted ones, so the predictor "
+                                     "must keep what says where the object is; needs stores with privileged poses")
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -180,5 +189,7 @@ class TrainConfig(AdamWConfig):
         require(self.sibling_weight >= 0, f"TrainConfig.sibling_weight must be >= 0, got {self.sibling_weight}")
         require(self.sibling_horizon >= 1, f"TrainConfig.sibling_horizon must be >= 1, got {self.sibling_horizon}")
         require(self.sibling_groups >= 1, f"TrainConfig.sibling_groups must be >= 1, got {self.sibling_groups}")
+        require(self.state_weight >= 0 and self.state_weight == self.state_weight,
+                f"TrainConfig.state_weight must be a number >= 0 (0: off), got {self.state_weight}")
         require(self.change_weight >= 0, f"TrainConfig.change_weight must be >= 0 (0: off), got {self.change_weight}")
 

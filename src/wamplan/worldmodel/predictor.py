@@ -82,6 +82,23 @@ class PrefixCache:
         return self.frames[0][0][0].shape[0] if self.frames else 1
 
 
+class StateHead(nn.Module):
+    """Privileged state (S,) from one frame's normalised latents (V, N, D): each token squeezed to a few features,
+    then an MLP over the frame. Trained only as an auxiliary target (``TrainConfig.state_weight``)."""
+
+    SQUEEZE, HIDDEN = 16, 256
+
+    def __init__(self, cfg: PredictorConfig) -> None:
+        super().__init__()
+        self.token = nn.Linear(cfg.enc_dim, self.SQUEEZE)
+        self.mlp = nn.Sequential(nn.GELU(), nn.Linear(cfg.tokens_per_frame * self.SQUEEZE, self.HIDDEN), nn.GELU(),
+                                 nn.Linear(self.HIDDEN, cfg.state_dim))
+
+    def forward(self, zn: torch.Tensor) -> torch.Tensor:
+        """zn (..., V, N, D) normalised latents -> (..., S)."""
+        return self.mlp(self.token(zn).flatten(-3))  # (..., V N 16) -> (..., S)
+
+
 class WorldModelPredictor(nn.Module):
     """The predictor of ``cfg``. ``task`` (a :class:`~wamplan.envs.spec.TaskSpec`; None: not known, e.g. a model
     built in memory) and ``cameras`` (the camera of each of the V views, in order) say what it was trained on;
@@ -112,6 +129,7 @@ class WorldModelPredictor(nn.Module):
         self.register_buffer("z_std", torch.ones(cfg.enc_dim))  # (D,)
         inv_freq = cfg.rope_base ** -(torch.arange(0, e, 2, dtype=torch.float32) / e)  # (e/2,) 1 .. base^-1
         self.register_buffer("inv_freq", inv_freq, persistent=False)
+        self.state_head = StateHead(cfg) if cfg.state_dim else None
         if cfg.action_tokens:  # one token per control step of the action block
             self.action_token = nn.Sequential(nn.Linear(cfg.action_dim, d), nn.GELU(), nn.Linear(d, d))
             self.action_pos = nn.Parameter(torch.zeros(cfg.frameskip, d))  # (Delta, d), one per step of the block
@@ -225,6 +243,13 @@ class WorldModelPredictor(nn.Module):
             raise ValueError(f"z, q, a must hold {t} frames; got {z.shape[1]}, {q.shape[1]}, {a.shape[1]}")
 
     # -- public API ----------------------------------------------------------------------------------
+    def read_state(self, z: torch.Tensor) -> torch.Tensor:
+        """The state head's reading of latents z (..., V, N, D), true or predicted -> (..., S) (cfg.state_dim)."""
+        if self.state_head is None:
+            raise ValueError("this predictor has no state head (PredictorConfig.state_dim is 0); train one with "
+                             "`wamplan wm train --state-weight W`")
+        return self.state_head((z.to(self.z_mean.dtype) - self.z_mean) / self.z_std)
+
     def forward(self, z: torch.Tensor, q: torch.Tensor, a: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Teacher-forced: z (B, T, V, N, D), q (B, T, P), a (B, T, Delta*A) -> predictions of frames
         1..T: z (B, T, V, N, D), q (B, T, P) (output t is the prediction of frame t+1)."""

@@ -111,15 +111,16 @@ def train_predictor_on_stores(stores: Sequence[str | Path], out: str | Path, pre
                               init: str | Path | None = None) -> dict[str, Any]:
     """Train (or resume) the predictor on the windows of ``stores``; returns the last metrics. ``init``: a
     predictor checkpoint to fine-tune from (``worldmodel.train.train_predictor``)."""
-    from wamplan.data.readers import BranchGroups, WorldModelWindows
+    from wamplan.data.readers import STATE_QUANTITIES, BranchGroups, WorldModelWindows
     from wamplan.worldmodel.train import KIND, train_predictor
 
     task, cameras = stores_task(stores)
     predictor = predictor_for_task(predictor, task, cameras)
+    predictor = dataclasses.replace(predictor, state_dim=len(STATE_QUANTITIES) if train.state_weight > 0 else 0)
     data, resume, info, key = _prepare(stores, out, KIND, encoder, encoder_kwargs, encoder_path, val_fraction,
                                        device, progress)
     kw = dict(frameskip=predictor.frameskip, history=predictor.context, horizon=train.horizon,
-              features=key, val_fraction=val_fraction, window_end=train.window_end)
+              features=key, val_fraction=val_fraction, window_end=train.window_end, state=train.state_weight > 0)
     tr, va = WorldModelWindows(stores, split="train", **kw), WorldModelWindows(stores, split="val", **kw)
     if progress:
         print(f"windows: {len(tr)} train, {len(va)} val ({len(tr.episodes)} / {len(va.episodes)} episodes)")

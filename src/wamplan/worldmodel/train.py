@@ -34,6 +34,7 @@ from torch.utils.data import DataLoader, Dataset
 
 from wamplan.checkpoint import checkpoint_dir, load_weights, read_config
 from wamplan.config import from_dict, to_dict
+from wamplan.data.readers import STATE_UNIT_MM
 from wamplan.device import resolve_device
 from wamplan.envs.spec import TaskSpec
 from wamplan.errors import UserError
@@ -43,6 +44,7 @@ from wamplan.worldmodel.config import PredictorConfig, TrainConfig
 from wamplan.worldmodel.predictor import WorldModelPredictor
 
 KIND = "wm-predictor"
+NEW_ON_INIT = ("state_head.",)  # weights a fine-tune may add to (or drop from) its --init checkpoint's
 
 
 def _split(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int):
@@ -71,11 +73,27 @@ def change_weights(z_cur: torch.Tensor, z_target: torch.Tensor, change_weight: f
     return (1 + change_weight * rel) / (1 + change_weight)
 
 
+def state_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], zp: torch.Tensor, horizon: int
+               ) -> tuple[torch.Tensor, dict[str, float]]:
+    """The state head's loss on a batch of windows: the MSE of its reading of every true frame's latent (the head
+    learns to read) plus that of every predicted one (the predictor learns to keep what the head reads), against
+    the privileged targets ``batch["s"]`` (B, T, S); zp (B, K, V, N, D) the predictions of frames H_ctx..H_ctx+K-1.
+    Logs the root-mean-square errors in mm (``state_mm_true``, ``state_mm_h1``)."""
+    h = model.cfg.context
+    s = batch["s"].float()  # (B, T, S) cm
+    e_true = (model.read_state(batch["z"].float()) - s).pow(2).mean()
+    e_pred = (model.read_state(zp) - s[:, h:h + horizon]).pow(2).mean(dim=(0, 2))  # (K,)
+    mm = STATE_UNIT_MM
+    return e_true + e_pred.mean(), {"state_mm_true": float(e_true.detach().sqrt()) * mm,
+                                    "state_mm_h1": float(e_pred[0].detach().sqrt()) * mm}
+
+
 def window_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int,
-                gamma: float, loss_form: str = "mean", change_weight: float = 0.0
+                gamma: float, loss_form: str = "mean", change_weight: float = 0.0, state_weight: float = 0.0
                 ) -> tuple[torch.Tensor, dict[str, float]]:
     """Eq. 2: the discounted K-step autoregressive loss of a batch of windows. ``change_weight`` W > 0 weighs
-    each token's squared error by :func:`change_weights` (the tokens that change count more); 0 is eq. 2."""
+    each token's squared error by :func:`change_weights` (the tokens that change count more); 0 is eq. 2.
+    ``state_weight`` > 0 adds that times :func:`state_loss` (the batch must carry ``s``)."""
     (zc, qc, ac), a_future, (zt, qt) = _split(model, batch, horizon)
     zp, qp = model.rollout(zc, qc, ac, a_future)  # (B, K, V, N, D), (B, K, P)
     ez = per_horizon_mse(zp, zt).mean(dim=0)  # (K,)
@@ -88,6 +106,9 @@ def window_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], hori
     q_weight = 1.0 if loss_form == "mean" else qt[0, 0].numel() / zt[0, 0].numel()  # sum form: P / (V·N·D)
     w = gamma ** torch.arange(horizon, device=ez.device, dtype=ez.dtype)  # (K,)
     loss = (w * (ez + q_weight * eq)).sum()
+    if state_weight > 0:
+        st, st_logs = state_loss(model, batch, zp, horizon)
+        loss, logs = loss + state_weight * st, {**logs, **st_logs}
     return loss, logs
 
 
@@ -276,6 +297,10 @@ def evaluate_predictor(model: WorldModelPredictor, dataset: Dataset, horizon: in
             parts = {"z_mse": per_horizon_mse(zp, zt), "q_mse": per_horizon_mse(qp, qt),
                      "copy_z_mse": per_horizon_mse(zc[:, -1:].expand_as(zt), zt),
                      "copy_q_mse": per_horizon_mse(qc[:, -1:].expand_as(qt), qt)}  # each (B, K)
+            if model.state_head is not None and "s" in batch:  # squared state errors (cm^2), mean over S
+                st = batch["s"][:, model.cfg.context:model.cfg.context + horizon].float()  # (B, K, S)
+                parts["state_pred_se"] = (model.read_state(zp) - st).pow(2).mean(dim=-1)  # (B, K)
+                parts["state_true_se"] = (model.read_state(zt) - st).pow(2).mean(dim=-1)  # (B, K)
             for k, v in parts.items():
                 sums[k] = sums.get(k, 0) + v.sum(dim=0).double()  # (K,)
             count += zc.shape[0]
@@ -284,6 +309,10 @@ def evaluate_predictor(model: WorldModelPredictor, dataset: Dataset, horizon: in
     for k, v in sums.items():
         mean = (v / max(count, 1)).cpu()  # (K,)
         out.update({f"{k}_h{i + 1}": float(mean[i]) for i in range(horizon)})
+    for k in ("state_pred", "state_true"):  # root-mean-square state errors in mm
+        for i in range(horizon):
+            if f"{k}_se_h{i + 1}" in out:
+                out[f"{k}_mm_h{i + 1}"] = out.pop(f"{k}_se_h{i + 1}") ** 0.5 * STATE_UNIT_MM
     out["loss"] = float((w * (sums["z_mse"] + sums["q_mse"]).cpu() / max(count, 1)).sum())
     out["copy_loss"] = float((w * (sums["copy_z_mse"] + sums["copy_q_mse"]).cpu() / max(count, 1)).sum())
     return out
@@ -336,7 +365,7 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
 
     def fresh_stats() -> None:
         if init is not None:
-            load_weights(checkpoint_dir(init), model, dev)
+            load_weights(checkpoint_dir(init), model, dev, new=NEW_ON_INIT)
             model.float()
             return
         mean, std = compute_feature_stats(train_set, seed=train.seed)
@@ -355,7 +384,8 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
         groups = _group_batches(group_set, train, start=done)
 
     def step(m: WorldModelPredictor, b: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, float]]:
-        loss, logs = window_loss(m, b, train.horizon, train.gamma, train.loss_form, train.change_weight)
+        loss, logs = window_loss(m, b, train.horizon, train.gamma, train.loss_form, train.change_weight,
+                                 train.state_weight)
         if groups is not None:
             with torch.autocast(dev.type, enabled=False):  # --precision bfloat16: read and stack as stored
                 g = {k: v.to(dev) for k, v in next(groups).items()}
@@ -389,6 +419,7 @@ def _check_init(init: str | Path, cfg: PredictorConfig, encoder_info: dict[str, 
     """A fine-tuning start must be a predictor of the same architecture over the same encoder's tokens."""
     saved = read_config(checkpoint_dir(init), KIND)
     theirs = to_dict(from_dict(PredictorConfig, saved["predictor"]))  # fields added since it was saved: their defaults
+    theirs["state_dim"] = cfg.state_dim  # a state head may be added (or dropped) when fine-tuning
     if theirs != to_dict(cfg):
         diff = {k: (theirs.get(k), v) for k, v in to_dict(cfg).items() if theirs.get(k) != v}
         raise UserError(f"--init {init} is another predictor {diff} (its, this run's); fine-tune with the preset "

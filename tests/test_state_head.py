@@ -1,0 +1,96 @@
+"""The world model's training-only state head (``wm train --state-weight``): what it learns from, that it adds
+nothing to a model without it, and that a fine-tune adds it to a checkpoint that has none."""
+
+import json
+import shutil
+
+import h5py
+import numpy as np
+import pytest
+import torch
+
+from wamplan.data.readers import STATE_QUANTITIES, WorldModelWindows, state_targets
+from wamplan.worldmodel.train import load_predictor
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+def test_state_targets_are_the_cube_relative_to_the_tcp_and_in_the_world_in_cm(expert_store):
+    path = sorted((expert_store / "episodes").glob("*.h5"))[0]
+    with h5py.File(path, "r") as f:
+        steps = [0, 4, 8]
+        s = state_targets(f, steps)
+        cube, tcp = f["cube_pose"][steps][:, :3], f["tcp_pose"][steps][:, :3]
+    assert s.shape == (3, len(STATE_QUANTITIES)) and s.dtype == np.float32
+    np.testing.assert_allclose(s[:, :3], (cube - tcp) * 100, rtol=1e-6)
+    np.testing.assert_allclose(s[:, 3:], cube * 100, rtol=1e-6)
+    windows = WorldModelWindows([expert_store], split="all", state=True)
+    item = windows[0]
+    assert item["s"].shape == (5, 6) and "s" not in WorldModelWindows([expert_store], split="all")[0]
+
+
+def test_shipped_model_has_no_state_head_and_says_how_to_get_one():
+    model = load_predictor("checkpoints/mini/wm_augmented")
+    assert model.state_head is None and model.cfg.state_dim == 0
+    assert not any(k.startswith("state_head") for k in model.state_dict())
+    with pytest.raises(ValueError, match="--state-weight"):
+        model.read_state(torch.zeros(1, 3, 16, 128))
+
+
+def test_state_weight_trains_a_head_and_a_fine_tune_adds_it_to_a_checkpoint_without_one(expert_store, tmp_path,
+                                                                                          capsys):
+    from wamplan.cli import main
+
+    store = tmp_path / "expert"
+    shutil.copytree(expert_store, store)
+    base = tmp_path / "base"
+    args = ["wm", "train", "--data", str(store), "--epochs", "1", "--batch-size", "8", "--log-every-steps", "1"]
+    assert main([*args, "--out", str(base)]) == 0
+    run = tmp_path / "state"
+    assert main([*args, "--out", str(run), "--state-weight", "0.5", "--init", str(base / "checkpoint")]) == 0
+    tuned, start = load_predictor(run), load_predictor(base)
+    assert tuned.cfg.state_dim == len(STATE_QUANTITIES) and tuned.state_head is not None
+    shared = {k: v for k, v in start.state_dict().items()}
+    assert set(shared) == {k for k in tuned.state_dict() if not k.startswith("state_head.")}
+    logged = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    train_logs = [m for m in logged if "train/state_mm_h1" in m]
+    assert train_logs and all(m["train/state_mm_true"] > 0 for m in train_logs)
+    val = [m for m in logged if "val/state_pred_mm_h1" in m]
+    assert val and val[-1]["val/state_true_mm_h1"] > 0
+    # the head reads a frame's latents into the six quantities, true or predicted alike
+    z = torch.randn(2, 3, 16, 128)  # (B, V, N, D)
+    assert tuned.read_state(z).shape == (2, 6)
+    # the no-head model's predictions are untouched by the option's existence
+    zc, qc, ac = torch.randn(1, 3, 3, 16, 128), torch.randn(1, 3, 10), torch.randn(1, 2, 20)
+    a = torch.randn(4, 2, 20)
+    again = load_predictor(base)
+    for x, y in zip(start.rollout(zc, qc, ac, a), again.rollout(zc, qc, ac, a)):
+        assert torch.equal(x, y)
+
+
+def test_the_pose_term_adds_the_squared_distance_of_the_state_readings():
+    from wamplan.config import ConfigError
+    from wamplan.planning.costs import CostConfig, patch_cost, with_state_term
+
+    read = lambda z: z.flatten(-3)[..., :2]  # noqa: E731  (a reader of two "quantities": the first two entries)
+    pred, target = torch.zeros(3, 2, 1, 2), torch.zeros(2, 1, 2)  # (B, V, N, D), (V, N, D)
+    pred[1, 0, 0, 0], pred[2, 0, 0, 1] = 2.0, 4.0
+    cost = with_state_term(patch_cost, read, 0.5)
+    # patch: the mean of 4 squared entries; pose: the mean of the 2 read ones, times 0.5
+    torch.testing.assert_close(cost(pred, target), torch.tensor([0.0, 4 / 4 + 0.5 * 4 / 2, 16 / 4 + 0.5 * 16 / 2]))
+    assert CostConfig().build() is patch_cost
+    with pytest.raises(ConfigError, match="needs a world model with a state head"):
+        CostConfig(state_weight=0.1).build()
+    with pytest.raises(ConfigError, match="state_weight"):
+        CostConfig(state_weight=-1)
+
+
+def test_fidelity_refuses_a_pose_term_for_models_without_a_state_head(capsys):
+    from wamplan.cli import main
+
+    args = ["wm", "fidelity", "--wam", "checkpoints/mini/tinywam", "--wm", "checkpoints/mini/wm_augmented",
+            "--seeds", "500", "--plan"]
+    assert main([*args, "--plan-state-weight", "0.1"]) == 2
+    assert "none of these has one" in capsys.readouterr().err
+    assert main([*args, "--plan-state-weight", "0"]) == 2
+    assert "must be above 0" in capsys.readouterr().err
