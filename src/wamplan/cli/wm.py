@@ -36,6 +36,9 @@ def _wm_commands(wm: argparse.ArgumentParser) -> None:
     add_command(s, "encode", _encode_options,
                 help="encode the stores' images once with the preset's frozen encoder (cached)")
     add_command(s, "train", _train_options("train"), help="train the predictor (paper eq. 2); re-running resumes")
+    add_command(s, "train-encoder", _train_encoder_options,
+                help="train the task-cnn encoder on the stores' own images (state read-out + a 16-px redraw, "
+                     "privileged labels in training only); re-running resumes")
     add_command(s, "train-decoder", _train_options("train-decoder"),
                 help="train the decoder (pixels, for pictures only); re-running resumes")
     add_command(s, "eval", _eval_options, help="held-out latent errors per horizon against copying the last frame, "
@@ -58,6 +61,8 @@ def _encode_options(p: argparse.ArgumentParser) -> None:
 
     p.add_argument("--data", required=True, help="episode stores, comma separated")
     p.add_argument("--preset", default="mini", choices=sorted(PRESETS), help="which encoder (wamplan/presets.py)")
+    p.add_argument("--encoder", default=None, help="a registered encoder instead of the preset's, e.g. task-cnn "
+                                                   "(its settings from --encoder-kwargs only)")
     p.add_argument("--encoder-kwargs", default=None, metavar="JSON", help=ENCODER_KWARGS_HELP)
     p.add_argument("--encoder-path", default=None, help="local weights directory for DINOv2/DINOv3 encoders")
     p.add_argument("--device", default="auto", help=DEVICE_HELP)
@@ -73,6 +78,8 @@ def _train_options(name: str):
         p.add_argument("--out", type=Path, required=True, help="run directory (checkpoint/, metrics.jsonl)")
         p.add_argument("--preset", default="mini", choices=sorted(PRESETS),
                        help="model and training sizes (wamplan/presets.py); options below override them")
+        p.add_argument("--encoder", default=None, help="a registered encoder instead of the preset's, e.g. task-cnn "
+                                                       "(its settings from --encoder-kwargs only)")
         p.add_argument("--encoder-kwargs", default=None, metavar="JSON", help=ENCODER_KWARGS_HELP)
         p.add_argument("--encoder-path", default=None, help="local weights directory for DINOv2/DINOv3 encoders")
         p.add_argument("--val-fraction", type=float, default=0.1,
@@ -88,6 +95,31 @@ def _train_options(name: str):
         p.set_defaults(func=cmd_train if name == "train" else cmd_train_decoder)
 
     return build
+
+
+def _train_encoder_options(p: argparse.ArgumentParser) -> None:
+    from wamplan.encoders.learned import EncoderTrainConfig
+
+    p.add_argument("--data", required=True, help="episode stores with privileged poses, comma separated")
+    p.add_argument("--out", type=Path, required=True, help="run directory (checkpoint/, metrics.jsonl)")
+    p.add_argument("--val-fraction", type=float, default=0.1, help="fraction of episodes held out (default: 0.1)")
+    p.add_argument("--max-steps", type=int, default=None, help="stop after this many steps (resumable)")
+    p.add_argument("--device", default="auto", help=DEVICE_HELP)
+    add_arguments(p, EncoderTrainConfig)
+    p.set_defaults(func=cmd_train_encoder)
+
+
+def cmd_train_encoder(args: argparse.Namespace) -> int:
+    from wamplan.checkpoint import CKPT_DIR, has_training_state
+    from wamplan.encoders.learned import EncoderTrainConfig, train_task_cnn
+
+    require_dir(args.out)
+    resolve_device(args.device)
+    metrics = train_task_cnn(_stores(args.data), args.out, from_args(EncoderTrainConfig, args),
+                             val_fraction=args.val_fraction, device=args.device, max_steps=args.max_steps,
+                             resume=has_training_state(args.out / CKPT_DIR))
+    print(json.dumps(metrics))
+    return 0
 
 
 def _eval_options(p: argparse.ArgumentParser) -> None:
@@ -186,9 +218,7 @@ def cmd_encode(args: argparse.Namespace) -> int:
     from wamplan.worldmodel.stores import encode_stores, frozen_encoder
 
     resolve_device(args.device)
-    preset = get_world_model_preset(args.preset)
-    enc = frozen_encoder(preset.encoder, _encoder_kwargs(preset.encoder_kwargs, args.encoder_kwargs),
-                         args.encoder_path, args.device)
+    enc = frozen_encoder(*_encoder(args, get_world_model_preset(args.preset)), args.encoder_path, args.device)
     encode_stores(_stores(args.data), enc)
     print(f"features cached under <store>/features/{feature_key(enc.config_dict())}/")
     return 0
@@ -204,8 +234,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     p = get_world_model_preset(args.preset)
     metrics = train_predictor_on_stores(_stores(args.data), args.out, architecture_from_args(args, p.predictor),
                                         from_args(TrainConfig, args, p.train),
-                                        encoder=p.encoder,
-                                        encoder_kwargs=_encoder_kwargs(p.encoder_kwargs, args.encoder_kwargs),
+                                        **dict(zip(("encoder", "encoder_kwargs"), _encoder(args, p))),
                                         encoder_path=args.encoder_path, val_fraction=args.val_fraction,
                                         device=args.device, max_steps=args.max_steps, init=args.init)
     print(json.dumps(metrics))
@@ -221,8 +250,8 @@ def cmd_train_decoder(args: argparse.Namespace) -> int:
     resolve_device(args.device)
     p = get_world_model_preset(args.preset)
     metrics = train_decoder_on_stores(_stores(args.data), args.out, p.decoder,
-                                      from_args(DecoderTrainConfig, args, p.decoder_train), encoder=p.encoder,
-                                      encoder_kwargs=_encoder_kwargs(p.encoder_kwargs, args.encoder_kwargs),
+                                      from_args(DecoderTrainConfig, args, p.decoder_train),
+                                      **dict(zip(("encoder", "encoder_kwargs"), _encoder(args, p))),
                                       encoder_path=args.encoder_path,
                                       val_fraction=args.val_fraction, device=args.device, max_steps=args.max_steps)
     print(json.dumps(metrics))
@@ -296,6 +325,14 @@ def cmd_viz(args: argparse.Namespace) -> int:
     return 0
 
 
+
+
+def _encoder(args: argparse.Namespace, preset) -> tuple[str, dict]:
+    """The encoder a command uses: ``--encoder`` with only ``--encoder-kwargs``' settings, else the preset's
+    encoder with its settings overridden by them."""
+    if args.encoder:
+        return args.encoder, _encoder_kwargs({}, args.encoder_kwargs)
+    return preset.encoder, _encoder_kwargs(preset.encoder_kwargs, args.encoder_kwargs)
 
 
 def _encoder_kwargs(base: dict, spec: str | None) -> dict:

@@ -270,6 +270,20 @@ class WorldModelWindows(_EpisodeDataset):
         return out
 
 
+class StateFrames(_EpisodeDataset):
+    """Items: every stored frame's ``images`` (V, H, W, 3) uint8 and its privileged ``s`` (6,) (:func:`state_targets`),
+    for training an encoder with state supervision (``encoders.learned``)."""
+
+    def __init__(self, stores: Sequence[str | Path], split: str = "train", val_fraction: float = 0.1):
+        super().__init__(stores, split, val_fraction)
+        self.items = [(i, k) for i, e in enumerate(self.episodes) for k in range(len(e.image_steps))]
+
+    def _read(self, idx: int) -> dict[str, torch.Tensor]:
+        e, f, (k,) = self._item(idx)
+        return dict(images=torch.from_numpy(np.stack([f["images"][c][k] for c in self.cameras])),  # (V, H, W, 3)
+                    s=torch.from_numpy(state_targets(f, [e.image_steps[k]], e.path)[0]))  # (6,)
+
+
 class FeatureFrames(_EpisodeDataset):
     """Items: ``z`` (N, D) cached features of one view of one stored frame and its ``image`` (H, W, 3)
     uint8 (for training the decoder), of the views of ``cameras`` (default: every stored view)."""

@@ -121,7 +121,8 @@ class FrozenEncoder(nn.Module):
         return torch.cat(parts) if parts else torch.empty(0, self.num_patches, self.dim)
 
 
-ENCODERS = Registry("encoder", modules=("wamplan.encoders.hf", "wamplan.encoders.patch_pixels"))
+ENCODERS = Registry("encoder", modules=("wamplan.encoders.hf", "wamplan.encoders.patch_pixels",
+                                        "wamplan.encoders.learned"))
 register_encoder = ENCODERS.register  # a FrozenEncoder subclass or a factory function, by name
 
 

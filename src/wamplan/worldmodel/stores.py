@@ -91,7 +91,7 @@ def _prepare(stores: Sequence[str | Path], out: str | Path, kind: str, encoder: 
     data = dict(describe_stores(stores), val_fraction=val_fraction)
     resume = _resume(out, kind, data)
     enc, info = _setup(stores, encoder, encoder_kwargs, encoder_path, device, progress)
-    return data, resume, info, feature_key(enc.config_dict())
+    return data, resume, info, feature_key(enc.config_dict()), (enc.name, enc.num_patches, enc.dim)
 
 
 def _resume(out: str | Path, kind: str, data: dict[str, Any]) -> bool:
@@ -117,8 +117,9 @@ def train_predictor_on_stores(stores: Sequence[str | Path], out: str | Path, pre
     task, cameras = stores_task(stores)
     predictor = predictor_for_task(predictor, task, cameras)
     predictor = dataclasses.replace(predictor, state_dim=len(STATE_QUANTITIES) if train.state_weight > 0 else 0)
-    data, resume, info, key = _prepare(stores, out, KIND, encoder, encoder_kwargs, encoder_path, val_fraction,
-                                       device, progress)
+    data, resume, info, key, (name, n, d) = _prepare(stores, out, KIND, encoder, encoder_kwargs, encoder_path,
+                                                     val_fraction, device, progress)
+    predictor = dataclasses.replace(predictor, encoder=name, num_patches=n, enc_dim=d)  # the encoder's token layout
     kw = dict(frameskip=predictor.frameskip, history=predictor.context, horizon=train.horizon,
               features=key, val_fraction=val_fraction, window_end=train.window_end, state=train.state_weight > 0)
     tr, va = WorldModelWindows(stores, split="train", **kw), WorldModelWindows(stores, split="val", **kw)
@@ -153,8 +154,9 @@ def train_decoder_on_stores(stores: Sequence[str | Path], out: str | Path, decod
     from wamplan.worldmodel.decoder import KIND, train_decoder
 
     stores_task(stores)
-    data, resume, info, key = _prepare(stores, out, KIND, encoder, encoder_kwargs, encoder_path, val_fraction,
-                                       device, progress)
+    data, resume, info, key, (_, n, d) = _prepare(stores, out, KIND, encoder, encoder_kwargs, encoder_path,
+                                                  val_fraction, device, progress)
+    decoder = dataclasses.replace(decoder, num_patches=n, enc_dim=d)  # the encoder's token layout
     tr = FeatureFrames(stores, key, split="train", val_fraction=val_fraction)
     va = FeatureFrames(stores, key, split="val", val_fraction=val_fraction)
     if progress:

@@ -1,0 +1,63 @@
+"""The ``task-cnn`` encoder: trained on a store's own frames with a state read-out, frozen, loaded by the world
+model that was trained on its features, and refused when its weights are not the ones that model saw."""
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from wamplan.errors import UserError
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+@pytest.fixture(scope="module")
+def trained(expert_store, tmp_path_factory):
+    from wamplan.checkpoint import export_for_inference
+    from wamplan.cli import main
+
+    root = tmp_path_factory.mktemp("task_cnn")
+    store = root / "expert"
+    shutil.copytree(expert_store, store)
+    run = root / "enc"
+    assert main(["wm", "train-encoder", "--data", str(store), "--out", str(run), "--epochs", "2",
+                 "--batch-size", "8", "--width", "32", "--log-every-steps", "1"]) == 0
+    export_for_inference(run / "checkpoint", root / "enc16")
+    return store, run, root / "enc16"
+
+
+def test_training_logs_the_state_readout_in_mm_and_the_export_encodes(trained):
+    from wamplan.encoders import make_encoder
+
+    store, run, export = trained
+    logged = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    val = [m for m in logged if "val/state_mm" in m]
+    assert len(val) == 2 and all(m["val/state_mm"] > 0 and m["val/recon_mse"] > 0 for m in val)
+    enc = make_encoder("task-cnn", ckpt=str(export))
+    images = np.random.default_rng(0).integers(0, 256, (3, 64, 64, 3), dtype=np.uint8)
+    z = enc.encode(images)
+    assert z.shape == (3, 16, 32) and not any(p.requires_grad for p in enc.parameters())
+    cfg = enc.config_dict()
+    assert cfg["name"] == "task-cnn" and cfg["ckpt"] == str(export) and len(cfg["sha"]) == 12
+    again = make_encoder(**cfg)  # rebuilt from its own record: the same features
+    assert torch.equal(again.encode(images), z)
+    # the run's float32 weights and the float16 export are different encoders, and a record says which
+    with pytest.raises(UserError, match="not the ones this model was trained on"):
+        make_encoder("task-cnn", ckpt=str(run / "checkpoint"), sha=cfg["sha"])
+    with pytest.raises(UserError, match="needs its trained weights"):
+        make_encoder("task-cnn")
+
+
+def test_a_world_model_trains_on_its_features_and_reloads_it(trained, tmp_path):
+    from wamplan.cli import main
+    from wamplan.worldmodel.train import load_world_model
+
+    store, _, export = trained
+    run = tmp_path / "wm"
+    assert main(["wm", "train", "--data", str(store), "--out", str(run), "--max-steps", "1", "--batch-size", "4",
+                 "--encoder", "task-cnn", "--encoder-kwargs", json.dumps({"ckpt": str(export)})]) == 0
+    model, enc = load_world_model(run)
+    assert enc.name == "task-cnn" and (model.cfg.encoder, model.cfg.num_patches, model.cfg.enc_dim) == ("task-cnn", 16, 32)
+    assert enc.config_dict()["sha"] == load_world_model(run)[1].config_dict()["sha"]
