@@ -94,3 +94,18 @@ def test_fidelity_refuses_a_pose_term_for_models_without_a_state_head(capsys):
     assert "none of these has one" in capsys.readouterr().err
     assert main([*args, "--plan-state-weight", "0"]) == 2
     assert "must be above 0" in capsys.readouterr().err
+
+
+def test_stack_cube_stores_record_both_cubes_and_the_state_is_relative_to_the_target(tmp_path):
+    from wamplan.cli import main
+
+    out = tmp_path / "stack"
+    assert main(["collect", "--task", "stack-cube", "--source", "pink", "--episodes", "1", "--max-steps", "8",
+                 "--camera-size", "64", "--out", str(out)]) == 0
+    path = next((out / "episodes").glob("*.h5"))
+    with h5py.File(path, "r") as f:
+        a, b, tcp = f["cube_pose"][:, :3], f["target_pose"][:, :3], f["tcp_pose"][:, :3]  # (T+1, 3) each
+        s = state_targets(f, [0, 8])
+    assert a.shape == b.shape == (9, 3) and 0.02 < np.linalg.norm(a[0, :2] - b[0, :2]) < 0.5  # two cubes apart
+    np.testing.assert_allclose(s[:, :3], (a - tcp)[[0, 8]] * 100, rtol=1e-6)
+    np.testing.assert_allclose(s[:, 3:], (a - b)[[0, 8]] * 100, rtol=1e-6)

@@ -121,7 +121,7 @@ def _branch_episode(env: TaskEnv, snap, parent: EpisodeData, t: int, actions: np
     return EpisodeData(seed=seed, source=source, success=env.success, outcome=env.outcome(),
                        actions=np.concatenate([parent.actions[s0:t], actions]).astype(np.float32),
                        proprio=arrays["proprio"], stages=arrays["stages"], cube_pose=arrays["cube_pose"],
-                       tcp_pose=arrays["tcp_pose"], sim_state=arrays["sim_state"],
+                       tcp_pose=arrays["tcp_pose"], target_pose=arrays["target_pose"], sim_state=arrays["sim_state"],
                        drive_targets=arrays["drive_targets"], image_steps=np.asarray(image_steps, np.int32),
                        images={c: np.stack(frames[c]) for c in cameras}, reached=dict(env.reached),
                        policy=dict(parent.policy, branch_of=int(parent.seed), branch_step=int(t), sigma=float(sigma)),

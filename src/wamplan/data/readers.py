@@ -138,20 +138,23 @@ _ITEM_FIX = ("`wamplan data check STORE` names every damaged episode: delete tho
 
 
 # What a world model's training-only state head predicts of each frame (:func:`state_targets`), in cm so the
-# numbers sit near unit scale: the held object's position relative to the gripper's TCP, and its position in the
-# world (relative to the task's fixed target: the cube task's hole never moves, so the two differ by a constant).
-STATE_QUANTITIES = ("obj_tcp_x", "obj_tcp_y", "obj_tcp_z", "obj_x", "obj_y", "obj_z")
+# numbers sit near unit scale: the held object's position relative to the gripper's TCP, and relative to its target
+# where the store records one (stack-cube: the other cube), else in the world (the cube task's hole never moves,
+# so its world position and its offset from the hole differ by a constant).
+STATE_QUANTITIES = ("obj_tcp_x", "obj_tcp_y", "obj_tcp_z", "obj_target_x", "obj_target_y", "obj_target_z")
 STATE_UNIT_MM = 10.0  # millimetres per unit of the state targets
 
 
 def state_targets(f: h5py.File, steps: Sequence[int], path: str = "") -> np.ndarray:
     """The :data:`STATE_QUANTITIES` of an episode file's ``steps``: (T, 6) float32 in cm, from its privileged
-    ``cube_pose`` and ``tcp_pose``; a store whose task records neither is refused."""
+    ``cube_pose``, ``tcp_pose`` and (where recorded) ``target_pose``; a store whose task records no object and TCP
+    poses is refused."""
     if "cube_pose" not in f or "tcp_pose" not in f:
         raise StoreError(f"{path or f.filename} records no privileged cube and TCP poses, which the world model's "
                          f"state head learns from; train without --state-weight on this store")
     obj, tcp = f["cube_pose"][steps][:, :3], f["tcp_pose"][steps][:, :3]  # (T, 3) each, metres
-    return (np.concatenate([obj - tcp, obj], axis=1) * 100.0).astype(np.float32)  # (T, 6) cm
+    target = f["target_pose"][steps][:, :3] if "target_pose" in f else 0.0  # (T, 3) or the world's origin
+    return (np.concatenate([obj - tcp, obj - target], axis=1) * 100.0).astype(np.float32)  # (T, 6) cm
 
 
 class _EpisodeDataset(Dataset):

@@ -63,7 +63,7 @@ def collect_one(env: TaskEnv, policy: Policy, seed: int, source: str, image_ever
     acts = np.stack(actions) if actions else np.zeros((0, env.task.action_dim), np.float32)  # (T, A)
     return EpisodeData(seed=seed, source=source, success=r.success, outcome=r.outcome, actions=acts,
                        proprio=arrays["proprio"], stages=arrays["stages"], cube_pose=arrays["cube_pose"],
-                       tcp_pose=arrays["tcp_pose"], sim_state=arrays["sim_state"],
+                       tcp_pose=arrays["tcp_pose"], target_pose=arrays["target_pose"], sim_state=arrays["sim_state"],
                        drive_targets=arrays["drive_targets"], image_steps=arrays["image_steps"].astype(np.int32),
                        images={c: np.stack(frames[c]) for c in cameras}, reached=r.reached,
                        policy=policy.config_dict(),

@@ -25,6 +25,8 @@ cameras are the task's, the stages its ``stages``)::
     cube_pose       (T+1, 7)    float32  privileged cube pose (xyz, wxyz quaternion); tasks whose privileged
                                          state has one (cube-insertion)
     tcp_pose        (T+1, 7)    float32  privileged TCP pose; robots with a TCP
+    target_pose     (T+1, 7)    float32  privileged pose of where the held object must go; tasks whose target moves
+                                         with the seed (stack-cube: the cube to stack on)
     sim_state       (T+1, S')   float32  ManiSkill ``get_state()`` (enough to restore physics and re-render)
     drive_targets   (T+1, J)    float32  joint drive targets (``get_state`` leaves them out)
     image_steps     (K,)        int32    steps whose images are stored: every ``image_every``-th step and T
@@ -62,7 +64,7 @@ SCHEMA_VERSION = 1
 MANIFEST = "store.json"
 EPISODES = "episodes"
 from wamplan.envs.spec import DEFAULT_TASK as LEGACY_TASK  # noqa: E402  (what records no task means)
-POSES = ("cube_pose", "tcp_pose")  # privileged poses, stored where the task's privileged state has them
+POSES = ("cube_pose", "tcp_pose", "target_pose")  # privileged poses, stored where the task's privileged state has them
 
 
 class StoreError(UserError):
@@ -141,6 +143,7 @@ class EpisodeData:
     reached: dict[str, bool]
     policy: dict[str, Any]
     provenance: dict[str, Any]
+    target_pose: np.ndarray | None = None  # None: the task's target does not move (or it records none)
 
     @property
     def length(self) -> int:

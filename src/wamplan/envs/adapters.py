@@ -72,3 +72,14 @@ class PegInsertionSideAdapter(ManiSkillAdapter):
 
     def raw_evaluation(self) -> dict[str, Any]:
         return dict(self.base.evaluate(), grasped=self.base.agent.is_grasping(self.base.peg, max_angle=20))
+
+
+class StackCubeAdapter(ManiSkillAdapter):
+    """StackCube-v1 plus its cubes as privileged state: ``cube_pose`` the cube to pick (cubeA), ``target_pose`` the
+    cube to stack it on (cubeB), for stores and the world model's training-only state head."""
+
+    def privileged_state(self, evaluation: dict[str, Any]) -> dict[str, np.ndarray]:
+        state = super().privileged_state(evaluation)
+        state["cube_pose"] = _first(self.base.cubeA.pose.raw_pose).copy()
+        state["target_pose"] = _first(self.base.cubeB.pose.raw_pose).copy()
+        return state

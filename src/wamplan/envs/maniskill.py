@@ -98,4 +98,4 @@ STACK_CUBE = register_task(maniskill_task(
     max_episode_steps=200, instruction="stack the red cube on the green cube",
     stages=("is_cubeA_grasped", "is_cubeA_on_cubeB"),
     outcomes=(("is_cubeA_on_cubeB", "stacked_not_released"), ("is_cubeA_grasped", "grasped_not_stacked")),
-    failure="never_grasped", demonstrations=MOTION_PLANNING))
+    failure="never_grasped", demonstrations=MOTION_PLANNING, adapter="wamplan.envs.adapters:StackCubeAdapter"))
