@@ -260,7 +260,7 @@ def test_the_task_reaches_the_env_and_the_planner(gripperless_task):
     stored = settings(_cfg("--planner", "cem-gripper"))  # what the directory records: as it ran
     assert (stored["env.task"], stored["env.max_episode_steps"], stored["planner_config.gripper_dim"]) == \
         ("cube-insertion", 300, 4)
-    with pytest.raises(SystemExit):  # argparse lists the registered tasks
+    with pytest.raises(UserError, match=r"unknown task 'nope'; choose one of \[.*'push-cube'"):  # after parsing
         _cfg("--task", "nope")
     with pytest.raises(UserError, match="task 'toy-no-gripper' has no gripper; use --planner cem"):
         _cfg("--task", "toy-no-gripper", "--planner", "cem-gripper", "--wam", "w").check_for([5])

@@ -16,7 +16,7 @@ import json
 import types
 import typing
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, Iterable, TypeVar
 
 from wamplan.errors import UserError
 
@@ -28,12 +28,20 @@ class ConfigError(UserError, ValueError):
 
 
 def field(default: Any = dataclasses.MISSING, help: str = "", cli: bool = True, choices: Any = None,
-          **kw: Any) -> Any:
+          listed: Any = None, **kw: Any) -> Any:
     """A dataclass field with a help string (used for ``--help``). Mutable defaults: pass a tuple, or
     ``default_factory=``. ``cli=False`` keeps the field out of :func:`add_arguments` (set it otherwise).
     ``choices``: the values its option accepts (argparse refuses others and lists them in ``--help``), or a
-    function returning them (e.g. a registry's names, read when the option is built)."""
-    return dataclasses.field(default=default, metadata={"help": help, "cli": cli, "choices": choices}, **kw)
+    function returning them (e.g. a registry's names, read when the option is built). ``listed``: the same, but
+    only listed in ``--help``; the config's ``__post_init__`` checks the value (a registry that plug-ins fill,
+    whose error says which plug-in was left out)."""
+    return dataclasses.field(default=default, metadata={"help": help, "cli": cli, "choices": choices,
+                                                        "listed": listed}, **kw)
+
+
+def choices_metavar(choices: Iterable[Any]) -> str:
+    """``{a,b,c}``, as argparse shows an option's choices."""
+    return "{" + ",".join(str(c) for c in choices if c != "") + "}"
 
 
 def with_default(cls: type, name: str, default: Any) -> Any:
@@ -129,10 +137,10 @@ def add_field_argument(parser: Any, flag: str, dest: str, f: dataclasses.Field, 
         help_ = f"{help_} (default: {default})" if help_ else f"(default: {default})"
     st = _scalar_type(t)
     metavar = flag.lstrip("-").replace("-", "_").upper()
-    choices = f.metadata.get("choices")
-    choices = tuple(choices()) if callable(choices) else choices
-    if choices is not None:
-        metavar = "{" + ",".join(str(c) for c in choices if c != "") + "}"
+    choices, listed = (c() if callable(c) else c for c in (f.metadata.get("choices"), f.metadata.get("listed")))
+    choices = tuple(choices) if choices is not None else None
+    if choices is not None or listed is not None:
+        metavar = choices_metavar(choices if choices is not None else sorted(listed))
     if st is bool:
         parser.add_argument(flag, dest=dest, default=None, action=argparse.BooleanOptionalAction, help=help_)
     elif tuple in (typing.get_origin(t), *(typing.get_origin(a) for a in typing.get_args(t))):  # tuple[...] | None too

@@ -10,7 +10,7 @@ from collections import Counter
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from wamplan.config import add_arguments, from_args
+from wamplan.config import add_arguments, choices_metavar, from_args
 from wamplan.errors import UserError, require_dir, require_file, require_seeds
 from wamplan.cli.main import add_command, add_group, register_command
 
@@ -65,7 +65,7 @@ def _check_options(p: argparse.ArgumentParser) -> None:
     from wamplan.envs.spec import TASKS
 
     p.add_argument("--steps", type=int, default=20, help="steps to time (default 20)")
-    p.add_argument("--task", default="cube-insertion", choices=sorted(TASKS),
+    p.add_argument("--task", default="cube-insertion", metavar=choices_metavar(sorted(TASKS)),  # checked by EnvConfig
                    help="the registered task whose env is checked (default: cube-insertion)")
     p.set_defaults(func=cmd_check)
 

@@ -8,6 +8,7 @@ from collections import Counter
 from pathlib import Path
 
 from wamplan.cli.main import add_command, register_command
+from wamplan.config import choices_metavar
 
 
 @register_command("evaluation")
@@ -54,7 +55,7 @@ def _reproduce_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=int, default=1, help="worker processes for collection and evaluation (default: 1)")
     p.add_argument("--sim-episodes", type=int, default=None,
                    help="episodes for the simulator conditions 2-5 (default: the preset's; 0 skips them)")
-    p.add_argument("--task", default=EnvConfig.task, choices=sorted(TASKS),
+    p.add_argument("--task", default=EnvConfig.task, metavar=choices_metavar(sorted(TASKS)),  # checked by reproduce
                    help=f"the registered task every stage runs in; it needs a scripted expert or ManiSkill's "
                         f"motion-planning demonstrations (then conditions 2-4 are left out) (default: {EnvConfig.task})")
     p.add_argument("--camera-size", type=int, default=EnvConfig.camera_size,

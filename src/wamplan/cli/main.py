@@ -9,8 +9,8 @@ a handler is a function ``(args) -> int``.
 at its top (the standard library, ``wamplan.config``) and adds each command with :func:`add_command`, whose
 options (generated from config classes that may import torch or ManiSkill) are built only when that command is
 chosen. The help of such a command is kept in a cache (``$XDG_CACHE_HOME/wamplan/help``, or
-``$WAMPLAN_CACHE_DIR/help``; one file per checkout, refreshed when its sources change) once built, so asking
-again needs none of those imports.
+``$WAMPLAN_CACHE_DIR/help``; one file per checkout, refreshed when its sources or the installed plug-ins, the
+entry points of the groups ``wamplan.*``, change) once built, so asking again needs none of those imports.
 """
 
 from __future__ import annotations
@@ -145,14 +145,32 @@ def _asks_help(args: list[str]) -> bool:
 # ---------------------------------------------------------------------------------------------- help cache
 def _help_cache() -> tuple[Path, str]:
     """This checkout's help cache, ``$WAMPLAN_CACHE_DIR`` (default ``$XDG_CACHE_HOME/wamplan``)/help/PLACE.json
-    (PLACE: a hash of the package's path and the Python version), and the stamp of its sources now. One file per
-    checkout: checkouts that share the cache never touch each other's file."""
+    (PLACE: a hash of the package's path and the Python version), and the stamp of its sources and of the installed
+    plug-ins now (a plug-in's tasks are listed in the help of ``--task``). One file per checkout: checkouts that
+    share the cache never touch each other's file."""
     root = Path(os.environ.get("WAMPLAN_CACHE_DIR") or
                 Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "wamplan")
     src = Path(__file__).resolve().parents[1]  # the wamplan package
     place = hashlib.sha1(f"{sys.version}\n{src}".encode()).hexdigest()[:16]
     files = [f"{p.relative_to(src)}:{p.stat().st_mtime_ns}:{p.stat().st_size}" for p in sorted(src.rglob("*.py"))]
+    files += _plugin_stamp()
     return root / "help" / f"{place}.json", hashlib.sha1("\n".join(files).encode()).hexdigest()[:16]
+
+
+def _plugin_stamp() -> list[str]:
+    """The installed plug-ins: every ``entry_points.txt`` of a distribution on ``sys.path`` (``NAME-VERSION.dist-info``
+    or ``.egg-info``) that declares a ``wamplan.*`` group, with its path. Read directly, not through
+    importlib.metadata, whose import alone costs more than the rest of a cached ``--help``."""
+    found = []
+    for entry in sys.path:
+        for f in sorted(Path(entry or ".").glob("*.*-info/entry_points.txt")):
+            try:
+                text = f.read_text()
+            except (OSError, UnicodeDecodeError):
+                continue  # unreadable: importlib.metadata cannot load it either
+            if "[wamplan." in text:
+                found.append(f"{f}:{text}")
+    return found
 
 
 def _cached_help(path: Path, stamp: str) -> dict[str, str]:

@@ -17,7 +17,7 @@ RENDER_BACKENDS = ("cpu", "gpu", "cuda", "sapien_cpu", "sapien_cuda", "none")
 
 @dataclass(frozen=True)
 class EnvConfig:
-    task: str = field("cube-insertion", "the registered task (`wamplan tasks` lists them)", choices=lambda: TASKS)
+    task: str = field("cube-insertion", "the registered task (`wamplan tasks` lists them)", listed=lambda: TASKS)
     camera_size: int = field(224, "rendered image side in pixels, every camera")
     clearance: float = field(0.002, "cube-insertion: gap between cube and hole wall per side, metres")
     cube_half_size: float = field(0.02, "cube-insertion: half the cube's side, metres")

@@ -18,6 +18,10 @@ or, letting ManiSkill say the cameras and sizes (builds the env once)::
 
     register_task(spec_from_env("PickCube-v1", name="pick-cube", instruction="pick up the cube"))
 
+For the command line (and its worker processes) to know the task, the plug-in's package names that module in the
+entry-point group ``wamplan.tasks`` (pyproject.toml: ``[project.entry-points."wamplan.tasks"]``,
+``my_tasks = "my_package.tasks"``); wamplan imports it the first time the registry of tasks is read.
+
 This module imports neither ManiSkill nor torch; :func:`spec_from_env` does when called.
 """
 

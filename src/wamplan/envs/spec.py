@@ -35,7 +35,8 @@ class Observation:
 
 DEFAULT_TASK = "cube-insertion"  # the task of whatever records none (stores, checkpoints, configs made before tasks)
 
-TASKS = Registry("task", modules=("wamplan.envs.contract", "wamplan.envs.maniskill"))
+PLUGIN_GROUP = "wamplan.tasks"  # the entry-point group of task plug-ins: each names a module that registers tasks
+TASKS = Registry("task", modules=("wamplan.envs.contract", "wamplan.envs.maniskill"), group=PLUGIN_GROUP)
 
 
 @dataclass(frozen=True)
@@ -124,7 +125,8 @@ class TaskSpec:
 
 
 def register_task(spec: TaskSpec) -> TaskSpec:
-    """Add ``spec`` to ``TASKS`` under its name (a plug-in's module calls this when imported)."""
+    """Add ``spec`` to ``TASKS`` under its name (a plug-in's module calls this when imported; an installed
+    distribution names that module in the entry-point group ``wamplan.tasks``)."""
     TASKS.register(spec.name)(spec)
     return spec
 

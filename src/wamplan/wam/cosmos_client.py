@@ -71,7 +71,7 @@ class CosmosClientConfig:
     """How to reach a Cosmos Policy /act server and adapt wamplan's observations to it."""
 
     task: str = field("cube-insertion", "the task the served model acts in (its cameras are the ones mapped)",
-                      choices=lambda: TASKS)
+                      listed=lambda: TASKS)
     url: str = field(f"http://127.0.0.1:{protocol.DEFAULT_PORT}{protocol.ROUTE}", "the server's /act endpoint")
     request_fields: tuple[str, ...] | None = field(
         None, "CAMERA=FIELD: which camera of the task fills each request image (all three fields are required); "
