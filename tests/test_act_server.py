@@ -114,8 +114,8 @@ def test_request_size_limit(guarded):
 def test_health_needs_no_secret(guarded):
     r = requests.get(guarded.health_url, timeout=10)
     assert r.status_code == 200
-    assert r.json() == {"ok": True, "wam": "tinywam", "task": "cube-insertion", "chunk_length": 16,
-                        "cameras": list(CAMERAS)}
+    assert r.json() == {"ok": True, "wam": "tinywam", "task": "cube-insertion", "chunk_length": 16, "action_dim": 5,
+                        "cameras": list(CAMERAS), "image_size": 32}
 
 
 def test_default_host_is_loopback():

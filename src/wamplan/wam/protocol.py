@@ -141,6 +141,10 @@ def _numbers(x: Any, what: str, ndim: int) -> np.ndarray:
     return arr
 
 
+as_image = _image  # (x, what) -> (h, w, 3) uint8 copy, or ProtocolError naming ``what``
+as_numbers = _numbers  # (x, what, ndim) -> finite float32 array, or ProtocolError naming ``what``
+
+
 def encode_request(req: ActRequest) -> str:
     """The JSON body of ``POST /act`` (the image fields are those of ``req.images``, then ``req.extra``);
     ``req.encoded``: the double-encoded form ``{"encoded": "<json_numpy text>"}``."""

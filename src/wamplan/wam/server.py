@@ -28,7 +28,8 @@ For real use it adds:
   headers: put it in the client's server URL); without it, HTTP 401 with a one-line JSON error (``"error"`` in
   the upstream mode);
 * a request size limit: a larger body is refused with HTTP 413 before it is read;
-* ``GET /health`` (no secret needed): ``{"ok": true, "wam": ..., "task": ..., "chunk_length": ..., "cameras": [...]}``.
+* ``GET /health`` (no secret needed): ``{"ok": true, "wam": ..., "task": ..., "chunk_length": ..., "action_dim": ...,
+  "cameras": [...], "image_size": ...}`` (``image_size`` None where the WAM does not say).
 
     app = create_app(wam, secret="s3cret")     # a FastAPI app
     serve(wam, host="127.0.0.1", port=8777)    # blocking, uvicorn
@@ -198,6 +199,7 @@ def create_app(wam: WAM, instruction_default: str | None = None, request_map: di
     if instruction_default is None:
         instruction_default = wam.default_instruction
     proprio_dim = int(wam.task.proprio_dim)
+    image_size = getattr(getattr(wam, "config", None), "image_size", None)  # its predicted views' side, if it says
     lock = threading.Lock()
     app = FastAPI(title=f"wamplan WAM server ({wam.name})")
     app.state.field_map = field_map(request_map, response_map)
@@ -228,7 +230,7 @@ def create_app(wam: WAM, instruction_default: str | None = None, request_map: di
     @app.get(protocol.HEALTH_ROUTE)
     async def health() -> dict:
         return {"ok": True, "wam": wam.name, "task": wam.task.name, "chunk_length": int(wam.chunk_length),
-                "cameras": list(wam.cameras)}
+                "action_dim": int(wam.action_dim), "cameras": list(wam.cameras), "image_size": image_size}
 
     @app.post(protocol.ROUTE)
     async def act(request: Request) -> Response:

@@ -1,0 +1,366 @@
+"""The planning proxy: ``POST /act`` (and ``/s/<robot>/act``) forwards each request to the upstream WAM, plans
+its chunk in a world model toward the upstream's predicted views (``PlannedPolicy.plan_chunk``, as condition 7
+plans), and answers in the upstream's own format: the planned chunk in ``actions`` (the task's columns of the
+upstream's actions replaced), the upstream's other fields passed through, and a ``wamplan`` field (session,
+episode step, whether the chunk was planned or why it ran open loop, costs, timings, notes).
+
+What a request may add for the proxy (all optional; none is forwarded to the upstream):
+
+* ``session_id`` (RoboArena-style): with the URL's robot, names the session; ``reset: true`` starts a new
+  episode; ``seed`` (int, read when an episode starts): the planner's episode seed;
+* ``executed_actions`` ((H, A), LingBot-VA-style): what the robot ran of the chunk answered last (default: that
+  chunk, whole); ``chunk_frames``: the frames the robot saw during that chunk, ``{"<offset>": {<image fields>,
+  "proprio": (P,)}}`` with offsets 1..H-1 from the chunk's start. A learned world model needs a frame every Δ
+  steps (Δ = its frameskip; 4 for the shipped one): without those frames a chunk is answered open loop with the
+  reason ``no-history``.
+
+Upstream's eval client's ``proprio_history`` / ``images_history`` are forwarded to the upstream untouched.
+A chunk runs the upstream's own chunk (open loop, the ``wamplan`` field says why) on the first chunk of an
+episode, on a history that reaches before the episode, without the frames above (``no-history``), when planning
+takes longer than ``budget_ms`` (``over-budget``; the plan finishes in the background before the session's
+next request), when the planner's gates say so, or when planning fails (``planning-failed``, logged).
+Failures of the request or the upstream are answered in the error mode (``wamplan.wam.server.ERROR_MODES``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import TimeoutError as FutureTimeout
+from typing import Any
+
+import numpy as np
+from fastapi import FastAPI, Request
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import Response
+
+from wamplan.envs.spec import Observation, TaskSpec, check_same_task, get_task
+from wamplan.errors import UserError, reason
+from wamplan.proxy.config import ProxyConfig
+from wamplan.proxy.sessions import Session, Sessions
+from wamplan.proxy.upstream import AnsweredWAM, HttpUpstream, LocalUpstream, Upstream, UpstreamError, to_output
+from wamplan.wam import protocol
+from wamplan.wam.server import Refused, check_secret, error_answer, field_map, fit_proprio, read_body, resolve_maps
+
+log = logging.getLogger(__name__)
+
+SESSION_ROUTE = "/s/{robot}/act"
+RESET_ROUTE = "/s/{robot}/reset"
+DEFAULT_ROBOT = "default"  # the session of plain /act
+PROXY_FIELDS = ("session_id", "reset", "seed", "executed_actions", "chunk_frames")  # read here, never forwarded
+
+
+class BadRequest(protocol.ProtocolError):
+    """A proxy field of the request is malformed (answered 400)."""
+
+
+def _finite(x: float | None) -> float | None:
+    return None if x is None or not math.isfinite(x) else float(x)
+
+
+class Proxy:
+    """The proxy's state: the upstream, the shared world model, the sessions. ``handle`` answers one request."""
+
+    def __init__(self, cfg: ProxyConfig, upstream: Upstream, dynamics: Any, encoder: Any, task: TaskSpec,
+                 make_policy: Any, request_map: dict[str, str], response_map: dict[str, str],
+                 columns: tuple[int, ...], chunk_length: int, image_size: int | None):
+        self.cfg, self.upstream, self.dynamics, self.encoder, self.task = cfg, upstream, dynamics, encoder, task
+        self.request_map, self.response_map, self.columns = request_map, response_map, columns
+        self.chunk, self.image_size = chunk_length, image_size
+        self.cameras = tuple(response_map)
+        self.frameskip = getattr(dynamics, "frameskip", chunk_length)
+        self.model_lock = threading.Lock()  # the world model and encoder are shared: one user at a time
+        self.planner_pool = ThreadPoolExecutor(max_workers=4, thread_name_prefix="wamplan-plan")
+        self._make_policy = make_policy
+        self.sessions = Sessions(self._session, cfg.idle_s, cfg.max_sessions)
+
+    def _session(self, key: str) -> Session:
+        wam = AnsweredWAM(self.task, self.chunk, self.cameras)
+        return Session(key, self._make_policy(wam), wam)
+
+    def describe(self) -> str:
+        return (f"{field_map(self.request_map, self.response_map)}; chunks of {self.chunk}, task {self.task.name} "
+                f"action columns {list(self.columns)}; world model frameskip {self.frameskip}")
+
+    def close(self) -> None:
+        self.planner_pool.shutdown(wait=False, cancel_futures=True)
+        self.upstream.close()
+
+    def reset(self, robot: str) -> int:
+        """Forget the sessions of ``robot`` (with any session_id) -> how many there were."""
+        keys = [k for k in self.sessions.keys() if k == robot or k.startswith(robot + "/")]
+        return sum(self.sessions.drop(k) for k in keys)
+
+    # ------------------------------------------------------------------ one request
+    def handle(self, body: bytes, robot: str = DEFAULT_ROBOT) -> str:
+        t_in = time.perf_counter()
+        req = protocol.decode_request(body, tuple(self.request_map))
+        ours = {k: req.extra.pop(k) for k in PROXY_FIELDS if k in req.extra}
+        sid = ours.get("session_id")
+        if sid is not None and not isinstance(sid, (str, int)):
+            raise BadRequest(f"session_id is a {type(sid).__name__}, expected a string")
+        key = robot if sid is None else f"{robot}/{sid}"
+        session, why = self.sessions.get(key)
+        with session.lock:
+            if session.pending is not None:  # a plan that ran past its budget finishes first
+                try:
+                    session.pending.result()
+                except Exception:  # it was answered open loop already; its failure is only logged
+                    log.exception("a plan past its budget failed (session %s)", key)
+                session.pending = None
+            if ours.get("reset"):
+                why = "reset"
+            seed = ours.get("seed")
+            if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer))):
+                raise BadRequest(f"seed is {seed!r}, expected an integer")
+            notes: list[str] = []
+            if why in ("idle", "reset") or (why == "first-request" and seed is not None):
+                session.new_episode(int(seed or 0))
+            elif session.chunks:
+                self._catch_up(session, ours, notes)
+            return self._answer(session, req, why, notes, t_in)
+
+    def _catch_up(self, session: Session, ours: dict[str, Any], notes: list[str]) -> None:
+        """Record what the robot ran of the chunk answered last, and the frames it saw during it."""
+        H, prev = self.chunk, session.step - self.chunk
+        acts = ours.get("executed_actions")
+        if acts is None:
+            acts = session.answered  # (H, A)
+        else:
+            acts = np.asarray(acts, dtype=np.float32)
+            if acts.ndim != 2 or acts.shape[0] != H or not np.isfinite(acts).all():
+                raise BadRequest(f"executed_actions has shape {acts.shape} or non-finite values; send the {H} "
+                                 f"actions the robot ran of the last chunk (the proxy plans whole chunks)")
+            if acts.shape[1] != len(self.columns):
+                if acts.shape[1] <= max(self.columns):
+                    raise BadRequest(f"executed_actions has {acts.shape[1]} columns; send the task's "
+                                     f"{len(self.columns)} or the upstream's")
+                acts = acts[:, list(self.columns)]  # (H, A)
+        history = session.policy.history
+        for a in acts:
+            history.record_action(a)
+        frames = ours.get("chunk_frames") or {}
+        if not isinstance(frames, dict):
+            raise BadRequest("chunk_frames must map step offsets ('1'..) to frames {<image fields>, 'proprio'}")
+        for off in sorted(frames, key=lambda k: int(k) if str(k).isdigit() else -1):
+            if not str(off).isdigit() or not 0 < int(off) < H:
+                raise BadRequest(f"chunk_frames offset {off!r} is not in 1..{H - 1}")
+            obs = self._observation(frames[off], prev + int(off), f"chunk_frames[{off}]")
+            with self.model_lock:
+                history.observe(obs, H)
+
+    def _observation(self, frame: Any, step: int, what: str) -> Observation:
+        if not isinstance(frame, dict):
+            raise BadRequest(f"{what} is a {type(frame).__name__}, expected {{<image fields>, 'proprio'}}")
+        missing = [k for k in (*self.request_map, "proprio") if k not in frame]
+        if missing:
+            raise BadRequest(f"{what} lacks {missing}")
+        images = {cam: protocol.as_image(frame[name], f"{what}['{name}']") for name, cam in self.request_map.items()}
+        q = protocol.as_numbers(frame["proprio"], f"{what}['proprio']", ndim=1)  # (P,)
+        return Observation(step=step, proprio=fit_proprio(q, self.task.proprio_dim)[0], images=images)
+
+    def _answer(self, session: Session, req: protocol.ActRequest, why: str | None, notes: list[str],
+                t_in: float) -> str:
+        t, H = session.step, self.chunk
+        proprio, note = fit_proprio(req.proprio, self.task.proprio_dim)  # (P,) what the world model reads
+        notes += [f"world model: {note}"] if note else []
+        obs = Observation(step=t, proprio=proprio, images={cam: req.images[f] for f, cam in self.request_map.items()})
+        forward = dataclasses.replace(req, encoded=False)  # the proxy decodes the answer itself
+        t0 = time.perf_counter()
+        ans = self.upstream.ask(forward, obs)
+        upstream_s = time.perf_counter() - t0
+        if ans.actions.shape[0] != H:
+            raise UpstreamError(502, f"{self.upstream.where} returned a {ans.actions.shape[0]}-step chunk; the "
+                                     f"proxy was started for {H}-step chunks")
+        out, more = to_output(ans, self.task, self.response_map, self.columns)  # the encoder resizes the views
+        notes += more
+        t1 = time.perf_counter()
+        executed, open_loop, costs = self._decide(session, obs, out, notes)
+        plan_s = time.perf_counter() - t1
+        session.answered = np.clip(executed, -1.0, 1.0).astype(np.float32)  # (H, A) what the robot will run
+        session.step, session.chunks = t + H, session.chunks + 1
+        actions = ans.actions.copy()  # (H, A_upstream): the upstream's own chunk when open loop
+        if open_loop is None:
+            actions[:, list(self.columns)] = executed
+        report = {"session": session.key, "step": t, "new_episode": why, "planned": open_loop is None,
+                  "open_loop": open_loop, "costs": costs,
+                  "timings_s": {"upstream": upstream_s, "plan": plan_s, "total": time.perf_counter() - t_in}}
+        if ans.wamplan:
+            report["upstream"] = ans.wamplan
+        if notes:
+            report["notes"] = notes
+        resp = protocol.ActResponse(actions=actions, future_images=ans.future_images, value=ans.value,
+                                    extra=ans.extra, wamplan=report)
+        return protocol.encode_response(resp, double_encode=req.encoded)
+
+    def _decide(self, session: Session, obs: Observation, out: Any,
+                notes: list[str]) -> tuple[np.ndarray, str | None, dict[str, float | None]]:
+        """-> (the (H, A) chunk to run, why it is the upstream's own (None: planned), costs)."""
+        policy, t = session.policy, obs.step
+        history = policy.history
+        if history.keeps_frames and t > 0 and (history.real(t) or history.rest_state):
+            missing = [s for s in history.steps(t) if 0 <= s < t and s not in history.frames]
+            if missing:
+                with self.model_lock:
+                    history.observe(obs, self.chunk)
+                notes.append(f"the world model needs the frames at steps {missing} (one every {self.frameskip} steps "
+                             f"before step {t}); send the frames seen during each chunk in chunk_frames")
+                return out.actions, "no-history", {}
+        session.wam.answer(out)
+        if policy.open_loop_rule(t) is not None:  # no search: no budget to keep
+            with self.model_lock:
+                decision = policy.plan_chunk(obs)
+            return decision.executed, decision.reason, {}
+
+        def plan():
+            with self.model_lock:
+                decision = policy.plan_chunk(obs)
+                del policy.chunks[:-4]  # records are for diagnostics only: keep memory bounded
+                return decision
+
+        budget = self.cfg.budget_ms / 1000.0
+        try:
+            if budget > 0:
+                future = self.planner_pool.submit(plan)
+                try:
+                    decision = future.result(timeout=budget)
+                except FutureTimeout:
+                    session.pending = future
+                    notes.append(f"planning took longer than the {self.cfg.budget_ms:g} ms budget")
+                    return out.actions, "over-budget", {}
+            else:
+                decision = plan()
+        except Exception as e:  # planning must not cost the robot its chunk
+            log.exception("planning failed (session %s, step %d)", session.key, t)
+            notes.append(f"planning failed ({reason(e)}); the server's log has the traceback")
+            return out.actions, "planning-failed", {}
+        c = decision.costs
+        costs = {"wam": _finite(c.seed), "best": _finite(c.best), "plan": _finite(c.plan)}
+        return decision.executed, decision.reason, costs
+
+
+# ---------------------------------------------------------------------- building it
+def check_fit(task: TaskSpec, upstream: Upstream, chunk: int, columns: tuple[int, ...], cameras: tuple[str, ...],
+              frameskip: int, encoder_size: int | None, image_size: int | None, world_model: str) -> None:
+    """Refuse, in one line, a world model that does not fit the upstream (task, chunk, actions, cameras, views)."""
+    s = upstream.shape
+    where = f"world model {world_model} does not fit {upstream.where}"
+    if s.task is not None:
+        try:
+            check_same_task(task.name, s.task, upstream.where)
+        except UserError as e:
+            raise UserError(f"{where}: {e}") from e
+    if s.chunk_length is not None and s.chunk_length != chunk:
+        raise UserError(f"{where}: it returns {s.chunk_length}-step chunks, not {chunk}; drop --chunk-length or fix it")
+    if chunk < frameskip:
+        raise UserError(f"{where}: its {chunk}-step chunks are shorter than the world model's frameskip {frameskip}; "
+                        f"plan with a world model whose frameskip divides the chunk")
+    if s.action_dim is not None and max(columns) >= s.action_dim:
+        raise UserError(f"{where}: its actions have {s.action_dim} columns, the world model's task {task.name} "
+                        f"takes columns {list(columns)}")
+    if s.cameras is not None and any(c not in s.cameras for c in cameras):
+        raise UserError(f"{where}: it predicts views of {list(s.cameras)}, the world model needs {list(cameras)}")
+    size = image_size or s.image_size
+    if size is not None and encoder_size is not None and size < encoder_size:
+        raise UserError(f"{where}: it predicts {size}-px views, the world model's encoder reads {encoder_size} px "
+                        f"(the target would be upsampled); use a world model trained at {size} px or less")
+
+
+def build_proxy(cfg: ProxyConfig, upstream: Upstream | None = None) -> Proxy:
+    """The proxy of ``cfg``: the world model loaded, the upstream reached (or ``upstream``), the fit checked."""
+    from wamplan.evaluation.build import planned_policy
+    from wamplan.evaluation.config import EvalConfig
+    from wamplan.planning.dynamics import learned_dynamics, task_name
+    from wamplan.wam.base import LEGACY_TASK, load_wam
+    from wamplan.wam.cosmos_client import profile_config
+    from wamplan.worldmodel.train import load_world_model
+
+    paths = [p for p in cfg.world_model.split(",") if p]
+    ecfg = EvalConfig(wm_augmented=",".join(paths), device=cfg.device)
+    dynamics, encoder = learned_dynamics([load_world_model(p, device=ecfg.device) for p in paths])
+    task = get_task(task_name(dynamics) or LEGACY_TASK)
+    cameras = tuple(dynamics.cameras or task.cameras)
+    profile = cfg.profile
+    client = profile_config(profile, task=task.name) if profile else None
+    if client is not None:
+        request_map, response_map = client.request_map, client.response_map
+        columns, profile_chunk = client.action_columns, client.chunk_length
+    else:
+        request_map, response_map = resolve_maps(cameras)
+        columns, profile_chunk = tuple(range(task.action_dim)), None
+    missing = [c for c in cameras if c not in response_map]
+    if missing:
+        raise UserError(f"profile {profile or '(none)'} maps no predicted view to camera(s) {missing} the world "
+                        f"model reads")
+    response_map = {c: response_map[c] for c in cameras}
+    if upstream is None:
+        if cfg.upstream_is_url:
+            upstream = HttpUpstream(cfg.upstream, cfg.upstream_timeout_s, cfg.chunk_length)
+        else:
+            upstream = LocalUpstream(load_wam(cfg.upstream, device=ecfg.device), response_map)
+    chunk = cfg.chunk_length or upstream.shape.chunk_length or profile_chunk or task.chunk_length
+    size = getattr(encoder, "input_size", None)
+    check_fit(task, upstream, chunk, columns, cameras, getattr(dynamics, "frameskip", chunk), size, None,
+              cfg.world_model)
+    return Proxy(cfg, upstream, dynamics, encoder, task,
+                 lambda wam: planned_policy(ecfg, wam, dynamics, encoder, world_models=paths),
+                 request_map, response_map, columns, chunk, size)
+
+
+def create_proxy_app(proxy: Proxy, secret: str | None = None) -> FastAPI:
+    """The HTTP face of ``proxy``: ``POST /act``, ``POST /s/<robot>/act``, ``POST /s/<robot>/reset``,
+    ``GET /health``; ``secret`` as ``wamplan wam serve`` takes it (header, bearer or ``?token=``)."""
+    cfg, secret = proxy.cfg, secret or None
+    app = FastAPI(title="wamplan planning proxy")
+
+    async def act(request: Request, robot: str) -> Response:
+        route = request.url.path
+        try:
+            check_secret(request, secret)
+            body = await read_body(request, cfg.max_request_bytes)
+        except Refused as r:
+            return error_answer(cfg.errors, r.status, r.message, route)
+        try:
+            content = await run_in_threadpool(proxy.handle, body, robot)
+        except protocol.ProtocolError as e:
+            return error_answer(cfg.errors, 400, f"bad /act request: {e}", route)
+        except UpstreamError as e:
+            return error_answer(cfg.errors, e.status, e.message, route)
+        except UserError as e:
+            return error_answer(cfg.errors, 422, str(e), route)
+        except Exception as e:
+            log.exception("%s failed", route)
+            return error_answer(cfg.errors, 500, f"the proxy failed on this request ({reason(e)}); its log has the "
+                                                 f"traceback", route)
+        return Response(content=content, media_type="application/json")
+
+    @app.post(protocol.ROUTE)
+    async def act_default(request: Request) -> Response:
+        return await act(request, DEFAULT_ROBOT)
+
+    @app.post(SESSION_ROUTE)
+    async def act_session(robot: str, request: Request) -> Response:
+        return await act(request, robot)
+
+    @app.post(RESET_ROUTE)
+    async def reset(robot: str, request: Request) -> Response:
+        try:
+            check_secret(request, secret)
+        except Refused as r:
+            return error_answer(cfg.errors, r.status, r.message, request.url.path)
+        n = proxy.reset(robot)
+        return Response(content=json.dumps({"ok": True, "sessions_reset": n}), media_type="application/json")
+
+    @app.get(protocol.HEALTH_ROUTE)
+    async def health() -> dict:
+        return {"ok": True, "proxy": True, "upstream": proxy.upstream.where, "task": proxy.task.name,
+                "chunk_length": proxy.chunk, "action_dim": proxy.upstream.shape.action_dim or len(proxy.columns),
+                "cameras": list(proxy.cameras),
+                "world_model": cfg.world_model, "sessions": len(proxy.sessions)}
+
+    return app
