@@ -202,3 +202,23 @@ def test_bad_proxy_fields_are_4xx(proxy):
                   dict(chunk_frames={"4": {"proprio": np.zeros(10)}}), dict(seed="x")):
         r = requests.post(url, data=request(observation(1, 16), **extra), timeout=60)
         assert r.status_code == 400 and r.json()["error"].startswith("bad /act request"), r.text
+
+
+def test_upstreams_eval_client_history_feeds_the_world_model_where_it_falls_on_its_frames():
+    """Upstream's eval client sends proprio_history / images_history (N frames `spacing` steps apart, ending one
+    spacing before the boundary); with a spacing of 4 they are the frames the shipped world model needs."""
+    p = build_proxy(ProxyConfig(upstream=WAM_CKPT, world_model=WM_CKPT, device="cpu", errors="http",
+                                history_spacing=4))
+    try:
+        with BackgroundServer(create_proxy_app(p)) as srv:
+            c = 6
+            first = post(f"{srv.url}/act", request(observation(c, 0)))
+            past = [observation(c, s) for s in (4, 8, 12)]
+            history = dict(proprio_history=[o.proprio.astype(np.float64) for o in past],
+                           images_history=[o.images[cam] for cam in ("side", "wrist", "front") for o in past])
+            second = post(f"{srv.url}/act", request(observation(c, 16), **history))
+        assert second["wamplan"]["open_loop"] is None
+        got = np.concatenate([np.stack(first["actions"]), np.stack(second["actions"])])
+        np.testing.assert_allclose(got, in_process_episode(c, 2), atol=1e-6)
+    finally:
+        p.close()

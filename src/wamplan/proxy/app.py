@@ -14,7 +14,10 @@ What a request may add for the proxy (all optional; none is forwarded to the ups
   steps (Δ = its frameskip; 4 for the shipped one): without those frames a chunk is answered open loop with the
   reason ``no-history``.
 
-Upstream's eval client's ``proprio_history`` / ``images_history`` are forwarded to the upstream untouched.
+Upstream's eval client's ``proprio_history`` (N proprio vectors) / ``images_history`` (N left-wrist, N right-wrist,
+then N primary images, each oldest first; ALOHA's fields) are forwarded to the upstream untouched; their frames,
+``history_spacing`` steps apart and ending one spacing before the boundary, also join the world model's history
+where they fall on its frames (with the shipped Δ=4 model and upstream's spacing of 12 they never do).
 A chunk runs the upstream's own chunk (open loop, the ``wamplan`` field says why) on the first chunk of an
 episode, on a history that reaches before the episode, without the frames above (``no-history``), when planning
 takes longer than ``budget_ms`` (``over-budget``; the plan finishes in the background before the session's
@@ -123,6 +126,8 @@ class Proxy:
                 session.new_episode(int(seed or 0))
             elif session.chunks:
                 self._catch_up(session, ours, notes)
+            if session.chunks:
+                self._upstream_history(session, req)
             return self._answer(session, req, why, notes, t_in)
 
     def _catch_up(self, session: Session, ours: dict[str, Any], notes: list[str]) -> None:
@@ -153,6 +158,27 @@ class Proxy:
             obs = self._observation(frames[off], prev + int(off), f"chunk_frames[{off}]")
             with self.model_lock:
                 history.observe(obs, H)
+
+    def _upstream_history(self, session: Session, req: protocol.ActRequest) -> None:
+        """The frames of upstream's ``proprio_history`` / ``images_history`` that the world model's history keeps."""
+        q, views = req.extra.get("proprio_history"), req.extra.get("images_history")
+        fields = protocol.REQUEST_IMAGE_FIELDS  # upstream's eval client orders them left, right wrist, primary
+        if q is None or views is None or set(self.request_map) != set(fields):
+            return
+        n = len(q)
+        if not isinstance(views, list) or len(views) != 3 * n:
+            raise BadRequest(f"images_history holds {len(views) if isinstance(views, list) else views!r} images "
+                             f"for {n} proprio_history entries; upstream's client sends 3 per entry")
+        order = ("left_wrist_image", "right_wrist_image", "primary_image")
+        history, t = session.policy.history, session.step
+        for i in range(n):
+            step = t - (n - i) * self.cfg.history_spacing
+            if step < 0 or step in history.frames or not history.wants(step, self.chunk):
+                continue
+            frame = {name: views[k * n + i] for k, name in enumerate(order)}
+            obs = self._observation({**frame, "proprio": q[i]}, step, f"images_history[{i}]")
+            with self.model_lock:
+                history.observe(obs, self.chunk)
 
     def _observation(self, frame: Any, step: int, what: str) -> Observation:
         if not isinstance(frame, dict):

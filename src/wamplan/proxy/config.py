@@ -29,6 +29,8 @@ class ProxyConfig:
     upstream_timeout_s: float = field(60.0, "seconds to wait for the upstream's answer")
     chunk_length: int | None = field(None, "actions per chunk the upstream returns; unset: its /health's (a wamplan "
                                            "server) or the world model's task's")
+    history_spacing: int = field(12, "steps between the frames of upstream's eval client's proprio_history / "
+                                     "images_history (its history_spacing_factor)")
     max_request_bytes: int = field(protocol.DEFAULT_MAX_REQUEST_BYTES, "refuse larger /act bodies (HTTP 413)")
     device: str = field("auto", "torch device for the world model (and a local upstream)")
 
@@ -46,6 +48,7 @@ class ProxyConfig:
         require(self.upstream_timeout_s > 0, f"--upstream-timeout-s must be > 0, got {self.upstream_timeout_s}")
         require(self.chunk_length is None or self.chunk_length >= 1,
                 f"--chunk-length must be >= 1 (or unset), got {self.chunk_length}")
+        require(self.history_spacing >= 1, f"--history-spacing must be >= 1, got {self.history_spacing}")
         require(self.max_request_bytes >= 1, f"--max-request-bytes must be >= 1, got {self.max_request_bytes}")
 
     @property
