@@ -222,3 +222,12 @@ def test_upstreams_eval_client_history_feeds_the_world_model_where_it_falls_on_i
         np.testing.assert_allclose(got, in_process_episode(c, 2), atol=1e-6)
     finally:
         p.close()
+
+
+def test_serve_refuses_a_world_model_that_does_not_fit_in_one_line(capsys):
+    from wamplan.cli.main import main
+
+    code = main(["serve", "--upstream", WAM_CKPT, "--world-model", WM_CKPT, "--chunk-length", "50", "--device", "cpu"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1
+    assert "does not fit the WAM 'tinywam': it returns 16-step chunks, not 50" in err
