@@ -231,3 +231,33 @@ def test_serve_refuses_a_world_model_that_does_not_fit_in_one_line(capsys):
     err = capsys.readouterr().err.strip()
     assert code == 2 and len(err.splitlines()) == 1
     assert "does not fit the WAM 'tinywam': it returns 16-step chunks, not 50" in err
+
+
+def test_an_episode_through_the_proxy_takes_the_in_process_episodes_actions(proxy, small_env):
+    """A CubeInsertion-v1 episode (seed 1, three chunks) driven over HTTP, sending the frames seen during each chunk,
+    takes the actions the same planned episode takes in process (same WAM, world model, planner, seed; no budget)."""
+    from wamplan.policies.rollout import run_episode
+
+    srv, _ = proxy
+    env, seed, steps = small_env, 1, 3 * H
+    policy = planned_policy(load_wam(WAM_CKPT, device="cpu"), world_model=WM_CKPT, device="cpu")
+    want: list[np.ndarray] = []
+    run_episode(env, policy, seed, max_steps=steps, stop_on_success=False,
+                on_obs=lambda e, o, a: want.append(a) if a is not None else None)
+    assert [c["planned"] for c in policy.info()["chunks"]] == [False, True, True]
+
+    url, got, queue, seen = f"{srv.url}/s/sim/act", [], [], {}
+    obs = env.reset(seed, with_images=True)
+    for t in range(steps):
+        if t % H == 0:
+            extra = {"seed": seed} if t == 0 else {"chunk_frames": seen}
+            answer = post(url, request(obs, **extra))
+            assert answer["wamplan"]["step"] == t and answer["wamplan"]["planned"] == (t > 0)
+            queue, seen = list(np.stack(answer["actions"])), {}
+        action = env.check_action(queue.pop(0))
+        got.append(action)
+        obs, _ = env.step(action, with_images=(t + 1) % 4 == 0)
+        if (t + 1) % H:
+            if obs.images is not None:
+                seen[str((t + 1) % H)] = fields(obs)
+    np.testing.assert_allclose(np.stack(got), np.stack(want), atol=1e-6)
