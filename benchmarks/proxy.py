@@ -23,7 +23,8 @@ import json_numpy
 import numpy as np
 import requests
 
-from wamplan.proxy.app import build_proxy, create_proxy_app
+from wamplan.proxy.app import create_proxy_app
+from wamplan.proxy.build import build_proxy
 from wamplan.proxy.config import ProxyConfig
 from wamplan.wam import load_wam, protocol
 from wamplan.wam.server import BackgroundServer, create_app

@@ -16,7 +16,8 @@ import requests
 from wamplan.api import planned_policy
 from wamplan.envs.spec import Observation
 from wamplan.errors import UserError
-from wamplan.proxy.app import build_proxy, create_proxy_app
+from wamplan.proxy.app import create_proxy_app
+from wamplan.proxy.build import build_proxy
 from wamplan.proxy.config import ProxyConfig
 from wamplan.proxy.upstream import LocalUpstream, Upstream, UpstreamShape
 from wamplan.wam import protocol

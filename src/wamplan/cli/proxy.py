@@ -47,7 +47,8 @@ def _serve(args: argparse.Namespace) -> int:
     cfg = ProxyConfig(**given)
     secret = args.secret if args.secret is not None else os.environ.get(protocol.SECRET_ENV) or None
     from wamplan.device import resolve_device
-    from wamplan.proxy.app import build_proxy, create_proxy_app
+    from wamplan.proxy.app import create_proxy_app
+    from wamplan.proxy.build import build_proxy
     from wamplan.wam.server import run_app
 
     resolve_device(cfg.device)

@@ -42,13 +42,13 @@ from fastapi import FastAPI, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import Response
 
-from wamplan.envs.spec import Observation, TaskSpec, check_same_task, get_task
+from wamplan.envs.spec import Observation, TaskSpec
 from wamplan.errors import UserError, reason
 from wamplan.proxy.config import ProxyConfig
 from wamplan.proxy.sessions import Session, Sessions
-from wamplan.proxy.upstream import AnsweredWAM, HttpUpstream, LocalUpstream, Upstream, UpstreamError, to_output
+from wamplan.proxy.upstream import AnsweredWAM, Upstream, UpstreamError, to_output
 from wamplan.wam import protocol
-from wamplan.wam.server import Refused, check_secret, error_answer, field_map, fit_proprio, read_body, resolve_maps
+from wamplan.wam.server import Refused, check_secret, error_answer, field_map, fit_proprio, read_body
 
 log = logging.getLogger(__name__)
 
@@ -71,10 +71,10 @@ class Proxy:
 
     def __init__(self, cfg: ProxyConfig, upstream: Upstream, dynamics: Any, encoder: Any, task: TaskSpec,
                  make_policy: Any, request_map: dict[str, str], response_map: dict[str, str],
-                 columns: tuple[int, ...], chunk_length: int, image_size: int | None):
+                 columns: tuple[int, ...], chunk_length: int):
         self.cfg, self.upstream, self.dynamics, self.encoder, self.task = cfg, upstream, dynamics, encoder, task
         self.request_map, self.response_map, self.columns = request_map, response_map, columns
-        self.chunk, self.image_size = chunk_length, image_size
+        self.chunk = chunk_length
         self.cameras = tuple(response_map)
         self.frameskip = getattr(dynamics, "frameskip", chunk_length)
         self.model_lock = threading.Lock()  # the world model and encoder are shared: one user at a time
@@ -203,7 +203,7 @@ class Proxy:
         if ans.actions.shape[0] != H:
             raise UpstreamError(502, f"{self.upstream.where} returned a {ans.actions.shape[0]}-step chunk; the "
                                      f"proxy was started for {H}-step chunks")
-        out, more = to_output(ans, self.task, self.response_map, self.columns)  # the encoder resizes the views
+        out, more = to_output(ans, self.task, self.response_map, self.columns)
         notes += more
         t1 = time.perf_counter()
         executed, open_loop, costs = self._decide(session, obs, out, notes)
@@ -268,74 +268,6 @@ class Proxy:
         c = decision.costs
         costs = {"wam": _finite(c.seed), "best": _finite(c.best), "plan": _finite(c.plan)}
         return decision.executed, decision.reason, costs
-
-
-# ---------------------------------------------------------------------- building it
-def check_fit(task: TaskSpec, upstream: Upstream, chunk: int, columns: tuple[int, ...], cameras: tuple[str, ...],
-              frameskip: int, encoder_size: int | None, image_size: int | None, world_model: str) -> None:
-    """Refuse, in one line, a world model that does not fit the upstream (task, chunk, actions, cameras, views)."""
-    s = upstream.shape
-    where = f"world model {world_model} does not fit {upstream.where}"
-    if s.task is not None:
-        try:
-            check_same_task(task.name, s.task, upstream.where)
-        except UserError as e:
-            raise UserError(f"{where}: {e}") from e
-    if s.chunk_length is not None and s.chunk_length != chunk:
-        raise UserError(f"{where}: it returns {s.chunk_length}-step chunks, not {chunk}; drop --chunk-length or fix it")
-    if chunk < frameskip:
-        raise UserError(f"{where}: its {chunk}-step chunks are shorter than the world model's frameskip {frameskip}; "
-                        f"plan with a world model whose frameskip divides the chunk")
-    if s.action_dim is not None and max(columns) >= s.action_dim:
-        raise UserError(f"{where}: its actions have {s.action_dim} columns, the world model's task {task.name} "
-                        f"takes columns {list(columns)}")
-    if s.cameras is not None and any(c not in s.cameras for c in cameras):
-        raise UserError(f"{where}: it predicts views of {list(s.cameras)}, the world model needs {list(cameras)}")
-    size = image_size or s.image_size
-    if size is not None and encoder_size is not None and size < encoder_size:
-        raise UserError(f"{where}: it predicts {size}-px views, the world model's encoder reads {encoder_size} px "
-                        f"(the target would be upsampled); use a world model trained at {size} px or less")
-
-
-def build_proxy(cfg: ProxyConfig, upstream: Upstream | None = None) -> Proxy:
-    """The proxy of ``cfg``: the world model loaded, the upstream reached (or ``upstream``), the fit checked."""
-    from wamplan.evaluation.build import planned_policy
-    from wamplan.evaluation.config import EvalConfig
-    from wamplan.planning.dynamics import learned_dynamics, task_name
-    from wamplan.wam.base import LEGACY_TASK, load_wam
-    from wamplan.wam.cosmos_client import profile_config
-    from wamplan.worldmodel.train import load_world_model
-
-    paths = [p for p in cfg.world_model.split(",") if p]
-    ecfg = EvalConfig(wm_augmented=",".join(paths), device=cfg.device)
-    dynamics, encoder = learned_dynamics([load_world_model(p, device=ecfg.device) for p in paths])
-    task = get_task(task_name(dynamics) or LEGACY_TASK)
-    cameras = tuple(dynamics.cameras or task.cameras)
-    profile = cfg.profile
-    client = profile_config(profile, task=task.name) if profile else None
-    if client is not None:
-        request_map, response_map = client.request_map, client.response_map
-        columns, profile_chunk = client.action_columns, client.chunk_length
-    else:
-        request_map, response_map = resolve_maps(cameras)
-        columns, profile_chunk = tuple(range(task.action_dim)), None
-    missing = [c for c in cameras if c not in response_map]
-    if missing:
-        raise UserError(f"profile {profile or '(none)'} maps no predicted view to camera(s) {missing} the world "
-                        f"model reads")
-    response_map = {c: response_map[c] for c in cameras}
-    if upstream is None:
-        if cfg.upstream_is_url:
-            upstream = HttpUpstream(cfg.upstream, cfg.upstream_timeout_s, cfg.chunk_length)
-        else:
-            upstream = LocalUpstream(load_wam(cfg.upstream, device=ecfg.device), response_map)
-    chunk = cfg.chunk_length or upstream.shape.chunk_length or profile_chunk or task.chunk_length
-    size = getattr(encoder, "input_size", None)
-    check_fit(task, upstream, chunk, columns, cameras, getattr(dynamics, "frameskip", chunk), size, None,
-              cfg.world_model)
-    return Proxy(cfg, upstream, dynamics, encoder, task,
-                 lambda wam: planned_policy(ecfg, wam, dynamics, encoder, world_models=paths),
-                 request_map, response_map, columns, chunk, size)
 
 
 def create_proxy_app(proxy: Proxy, secret: str | None = None) -> FastAPI:

@@ -20,7 +20,6 @@ import requests
 from wamplan.envs.spec import Observation, TaskSpec
 from wamplan.wam import protocol
 from wamplan.wam.base import WAM, WAMOutput
-from wamplan.wam.cosmos_client import resize_image
 from wamplan.wam.server import clip_actions
 
 UPSTREAM_SECRET_ENV = "WAMPLAN_UPSTREAM_SECRET"  # the upstream's shared secret, if it wants one
@@ -126,11 +125,11 @@ class LocalUpstream(Upstream):
         self.wam.close()
 
 
-def to_output(ans: protocol.ActResponse, task: TaskSpec, response_map: dict[str, str], columns: tuple[int, ...],
-              image_size: int | None = None) -> tuple[WAMOutput, list[str]]:
+def to_output(ans: protocol.ActResponse, task: TaskSpec, response_map: dict[str, str],
+              columns: tuple[int, ...]) -> tuple[WAMOutput, list[str]]:
     """The upstream's answer as the planned policy's WAM output: the task's action ``columns`` clipped to [-1, 1],
-    the views of ``response_map`` (camera -> answer field), resized to ``image_size`` if given -> (output, notes
-    saying what was changed). Raises UpstreamError when the answer lacks what planning needs."""
+    the views of ``response_map`` (camera -> answer field) as predicted (the encoder resizes them) -> (output,
+    notes saying what was changed). Raises UpstreamError when the answer lacks what planning needs."""
     H, A = ans.actions.shape
     if max(columns) >= A:
         raise UpstreamError(502, f"the upstream returned {A}-D actions; task {task.name} needs columns {list(columns)}")
@@ -141,8 +140,7 @@ def to_output(ans: protocol.ActResponse, task: TaskSpec, response_map: dict[str,
         if name not in ans.future_images:
             raise UpstreamError(502, f"the upstream predicted no '{name}' view (it sent {sorted(ans.future_images)}); "
                                      f"the world model needs camera '{cam}'")
-        img = ans.future_images[name]  # (h, w, 3)
-        images[cam] = resize_image(img, image_size) if image_size else img
+        images[cam] = ans.future_images[name]  # (h, w, 3)
     return WAMOutput(actions=actions, images=images, value=ans.value), notes
 
 
