@@ -26,8 +26,8 @@ wamplan's own server adds what a real deployment needs, outside the protocol: an
 (``SECRET_HEADER``, ``Authorization: Bearer``, or the URL query parameter ``SECRET_QUERY`` for clients that
 cannot set headers; the client reads it from ``SECRET_ENV``), a request size
 limit (HTTP 413) and ``GET /health``; those refusals are HTTP 401 / 413 with a one-line ``{"error": ...}``, and
-so are its failures unless started with ``bare_errors`` (400 a malformed request, 422 one the WAM refuses, 500
-a failure of the WAM; see ``wamplan.wam.server``).
+so are its failures (400 a malformed request, 422 one the WAM refuses, 500 a failure of the WAM), unless started
+in the ``upstream`` error mode, which answers every failure as upstream does (see ``wamplan.wam.server``).
 
 Decoders raise :class:`ProtocolError` (malformed message) or :class:`ErrorReply` (the ``"error"`` answer);
 callers turn those into errors for people, naming the server.
