@@ -262,3 +262,18 @@ def test_an_episode_through_the_proxy_takes_the_in_process_episodes_actions(prox
             if obs.images is not None:
                 seen[str((t + 1) % H)] = fields(obs)
     np.testing.assert_allclose(np.stack(got), np.stack(want), atol=1e-6)
+
+
+def test_a_boundary_retried_after_a_refusal_plans_as_if_sent_once(proxy):
+    srv, _ = proxy
+    c, url = 7, f"{srv.url}/s/retry/act"
+    first = post(url, request(observation(c, 0)))
+    frames = {str(off): fields(observation(c, off)) for off in (4, 8, 12)}
+    bad = requests.post(url, data=request(observation(c, 16), chunk_frames={**frames, "40": frames["4"]}), timeout=60)
+    assert bad.status_code == 400 and "offset '40'" in bad.json()["error"]
+    second = post(url, request(observation(c, 16), chunk_frames=frames))
+    assert second["wamplan"]["step"] == 16 and second["wamplan"]["planned"]
+    third = post(url, request(observation(c, 32), chunk_frames={str(o): fields(observation(c, 16 + o))
+                                                                for o in (4, 8, 12)}))
+    got = np.concatenate([np.stack(a["actions"]) for a in (first, second, third)])
+    np.testing.assert_allclose(got, in_process_episode(c, 3), atol=1e-6)  # chunk 2 reads chunk 1's actions

@@ -147,8 +147,9 @@ class Proxy:
                                      f"{len(self.columns)} or the upstream's")
                 acts = acts[:, list(self.columns)]  # (H, A)
         history = session.policy.history
-        for a in acts:
-            history.record_action(a)
+        if len(history.executed) == prev:  # not yet recorded (a request retried after a failure was)
+            for a in acts:
+                history.record_action(a)
         frames = ours.get("chunk_frames") or {}
         if not isinstance(frames, dict):
             raise BadRequest("chunk_frames must map step offsets ('1'..) to frames {<image fields>, 'proprio'}")
