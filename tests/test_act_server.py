@@ -5,8 +5,11 @@ from __future__ import annotations
 
 import inspect
 import json
+import logging
 import threading
+from pathlib import Path
 
+import json_numpy
 import numpy as np
 import pytest
 import requests
@@ -15,8 +18,9 @@ import torch
 from wamplan.checkpoint import save_checkpoint
 from wamplan.config import to_dict
 from wamplan.envs.contract import CAMERAS, Observation
+from wamplan.errors import UserError
 from wamplan.wam import protocol
-from wamplan.wam.base import WAMServerError, load_wam
+from wamplan.wam.base import WAM, WAMOutput, WAMServerError, load_wam
 from wamplan.wam.cosmos_client import CosmosClientConfig, CosmosPolicyClient
 from wamplan.wam.server import BackgroundServer, create_app, serve
 from wamplan.wam.tinywam import KIND as TINYWAM_KIND
@@ -67,12 +71,16 @@ def test_the_secret_is_enforced(guarded, tiny_ckpt, monkeypatch):
                     {"Authorization": SECRET}):
         r = post(guarded.act_url, body(0), **headers)
         assert r.status_code == 401
-        assert r.json() == {"error": "missing or wrong shared secret: send it in the X-WAMplan-Secret header "
-                                     "(the wamplan client reads $WAMPLAN_ACT_SECRET)"}
+        assert r.json() == {"error": "missing or wrong shared secret: send it in the X-WAMplan-Secret header or as "
+                                     "?token=SECRET in the URL (the wamplan client reads $WAMPLAN_ACT_SECRET)"}
         assert "\n" not in r.text
     for headers in ({protocol.SECRET_HEADER: SECRET}, {"Authorization": f"Bearer {SECRET}"}):
         r = post(guarded.act_url, body(0), **headers)
         assert r.status_code == 200 and "actions" in json.loads(r.text)
+    # a client that cannot send headers (upstream's) carries the secret in its server URL
+    token = requests.utils.quote(SECRET)
+    assert post(f"{guarded.act_url}?token={token}", body(0)).status_code == 200
+    assert post(f"{guarded.act_url}?token=wrong", body(0)).status_code == 401
     want = load_wam(tiny_ckpt).predict(make_obs(1), "insert")
     np.testing.assert_array_equal(client(guarded.act_url, secret=SECRET).predict(make_obs(1), "insert").actions,
                                   want.actions)
@@ -106,8 +114,8 @@ def test_request_size_limit(guarded):
 def test_health_needs_no_secret(guarded):
     r = requests.get(guarded.health_url, timeout=10)
     assert r.status_code == 200
-    assert r.json() == {"ok": True, "wam": "tinywam", "task": "cube-insertion", "chunk_length": 16,
-                        "cameras": list(CAMERAS)}
+    assert r.json() == {"ok": True, "wam": "tinywam", "task": "cube-insertion", "chunk_length": 16, "action_dim": 5,
+                        "cameras": list(CAMERAS), "image_size": 32}
 
 
 def test_default_host_is_loopback():
@@ -146,3 +154,161 @@ def test_concurrent_clients_get_their_own_answers(guarded, tiny_ckpt):
     for i in want:
         np.testing.assert_array_equal(got[i], want[i].actions)  # its own answer, not a neighbour's
     assert len({got[i].tobytes() for i in got}) == len(got)  # and the answers do differ between requests
+
+
+# -- an unmodified upstream robot client ------------------------------------------------------------------
+# Written from upstream's protocol (NVlabs/cosmos-policy run_aloha_eval.py, get_action_from_server): it posts the
+# observation as json_numpy (ALOHA's 14-D float64 qpos as proprio, return_all_query_results) with no header, and
+# reads "actions", "future_image_predictions" and "value_predictions" (plural) from a dict answer; any other
+# answer is an error to it.
+SHIPPED_TINYWAM = Path(__file__).resolve().parents[1] / "checkpoints" / "mini" / "tinywam"
+ALL_KEYS = ("all_actions", "all_future_image_predictions", "all_value_predictions", "all_actions_by_depth",
+            "all_future_image_predictions_by_depth", "all_value_predictions_by_depth")
+
+
+def aloha_observation(seed: int, size: int = 224) -> dict:
+    rng = np.random.default_rng(seed)
+    obs = {k: rng.integers(0, 256, (size, size, 3), dtype=np.uint8)
+           for k in ("primary_image", "left_wrist_image", "right_wrist_image")}
+    obs["proprio"] = rng.uniform(-1, 1, 14)  # float64, as ALOHA's qpos
+    obs["task_description"] = "insert the cube into the square hole"
+    return obs
+
+
+def upstream_get_action(url: str, observation: dict, return_all: bool = False, encoded: bool = False) -> dict:
+    observation = dict(observation, return_all_query_results=return_all)
+    text = json_numpy.dumps(observation)
+    data = json.dumps({"encoded": text}) if encoded else text
+    response = json_numpy.loads(requests.post(url, data=data, headers=protocol.JSON_HEADERS, timeout=60).text)
+    if encoded:  # double-encoded: a JSON string holding the json_numpy text
+        assert isinstance(response, str)
+        response = json_numpy.loads(response)
+    if not isinstance(response, dict):
+        raise ValueError(f"Got unexpected server response of type {type(response)}")
+    got = {k: response[k] for k in ("actions", "future_image_predictions", "value_predictions")}
+    got.update({k: response.get(k) for k in ALL_KEYS}, raw=response)
+    return got
+
+
+@pytest.fixture(scope="module")
+def shipped():
+    wam = load_wam(SHIPPED_TINYWAM, device="cpu")
+    with BackgroundServer(create_app(wam, secret=SECRET)) as srv:
+        yield srv, wam
+
+
+@pytest.mark.parametrize("return_all, encoded", [(False, False), (True, False), (False, True), (True, True)])
+def test_an_upstream_client_parses_every_answer(shipped, return_all, encoded):
+    srv, wam = shipped
+    obs = aloha_observation(3)
+    got = upstream_get_action(f"{srv.act_url}?token={requests.utils.quote(SECRET)}", obs, return_all, encoded)
+    actions = np.stack(got["actions"])  # a list of (A,) rows, as upstream sends them
+    direct = wam.predict(Observation(step=0, proprio=obs["proprio"][:10].astype(np.float32),
+                                     images={"front": obs["primary_image"], "side": obs["left_wrist_image"],
+                                             "wrist": obs["right_wrist_image"]}), obs["task_description"])
+    np.testing.assert_array_equal(actions, direct.actions)  # the 14-D proprio was truncated to the model's 10
+    preds = got["future_image_predictions"]
+    for name, cam in (("future_image", "front"), ("future_wrist_image", "side"), ("future_wrist_image2", "wrist")):
+        np.testing.assert_array_equal(preds[name], direct.images[cam])
+    assert got["value_predictions"] == got["raw"]["value_prediction"] == protocol.VALUE_STANDIN
+    notes = got["raw"]["wamplan"]["notes"]
+    assert any("proprio of 14 entries truncated to its first 10" in n for n in notes)
+    assert any("predicts no value" in n for n in notes) and got["raw"]["wamplan"]["value_predicted"] is False
+    if return_all:
+        assert all(got[k] is not None and len(got[k]) == 1 for k in ALL_KEYS)
+        np.testing.assert_array_equal(np.stack(got["all_actions"][0]), actions)
+        np.testing.assert_array_equal(np.stack(got["all_actions_by_depth"][0][0]), actions)
+        assert got["all_value_predictions"] == [protocol.VALUE_STANDIN]
+    else:
+        assert all(got[k] is None for k in ALL_KEYS)
+    # wamplan's own client reads the stand-in as no value
+    views = {"front": obs["primary_image"], "side": obs["left_wrist_image"], "wrist": obs["right_wrist_image"]}
+    ours = Observation(step=0, proprio=np.zeros(10, np.float32), images=views)
+    assert client(srv.act_url, secret=SECRET).predict(ours, "insert").value is None
+
+
+def test_a_short_proprio_is_padded(shipped):
+    srv, _ = shipped
+    obs = dict(aloha_observation(4), proprio=np.ones(7))
+    got = upstream_get_action(f"{srv.act_url}?token={requests.utils.quote(SECRET)}", obs)
+    assert any("proprio of 7 entries padded with zeros to 10" in n for n in got["raw"]["wamplan"]["notes"])
+
+
+def _bad_requests() -> dict[str, bytes]:
+    good = aloha_observation(5, size=16)
+    text = lambda **kw: json_numpy.dumps({**good, **kw}).encode()  # noqa: E731
+    without = {k: v for k, v in good.items() if k != "right_wrist_image"}
+    return {
+        "not JSON": b"{not json",
+        "a list": b"[1, 2]",
+        "a missing image": json_numpy.dumps(without).encode(),
+        "a float image": text(primary_image=np.zeros((16, 16, 3), np.float32) + 0.5),
+        "a flat image": text(primary_image=np.zeros((16, 16), np.uint8)),
+        "NaN proprio": text(proprio=np.full(14, np.nan)),
+        "an empty proprio": text(proprio=np.zeros(0)),
+        "a numeric task": text(task_description=3),
+        "a bad return_all": text(return_all_query_results="yes"),
+        "encoded plus other keys": json.dumps({"encoded": json_numpy.dumps(good), "proprio": [1]}).encode(),
+        "encoded not a string": json.dumps({"encoded": 5}).encode(),
+    }
+
+
+@pytest.mark.parametrize("case", sorted(_bad_requests()))
+def test_a_clients_mistake_is_a_4xx_with_its_reason(shipped, case):
+    srv, _ = shipped
+    r = post(srv.act_url, _bad_requests()[case], **{protocol.SECRET_HEADER: SECRET})
+    assert 400 <= r.status_code < 500, r.text
+    assert r.json()["error"].startswith("bad /act request: ") and "\n" not in r.json()["error"]
+
+
+def test_the_upstream_error_mode_answers_as_upstream_and_logs_what_it_answered(tiny_ckpt, caplog):
+    with BackgroundServer(create_app(load_wam(tiny_ckpt), errors="upstream", secret=SECRET)) as srv:
+        caplog.set_level(logging.WARNING, logger="wamplan.wam.server")
+        for data, headers in ((_bad_requests()["a missing image"], {protocol.SECRET_HEADER: SECRET}),
+                              (body(0), {})):  # a malformed request; a missing secret
+            r = post(srv.act_url, data, **headers)
+            assert r.status_code == 200 and r.json() == "error"
+            with pytest.raises(ValueError, match="unexpected server response"):  # what upstream's client does
+                upstream_get_action(srv.act_url, aloha_observation(0, size=16))
+        said = [r.getMessage() for r in caplog.records]
+        assert any('answered HTTP 200 "error" (upstream error mode): bad /act request' in m for m in said)
+        assert not any("HTTP 4" in m for m in said)  # the log says what was answered
+    with pytest.raises(UserError, match="unknown error mode 'bare'"):
+        create_app(load_wam(tiny_ckpt), errors="bare")
+
+
+class Overshooting(WAM):
+    """A WAM whose chunk leaves [-1, 1] in three entries."""
+
+    name = "test-overshoot"
+
+    def predict(self, obs: Observation, instruction: str) -> WAMOutput:
+        actions = np.zeros((16, 5), np.float32)
+        actions[0, :3] = (1.5, -1.2, 1.01)
+        return WAMOutput(actions=actions, images={c: obs.images[c] for c in self.cameras}, value=0.5)
+
+
+def test_clipped_actions_are_said_once_per_answer(caplog):
+    with BackgroundServer(create_app(Overshooting())) as srv:
+        caplog.set_level(logging.WARNING, logger="wamplan.wam.server")
+        got = upstream_get_action(srv.act_url, aloha_observation(1, size=16))
+    actions = np.stack(got["actions"])
+    assert actions[0, :3].tolist() == [1.0, -1.0, 1.0] and np.abs(actions).max() == 1.0
+    clip_notes = [n for n in got["raw"]["wamplan"]["notes"] if "clipped" in n]
+    assert clip_notes == ["3 of 80 action entries were outside [-1, 1] (max |a| = 1.5) and were clipped"]
+    assert sum("were clipped" in r.getMessage() for r in caplog.records) == 1
+    assert got["value_predictions"] == got["raw"]["value_prediction"] == 0.5
+    assert "value_predicted" not in got["raw"]["wamplan"]
+
+
+def test_serve_prints_the_field_map(tiny_ckpt, capsys, monkeypatch):
+    from wamplan.cli.main import main
+    import wamplan.wam.server as server
+
+    monkeypatch.setattr(server, "serve", lambda *a, **kw: None)  # start-up only
+    assert main(["wam", "serve", "--ckpt", str(tiny_ckpt), "--errors", "upstream"]) == 0
+    out = capsys.readouterr().out
+    assert 'failures answered HTTP 200 "error" (upstream error mode)' in out
+    assert "request fields: primary_image -> front, left_wrist_image -> side, right_wrist_image -> wrist; " \
+           "predictions: front -> future_image, side -> future_wrist_image, wrist -> future_wrist_image2; " \
+           "proprio padded or truncated to 10; 16 x 5 actions" in out

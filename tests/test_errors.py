@@ -250,13 +250,15 @@ def act_server():
     from wamplan.wam.server import BackgroundServer, create_app
 
     class StrictWAM(WAM):
-        """Refuses a proprio of the wrong length: a well-formed request the server answers with 422."""
+        """Refuses an instruction it was not trained on: a well-formed request the server answers with 422 (a
+        proprio of another length is fitted by the server, so it reaches the WAM 10-D)."""
 
         name = "strict"
 
         def predict(self, obs, instruction):
-            if obs.proprio.shape != (10,):
-                raise WAMError(f"expects 10-D proprio, got {obs.proprio.shape}")
+            assert obs.proprio.shape == (10,)
+            if instruction != "t":
+                raise WAMError(f"knows only the instruction 't', got {instruction!r}")
             return WAMOutput(actions=np.zeros((16, 5), np.float32), images={c: obs.images[c] for c in CAMERAS})
 
     with BackgroundServer(create_app(StrictWAM())) as srv:
@@ -278,7 +280,7 @@ def _body(**changes) -> str:
     (_body(primary_image=np.zeros((8, 8), np.uint8)), 400, "has shape (8, 8), expected (h, w, 3)"),
     (_body(primary_image=np.zeros((8, 8, 3), np.float32)), 400, "has dtype float32, expected uint8"),
     (_body(proprio=np.array([np.nan] * 10, np.float32)), 400, "non-finite values"),
-    (_body(proprio=np.zeros(7, np.float32)), 422, "expects 10-D proprio"),
+    (_body(task_description="fold the shirt"), 422, "knows only the instruction 't'"),
 ])
 def test_bad_act_requests_get_a_4xx_and_the_reason(act_server, body, status, reason):
     r = requests.post(act_server.act_url, data=body, headers={"Content-Type": "application/json"}, timeout=10)
@@ -290,12 +292,13 @@ def test_the_client_prints_the_servers_reason(act_server):
     from wamplan.wam.base import WAMServerError
     from wamplan.wam.cosmos_client import CosmosPolicyClient
 
-    client = CosmosPolicyClient(url=act_server.act_url, proprio_dim=7)  # the server's WAM expects 10
+    client = CosmosPolicyClient(url=act_server.act_url, proprio_dim=7)  # fitted back to 10 by the server
     obs = Observation(step=0, proprio=np.zeros(10, np.float32), images={c: np.zeros((8, 8, 3), np.uint8)
                                                                         for c in CAMERAS})
+    assert client.predict(obs, "t").actions.shape == (16, 5)
     with pytest.raises(WAMServerError, match=r"refused the request \(HTTP 422: the WAM 'strict' cannot answer this "
-                                             r"request: expects 10-D proprio, got \(7,\)\)"):
-        client.predict(obs, "t")
+                                             r"request: knows only the instruction 't', got 'fold'\)"):
+        client.predict(obs, "fold")
 
 
 # --------------------------------------------------------------------------------------------- the parser

@@ -20,7 +20,7 @@ FOUNDATION = {"wamplan", "wamplan.errors", "wamplan.config", "wamplan.registry",
               "wamplan.parallel", "wamplan.provenance", "wamplan.checkpoint", "wamplan.train_loop", "wamplan.plot",
               "wamplan.progress"}
 LAYERS = {"envs": 1, "policies": 2, "data": 3, "encoders": 4, "worldmodel": 4, "wam": 4, "planning": 5,
-          "evaluation": 6, "presets": 6, "api": 7, "cli": 8}
+          "evaluation": 6, "presets": 6, "proxy": 6, "api": 7, "cli": 8}
 NAMES = {0: "foundation", 1: "envs", 2: "policies", 3: "data", 4: "encoders/worldmodel/wam", 5: "planning",
          6: "evaluation", 7: "api", 8: "cli"}
 # the package's face re-exports the API lazily (PEP 562 __getattr__), so it counts as the API layer's for its imports

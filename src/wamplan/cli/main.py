@@ -34,6 +34,7 @@ COMMANDS = Registry("command", modules=(
     "wamplan.cli.wam",
     "wamplan.cli.eval",
     "wamplan.cli.plot",
+    "wamplan.cli.proxy",
 ))
 register_command = COMMANDS.register  # decorator on a command module's ``register(subparsers)``
 

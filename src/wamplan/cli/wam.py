@@ -32,17 +32,21 @@ def _serve_options(serve: argparse.ArgumentParser) -> None:
                        help="address to listen on (default: 127.0.0.1, this machine only; 0.0.0.0: every interface)")
     serve.add_argument("--port", type=int, default=8777, help="port to listen on (default: 8777)")
     serve.add_argument("--secret", default=None,
-                       help="shared secret every /act request must carry in the X-WAMplan-Secret header (or "
-                            "Authorization: Bearer); default: $WAMPLAN_ACT_SECRET, none if unset. Prefer the "
-                            "variable: a command line is visible to other users of the machine")
+                       help="shared secret every /act request must carry in the X-WAMplan-Secret header, as "
+                            "Authorization: Bearer, or as ?token=SECRET in the URL (for clients that cannot send "
+                            "headers); default: $WAMPLAN_ACT_SECRET, none if unset. Prefer the variable: a command "
+                            "line is visible to other users of the machine")
     serve.add_argument("--max-request-mb", type=float, default=16.0,
                        help="refuse /act bodies larger than this with HTTP 413 (default: 16 MiB)")
     serve.add_argument("--instruction", default=None,
                        help="instruction used when a request's task_description is empty "
                             "(default: the WAM's own default instruction)")
-    serve.add_argument("--bare-errors", action="store_true",
-                       help="answer a bad /act request as Cosmos Policy's reference server does: HTTP 200 and the "
-                            "JSON string \"error\" (default: a 4xx status and a JSON body saying what is wrong)")
+    serve.add_argument("--errors", choices=["http", "upstream"], default="http",
+                       help="how a failed /act request is answered: http (default, for wamplan's client) a 4xx/5xx "
+                            "status and a JSON body saying what is wrong; upstream (use it with Cosmos Policy's own "
+                            "clients) HTTP 200 and the JSON string \"error\", as its reference server answers, the "
+                            "reason in this server's log")
+    serve.add_argument("--bare-errors", action="store_true", help="the same as --errors upstream")
     serve.add_argument("--device", default="auto", help="torch device for the WAM: auto, cpu, cuda, cuda:1, ... "
                                                         "(default: auto)")
     serve.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"],
@@ -94,13 +98,18 @@ def _serve(args: argparse.Namespace) -> int:
     wam = load_wam(args.ckpt, device=args.device)
     from wamplan.wam.server import serve
 
-    failures = 'failures answered "error" (Cosmos Policy style)' if args.bare_errors else \
+    from wamplan.wam.server import field_map, resolve_maps
+
+    errors = "upstream" if args.bare_errors else args.errors
+    failures = 'failures answered HTTP 200 "error" (upstream error mode)' if errors == "upstream" else \
         "failures answered 4xx/5xx with a reason"
     print(f"serving WAM '{wam.name}' from {args.ckpt} at http://{args.host}:{args.port}/act "
           f"({'shared secret required' if secret else 'no shared secret'}; {failures}; health: /health)", flush=True)
+    print(f"{field_map(*resolve_maps(tuple(wam.cameras)))}; proprio padded or truncated to "
+          f"{wam.task.proprio_dim}; {wam.chunk_length} x {wam.action_dim} actions", flush=True)
     try:
         serve(wam, host=args.host, port=args.port, instruction_default=args.instruction, log_level=args.log_level,
-              secret=secret, max_request_bytes=int(args.max_request_mb * 2**20), bare_errors=args.bare_errors)
+              secret=secret, max_request_bytes=int(args.max_request_mb * 2**20), errors=errors)
     finally:
         wam.close()
     return 0

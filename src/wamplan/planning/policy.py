@@ -153,18 +153,27 @@ class PlannedPolicy(Policy):
         seed_out: WAMOutput = self.wam.predict(obs, self.instruction)
         wam_s = time.perf_counter() - t0
         context = None
-        if t == 0 and self.config.first_chunk == "open-loop":
-            return self._open_loop(t, seed_out.actions, "first-chunk", wam_s)  # the paper's rule, for every backend
+        rule = self.open_loop_rule(t)
+        if rule is not None:
+            return self._open_loop(t, seed_out.actions, rule, wam_s)
         if self.dynamics.needs_history:
             context = self.history.planning_context(t)
-            if context is None:
-                return self._open_loop(t, seed_out.actions, "warm-up", wam_s)  # the history reaches before step 0
         decision, objective = self._search(obs, seed_out, context, wam_s)
         rec = self._record(decision)
         if decision.planned and self.period < self.chunk:
             self._replan = dict(objective=objective, rec=rec, seed=seed_out.actions)
             rec["replans"] = []
         return decision
+
+    def open_loop_rule(self, t: int) -> str | None:
+        """Why the chunk at boundary t runs open loop whatever the WAM proposes: "first-chunk" (the paper's rule,
+        for every backend), "warm-up" (a learned model's history reaches before step 0), or None (it is planned,
+        unless a gate decides otherwise)."""
+        if t == 0 and self.config.first_chunk == "open-loop":
+            return "first-chunk"
+        if self.dynamics.needs_history and not self.history.real(t) and not self.history.rest_state:
+            return "warm-up"
+        return None
 
     def _open_loop(self, t: int, seed: np.ndarray, reason: str, wam_s: float) -> ChunkDecision:
         decision = ChunkDecision(t, seed, seed, reason, timings=ChunkTimings(wam_s=wam_s))

@@ -23,7 +23,9 @@ so that nobody has to spell field names:
 * ``cosmos-robocasa``: a Cosmos Policy fine-tuned on ``wamplan data export --format cosmos-policy`` with its
   RoboCasa dataset class and served with RoboCasa observation names (``primary_image`` = front,
   ``secondary_image`` = side, ``wrist_image`` = wrist; predictions ``future_image`` / ``future_image2`` /
-  ``future_wrist_image``), 16-step chunks of wamplan's 5-D actions, 10-D proprio, 224 px views sent.
+  ``future_wrist_image``), 16-step chunks of wamplan's 5-D actions, 10-D proprio, 224 px views sent. Upstream's
+  ``deploy.py`` serves it with ``--suite robocasa --num_wrist_images 1 --num_third_person_images 2 --chunk_size 16``
+  and a constants entry checked before its platform checks (docs/cosmos-policy.md).
 * ``cosmos-aloha``: a server speaking ALOHA's ``deploy.py`` fields (``primary_image``, ``left_wrist_image``,
   ``right_wrist_image``; ``future_image``, ``future_wrist_image``, ``future_wrist_image2``), 50-step chunks,
   proprio padded to 14-D, 224 px views sent, wamplan's action in columns 0-4.

@@ -8,17 +8,26 @@ It follows NVlabs/cosmos-policy ``cosmos_policy/experiments/robot/aloha/deploy.p
   (float32 (P,)) and ``task_description`` (str); a RoboCasa-style server reads ``primary_image``,
   ``secondary_image`` and ``wrist_image`` instead (the client's profiles pick the set). A body ``{"encoded": "<json_numpy string>"}`` (the
   "double-encoded" form for clients without json_numpy) is accepted too.
+  A request may also carry ``return_all_query_results`` (bool) and fields a server may ignore (upstream's eval
+  client sends ``proprio_history`` / ``images_history``); :func:`decode_request` keeps those in ``extra``.
 * The answer is a dict with ``actions`` (a list of (A,) rows, or an (H, A) array),
   ``future_image_predictions`` (a dict ``future_image`` / ``future_wrist_image`` / ``future_wrist_image2``
   -> uint8 (h, w, 3), or None for a view the model does not predict) and ``value_prediction`` (float).
-  The answer may itself be double-encoded (a JSON string holding the json_numpy text).
+  Upstream's robot client (``run_aloha_eval.py``, ``get_action_from_server``) reads ``value_predictions``
+  (plural), so :func:`encode_response` sends both keys (``VALUE_KEYS``), and the ``all_*`` lists when asked for
+  all query results. An ``{"encoded": ...}`` request is answered double-encoded (a JSON string holding the
+  json_numpy text), as upstream answers it.
 * On any failure the server answers the JSON string ``"error"`` with HTTP 200; there is no health route.
+* wamplan's servers add a ``wamplan`` field (``WAMPLAN_FIELD``) to an answer: a dict saying what they did to the
+  request or the answer (``notes``: one line each), and whatever a planning proxy reports; clients that do not
+  know it ignore it.
 
 wamplan's own server adds what a real deployment needs, outside the protocol: an optional shared secret
-(``SECRET_HEADER``, or ``Authorization: Bearer``; the client reads it from ``SECRET_ENV``), a request size
+(``SECRET_HEADER``, ``Authorization: Bearer``, or the URL query parameter ``SECRET_QUERY`` for clients that
+cannot set headers; the client reads it from ``SECRET_ENV``), a request size
 limit (HTTP 413) and ``GET /health``; those refusals are HTTP 401 / 413 with a one-line ``{"error": ...}``, and
-so are its failures unless started with ``bare_errors`` (400 a malformed request, 422 one the WAM refuses, 500
-a failure of the WAM; see ``wamplan.wam.server``).
+so are its failures (400 a malformed request, 422 one the WAM refuses, 500 a failure of the WAM), unless started
+in the ``upstream`` error mode, which answers every failure as upstream does (see ``wamplan.wam.server``).
 
 Decoders raise :class:`ProtocolError` (malformed message) or :class:`ErrorReply` (the ``"error"`` answer);
 callers turn those into errors for people, naming the server.
@@ -28,7 +37,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import json_numpy
@@ -50,6 +59,16 @@ JSON_HEADERS = {"Content-Type": "application/json"}
 HEALTH_ROUTE = "/health"
 SECRET_HEADER = "X-WAMplan-Secret"
 SECRET_ENV = "WAMPLAN_ACT_SECRET"  # the shared secret, for `wamplan wam serve` and the client alike
+SECRET_QUERY = "token"  # ...?token=SECRET: the secret in the URL, for clients that cannot send a header
+# Upstream's server sends the first, its robot client reads the second: an answer carries both.
+VALUE_KEYS = ("value_prediction", "value_predictions")
+# The value sent for a model without a value head (upstream's best-of-N reads a missing value as 0.0).
+VALUE_STANDIN = 0.0
+WAMPLAN_FIELD = "wamplan"
+RETURN_ALL_FIELD = "return_all_query_results"
+# The request fields every request carries besides its images; anything else is a request's ``extra``.
+_REQUEST_KEYS = ("proprio", "task_description", RETURN_ALL_FIELD)
+_ANSWER_KEYS = ("actions", "future_image_predictions", *VALUE_KEYS, WAMPLAN_FIELD)
 DEFAULT_MAX_REQUEST_BYTES = 16 * 2**20  # three 224-px views in json_numpy take ~0.6 MB
 
 
@@ -66,13 +85,18 @@ class ActRequest:
     images: dict[str, np.ndarray]  # request field -> (H, W, 3) uint8
     proprio: np.ndarray  # (P,) float32
     task_description: str
+    return_all: bool = False  # return_all_query_results: add the all_* lists to the answer
+    encoded: bool = False  # the request came as {"encoded": ...}: answer double-encoded
+    extra: dict[str, Any] = field(default_factory=dict)  # the request's other fields, decoded json_numpy values
 
 
 @dataclass
 class ActResponse:
     actions: np.ndarray  # (H, A) float32, finite
     future_images: dict[str, np.ndarray]  # response field -> (h, w, 3) uint8; views left out are absent
-    value: float | None = None
+    value: float | None = None  # None: the model predicts none (sent as VALUE_STANDIN, said in the wamplan field)
+    extra: dict[str, Any] = field(default_factory=dict)  # the answer's other fields (e.g. upstream's all_* lists)
+    wamplan: dict[str, Any] = field(default_factory=dict)  # the WAMPLAN_FIELD: notes, a proxy's report
 
 
 def _loads(body: bytes | str, what: str) -> Any:
@@ -117,18 +141,32 @@ def _numbers(x: Any, what: str, ndim: int) -> np.ndarray:
     return arr
 
 
+as_image = _image  # (x, what) -> (h, w, 3) uint8 copy, or ProtocolError naming ``what``
+as_numbers = _numbers  # (x, what, ndim) -> finite float32 array, or ProtocolError naming ``what``
+
+
 def encode_request(req: ActRequest) -> str:
-    """The JSON body of ``POST /act`` (the image fields are those of ``req.images``)."""
-    payload = {name: np.ascontiguousarray(img, dtype=np.uint8) for name, img in req.images.items()}
+    """The JSON body of ``POST /act`` (the image fields are those of ``req.images``, then ``req.extra``);
+    ``req.encoded``: the double-encoded form ``{"encoded": "<json_numpy text>"}``."""
+    payload = dict(req.extra)
+    payload.update({name: np.ascontiguousarray(img, dtype=np.uint8) for name, img in req.images.items()})
     payload["proprio"] = np.ascontiguousarray(req.proprio, dtype=np.float32)  # (P,)
     payload["task_description"] = str(req.task_description)
-    return json_numpy.dumps(payload)
+    if req.return_all:
+        payload[RETURN_ALL_FIELD] = True
+    text = json_numpy.dumps(payload)
+    return json.dumps({"encoded": text}) if req.encoded else text
 
 
 def decode_request(body: bytes | str, image_fields: tuple[str, ...] = REQUEST_IMAGE_FIELDS) -> ActRequest:
     """Parse and check a request body (server side) that must carry ``image_fields``."""
     payload = _loads(body, "request body")
-    if isinstance(payload, Mapping) and "encoded" in payload:  # double-encoded form
+    encoded = isinstance(payload, Mapping) and "encoded" in payload
+    if encoded:  # double-encoded form; upstream's server allows no other key beside it
+        if len(payload) != 1:
+            raise ProtocolError(f"an 'encoded' request carries only 'encoded', got also {sorted(set(payload) - {'encoded'})}")
+        if not isinstance(payload["encoded"], str):
+            raise ProtocolError(f"'encoded' is a {type(payload['encoded']).__name__}, expected a json_numpy string")
         payload = _loads(payload["encoded"], "'encoded' request payload")
     if not isinstance(payload, Mapping):
         raise ProtocolError(f"the request body is a JSON {type(payload).__name__}, expected an object")
@@ -140,19 +178,42 @@ def decode_request(body: bytes | str, image_fields: tuple[str, ...] = REQUEST_IM
     task = payload["task_description"]
     if not isinstance(task, str):
         raise ProtocolError(f"request field 'task_description' is a {type(task).__name__}, expected a string")
-    return ActRequest(images=images, proprio=proprio, task_description=task)
+    return_all = payload.get(RETURN_ALL_FIELD, False)
+    if return_all is None:
+        return_all = False
+    if not isinstance(return_all, (bool, np.bool_)) and return_all not in (0, 1):
+        raise ProtocolError(f"request field '{RETURN_ALL_FIELD}' is {return_all!r}, expected true or false")
+    extra = {k: v for k, v in payload.items() if k not in image_fields and k not in _REQUEST_KEYS}
+    return ActRequest(images=images, proprio=proprio, task_description=task, return_all=bool(return_all),
+                      encoded=encoded, extra=extra)
 
 
-def encode_response(resp: ActResponse) -> str:
-    """The JSON answer, shaped like Cosmos Policy's: actions as a list of (A,) rows."""
+def encode_response(resp: ActResponse, *, all_query_results: bool = False, double_encode: bool = False) -> str:
+    """The JSON answer, shaped like Cosmos Policy's (actions as a list of (A,) rows), that upstream's robot
+    client parses: the value under both ``VALUE_KEYS`` (``VALUE_STANDIN`` where ``resp.value`` is None, said in
+    the ``wamplan`` field), with ``all_query_results`` the ``all_*`` lists of one query at search depth 1, and
+    with ``double_encode`` as a JSON string holding the json_numpy text (upstream's answer to an ``encoded``
+    request). ``resp.extra`` fields go along; the answer's own fields take precedence over them."""
     actions = np.ascontiguousarray(resp.actions, dtype=np.float32)  # (H, A)
+    rows = [row for row in actions]  # H x (A,)
     future = {name: None for name in RESPONSE_IMAGE_FIELDS}
     future.update({name: np.ascontiguousarray(img, dtype=np.uint8) for name, img in resp.future_images.items()})
-    return json_numpy.dumps({
-        "actions": [row for row in actions],  # H x (A,)
-        "future_image_predictions": future,
-        "value_prediction": None if resp.value is None else float(resp.value),
-    })
+    value = VALUE_STANDIN if resp.value is None else float(resp.value)
+    wamplan = dict(resp.wamplan)
+    if resp.value is None:
+        wamplan["value_predicted"] = False
+        wamplan["notes"] = [*wamplan.get("notes", []), f"the model predicts no value: {VALUE_KEYS[0]} and "
+                                                       f"{VALUE_KEYS[1]} carry {VALUE_STANDIN} in its place"]
+    answer = dict(resp.extra)
+    answer.update({"actions": rows, "future_image_predictions": future, VALUE_KEYS[0]: value, VALUE_KEYS[1]: value})
+    if all_query_results:
+        answer.update(all_actions=[rows], all_future_image_predictions=[future], all_value_predictions=[value],
+                      all_actions_by_depth=[[rows]], all_future_image_predictions_by_depth=[[future]],
+                      all_value_predictions_by_depth=[[value]])
+    if wamplan:
+        answer[WAMPLAN_FIELD] = wamplan
+    text = json_numpy.dumps(answer)
+    return json.dumps(text) if double_encode else text
 
 
 def error_reply() -> str:
@@ -180,10 +241,14 @@ def decode_response(body: bytes | str) -> ActResponse:
         raise ProtocolError("the answer has no 'future_image_predictions' dict "
                             f"(got {type(preds).__name__}); the server must predict future images")
     future = {str(k): _image(v, f"future image '{k}'") for k, v in preds.items() if v is not None}
-    value = obj.get("value_prediction")
-    if value is not None:
-        value = float(_numbers([value], "'value_prediction'", ndim=1).reshape(-1)[0])
-    return ActResponse(actions=actions, future_images=future, value=value)
+    wamplan = obj.get(WAMPLAN_FIELD)
+    wamplan = dict(wamplan) if isinstance(wamplan, Mapping) else {}
+    key = next((k for k in VALUE_KEYS if obj.get(k) is not None), None)
+    value = None
+    if key is not None and wamplan.get("value_predicted", True):  # a stand-in value is no prediction
+        value = float(_numbers([obj[key]], f"'{key}'", ndim=1).reshape(-1)[0])
+    extra = {k: v for k, v in obj.items() if k not in _ANSWER_KEYS}
+    return ActResponse(actions=actions, future_images=future, value=value, extra=extra, wamplan=wamplan)
 
 
 # request field -> camera, and camera -> response field, for cube-insertion's cameras: the defaults of both ends.

@@ -1,19 +1,35 @@
 """Serve any WAM over the Cosmos Policy ``/act`` protocol (``wamplan wam serve``).
 
 The server speaks Cosmos Policy's ``deploy.py`` protocol: ``POST /act`` with json_numpy bodies, so
-:class:`~wamplan.wam.cosmos_client.CosmosPolicyClient` talks to either one unchanged. Where it fails it says why:
-a malformed request (bad JSON, a missing field, an image of the wrong shape or dtype, non-finite proprio) is
-answered HTTP 400, a request the WAM refuses (e.g. a proprio of the wrong length) HTTP 422, and a failure of the
-WAM itself HTTP 500, each with a one-line ``{"error": "..."}`` (the wamplan client prints it). Cosmos Policy's
-own server answers every failure with HTTP 200 and the bare JSON string ``"error"``; a client written for that
-(one that checks for ``"error"`` and reads any other answer as a prediction) gets exactly that with
-``bare_errors=True`` (``wamplan wam serve --bare-errors``). For real use it adds:
+:class:`~wamplan.wam.cosmos_client.CosmosPolicyClient` and upstream's own robot client (``run_aloha_eval.py``,
+``get_action_from_server``) both parse every answer:
+
+* a proprio of another length than the model's (ALOHA's 14-D qpos) is padded with zeros or truncated to the
+  model's size, and the answer's ``wamplan`` field says so;
+* the value goes out as ``value_prediction`` and ``value_predictions`` (``VALUE_STANDIN`` where the model has
+  none, said in the ``wamplan`` field); ``return_all_query_results`` adds upstream's ``all_*`` lists;
+* an ``{"encoded": ...}`` request is answered double-encoded, as upstream answers it;
+* actions the WAM returns outside [-1, 1] are clipped, and the answer's ``wamplan`` field and the server's log
+  say how many entries changed (once per answer).
+
+Errors come in two modes (``ERROR_MODES``):
+
+* ``"http"`` (default, for wamplan's client): a malformed request (bad JSON, a missing field, an image of the
+  wrong shape or dtype, non-finite proprio) is HTTP 400, a request the WAM refuses HTTP 422, a failure of the
+  WAM itself HTTP 500, each with a one-line ``{"error": "..."}`` (the wamplan client prints it);
+* ``"upstream"`` (the one to use with upstream clients): every failure is answered as Cosmos Policy's server
+  answers it, HTTP 200 with the JSON string ``"error"``; the server's log has the reason and says what it answered.
+
+For real use it adds:
 
 * it listens on 127.0.0.1 unless told otherwise;
-* an optional shared secret: with one, ``/act`` needs it in the ``X-WAMplan-Secret`` header (or
-  ``Authorization: Bearer <secret>``) and answers HTTP 401 with a one-line JSON error without it;
+* an optional shared secret: with one, ``/act`` needs it in the ``X-WAMplan-Secret`` header, as
+  ``Authorization: Bearer <secret>``, or in the URL as ``?token=<secret>`` (for a client that cannot send
+  headers: put it in the client's server URL); without it, HTTP 401 with a one-line JSON error (``"error"`` in
+  the upstream mode);
 * a request size limit: a larger body is refused with HTTP 413 before it is read;
-* ``GET /health`` (no secret needed): ``{"ok": true, "wam": ..., "task": ..., "chunk_length": ..., "cameras": [...]}``.
+* ``GET /health`` (no secret needed): ``{"ok": true, "wam": ..., "task": ..., "chunk_length": ..., "action_dim": ...,
+  "cameras": [...], "image_size": ...}`` (``image_size`` None where the WAM does not say).
 
     app = create_app(wam, secret="s3cret")     # a FastAPI app
     serve(wam, host="127.0.0.1", port=8777)    # blocking, uvicorn
@@ -30,6 +46,7 @@ import socket
 import threading
 import time
 
+import numpy as np
 import uvicorn
 from fastapi import FastAPI, Request
 from fastapi.concurrency import run_in_threadpool
@@ -43,53 +60,107 @@ from wamplan.wam.base import WAM, WAMOutputError
 log = logging.getLogger(__name__)
 
 DEFAULT_HOST = "127.0.0.1"  # loopback: other machines reach the server only when --host says so
+ERROR_MODES = ("http", "upstream")  # how failures are answered (module docstring)
 
-class _Refused(Exception):
+
+class Refused(Exception):
+    """A request answered with HTTP ``status`` (in the "http" error mode) and the one-line ``message``."""
+
     def __init__(self, status: int, message: str):
         super().__init__(message)
         self.status, self.message = status, message
 
 
-def _presented_secret(request: Request) -> str | None:
+def presented_secret(request: Request) -> str | None:
+    """The secret a request carries: the header, a bearer token, or the ``?token=`` query parameter."""
     given = request.headers.get(protocol.SECRET_HEADER)
     if given is None:
         scheme, _, token = request.headers.get("authorization", "").partition(" ")
         given = token.strip() if scheme.lower() == "bearer" else None
+    if given is None:
+        given = request.query_params.get(protocol.SECRET_QUERY)
     return given
 
 
-async def _read_body(request: Request, limit: int) -> bytes:
-    """The request body, or _Refused(413) as soon as it is known to pass ``limit`` bytes."""
+def check_secret(request: Request, secret: str | None) -> None:
+    """Raise Refused(401) unless ``secret`` is None or the request carries it."""
+    if secret is None:
+        return
+    given = presented_secret(request)
+    if given is None or not hmac.compare_digest(given.encode(), secret.encode()):
+        raise Refused(401, f"missing or wrong shared secret: send it in the {protocol.SECRET_HEADER} header or as "
+                           f"?{protocol.SECRET_QUERY}=SECRET in the URL (the wamplan client reads "
+                           f"${protocol.SECRET_ENV})")
+
+
+async def read_body(request: Request, limit: int) -> bytes:
+    """The request body, or Refused(413) as soon as it is known to pass ``limit`` bytes."""
     too_big = f"request body over the server's limit of {limit} bytes; send smaller images (the client's " \
               f"send_image_size; wamplan's --wam-profile presets send 224 px) or restart the server with a larger " \
               f"--max-request-mb"
     declared = request.headers.get("content-length")
     if declared is not None and declared.isdigit() and int(declared) > limit:
-        raise _Refused(413, too_big.replace("request body", f"request body of {int(declared)} bytes", 1))
+        raise Refused(413, too_big.replace("request body", f"request body of {int(declared)} bytes", 1))
     body = bytearray()
     async for chunk in request.stream():  # also bounds bodies sent without a Content-Length
         body += chunk
         if len(body) > limit:
-            raise _Refused(413, too_big)
+            raise Refused(413, too_big)
     return bytes(body)
 
 
-def create_app(wam: WAM, instruction_default: str | None = None, request_map: dict[str, str] | None = None,
-               response_map: dict[str, str] | None = None, secret: str | None = None,
-               max_request_bytes: int = protocol.DEFAULT_MAX_REQUEST_BYTES, bare_errors: bool = False) -> FastAPI:
-    """A FastAPI app answering ``POST /act`` with ``wam``'s predictions, and ``GET /health``.
+def check_error_mode(errors: str) -> str:
+    if errors not in ERROR_MODES:
+        raise UserError(f"unknown error mode '{errors}'; choose one of {list(ERROR_MODES)} (upstream: for Cosmos "
+                        f"Policy's own clients)")
+    return errors
 
-    ``instruction_default`` (default: the WAM's ``default_instruction``) is used when a request's
-    ``task_description`` is empty; ``request_map`` / ``response_map`` default to :func:`protocol.default_maps`
-    of the WAM's cameras. ``secret`` (None or empty: none) must come with every ``/act`` request;
-    bodies over ``max_request_bytes`` are refused (413). Queries are serialised (one at a time), since a WAM
-    may keep state and hold a single model. A request that fails is answered 400 / 422 / 500 with
-    ``{"error": reason}`` (module docstring), or, with ``bare_errors``, as Cosmos Policy does: HTTP 200, ``"error"``.
-    """
-    if max_request_bytes < 1:
-        raise UserError(f"the request size limit must be >= 1 byte, got {max_request_bytes}")
-    secret = secret or None
-    default_request, default_response = protocol.default_maps(tuple(wam.cameras))
+
+def error_answer(errors: str, status: int, why: str, route: str = protocol.ROUTE) -> Response:
+    """The answer to a failed request in error mode ``errors``, logged as what is answered."""
+    if errors == "upstream":  # Cosmos Policy's answer to any failure
+        log.warning('%s failed, answered HTTP 200 "error" (upstream error mode): %s', route, why)
+        return Response(content=protocol.error_reply(), media_type="application/json")
+    if status < 500:
+        log.warning("%s refused (HTTP %d): %s", route, status, why)
+    else:
+        log.warning("%s failed (HTTP %d): %s", route, status, why)
+    return JSONResponse({"error": why}, status_code=status)
+
+
+def fit_proprio(proprio: np.ndarray, size: int) -> tuple[np.ndarray, str | None]:
+    """(P,) -> (size,) float32: zero-padded or truncated to the model's size, with the note that says so
+    (None when it already fits)."""
+    n = proprio.shape[0]
+    if n == size:
+        return proprio, None
+    out = np.zeros(size, dtype=np.float32)  # (size,)
+    out[:min(n, size)] = proprio[:min(n, size)]
+    how = f"truncated to its first {size}" if n > size else f"padded with zeros to {size}"
+    return out, f"proprio of {n} entries {how}, the model's size"
+
+
+def clip_actions(actions: np.ndarray) -> tuple[np.ndarray, str | None]:
+    """(H, A) -> (H, A) clipped to [-1, 1], with the note saying how many entries changed (None if none did)."""
+    clipped = np.clip(actions, -1.0, 1.0).astype(np.float32)  # (H, A)
+    changed = int(np.count_nonzero(clipped != actions))
+    if not changed:
+        return clipped, None
+    return clipped, (f"{changed} of {actions.size} action entries were outside [-1, 1] (max |a| = "
+                     f"{float(np.abs(actions).max()):.4g}) and were clipped")
+
+
+def field_map(request_map: dict[str, str], response_map: dict[str, str]) -> str:
+    """One line: which request field feeds each camera and which answer field carries its prediction."""
+    req = ", ".join(f"{name} -> {cam}" for name, cam in request_map.items())
+    resp = ", ".join(f"{cam} -> {name}" for cam, name in response_map.items())
+    return f"request fields: {req}; predictions: {resp}"
+
+
+def resolve_maps(cameras: tuple[str, ...], request_map: dict[str, str] | None = None,
+                 response_map: dict[str, str] | None = None) -> tuple[dict[str, str], dict[str, str]]:
+    """The maps a server for ``cameras`` uses (``protocol.default_maps`` where none are given), checked."""
+    default_request, default_response = protocol.default_maps(tuple(cameras))
     request_map = dict(request_map or default_request)
     response_map = dict(response_map or default_response)
     bad = sorted(set(request_map) - {f for fs in protocol.REQUEST_IMAGE_FIELD_SETS for f in fs})
@@ -97,65 +168,90 @@ def create_app(wam: WAM, instruction_default: str | None = None, request_map: di
     if bad:
         raise UserError(f"unknown /act field(s) {bad}; request fields are {list(protocol.REQUEST_IMAGE_FIELD_SETS)}, "
                         f"response fields {list(protocol.KNOWN_RESPONSE_IMAGE_FIELDS)}")
-    unfed = [c for c in wam.cameras if c not in request_map.values()]
+    unfed = [c for c in cameras if c not in request_map.values()]
     if unfed:
-        raise UserError(f"WAM '{wam.name}' reads camera(s) {unfed} that no request field carries "
-                        f"(request map: {request_map}); map them to a request field")
+        raise UserError(f"camera(s) {unfed} are carried by no request field (request map: {request_map}); map them "
+                        f"to a request field")
+    return request_map, response_map
+
+
+def create_app(wam: WAM, instruction_default: str | None = None, request_map: dict[str, str] | None = None,
+               response_map: dict[str, str] | None = None, secret: str | None = None,
+               max_request_bytes: int = protocol.DEFAULT_MAX_REQUEST_BYTES, bare_errors: bool = False,
+               errors: str = "http") -> FastAPI:
+    """A FastAPI app answering ``POST /act`` with ``wam``'s predictions, and ``GET /health``.
+
+    ``instruction_default`` (default: the WAM's ``default_instruction``) is used when a request's
+    ``task_description`` is empty; ``request_map`` / ``response_map`` default to :func:`protocol.default_maps`
+    of the WAM's cameras. ``secret`` (None or empty: none) must come with every ``/act`` request;
+    bodies over ``max_request_bytes`` are refused (413). Queries are serialised (one at a time), since a WAM
+    may keep state and hold a single model. ``errors``: the error mode (``ERROR_MODES``, module docstring);
+    ``bare_errors`` is the same as ``errors="upstream"``.
+    """
+    if max_request_bytes < 1:
+        raise UserError(f"the request size limit must be >= 1 byte, got {max_request_bytes}")
+    errors = "upstream" if bare_errors else check_error_mode(errors)
+    secret = secret or None
+    try:
+        request_map, response_map = resolve_maps(tuple(wam.cameras), request_map, response_map)
+    except UserError as e:
+        raise UserError(f"WAM '{wam.name}': {e}") from e
     if instruction_default is None:
         instruction_default = wam.default_instruction
+    proprio_dim = int(wam.task.proprio_dim)
+    image_size = getattr(getattr(wam, "config", None), "image_size", None)  # its predicted views' side, if it says
     lock = threading.Lock()
     app = FastAPI(title=f"wamplan WAM server ({wam.name})")
+    app.state.field_map = field_map(request_map, response_map)
 
     def handle(body: bytes) -> str:
         req = protocol.decode_request(body, tuple(request_map))
+        notes = []
+        proprio, note = fit_proprio(req.proprio, proprio_dim)  # (P,)
+        notes += [note] if note else []
         images = {cam: req.images[name] for name, cam in request_map.items()}  # camera -> (H, W, 3)
         # The protocol carries no control step; a WAM must not depend on obs.step.
-        obs = Observation(step=0, proprio=req.proprio, images=images)
+        obs = Observation(step=0, proprio=proprio, images=images)
         instruction = req.task_description or instruction_default
         with lock:
-            out = wam.validate(wam.predict(obs, instruction))
+            out = wam.predict(obs, instruction)
+        if isinstance(getattr(out, "actions", None), np.ndarray) and out.actions.dtype == np.float32 \
+                and np.isfinite(out.actions).all():
+            out.actions, note = clip_actions(out.actions)  # (H, A)
+            if note:
+                log.warning("/act: %s", note)
+                notes.append(note)
+        out = wam.validate(out)
         future = {name: out.images[cam] for cam, name in response_map.items() if cam in out.images}
-        return protocol.encode_response(protocol.ActResponse(actions=out.actions, future_images=future,
-                                                             value=out.value))
+        resp = protocol.ActResponse(actions=out.actions, future_images=future, value=out.value,
+                                    wamplan={"notes": notes} if notes else {})
+        return protocol.encode_response(resp, all_query_results=req.return_all, double_encode=req.encoded)
 
     @app.get(protocol.HEALTH_ROUTE)
     async def health() -> dict:
         return {"ok": True, "wam": wam.name, "task": wam.task.name, "chunk_length": int(wam.chunk_length),
-                "cameras": list(wam.cameras)}
+                "action_dim": int(wam.action_dim), "cameras": list(wam.cameras), "image_size": image_size}
 
     @app.post(protocol.ROUTE)
     async def act(request: Request) -> Response:
         try:
-            if secret is not None:
-                given = _presented_secret(request)
-                if given is None or not hmac.compare_digest(given.encode(), secret.encode()):
-                    raise _Refused(401, f"missing or wrong shared secret: send it in the {protocol.SECRET_HEADER} "
-                                        f"header (the wamplan client reads ${protocol.SECRET_ENV})")
-            body = await _read_body(request, max_request_bytes)
-        except _Refused as r:
-            log.warning("/act refused (HTTP %d): %s", r.status, r.message)
-            return JSONResponse({"error": r.message}, status_code=r.status)
+            check_secret(request, secret)
+            body = await read_body(request, max_request_bytes)
+        except Refused as r:
+            return error_answer(errors, r.status, r.message)
         try:
             content = await run_in_threadpool(handle, body)
         except protocol.ProtocolError as e:  # the request is malformed: the caller's to fix
-            return failed(400, f"bad /act request: {e}")
+            return error_answer(errors, 400, f"bad /act request: {e}")
         except WAMOutputError as e:  # the WAM broke its own contract
-            log.warning("/act failed: %s", e)
-            return failed(500, str(e))
-        except UserError as e:  # a well-formed request the WAM refuses (e.g. its proprio length)
-            return failed(422, f"the WAM '{wam.name}' cannot answer this request: {e}")
+            return error_answer(errors, 500, str(e))
+        except UserError as e:  # a well-formed request the WAM refuses
+            return error_answer(errors, 422, f"the WAM '{wam.name}' cannot answer this request: {e}")
         except Exception as e:  # the WAM itself failed; the traceback is for the server's log
             log.exception("/act failed")
-            return failed(500, f"the WAM '{wam.name}' failed on this request ({reason(e)}); the server's log has "
-                               f"the traceback")
+            return error_answer(errors, 500, f"the WAM '{wam.name}' failed on this request ({reason(e)}); the "
+                                             f"server's log has the traceback")
         return Response(content=content, media_type="application/json")
-
-    def failed(status: int, reason: str) -> Response:
-        if status < 500:
-            log.warning("/act refused (HTTP %d): %s", status, reason)
-        if bare_errors:  # Cosmos Policy's answer to any failure
-            return Response(content=protocol.error_reply(), media_type="application/json")
-        return JSONResponse({"error": reason}, status_code=status)
 
     return app
 
@@ -185,12 +281,18 @@ def is_loopback(host: str) -> bool:
 
 def serve(wam: WAM, host: str = DEFAULT_HOST, port: int = protocol.DEFAULT_PORT,
           instruction_default: str | None = None, log_level: str = "info", secret: str | None = None,
-          max_request_bytes: int = protocol.DEFAULT_MAX_REQUEST_BYTES, bare_errors: bool = False) -> None:
+          max_request_bytes: int = protocol.DEFAULT_MAX_REQUEST_BYTES, bare_errors: bool = False,
+          errors: str = "http") -> None:
     """Serve ``wam`` until interrupted (blocking)."""
     app = create_app(wam, instruction_default, secret=secret, max_request_bytes=max_request_bytes,
-                     bare_errors=bare_errors)
+                     bare_errors=bare_errors, errors=errors)
+    run_app(app, host, port, secret, log_level)
+
+
+def run_app(app: FastAPI, host: str, port: int, secret: str | None, log_level: str = "info") -> None:
+    """Serve ``app`` on ``host:port`` until interrupted (blocking); warn when it is open to other machines."""
     if not is_loopback(host) and not secret:
-        log.warning("listening on %s without a shared secret: anyone who reaches this port can query the WAM; "
+        log.warning("listening on %s without a shared secret: anyone who reaches this port can query it; "
                     "set $%s (or --secret)", host, protocol.SECRET_ENV)
     sock = bind_socket(host, port)
     config = uvicorn.Config(app, log_level=log_level)

@@ -1,0 +1,66 @@
+"""``wamplan serve``: the planning proxy between a robot and a WAM server (``wamplan.proxy``)."""
+
+from __future__ import annotations
+
+import argparse
+
+from wamplan.cli.main import add_command, register_command
+
+
+@register_command("serve")
+def register(sub: argparse._SubParsersAction) -> None:
+    add_command(sub, "serve", _options,
+                help="a planning proxy: an /act endpoint that plans each chunk of an upstream WAM in a world model",
+                description="Serve /act (and /s/ROBOT/act per robot): each request goes to --upstream, its chunk is "
+                            "planned in --world-model toward the upstream's predicted views, and the answer keeps "
+                            "the upstream's format (docs/deploy.md).")
+
+
+def _options(p: argparse.ArgumentParser) -> None:
+    from wamplan.config import add_arguments
+    from wamplan.proxy.config import ProxyConfig
+
+    add_arguments(p, ProxyConfig)
+    p.add_argument("--host", default="127.0.0.1",
+                   help="address to listen on (default: 127.0.0.1, this machine only; 0.0.0.0: every interface)")
+    p.add_argument("--port", type=int, default=8778, help="port to listen on (default: 8778)")
+    p.add_argument("--secret", default=None,
+                   help="shared secret every request must carry (X-WAMplan-Secret header, Authorization: Bearer, or "
+                        "?token=SECRET in the URL); default: $WAMPLAN_ACT_SECRET, none if unset. The upstream's own "
+                        "secret, if any, is read from $WAMPLAN_UPSTREAM_SECRET")
+    p.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"],
+                   help="uvicorn log level (default: info)")
+    p.set_defaults(func=_serve)
+
+
+def _serve(args: argparse.Namespace) -> int:
+    import dataclasses
+    import os
+
+    from wamplan.errors import UserError
+    from wamplan.proxy.config import ProxyConfig
+    from wamplan.wam import protocol
+
+    if not 0 < args.port < 65536:
+        raise UserError(f"--port must be in 1..65535, got {args.port}")
+    given = {f.name: getattr(args, f.name) for f in dataclasses.fields(ProxyConfig) if getattr(args, f.name) is not None}
+    cfg = ProxyConfig(**given)
+    secret = args.secret if args.secret is not None else os.environ.get(protocol.SECRET_ENV) or None
+    from wamplan.device import resolve_device
+    from wamplan.proxy.app import create_proxy_app
+    from wamplan.proxy.build import build_proxy
+    from wamplan.wam.server import run_app
+
+    resolve_device(cfg.device)
+    proxy = build_proxy(cfg)
+    errors = 'HTTP 200 "error" (upstream error mode)' if cfg.errors == "upstream" else "4xx/5xx with a reason"
+    budget = f"{cfg.budget_ms:g} ms planning budget" if cfg.budget_ms else "no planning budget"
+    print(f"planning proxy for {proxy.upstream.where} with world model {cfg.world_model} at "
+          f"http://{args.host}:{args.port}/act and /s/ROBOT/act ({'shared secret required' if secret else 'no shared secret'}; "
+          f"failures answered {errors}; {budget})", flush=True)
+    print(proxy.describe(), flush=True)
+    try:
+        run_app(create_proxy_app(proxy, secret), args.host, args.port, secret, args.log_level)
+    finally:
+        proxy.close()
+    return 0

@@ -1,0 +1,325 @@
+"""The planning proxy: ``POST /act`` (and ``/s/<robot>/act``) forwards each request to the upstream WAM, plans
+its chunk in a world model toward the upstream's predicted views (``PlannedPolicy.plan_chunk``, as condition 7
+plans), and answers in the upstream's own format: the planned chunk in ``actions`` (the task's columns of the
+upstream's actions replaced), the upstream's other fields passed through, and a ``wamplan`` field (session,
+episode step, whether the chunk was planned or why it ran open loop, costs, timings, notes).
+
+What a request may add for the proxy (all optional; none is forwarded to the upstream):
+
+* ``session_id`` (RoboArena-style): with the URL's robot, names the session; ``reset: true`` starts a new
+  episode; ``seed`` (int, read when an episode starts): the planner's episode seed;
+* ``executed_actions`` ((H, A), LingBot-VA-style): what the robot ran of the chunk answered last (default: that
+  chunk, whole); ``chunk_frames``: the frames the robot saw during that chunk, ``{"<offset>": {<image fields>,
+  "proprio": (P,)}}`` with offsets 1..H-1 from the chunk's start. A learned world model needs a frame every Δ
+  steps (Δ = its frameskip; 4 for the shipped one): without those frames a chunk is answered open loop with the
+  reason ``no-history``.
+
+Upstream's eval client's ``proprio_history`` (N proprio vectors) / ``images_history`` (N left-wrist, N right-wrist,
+then N primary images, each oldest first; ALOHA's fields) are forwarded to the upstream untouched; their frames,
+``history_spacing`` steps apart and ending one spacing before the boundary, also join the world model's history
+where they fall on its frames (with the shipped Δ=4 model and upstream's spacing of 12 they never do).
+A chunk runs the upstream's own chunk (open loop, the ``wamplan`` field says why) on the first chunk of an
+episode, on a history that reaches before the episode, without the frames above (``no-history``), when planning
+takes longer than ``budget_ms`` (``over-budget``; the plan finishes in the background before the session's
+next request), when the planner's gates say so, or when planning fails (``planning-failed``, logged).
+Failures of the request or the upstream are answered in the error mode (``wamplan.wam.server.ERROR_MODES``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import TimeoutError as FutureTimeout
+from typing import Any
+
+import numpy as np
+from fastapi import FastAPI, Request
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import Response
+
+from wamplan.envs.spec import Observation, TaskSpec
+from wamplan.errors import UserError, reason
+from wamplan.proxy.config import ProxyConfig
+from wamplan.proxy.sessions import Session, Sessions
+from wamplan.proxy.upstream import AnsweredWAM, Upstream, UpstreamError, to_output
+from wamplan.wam import protocol
+from wamplan.wam.server import Refused, check_secret, error_answer, field_map, fit_proprio, read_body
+
+log = logging.getLogger(__name__)
+
+SESSION_ROUTE = "/s/{robot}/act"
+RESET_ROUTE = "/s/{robot}/reset"
+DEFAULT_ROBOT = "default"  # the session of plain /act
+PROXY_FIELDS = ("session_id", "reset", "seed", "executed_actions", "chunk_frames")  # read here, never forwarded
+
+
+class BadRequest(protocol.ProtocolError):
+    """A proxy field of the request is malformed (answered 400)."""
+
+
+def _finite(x: float | None) -> float | None:
+    return None if x is None or not math.isfinite(x) else float(x)
+
+
+class Proxy:
+    """The proxy's state: the upstream, the shared world model, the sessions. ``handle`` answers one request."""
+
+    def __init__(self, cfg: ProxyConfig, upstream: Upstream, dynamics: Any, encoder: Any, task: TaskSpec,
+                 make_policy: Any, request_map: dict[str, str], response_map: dict[str, str],
+                 columns: tuple[int, ...], chunk_length: int):
+        self.cfg, self.upstream, self.dynamics, self.encoder, self.task = cfg, upstream, dynamics, encoder, task
+        self.request_map, self.response_map, self.columns = request_map, response_map, columns
+        self.chunk = chunk_length
+        self.cameras = tuple(response_map)
+        self.frameskip = getattr(dynamics, "frameskip", chunk_length)
+        self.model_lock = threading.Lock()  # the world model and encoder are shared: one user at a time
+        self.planner_pool = ThreadPoolExecutor(max_workers=4, thread_name_prefix="wamplan-plan")
+        self._make_policy = make_policy
+        self.sessions = Sessions(self._session, cfg.idle_s, cfg.max_sessions)
+
+    def _session(self, key: str) -> Session:
+        wam = AnsweredWAM(self.task, self.chunk, self.cameras)
+        return Session(key, self._make_policy(wam), wam)
+
+    def describe(self) -> str:
+        return (f"{field_map(self.request_map, self.response_map)}; chunks of {self.chunk}, task {self.task.name} "
+                f"action columns {list(self.columns)}; world model frameskip {self.frameskip}")
+
+    def close(self) -> None:
+        self.planner_pool.shutdown(wait=False, cancel_futures=True)
+        self.upstream.close()
+
+    def reset(self, robot: str) -> int:
+        """Forget the sessions of ``robot`` (with any session_id) -> how many there were."""
+        keys = [k for k in self.sessions.keys() if k == robot or k.startswith(robot + "/")]
+        return sum(self.sessions.drop(k) for k in keys)
+
+    # ------------------------------------------------------------------ one request
+    def handle(self, body: bytes, robot: str = DEFAULT_ROBOT) -> str:
+        t_in = time.perf_counter()
+        req = protocol.decode_request(body, tuple(self.request_map))
+        ours = {k: req.extra.pop(k) for k in PROXY_FIELDS if k in req.extra}
+        sid = ours.get("session_id")
+        if sid is not None and not isinstance(sid, (str, int)):
+            raise BadRequest(f"session_id is a {type(sid).__name__}, expected a string")
+        key = robot if sid is None else f"{robot}/{sid}"
+        session, why = self.sessions.get(key)
+        with session.lock:
+            if session.pending is not None:  # a plan that ran past its budget finishes first
+                try:
+                    session.pending.result()
+                except Exception:  # it was answered open loop already; its failure is only logged
+                    log.exception("a plan past its budget failed (session %s)", key)
+                session.pending = None
+            if ours.get("reset"):
+                why = "reset"
+            seed = ours.get("seed")
+            if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer))):
+                raise BadRequest(f"seed is {seed!r}, expected an integer")
+            notes: list[str] = []
+            if why in ("idle", "reset") or (why == "first-request" and seed is not None):
+                session.new_episode(int(seed or 0))
+            elif session.chunks:
+                self._catch_up(session, ours, notes)
+            if session.chunks:
+                self._upstream_history(session, req)
+            return self._answer(session, req, why, notes, t_in)
+
+    def _catch_up(self, session: Session, ours: dict[str, Any], notes: list[str]) -> None:
+        """Record what the robot ran of the chunk answered last, and the frames it saw during it."""
+        H, prev = self.chunk, session.step - self.chunk
+        acts = ours.get("executed_actions")
+        if acts is None:
+            acts = session.answered  # (H, A)
+        else:
+            acts = np.asarray(acts, dtype=np.float32)
+            if acts.ndim != 2 or acts.shape[0] != H or not np.isfinite(acts).all():
+                raise BadRequest(f"executed_actions has shape {acts.shape} or non-finite values; send the {H} "
+                                 f"actions the robot ran of the last chunk (the proxy plans whole chunks)")
+            if acts.shape[1] != len(self.columns):
+                if acts.shape[1] <= max(self.columns):
+                    raise BadRequest(f"executed_actions has {acts.shape[1]} columns; send the task's "
+                                     f"{len(self.columns)} or the upstream's")
+                acts = acts[:, list(self.columns)]  # (H, A)
+        history = session.policy.history
+        if len(history.executed) == prev:  # not yet recorded (a request retried after a failure was)
+            for a in acts:
+                history.record_action(a)
+        frames = ours.get("chunk_frames") or {}
+        if not isinstance(frames, dict):
+            raise BadRequest("chunk_frames must map step offsets ('1'..) to frames {<image fields>, 'proprio'}")
+        for off in sorted(frames, key=lambda k: int(k) if str(k).isdigit() else -1):
+            if not str(off).isdigit() or not 0 < int(off) < H:
+                raise BadRequest(f"chunk_frames offset {off!r} is not in 1..{H - 1}")
+            obs = self._observation(frames[off], prev + int(off), f"chunk_frames[{off}]")
+            with self.model_lock:
+                history.observe(obs, H)
+
+    def _upstream_history(self, session: Session, req: protocol.ActRequest) -> None:
+        """The frames of upstream's ``proprio_history`` / ``images_history`` that the world model's history keeps."""
+        q, views = req.extra.get("proprio_history"), req.extra.get("images_history")
+        fields = protocol.REQUEST_IMAGE_FIELDS  # upstream's eval client orders them left, right wrist, primary
+        if q is None or views is None or set(self.request_map) != set(fields):
+            return
+        n = len(q)
+        if not isinstance(views, list) or len(views) != 3 * n:
+            raise BadRequest(f"images_history holds {len(views) if isinstance(views, list) else views!r} images "
+                             f"for {n} proprio_history entries; upstream's client sends 3 per entry")
+        order = ("left_wrist_image", "right_wrist_image", "primary_image")
+        history, t = session.policy.history, session.step
+        for i in range(n):
+            step = t - (n - i) * self.cfg.history_spacing
+            if step < 0 or step in history.frames or not history.wants(step, self.chunk):
+                continue
+            frame = {name: views[k * n + i] for k, name in enumerate(order)}
+            obs = self._observation({**frame, "proprio": q[i]}, step, f"images_history[{i}]")
+            with self.model_lock:
+                history.observe(obs, self.chunk)
+
+    def _observation(self, frame: Any, step: int, what: str) -> Observation:
+        if not isinstance(frame, dict):
+            raise BadRequest(f"{what} is a {type(frame).__name__}, expected {{<image fields>, 'proprio'}}")
+        missing = [k for k in (*self.request_map, "proprio") if k not in frame]
+        if missing:
+            raise BadRequest(f"{what} lacks {missing}")
+        images = {cam: protocol.as_image(frame[name], f"{what}['{name}']") for name, cam in self.request_map.items()}
+        q = protocol.as_numbers(frame["proprio"], f"{what}['proprio']", ndim=1)  # (P,)
+        return Observation(step=step, proprio=fit_proprio(q, self.task.proprio_dim)[0], images=images)
+
+    def _answer(self, session: Session, req: protocol.ActRequest, why: str | None, notes: list[str],
+                t_in: float) -> str:
+        t, H = session.step, self.chunk
+        proprio, note = fit_proprio(req.proprio, self.task.proprio_dim)  # (P,) what the world model reads
+        notes += [f"world model: {note}"] if note else []
+        obs = Observation(step=t, proprio=proprio, images={cam: req.images[f] for f, cam in self.request_map.items()})
+        forward = dataclasses.replace(req, encoded=False)  # the proxy decodes the answer itself
+        t0 = time.perf_counter()
+        ans = self.upstream.ask(forward, obs)
+        upstream_s = time.perf_counter() - t0
+        if ans.actions.shape[0] != H:
+            raise UpstreamError(502, f"{self.upstream.where} returned a {ans.actions.shape[0]}-step chunk; the "
+                                     f"proxy was started for {H}-step chunks")
+        out, more = to_output(ans, self.task, self.response_map, self.columns)
+        notes += more
+        t1 = time.perf_counter()
+        executed, open_loop, costs = self._decide(session, obs, out, notes)
+        plan_s = time.perf_counter() - t1
+        session.answered = np.clip(executed, -1.0, 1.0).astype(np.float32)  # (H, A) what the robot will run
+        session.step, session.chunks = t + H, session.chunks + 1
+        actions = ans.actions.copy()  # (H, A_upstream): the upstream's own chunk when open loop
+        if open_loop is None:
+            actions[:, list(self.columns)] = executed
+        report = {"session": session.key, "step": t, "new_episode": why, "planned": open_loop is None,
+                  "open_loop": open_loop, "costs": costs,
+                  "timings_s": {"upstream": upstream_s, "plan": plan_s, "total": time.perf_counter() - t_in}}
+        if ans.wamplan:
+            report["upstream"] = ans.wamplan
+        if notes:
+            report["notes"] = notes
+        resp = protocol.ActResponse(actions=actions, future_images=ans.future_images, value=ans.value,
+                                    extra=ans.extra, wamplan=report)
+        return protocol.encode_response(resp, double_encode=req.encoded)
+
+    def _decide(self, session: Session, obs: Observation, out: Any,
+                notes: list[str]) -> tuple[np.ndarray, str | None, dict[str, float | None]]:
+        """-> (the (H, A) chunk to run, why it is the upstream's own (None: planned), costs)."""
+        policy, t = session.policy, obs.step
+        history = policy.history
+        if history.keeps_frames and t > 0 and (history.real(t) or history.rest_state):
+            missing = [s for s in history.steps(t) if 0 <= s < t and s not in history.frames]
+            if missing:
+                with self.model_lock:
+                    history.observe(obs, self.chunk)
+                notes.append(f"the world model needs the frames at steps {missing} (one every {self.frameskip} steps "
+                             f"before step {t}); send the frames seen during each chunk in chunk_frames")
+                return out.actions, "no-history", {}
+        session.wam.answer(out)
+        if policy.open_loop_rule(t) is not None:  # no search: no budget to keep
+            with self.model_lock:
+                decision = policy.plan_chunk(obs)
+            return decision.executed, decision.reason, {}
+
+        def plan():
+            with self.model_lock:
+                decision = policy.plan_chunk(obs)
+                del policy.chunks[:-4]  # records are for diagnostics only: keep memory bounded
+                return decision
+
+        budget = self.cfg.budget_ms / 1000.0
+        try:
+            if budget > 0:
+                future = self.planner_pool.submit(plan)
+                try:
+                    decision = future.result(timeout=budget)
+                except FutureTimeout:
+                    session.pending = future
+                    notes.append(f"planning took longer than the {self.cfg.budget_ms:g} ms budget")
+                    return out.actions, "over-budget", {}
+            else:
+                decision = plan()
+        except Exception as e:  # planning must not cost the robot its chunk
+            log.exception("planning failed (session %s, step %d)", session.key, t)
+            notes.append(f"planning failed ({reason(e)}); the server's log has the traceback")
+            return out.actions, "planning-failed", {}
+        c = decision.costs
+        costs = {"wam": _finite(c.seed), "best": _finite(c.best), "plan": _finite(c.plan)}
+        return decision.executed, decision.reason, costs
+
+
+def create_proxy_app(proxy: Proxy, secret: str | None = None) -> FastAPI:
+    """The HTTP face of ``proxy``: ``POST /act``, ``POST /s/<robot>/act``, ``POST /s/<robot>/reset``,
+    ``GET /health``; ``secret`` as ``wamplan wam serve`` takes it (header, bearer or ``?token=``)."""
+    cfg, secret = proxy.cfg, secret or None
+    app = FastAPI(title="wamplan planning proxy")
+
+    async def act(request: Request, robot: str) -> Response:
+        route = request.url.path
+        try:
+            check_secret(request, secret)
+            body = await read_body(request, cfg.max_request_bytes)
+        except Refused as r:
+            return error_answer(cfg.errors, r.status, r.message, route)
+        try:
+            content = await run_in_threadpool(proxy.handle, body, robot)
+        except protocol.ProtocolError as e:
+            return error_answer(cfg.errors, 400, f"bad /act request: {e}", route)
+        except UpstreamError as e:
+            return error_answer(cfg.errors, e.status, e.message, route)
+        except UserError as e:
+            return error_answer(cfg.errors, 422, str(e), route)
+        except Exception as e:
+            log.exception("%s failed", route)
+            return error_answer(cfg.errors, 500, f"the proxy failed on this request ({reason(e)}); its log has the "
+                                                 f"traceback", route)
+        return Response(content=content, media_type="application/json")
+
+    @app.post(protocol.ROUTE)
+    async def act_default(request: Request) -> Response:
+        return await act(request, DEFAULT_ROBOT)
+
+    @app.post(SESSION_ROUTE)
+    async def act_session(robot: str, request: Request) -> Response:
+        return await act(request, robot)
+
+    @app.post(RESET_ROUTE)
+    async def reset(robot: str, request: Request) -> Response:
+        try:
+            check_secret(request, secret)
+        except Refused as r:
+            return error_answer(cfg.errors, r.status, r.message, request.url.path)
+        n = proxy.reset(robot)
+        return Response(content=json.dumps({"ok": True, "sessions_reset": n}), media_type="application/json")
+
+    @app.get(protocol.HEALTH_ROUTE)
+    async def health() -> dict:
+        return {"ok": True, "proxy": True, "upstream": proxy.upstream.where, "task": proxy.task.name,
+                "chunk_length": proxy.chunk, "action_dim": proxy.upstream.shape.action_dim or len(proxy.columns),
+                "cameras": list(proxy.cameras),
+                "world_model": cfg.world_model, "sessions": len(proxy.sessions)}
+
+    return app

@@ -1,0 +1,56 @@
+"""The planning proxy's settings, :class:`ProxyConfig`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from wamplan.config import field, require
+from wamplan.wam import protocol
+
+ERROR_MODES = ("http", "upstream")  # as `wamplan wam serve` answers failures (wamplan.wam.server.ERROR_MODES)
+
+
+@dataclass(frozen=True)
+class ProxyConfig:
+    """How the proxy reaches its upstream WAM, plans, keeps sessions and answers failures."""
+
+    upstream: str = field("", "the WAM to plan for: its /act URL (http://HOST:PORT/act) or a local WAM checkpoint "
+                              "directory")
+    world_model: str = field("", "world model checkpoint directory (several, comma-separated: an ensemble)")
+    profile: str = field("", "the upstream's fields and sizes: a client profile (cosmos-robocasa, cosmos-aloha); "
+                             "unset: ALOHA's field names mapped onto the world model's cameras by position")
+    errors: str = field("upstream", "how failures (the client's and the upstream's) are answered: upstream (HTTP 200 "
+                                    "and \"error\", as Cosmos Policy's server; use it with upstream clients) or http "
+                                    "(4xx/5xx with a one-line reason)", choices=ERROR_MODES)
+    budget_ms: float = field(0.0, "milliseconds planning may take once the upstream has answered; later, the "
+                                  "upstream's chunk is answered and the wamplan field says why; 0 = no budget")
+    idle_s: float = field(300.0, "a session idle this long starts a new episode on its next request")
+    max_sessions: int = field(64, "sessions kept at most; the least recently used one is dropped beyond it")
+    upstream_timeout_s: float = field(60.0, "seconds to wait for the upstream's answer")
+    chunk_length: int | None = field(None, "actions per chunk the upstream returns; unset: its /health's (a wamplan "
+                                           "server) or the world model's task's")
+    history_spacing: int = field(12, "steps between the frames of upstream's eval client's proprio_history / "
+                                     "images_history (its history_spacing_factor)")
+    max_request_bytes: int = field(protocol.DEFAULT_MAX_REQUEST_BYTES, "refuse larger /act bodies (HTTP 413)")
+    device: str = field("auto", "torch device for the world model (and a local upstream)")
+
+    def __post_init__(self) -> None:
+        require(bool(self.upstream), "--upstream: name the WAM to plan for (an /act URL or a WAM checkpoint)")
+        require(bool(self.world_model), "--world-model: name a world model checkpoint (from `wamplan wm train`)")
+        from wamplan.wam.cosmos_client import PROFILES
+
+        require(not self.profile or self.profile in PROFILES,
+                f"--profile: unknown profile '{self.profile}'; profiles are {sorted(PROFILES)}")
+        require(self.errors in ERROR_MODES, f"--errors must be one of {list(ERROR_MODES)}, got {self.errors!r}")
+        require(self.budget_ms >= 0, f"--budget-ms must be >= 0 (0: no budget), got {self.budget_ms}")
+        require(self.idle_s > 0, f"--idle-s must be > 0, got {self.idle_s}")
+        require(self.max_sessions >= 1, f"--max-sessions must be >= 1, got {self.max_sessions}")
+        require(self.upstream_timeout_s > 0, f"--upstream-timeout-s must be > 0, got {self.upstream_timeout_s}")
+        require(self.chunk_length is None or self.chunk_length >= 1,
+                f"--chunk-length must be >= 1 (or unset), got {self.chunk_length}")
+        require(self.history_spacing >= 1, f"--history-spacing must be >= 1, got {self.history_spacing}")
+        require(self.max_request_bytes >= 1, f"--max-request-bytes must be >= 1, got {self.max_request_bytes}")
+
+    @property
+    def upstream_is_url(self) -> bool:
+        return self.upstream.startswith(("http://", "https://"))

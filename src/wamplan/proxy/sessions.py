@@ -1,0 +1,74 @@
+"""One robot's episode in the proxy (:class:`Session`) and the bounded table of them (:class:`Sessions`).
+
+A session is named by its URL (``/s/<robot>/act``; plain ``/act`` is the session ``default``) and, when a request
+carries a RoboArena-style ``session_id``, by that too. A new episode starts on a session's first request, after
+``idle_s`` without one, on a request with ``reset: true``, or after ``POST /s/<robot>/reset``. At most
+``max_sessions`` are kept; beyond that the least recently used one is dropped (its robot's next request starts a
+new episode).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import OrderedDict
+from concurrent.futures import Future
+from typing import Any, Callable
+
+import numpy as np
+
+
+class Session:
+    """The planned policy of one robot's episode and where that episode stands (``step``: the next chunk
+    boundary; ``answered``: the (H, A) chunk answered last, the task's columns). ``lock`` serialises its requests;
+    ``pending`` is a plan still running after its budget ran out (the next request waits for it)."""
+
+    def __init__(self, key: str, policy: Any, wam: Any, seed: int = 0):
+        self.key, self.policy, self.wam = key, policy, wam
+        self.lock = threading.Lock()
+        self.pending: Future | None = None
+        self.last_seen = time.monotonic()
+        self.new_episode(seed)
+
+    def new_episode(self, seed: int = 0) -> None:
+        self.policy.reset(seed=seed)
+        self.seed, self.step, self.chunks = seed, 0, 0
+        self.answered: np.ndarray | None = None  # (H, A) the chunk the robot was told to run
+
+
+class Sessions:
+    """Sessions by key, made by ``make(key)``; ``get`` says why a session starts a new episode."""
+
+    def __init__(self, make: Callable[[str], Session], idle_s: float, max_sessions: int):
+        self.make, self.idle_s, self.max_sessions = make, idle_s, max_sessions
+        self._table: OrderedDict[str, Session] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(self, key: str) -> tuple[Session, str | None]:
+        """The session ``key`` -> (session, why its episode is new: "first-request", "idle", or None)."""
+        now = time.monotonic()
+        with self._lock:
+            s = self._table.get(key)
+            why = None
+            if s is None:
+                s, why = self.make(key), "first-request"
+                self._table[key] = s
+                while len(self._table) > self.max_sessions:
+                    self._table.popitem(last=False)  # the least recently used
+            elif now - s.last_seen > self.idle_s:
+                why = "idle"
+            self._table.move_to_end(key)
+            s.last_seen = now
+            return s, why
+
+    def drop(self, key: str) -> bool:
+        """Forget session ``key`` (its next request starts a new episode) -> whether it existed."""
+        with self._lock:
+            return self._table.pop(key, None) is not None
+
+    def __len__(self) -> int:
+        return len(self._table)
+
+    def keys(self) -> list[str]:
+        with self._lock:
+            return list(self._table)

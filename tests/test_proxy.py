@@ -1,0 +1,279 @@
+"""The planning proxy (`wamplan serve`): sessions kept apart under concurrent robots, the same actions as the same
+planned episode in process, open-loop answers that say why, the start-up fit check, upstream failures answered in
+the error mode, and an upstream-style client parsing its answers."""
+
+from __future__ import annotations
+
+import json
+import threading
+from pathlib import Path
+
+import json_numpy
+import numpy as np
+import pytest
+import requests
+
+from wamplan.api import planned_policy
+from wamplan.envs.spec import Observation
+from wamplan.errors import UserError
+from wamplan.proxy.app import create_proxy_app
+from wamplan.proxy.build import build_proxy
+from wamplan.proxy.config import ProxyConfig
+from wamplan.proxy.upstream import LocalUpstream, Upstream, UpstreamShape
+from wamplan.wam import protocol
+from wamplan.wam.base import load_wam
+from wamplan.wam.server import BackgroundServer, create_app
+
+CKPTS = Path(__file__).resolve().parents[1] / "checkpoints" / "mini"
+WAM_CKPT, WM_CKPT = str(CKPTS / "tinywam"), str(CKPTS / "wm_augmented")
+FIELDS = {"primary_image": "front", "left_wrist_image": "side", "right_wrist_image": "wrist"}
+H, SIZE = 16, 64
+
+
+def observation(client: int, step: int, images: bool = True) -> Observation:
+    rng = np.random.default_rng(client * 1000 + step)
+    views = {c: rng.integers(0, 256, (SIZE, SIZE, 3), dtype=np.uint8) for c in FIELDS.values()} if images else None
+    return Observation(step=step, proprio=rng.uniform(-0.5, 0.5, 10).astype(np.float32), images=views)
+
+
+def fields(obs: Observation) -> dict:
+    return {**{f: obs.images[c] for f, c in FIELDS.items()}, "proprio": obs.proprio}
+
+
+def request(obs: Observation, **extra) -> bytes:
+    return json_numpy.dumps({**fields(obs), "task_description": "insert the cube into the square hole",
+                             **extra}).encode()
+
+
+def post(url: str, data: bytes) -> dict:
+    r = requests.post(url, data=data, headers=protocol.JSON_HEADERS, timeout=120)
+    assert r.status_code == 200, r.text
+    return json_numpy.loads(r.text)
+
+
+@pytest.fixture(scope="module")
+def proxy():
+    p = build_proxy(ProxyConfig(upstream=WAM_CKPT, world_model=WM_CKPT, device="cpu", errors="http"))
+    with BackgroundServer(create_proxy_app(p)) as srv:
+        yield srv, p
+    p.close()
+
+
+def in_process_episode(client: int, chunks: int) -> np.ndarray:
+    """The same episode planned in process (same WAM, world model, planner, seed) -> (chunks x H, A) actions."""
+    policy = planned_policy(load_wam(WAM_CKPT, device="cpu"), world_model=WM_CKPT, device="cpu")
+    policy.reset(seed=0)
+    return np.stack([policy.act(observation(client, t, policy.wants_images(t))) for t in range(chunks * H)])
+
+
+def drive(url: str, client: int, chunks: int, frames: bool = True) -> list[dict]:
+    """An episode through the proxy: at each boundary the observation, and the frames seen during the chunk
+    before (every 4th step, what the world model's history needs)."""
+    answers = []
+    for k in range(chunks):
+        t = k * H
+        extra = {}
+        if frames and k:
+            extra["chunk_frames"] = {str(off): fields(observation(client, t - H + off)) for off in (4, 8, 12)}
+        answers.append(post(url, request(observation(client, t), **extra)))
+    return answers
+
+
+def test_eight_robots_keep_their_histories_apart_and_act_as_in_process(proxy):
+    srv, p = proxy
+    n, chunks = 8, 2
+    got: dict[int, list[dict]] = {}
+    errors: list[str] = []
+    start = threading.Barrier(n)
+
+    def robot(c: int) -> None:
+        start.wait()
+        try:
+            got[c] = drive(f"{srv.url}/s/robot{c}/act", c, chunks)
+        except Exception as e:  # asserted below
+            errors.append(f"robot {c}: {e}")
+
+    threads = [threading.Thread(target=robot, args=(c,)) for c in range(n)]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join(600)
+    assert not errors and sorted(got) == list(range(n))
+    for c in range(n):
+        answers = got[c]
+        assert [a["wamplan"]["step"] for a in answers] == [0, 16]
+        assert [a["wamplan"]["session"] for a in answers] == [f"robot{c}"] * chunks
+        assert [a["wamplan"]["open_loop"] for a in answers] == ["first-chunk", None]
+        want = in_process_episode(c, chunks)  # (32, 5)
+        np.testing.assert_allclose(np.concatenate([np.stack(a["actions"]) for a in answers]), want, atol=1e-6)
+    assert len({np.stack(got[c][1]["actions"]).tobytes() for c in range(n)}) == n  # each planned its own
+
+
+def test_without_the_in_chunk_frames_the_chunk_runs_open_loop_and_says_why(proxy):
+    srv, _ = proxy
+    answers = drive(f"{srv.url}/s/blind/act", 3, 2, frames=False)
+    report = answers[1]["wamplan"]
+    assert report["open_loop"] == "no-history" and report["planned"] is False
+    assert any("needs the frames at steps [8, 12]" in n and "chunk_frames" in n for n in report["notes"])
+    direct = load_wam(WAM_CKPT, device="cpu").predict(observation(3, 16), "insert the cube into the square hole")
+    np.testing.assert_array_equal(np.stack(answers[1]["actions"]), direct.actions)  # the WAM's own chunk
+
+
+def test_reset_route_session_id_and_reset_field_start_new_episodes(proxy):
+    srv, _ = proxy
+    url = f"{srv.url}/s/r9/act"
+    assert post(url, request(observation(9, 0)))["wamplan"]["step"] == 0
+    assert post(url, request(observation(9, 16)))["wamplan"]["step"] == 16
+    r = requests.post(f"{srv.url}/s/r9/reset", timeout=10).json()
+    assert r == {"ok": True, "sessions_reset": 1}
+    a = post(url, request(observation(9, 0)))["wamplan"]
+    assert a["step"] == 0 and a["new_episode"] == "first-request"
+    assert post(url, request(observation(9, 16), reset=True))["wamplan"]["new_episode"] == "reset"
+    b = post(url, request(observation(9, 0), session_id="arena-1"))["wamplan"]
+    assert b["session"] == "r9/arena-1" and b["step"] == 0
+    assert post(url, request(observation(9, 16), session_id="arena-1"))["wamplan"]["step"] == 16
+
+
+def test_a_plan_over_budget_answers_the_wams_chunk(tmp_path):
+    p = build_proxy(ProxyConfig(upstream=WAM_CKPT, world_model=WM_CKPT, device="cpu", errors="http",
+                                budget_ms=0.001))
+    try:
+        with BackgroundServer(create_proxy_app(p)) as srv:
+            answers = drive(f"{srv.url}/act", 4, 3)
+        assert [a["wamplan"]["open_loop"] for a in answers] == ["first-chunk", "over-budget", "over-budget"]
+        assert "longer than the 0.001 ms budget" in answers[1]["wamplan"]["notes"][0]
+    finally:
+        p.close()
+
+
+def test_an_upstream_server_behind_the_proxy_passes_its_fields_through():
+    up = BackgroundServer(create_app(load_wam(WAM_CKPT, device="cpu"))).start()
+    p = build_proxy(ProxyConfig(upstream=up.act_url, world_model=WM_CKPT, device="cpu"))
+    try:
+        with BackgroundServer(create_proxy_app(p, secret="s")) as srv:
+            url = f"{srv.url}/act?token=s"
+            obs = observation(5, 0)
+            body = {**fields(obs), "proprio": np.concatenate([obs.proprio, np.zeros(4)]),  # ALOHA's 14-D
+                    "task_description": "insert", "return_all_query_results": True}
+            text = requests.post(url, data=json.dumps({"encoded": json_numpy.dumps(body)}), timeout=60).json()
+            assert isinstance(text, str)  # double-encoded, as upstream answers an encoded request
+            answer = json_numpy.loads(text)
+            assert len(answer["all_actions"]) == 1 and answer["value_predictions"] == 0.0
+            assert any("truncated" in n for n in answer["wamplan"]["upstream"]["notes"])
+            assert answer["wamplan"]["open_loop"] == "first-chunk"
+            up.stop()  # the upstream gone: answered in the error mode, as upstream's server answers a failure
+            r = requests.post(url, data=request(observation(5, 16)), timeout=60)
+            assert r.status_code == 200 and r.json() == "error"
+    finally:
+        up.stop()
+        p.close()
+
+
+class Shaped(Upstream):
+    def __init__(self, **shape):
+        self.where = "the test upstream"
+        self.shape = UpstreamShape(**{**dict(chunk_length=16, action_dim=5, cameras=("front", "side", "wrist"),
+                                             image_size=64, task="cube-insertion"), **shape})
+
+    def ask(self, req, obs):
+        raise AssertionError("not reached")
+
+
+@pytest.mark.parametrize("shape, said", [
+    (dict(chunk_length=50), "returns 50-step chunks, not 16"),  # --chunk-length 16 said otherwise
+    (dict(chunk_length=2), "shorter than the world model's frameskip 4"),
+    (dict(action_dim=3), "its actions have 3 columns"),
+    (dict(cameras=("front",)), "predicts views of ['front']"),
+    (dict(image_size=32), "predicts 32-px views, the world model's encoder reads 64 px"),
+    (dict(task="push-cube"), "push-cube"),
+])
+def test_a_world_model_that_does_not_fit_the_upstream_is_refused_in_one_line(shape, said):
+    cfg = ProxyConfig(upstream="http://127.0.0.1:1/act", world_model=WM_CKPT, device="cpu",
+                      chunk_length=None if shape.get("chunk_length") == 2 else 16)
+    with pytest.raises(UserError) as e:
+        build_proxy(cfg, upstream=Shaped(**shape))
+    assert said in str(e.value) and "does not fit" in str(e.value) and "\n" not in str(e.value)
+
+
+def test_bad_proxy_fields_are_4xx(proxy):
+    srv, _ = proxy
+    url = f"{srv.url}/s/bad/act"
+    post(url, request(observation(1, 0)))
+    for extra in (dict(chunk_frames={"40": fields(observation(1, 4))}), dict(executed_actions=np.zeros((3, 5))),
+                  dict(chunk_frames={"4": {"proprio": np.zeros(10)}}), dict(seed="x")):
+        r = requests.post(url, data=request(observation(1, 16), **extra), timeout=60)
+        assert r.status_code == 400 and r.json()["error"].startswith("bad /act request"), r.text
+
+
+def test_upstreams_eval_client_history_feeds_the_world_model_where_it_falls_on_its_frames():
+    """Upstream's eval client sends proprio_history / images_history (N frames `spacing` steps apart, ending one
+    spacing before the boundary); with a spacing of 4 they are the frames the shipped world model needs."""
+    p = build_proxy(ProxyConfig(upstream=WAM_CKPT, world_model=WM_CKPT, device="cpu", errors="http",
+                                history_spacing=4))
+    try:
+        with BackgroundServer(create_proxy_app(p)) as srv:
+            c = 6
+            first = post(f"{srv.url}/act", request(observation(c, 0)))
+            past = [observation(c, s) for s in (4, 8, 12)]
+            history = dict(proprio_history=[o.proprio.astype(np.float64) for o in past],
+                           images_history=[o.images[cam] for cam in ("side", "wrist", "front") for o in past])
+            second = post(f"{srv.url}/act", request(observation(c, 16), **history))
+        assert second["wamplan"]["open_loop"] is None
+        got = np.concatenate([np.stack(first["actions"]), np.stack(second["actions"])])
+        np.testing.assert_allclose(got, in_process_episode(c, 2), atol=1e-6)
+    finally:
+        p.close()
+
+
+def test_serve_refuses_a_world_model_that_does_not_fit_in_one_line(capsys):
+    from wamplan.cli.main import main
+
+    code = main(["serve", "--upstream", WAM_CKPT, "--world-model", WM_CKPT, "--chunk-length", "50", "--device", "cpu"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1
+    assert "does not fit the WAM 'tinywam': it returns 16-step chunks, not 50" in err
+
+
+def test_an_episode_through_the_proxy_takes_the_in_process_episodes_actions(proxy, small_env):
+    """A CubeInsertion-v1 episode (seed 1, three chunks) driven over HTTP, sending the frames seen during each chunk,
+    takes the actions the same planned episode takes in process (same WAM, world model, planner, seed; no budget)."""
+    from wamplan.policies.rollout import run_episode
+
+    srv, _ = proxy
+    env, seed, steps = small_env, 1, 3 * H
+    policy = planned_policy(load_wam(WAM_CKPT, device="cpu"), world_model=WM_CKPT, device="cpu")
+    want: list[np.ndarray] = []
+    run_episode(env, policy, seed, max_steps=steps, stop_on_success=False,
+                on_obs=lambda e, o, a: want.append(a) if a is not None else None)
+    assert [c["planned"] for c in policy.info()["chunks"]] == [False, True, True]
+
+    url, got, queue, seen = f"{srv.url}/s/sim/act", [], [], {}
+    obs = env.reset(seed, with_images=True)
+    for t in range(steps):
+        if t % H == 0:
+            extra = {"seed": seed} if t == 0 else {"chunk_frames": seen}
+            answer = post(url, request(obs, **extra))
+            assert answer["wamplan"]["step"] == t and answer["wamplan"]["planned"] == (t > 0)
+            queue, seen = list(np.stack(answer["actions"])), {}
+        action = env.check_action(queue.pop(0))
+        got.append(action)
+        obs, _ = env.step(action, with_images=(t + 1) % 4 == 0)
+        if (t + 1) % H:
+            if obs.images is not None:
+                seen[str((t + 1) % H)] = fields(obs)
+    np.testing.assert_allclose(np.stack(got), np.stack(want), atol=1e-6)
+
+
+def test_a_boundary_retried_after_a_refusal_plans_as_if_sent_once(proxy):
+    srv, _ = proxy
+    c, url = 7, f"{srv.url}/s/retry/act"
+    first = post(url, request(observation(c, 0)))
+    frames = {str(off): fields(observation(c, off)) for off in (4, 8, 12)}
+    bad = requests.post(url, data=request(observation(c, 16), chunk_frames={**frames, "40": frames["4"]}), timeout=60)
+    assert bad.status_code == 400 and "offset '40'" in bad.json()["error"]
+    second = post(url, request(observation(c, 16), chunk_frames=frames))
+    assert second["wamplan"]["step"] == 16 and second["wamplan"]["planned"]
+    third = post(url, request(observation(c, 32), chunk_frames={str(o): fields(observation(c, 16 + o))
+                                                                for o in (4, 8, 12)}))
+    got = np.concatenate([np.stack(a["actions"]) for a in (first, second, third)])
+    np.testing.assert_allclose(got, in_process_episode(c, 3), atol=1e-6)  # chunk 2 reads chunk 1's actions
