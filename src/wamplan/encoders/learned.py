@@ -29,6 +29,7 @@ from typing import Any, Sequence
 import torch
 import torch.nn.functional as F
 from torch import nn
+from torch.utils.data import Dataset, TensorDataset
 
 from wamplan.checkpoint import MODEL_FILE, checkpoint_dir, load_tensors, read_config
 from wamplan.config import field, require, to_dict
@@ -137,10 +138,11 @@ class EncoderTrainer(nn.Module):
         return super().load_state_dict({**state, **{f"encoder.{k}": v for k, v in state.items()
                                                      if k.startswith(NET_PREFIX)}}, strict, assign)
 
-    def losses(self, images: torch.Tensor, state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """images (B, V, H, W, 3) uint8, state (B, S) -> (state MSE in cm^2, 16-px redraw MSE), each a mean."""
-        b, v = images.shape[:2]
-        pixels = self.encoder.preprocess(images.flatten(0, 1))  # (B V, 3, 64, 64)
+    def losses(self, pixels: torch.Tensor, state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """pixels (B, V, 3, 64, 64) preprocessed (:func:`preprocessed`), state (B, S) -> (state MSE in cm^2, 16-px
+        redraw MSE), each a mean."""
+        b, v = pixels.shape[:2]
+        pixels = pixels.flatten(0, 1)  # (B V, 3, 64, 64)
         tokens = self.net(pixels)  # (B V, 16, D)
         per_view = tokens.unflatten(0, (b, v)).flatten(2)  # (B, V, 16 D)
         read = torch.stack([head(per_view[:, i]) for i, head in enumerate(self.readout)], 1)  # (B, V, S)
@@ -148,6 +150,21 @@ class EncoderTrainer(nn.Module):
         grid = tokens.transpose(1, 2).unflatten(2, (4, 4))  # (B V, D, 4, 4)
         e_recon = (self.decoder(grid) - F.avg_pool2d(pixels, 4)).pow(2).mean()  # (B V, 3, 16, 16)
         return e_state, e_recon
+
+
+def preprocessed(frames: Dataset, encoder: FrozenEncoder, progress: bool = True) -> TensorDataset:
+    """Every item of ``frames`` (``data.readers.StateFrames``) decoded and resized once, held in memory: a dataset of
+    (pixels (V, 3, 64, 64) float32 as the encoder sees them, state (S,)) pairs, so an epoch costs no decoding."""
+    from wamplan.progress import progress_bar
+
+    pixels, states = [], []
+    for i in progress_bar(range(len(frames)), desc="decode frames", leave=False, disable=not progress):
+        item = frames[i]
+        pixels.append(encoder.preprocess(item["images"]))  # (V, 3, 64, 64)
+        states.append(item["s"])
+    if not pixels:
+        return TensorDataset(torch.empty(0, 1, 3, 64, 64), torch.empty(0, 1))
+    return TensorDataset(torch.stack(pixels), torch.stack(states))
 
 
 def train_task_cnn(stores: Sequence[str | Path], out: str | Path, cfg: EncoderTrainConfig, *,
@@ -168,9 +185,12 @@ def train_task_cnn(stores: Sequence[str | Path], out: str | Path, cfg: EncoderTr
         print(f"frames: {len(tr)} train, {len(va)} val, {len(tr.cameras)} views each")
     torch.manual_seed(cfg.seed)
     model = EncoderTrainer(cfg, len(tr.cameras), len(STATE_QUANTITIES)).to(dev)
+    cameras = tr.cameras
 
-    def step(m: EncoderTrainer, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, float]]:
-        e_state, e_recon = m.losses(batch["images"].to(dev), batch["s"].to(dev).float())
+    tr, va = preprocessed(tr, model.encoder, progress), preprocessed(va, model.encoder, progress)
+
+    def step(m: EncoderTrainer, batch: list[torch.Tensor]) -> tuple[torch.Tensor, dict[str, float]]:
+        e_state, e_recon = m.losses(batch[0].to(dev), batch[1].to(dev).float())
         return e_state + cfg.recon_weight * e_recon, {"state_mm": float(e_state.detach().sqrt()) * STATE_UNIT_MM,
                                                        "recon_mse": float(e_recon.detach())}
 
@@ -178,14 +198,14 @@ def train_task_cnn(stores: Sequence[str | Path], out: str | Path, cfg: EncoderTr
         tot = torch.zeros(2, dtype=torch.float64)
         n = 0
         with evaluating(m):
-            for batch in DataLoader(va, batch_size=cfg.batch_size):
-                e = m.losses(batch["images"].to(dev), batch["s"].to(dev).float())
-                tot += torch.tensor([float(x) for x in e], dtype=torch.float64) * len(batch["s"])
-                n += len(batch["s"])
+            for pixels, state in DataLoader(va, batch_size=cfg.batch_size):
+                e = m.losses(pixels.to(dev), state.to(dev).float())
+                tot += torch.tensor([float(x) for x in e], dtype=torch.float64) * len(state)
+                n += len(state)
         tot /= max(n, 1)
         return {"state_mm": float(tot[0].sqrt()) * STATE_UNIT_MM, "recon_mse": float(tot[1])}
 
-    config = {"net": {"width": cfg.width}, "train": to_dict(cfg), "data": {"cameras": list(tr.cameras)}}
+    config = {"net": {"width": cfg.width}, "train": to_dict(cfg), "data": {"cameras": list(cameras)}}
     result = fit(model, DatasetBatches(tr), step, cfg, run_dir=out, kind=KIND, config=config,
                  data=dict(describe_stores(stores), val_fraction=val_fraction), device=dev,
                  evaluate=evaluate if len(va) else None, resume=resume, max_steps=max_steps, progress=progress,
