@@ -157,6 +157,52 @@ def test_out_that_is_a_file(tmp_path, capsys):
     refused(capsys, ["data", "info", f], f, "is a file")
 
 
+def _unwritable(tmp_path: Path) -> Path:
+    """A directory in which no file can be created: a 0o555 one (root ignores its mode: then /sys, which refuses
+    new files to root too); skips where neither holds."""
+    ro = tmp_path / "read_only"
+    ro.mkdir()
+    ro.chmod(0o555)
+    for d in (ro, Path("/sys")):
+        try:
+            (d / "probe").mkdir()
+        except OSError:
+            return d
+        (d / "probe").rmdir()
+    pytest.skip("no unwritable directory here")
+
+
+@pytest.mark.parametrize("argv", [
+    ["eval", "--conditions", "1", "--episodes", "1", "--wam", MINI / "tinywam"],
+    ["collect", "--source", "expert", "--episodes", "1"],
+    ["wm", "train", "--data", "nosuch"],
+    ["wam", "train", "--data", "nosuch"],
+])
+def test_out_that_cannot_be_written_before_any_work(tmp_path, capsys, argv):
+    ro = _unwritable(tmp_path)
+    refused(capsys, [*argv, "--out", ro / "out"], f"--out {ro / 'out'} cannot be written", "you can write")
+    in_the_way = tmp_path / "a_file"
+    in_the_way.write_text("x")
+    refused(capsys, [*argv, "--out", in_the_way / "out"], f"{in_the_way} is a file")
+
+
+def test_encoding_a_store_that_cannot_be_written(expert_store, tmp_path, capsys):
+    """wm encode writes its cache into the store: a store it cannot write is refused before any encoding; one whose
+    features are all cached is only read."""
+    store = Path(shutil.copytree(expert_store, tmp_path / "store"))
+    shutil.rmtree(store / "features", ignore_errors=True)
+    (store / "features").write_text("in the way")  # where the cache's directory must go
+    refused(capsys, ["wm", "encode", "--data", store], f"{store / 'features'} is a file")
+    (store / "features").unlink()
+    assert main(["wm", "encode", "--data", str(store)]) == 0
+    capsys.readouterr()
+    store.chmod(0o555)
+    try:
+        assert main(["wm", "encode", "--data", str(store)]) == 0  # all cached: nothing to write
+    finally:
+        store.chmod(0o755)
+
+
 # ------------------------------------------------------------------------------------------- damaged episodes
 def _damage_image_chunk(path: Path) -> None:
     """Overwrite 8 bytes in the middle of one stored image (a chunk of the data, not the file's structure)."""

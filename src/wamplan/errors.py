@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import tempfile
 from pathlib import Path
 from typing import Iterable
 
@@ -29,11 +30,33 @@ def require_seeds(first: int, count: int = 1, flag: str = "--seed-start") -> Non
 
 
 def require_dir(path: str | Path, flag: str = "--out") -> Path:
-    """``path`` as a directory to write into (created later if missing); one line if it is an existing file."""
+    """``path`` as a directory to write into (created later if missing); one line, before any work, if it is an
+    existing file or cannot be written (:func:`require_writable`)."""
     p = Path(path)
     if p.exists() and not p.is_dir():
         raise UserError(f"{flag} {p} is a file, not a directory; pass a directory (a new one is created)")
+    require_writable(p, flag)
     return p
+
+
+def require_writable(path: str | Path, flag: str = "--out") -> None:
+    """One line unless files can be created in the directory ``path``, or, where it does not exist yet, in its
+    nearest existing parent (where it will be created): a file in the way, a read-only filesystem or missing
+    permissions. The check creates (and at once removes) a nameless file there, so it sees what the filesystem
+    allows, whoever runs it."""
+    p = Path(path)
+    probe = p.absolute()
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    if not probe.is_dir():
+        raise UserError(f"{flag} {p}: {probe} is a file, so no directory can be made under it; pass a path whose "
+                        f"parents are directories")
+    try:
+        with tempfile.TemporaryFile(dir=probe):
+            pass
+    except OSError as e:
+        raise UserError(f"{flag} {p} cannot be written ({e.strerror or reason(e)} in {probe}); pass a directory you can write "
+                        f"to (or make it writable)") from None
 
 
 def require_file(path: str | Path | None, flag: str) -> Path | None:
