@@ -7,6 +7,7 @@ Each case runs ``wamplan`` in-process and stops before any episode runs, so the 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import re
 import shutil
@@ -286,6 +287,40 @@ def test_a_failed_eval_start_does_not_lock_its_folder(ckpts, tmp_path, capsys):
     (wam / "model.safetensors").write_bytes(weights)  # the mistake fixed, the same command again
     assert main([str(a) for a in argv]) == 0
     assert json.loads((out / "eval_config.json").read_text())["wam"] == str(wam)
+
+
+@pytest.mark.parametrize("extra, named", [
+    (["--render-backend", "none"], "--render-backend none renders no camera views"),
+    (["--cost-view-weights", "1", "1"], "--cost-view-weights gives 2 weights, but task 'cube-insertion' has 3"),
+    (["--replan-every", "5"], "replan_every=5 must divide the WAM's 16-step chunk"),
+    (["--replan-every", "8", "--num-optimized", "8"], "drop --num-optimized or --replan-every"),
+    (["--num-optimized", "20"], "num_optimized=20 exceeds task 'cube-insertion''s 16-step chunk"),
+    (["--init-std-per-dim", "0.1", "0.1"], "init_std_per_dim has 2 entries but task 'cube-insertion' has 5-D"),
+])
+def test_eval_settings_the_run_cannot_use_are_refused_before_any_work(ckpts, tmp_path, capsys, extra, named):
+    out = tmp_path / "eval"
+    refused(capsys, ["eval", "--conditions", "1,7", "--episodes", "1", "--out", out, "--wam", ckpts / "tinywam",
+                     "--wm-augmented", ckpts / "wm_augmented", *extra], named)
+    assert not out.exists()
+
+
+def test_settings_stored_without_records_do_not_lock_the_folder(tmp_path):
+    """A run that stopped before its first record stored its settings; the corrected command replaces them."""
+    from wamplan.errors import UserError
+    from wamplan.evaluation.config import EvalConfig
+    from wamplan.evaluation.records import append_record
+    from wamplan.evaluation.runner import run_evaluation
+    from wamplan.planning.policy_config import PlannedPolicyConfig
+
+    out = tmp_path / "eval"
+    out.mkdir()
+    (out / "eval_config.json").write_text(json.dumps({"planner": "wamplan", "policy.replan_every": 5}))
+    cfg = EvalConfig(wam=str(MINI / "tinywam"), policy=PlannedPolicyConfig(replan_every=8))
+    run_evaluation(cfg, [1], [], out)  # no jobs: only the settings
+    assert json.loads((out / "eval_config.json").read_text())["policy.replan_every"] == 8
+    append_record(out, dict(condition=1, seed=0, variant="open-loop"))
+    with pytest.raises(UserError, match="holds an evaluation with other settings"):
+        run_evaluation(dataclasses.replace(cfg, policy=PlannedPolicyConfig(replan_every=4)), [1], [], out)
 
 
 # --------------------------------------------------------------------------------------------- /act requests

@@ -48,6 +48,12 @@ class EnvConfig:
         require(self.max_episode_steps is None or self.max_episode_steps > 0,
                 f"--max-episode-steps must be > 0, got {self.max_episode_steps}")
 
+    def require_views(self) -> None:
+        """One line if this env cannot render the task's camera views (``render_backend`` none), which every
+        policy of a WAM and every recorded episode needs."""
+        require(self.render_backend != "none", f"--render-backend none renders no camera views, but the task's "
+                f"views ({', '.join(self.spec.cameras)}) are needed here; pass --render-backend cpu (or gpu)")
+
     @property
     def spec(self) -> TaskSpec:
         return get_task(self.task)

@@ -174,14 +174,16 @@ def _store_settings(out: Path, now: dict[str, Any]) -> None:
     (out / "eval_config.json").write_text(json.dumps(now, indent=1, sort_keys=True) + "\n")
 
 
-def _settings_to_store(out: Path, cfg: EvalConfig) -> dict[str, Any]:
+def _settings_to_store(out: Path, cfg: EvalConfig, recorded: bool = True) -> dict[str, Any]:
     """Records of one directory must come from one configuration (see :func:`settings`); a world model
-    or simulator encoder not given before may be added later. Returns the settings to store (nothing is written)."""
+    or simulator encoder not given before may be added later. ``recorded``: ``out`` holds records; settings
+    stored without any (a run that failed before its first episode ended) bind nothing and are replaced.
+    Returns the settings to store (nothing is written)."""
     from wamplan.errors import UserError
 
     path = out / "eval_config.json"
     now = settings(cfg)
-    if path.is_file():
+    if path.is_file() and recorded:
         before = json.loads(path.read_text())
         ran = before.get("planner", "cem")  # a directory that names no planner was written when cem was the default
         if ran != now["planner"]:
@@ -234,7 +236,7 @@ def run_evaluation(cfg: EvalConfig, conditions: list[int], seeds: list[int], out
     # Seed-major order: a run stopped early (or fanned out and cut short) has every condition on the same
     # seeds, so its partial table still compares like with like.
     jobs = [(c, s) for s in seeds for c in conditions if (c, s, cfg.policy.first_chunk) not in done]
-    now = _settings_to_store(out, cfg)
+    now = _settings_to_store(out, cfg, recorded=bool(done))
     if jobs:
         _check_inputs(cfg, conditions)
     _store_settings(out, now)  # only now that the inputs loaded: a failed start leaves the directory free
