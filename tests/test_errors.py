@@ -262,6 +262,12 @@ def test_an_old_store_without_checksums_still_reads(expert_store, tmp_path, caps
     assert len(s.load(s.episode_paths()[0]).actions) > 0 and len(WAMSamples([store], split="all")[0]) > 0
 
 
+def test_training_on_a_source_the_store_does_not_hold(expert_store, tmp_path, capsys):
+    line = refused(capsys, ["wam", "train", "--data", expert_store, "--sources", "expert,nosuch", "--out",
+                            tmp_path / "wam"], "no episodes of source 'nosuch'", "their sources are expert")
+    assert "0 items" not in line
+
+
 def test_collect_refuses_a_store_of_another_source(expert_store, tmp_path, capsys):
     """The store's files under the expert's names hold another source's episodes: collect must not mix them."""
     store = Path(shutil.copytree(expert_store, tmp_path / "store"))
