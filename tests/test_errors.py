@@ -366,6 +366,9 @@ def _body(**changes) -> str:
     (_body(primary_image=np.zeros((8, 8, 3), np.float32)), 400, "has dtype float32, expected uint8"),
     (_body(proprio=np.array([np.nan] * 10, np.float32)), 400, "non-finite values"),
     (_body(proprio=np.zeros(7, np.float32)), 422, "expects 10-D proprio"),
+    (_body(left_wrist_image=np.zeros((8, 16, 3), np.uint8)), 400,
+     "'left_wrist_image' has shape (8, 16, 3) but 'primary_image' has (8, 8, 3)"),
+    ("[" * 100_000 + "]" * 100_000, 400, "nests JSON arrays or objects too deeply"),
 ])
 def test_bad_act_requests_get_a_4xx_and_the_reason(act_server, body, status, reason):
     r = requests.post(act_server.act_url, data=body, headers={"Content-Type": "application/json"}, timeout=10)
