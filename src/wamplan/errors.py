@@ -11,6 +11,10 @@ class UserError(Exception):
     """Bad input or a missing prerequisite; the message names the problem and the fix."""
 
 
+class TaskMismatch(UserError, ValueError):
+    """Two things made for different tasks (an env and a policy, a WAM and a world model, a store and a run)."""
+
+
 def require_paths(paths: Iterable[str], flag: str, fix: str) -> None:
     """One line for the first of ``paths`` that is empty or does not exist: "FLAG PATH does not exist; FIX"."""
     for path in paths:
