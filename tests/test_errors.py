@@ -310,6 +310,13 @@ def test_eval_settings_the_run_cannot_use_are_refused_before_any_work(ckpts, tmp
     assert not out.exists()
 
 
+def test_collect_without_a_renderer_is_refused_before_any_work(tmp_path, capsys):
+    out = tmp_path / "store"
+    refused(capsys, ["collect", "--source", "expert", "--episodes", "1", "--out", out, "--render-backend", "none"],
+            "--render-backend none renders no camera views", "pass --render-backend cpu")
+    assert not out.exists()
+
+
 def test_settings_stored_without_records_do_not_lock_the_folder(tmp_path):
     """A run that stopped before its first record stored its settings; the corrected command replaces them."""
     from wamplan.errors import UserError
