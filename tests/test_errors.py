@@ -83,6 +83,13 @@ def test_garbage_or_non_utf8_config(ckpts, tmp_path, capsys, damage):
     refused(capsys, ["wam", "serve", "--ckpt", wam], wam / "config.json")
 
 
+def test_a_config_without_a_kind_is_not_a_checkpoint_config(ckpts, tmp_path, capsys):
+    wam = _copy(ckpts, "tinywam", tmp_path)
+    (wam / "config.json").write_text("{}")
+    line = refused(capsys, ["wam", "serve", "--ckpt", wam], wam / "config.json", "is not a wamplan checkpoint config")
+    assert "None" not in line
+
+
 def test_config_that_no_longer_fits_the_weights(ckpts, tmp_path, capsys):
     wm = _copy(ckpts, "wm_augmented", tmp_path)
     meta = json.loads((wm / "config.json").read_text())
@@ -126,6 +133,21 @@ def test_number_lists_parse_ranges_and_refuse_garbage_in_one_line():
         int_list(" , ", "--seeds")
     with pytest.raises(UserError, match="--steps '160-128': the range 160-128 runs backwards; write 128-160"):
         int_list("160-128", "--steps")
+    from wamplan.evaluation.conditions import parse_conditions
+
+    with pytest.raises(UserError, match="--conditions '7-1': the range 7-1 runs backwards; write 1-7"):
+        parse_conditions("7-1")
+    with pytest.raises(UserError, match="--conditions needs at least one number, e.g. 1,6,7"):
+        parse_conditions("")
+
+
+def test_a_nan_gate_is_refused():
+    from wamplan.config import ConfigError
+    from wamplan.planning.policy_config import PlannedPolicyConfig
+
+    for name in ("gate_threshold", "gate_above"):
+        with pytest.raises(ConfigError, match=f"{name} is NaN"):
+            PlannedPolicyConfig(**{name: float("nan")})
 
 
 @pytest.mark.skipif(__import__("torch").cuda.is_available(), reason="this machine has CUDA")

@@ -117,7 +117,8 @@ def read_meta(path: str | Path) -> dict[str, Any]:
         raise CheckpointError(f"{p} is not a wamplan checkpoint (needs {CONFIG_FILE} and {MODEL_FILE}); "
                               f"train one first or fix the path")
     meta = read_json(p / CONFIG_FILE)
-    if not isinstance(meta, dict) or not isinstance(meta.get("config", {}), dict):
+    if not isinstance(meta, dict) or not isinstance(meta.get("kind"), str) or \
+            not isinstance(meta.get("config", {}), dict):
         raise CheckpointError(f"{p / CONFIG_FILE} is not a wamplan checkpoint config (a JSON object with 'kind' and "
                               f"'config'); restore the checkpoint from a copy or train it again")
     return meta
