@@ -417,6 +417,18 @@ def test_the_client_prints_the_servers_reason(act_server):
         client.predict(obs, "t")
 
 
+def test_serve_on_a_busy_port_announces_nothing(capsys):
+    import socket
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        refused(capsys, ["wam", "serve", "--ckpt", MINI / "tinywam", "--port", port], f"127.0.0.1:{port}",
+                "pick another --port")
+    assert "serving" not in refused.out
+
+
 # --------------------------------------------------------------------------------------------- the parser
 def test_argparse_errors_print_one_short_usage_line(capsys):
     for argv, said in ((["eval", "--out", "x", "--bogus"], "unrecognized arguments: --bogus"),

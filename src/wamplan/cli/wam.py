@@ -91,16 +91,22 @@ def _serve(args: argparse.Namespace) -> int:
 
     secret = args.secret if args.secret is not None else os.environ.get(protocol.SECRET_ENV) or None
     resolve_device(args.device)  # before loading anything
-    wam = load_wam(args.ckpt, device=args.device)
-    from wamplan.wam.server import serve
+    from wamplan.wam.server import bind_socket, serve
 
+    sock = bind_socket(args.host, args.port)  # a busy port fails here, before loading or announcing anything
+    try:
+        wam = load_wam(args.ckpt, device=args.device)
+    except BaseException:
+        sock.close()
+        raise
     failures = 'failures answered "error" (Cosmos Policy style)' if args.bare_errors else \
         "failures answered 4xx/5xx with a reason"
     print(f"serving WAM '{wam.name}' from {args.ckpt} at http://{args.host}:{args.port}/act "
           f"({'shared secret required' if secret else 'no shared secret'}; {failures}; health: /health)", flush=True)
     try:
         serve(wam, host=args.host, port=args.port, instruction_default=args.instruction, log_level=args.log_level,
-              secret=secret, max_request_bytes=int(args.max_request_mb * 2**20), bare_errors=args.bare_errors)
+              secret=secret, max_request_bytes=int(args.max_request_mb * 2**20), bare_errors=args.bare_errors,
+              sock=sock)
     finally:
         wam.close()
     return 0

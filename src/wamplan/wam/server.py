@@ -185,14 +185,16 @@ def is_loopback(host: str) -> bool:
 
 def serve(wam: WAM, host: str = DEFAULT_HOST, port: int = protocol.DEFAULT_PORT,
           instruction_default: str | None = None, log_level: str = "info", secret: str | None = None,
-          max_request_bytes: int = protocol.DEFAULT_MAX_REQUEST_BYTES, bare_errors: bool = False) -> None:
-    """Serve ``wam`` until interrupted (blocking)."""
+          max_request_bytes: int = protocol.DEFAULT_MAX_REQUEST_BYTES, bare_errors: bool = False,
+          sock: socket.socket | None = None) -> None:
+    """Serve ``wam`` until interrupted (blocking), on ``sock`` (from :func:`bind_socket`) or a socket bound to
+    ``host:port`` here."""
     app = create_app(wam, instruction_default, secret=secret, max_request_bytes=max_request_bytes,
                      bare_errors=bare_errors)
     if not is_loopback(host) and not secret:
         log.warning("listening on %s without a shared secret: anyone who reaches this port can query the WAM; "
                     "set $%s (or --secret)", host, protocol.SECRET_ENV)
-    sock = bind_socket(host, port)
+    sock = sock or bind_socket(host, port)
     config = uvicorn.Config(app, log_level=log_level)
     uvicorn.Server(config).run(sockets=[sock])
 
