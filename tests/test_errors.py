@@ -302,6 +302,22 @@ def test_collect_refuses_a_store_of_another_source(expert_store, tmp_path, capsy
     assert sorted(p.name for p in (store / "episodes").iterdir()) == before
 
 
+def test_importing_a_file_that_is_not_hdf5_leaves_nothing_beside_it(tmp_path, capsys):
+    traj = tmp_path / "demos" / "trajectory.h5"
+    traj.parent.mkdir()
+    traj.write_text("not an HDF5 file")
+    traj.with_suffix(".json").write_text(json.dumps({"env_info": {"env_id": "PegInsertionSide-v1", "env_kwargs": {
+        "control_mode": "pd_joint_pos"}}, "episodes": [{"episode_id": 0}]}))
+    line = refused(capsys, ["data", "import", traj, tmp_path / "store", "--format", "maniskill"], traj,
+                   "is not an HDF5 file")
+    assert "pd_joint_pos" not in line
+    assert sorted(p.name for p in traj.parent.iterdir()) == ["trajectory.h5", "trajectory.json"]
+    h5py.File(traj, "w").close()  # an HDF5 file, but its .json is not ManiSkill's
+    traj.with_suffix(".json").write_text("[]")
+    refused(capsys, ["data", "import", traj, tmp_path / "store", "--format", "maniskill"], traj.with_suffix(".json"),
+            "is not a ManiSkill trajectory's metadata")
+
+
 # ---------------------------------------------------------------------------------------- a failed start
 def test_a_failed_eval_start_does_not_lock_its_folder(ckpts, tmp_path, capsys):
     wam = _copy(ckpts, "tinywam", tmp_path)
