@@ -290,6 +290,17 @@ def test_training_on_a_source_the_store_does_not_hold(expert_store, tmp_path, ca
     assert "0 items" not in line
 
 
+def test_eval_refuses_to_write_into_a_store_or_a_training_run(expert_store, tmp_path, capsys):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "metrics.jsonl").write_text("{}\n")
+    for out in (expert_store, run):
+        before = sorted(p.name for p in out.iterdir())
+        refused(capsys, ["eval", "--conditions", "1", "--episodes", "1", "--out", out, "--wam", MINI / "tinywam"],
+                f"--out {out} exists and is not an evaluation directory", "pass a new or empty directory")
+        assert sorted(p.name for p in out.iterdir()) == before
+
+
 def test_collect_refuses_a_store_of_another_source(expert_store, tmp_path, capsys):
     """The store's files under the expert's names hold another source's episodes: collect must not mix them."""
     store = Path(shutil.copytree(expert_store, tmp_path / "store"))

@@ -43,6 +43,15 @@ def require_dir(path: str | Path, flag: str = "--out") -> Path:
     return p
 
 
+def require_own_dir(path: str | Path, marks: Iterable[str], what: str, flag: str = "--out") -> None:
+    """One line if ``path`` is a non-empty directory holding none of ``marks`` (the names that mark it as
+    ``what``): writing there would mix ``what`` into something else (an episode store, a training run)."""
+    p, marks = Path(path), tuple(marks)
+    if p.is_dir() and any(p.iterdir()) and not any((p / m).exists() for m in marks):
+        raise UserError(f"{flag} {p} exists and is not {what} (no {' or '.join(marks)} inside, it would be mixed "
+                        f"up); pass a new or empty directory")
+
+
 def require_writable(path: str | Path, flag: str = "--out") -> None:
     """One line unless files can be created in the directory ``path``, or, where it does not exist yet, in its
     nearest existing parent (where it will be created): a file in the way, a read-only filesystem or missing

@@ -28,12 +28,13 @@ from wamplan.config import to_dict
 from wamplan.envs.spec import check_same_task
 from wamplan.evaluation.conditions import CONDITIONS
 from wamplan.evaluation.config import EvalConfig
-from wamplan.evaluation.records import append_record, read_records, record_key
+from wamplan.evaluation.records import RECORDS, append_record, read_records, record_key
 from wamplan.parallel import Backend, imap_workers
 from wamplan.planning.dynamics import task_name
 from wamplan.planning.gates import DISCARDED
 from wamplan.planning.defaults import DEFAULT_PLANNER
 
+CONFIG = "eval_config.json"  # the settings every record of a directory shares (see settings)
 TRACE_EVERY = 4  # steps between the cube's privileged samples in a record's "trace" (evaluation/trace.py)
 
 
@@ -171,7 +172,7 @@ def _check_same_settings(out: Path, cfg: EvalConfig) -> None:
 
 
 def _store_settings(out: Path, now: dict[str, Any]) -> None:
-    (out / "eval_config.json").write_text(json.dumps(now, indent=1, sort_keys=True) + "\n")
+    (out / CONFIG).write_text(json.dumps(now, indent=1, sort_keys=True) + "\n")
 
 
 def _settings_to_store(out: Path, cfg: EvalConfig, recorded: bool = True) -> dict[str, Any]:
@@ -181,7 +182,7 @@ def _settings_to_store(out: Path, cfg: EvalConfig, recorded: bool = True) -> dic
     Returns the settings to store (nothing is written)."""
     from wamplan.errors import UserError
 
-    path = out / "eval_config.json"
+    path = out / CONFIG
     now = settings(cfg)
     if path.is_file() and recorded:
         before = json.loads(path.read_text())
@@ -227,10 +228,11 @@ def run_evaluation(cfg: EvalConfig, conditions: list[int], seeds: list[int], out
     """Run the missing (condition, seed) jobs on ``backend``, appending each record as it finishes (here, in the
     driver, whatever runs the episodes); yields the records. The checks (settings, inputs) run when this is
     called, before the first record is asked for."""
-    from wamplan.errors import require_dir
+    from wamplan.errors import require_dir, require_own_dir
 
     backend.check()
     out = require_dir(out_dir)
+    require_own_dir(out, (RECORDS, CONFIG), "an evaluation directory")  # not a store or a training run
     out.mkdir(parents=True, exist_ok=True)
     done = {record_key(r) for r in read_records(out, repair=True)}
     # Seed-major order: a run stopped early (or fanned out and cut short) has every condition on the same
