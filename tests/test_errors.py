@@ -456,6 +456,14 @@ def test_serve_on_a_busy_port_announces_nothing(capsys):
     assert "serving" not in refused.out
 
 
+def test_env_check_names_a_broken_vk_icd_filenames(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("VK_ICD_FILENAMES", str(tmp_path / "nosuch_icd.json"))
+    refused(capsys, ["env", "check"], "VK_ICD_FILENAMES=", "nosuch_icd.json does not exist", "unset it")
+    (tmp_path / "bad_icd.json").write_text("{not json")
+    monkeypatch.setenv("VK_ICD_FILENAMES", str(tmp_path / "bad_icd.json"))
+    refused(capsys, ["env", "check"], "VK_ICD_FILENAMES=", "cannot be read as JSON")
+
+
 # --------------------------------------------------------------------------------------------- the parser
 def test_argparse_errors_print_one_short_usage_line(capsys):
     for argv, said in ((["eval", "--out", "x", "--bogus"], "unrecognized arguments: --bogus"),

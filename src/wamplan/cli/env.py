@@ -97,8 +97,11 @@ def cmd_check(args: argparse.Namespace) -> int:
     import numpy as np
 
     from wamplan.envs.config import EnvConfig
-    from wamplan.envs.diagnose import diagnose_renderer, mesa_version
+    from wamplan.envs.diagnose import diagnose_renderer, driver_file_problem, mesa_version
 
+    bad = driver_file_problem()
+    if bad:  # before any renderer starts: its own error would not name the variable
+        raise UserError(bad)
     problems = diagnose_renderer()
     print(f"VK_ICD_FILENAMES={os.environ.get('VK_ICD_FILENAMES', '(unset)')}  mesa-vulkan-drivers={mesa_version()}")
     cfg = EnvConfig(task=args.task)
