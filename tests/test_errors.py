@@ -464,6 +464,15 @@ def test_env_check_names_a_broken_vk_icd_filenames(tmp_path, monkeypatch, capsys
     refused(capsys, ["env", "check"], "VK_ICD_FILENAMES=", "cannot be read as JSON")
 
 
+def test_report_of_a_condition_the_run_does_not_hold(tmp_path, capsys):
+    from wamplan.evaluation.records import append_record
+
+    run = tmp_path / "run"
+    run.mkdir()
+    append_record(run, dict(condition=1, seed=0, variant="open-loop", success=False, outcome="failure", length=10))
+    refused(capsys, ["report", run, f"{run}:5"], f"{run}:5", "no records of condition(s) [5]", "it has 1")
+
+
 # --------------------------------------------------------------------------------------------- the parser
 def test_argparse_errors_print_one_short_usage_line(capsys):
     for argv, said in ((["eval", "--out", "x", "--bogus"], "unrecognized arguments: --bogus"),
