@@ -71,6 +71,22 @@ def test_truncated_or_empty_weights(ckpts, tmp_path, capsys):
     refused(capsys, ["wam", "serve", "--ckpt", wam], weights)
 
 
+def test_nan_weights_are_damage_found_on_load(ckpts, tmp_path):
+    from safetensors.torch import load_file, save_file
+
+    wam = _copy(ckpts, "tinywam", tmp_path)
+    weights = load_file(str(wam / "model.safetensors"))
+    name = next(k for k, t in weights.items() if t.is_floating_point())
+    weights[name][...] = float("nan")
+    save_file(weights, str(wam / "model.safetensors"))
+    from wamplan.checkpoint import CheckpointError
+    from wamplan.wam import load_wam
+
+    with pytest.raises(CheckpointError, match=rf"model.safetensors is damaged: tensor\(s\) \['{re.escape(name)}'\] "
+                                              r"hold NaN"):
+        load_wam(wam, device="cpu")  # on load, before any query
+
+
 @pytest.mark.parametrize("damage", [b"{not json", b"\xff\xfe\x00garbage"])
 def test_garbage_or_non_utf8_config(ckpts, tmp_path, capsys, damage):
     wm = _copy(ckpts, "wm_augmented", tmp_path)
