@@ -265,6 +265,15 @@ def test_damaged_episode_is_named_by_check_view_and_encode(expert_store, tmp_pat
     refused(capsys, ["wm", "encode", "--data", store], bad, "damaged")
 
 
+def test_a_truncated_episode_is_not_counted_as_collected(expert_store, tmp_path, capsys):
+    store = Path(shutil.copytree(expert_store, tmp_path / "store"))
+    bad = sorted((store / "episodes").glob("*.h5"))[1]
+    _truncate(bad, bad.stat().st_size // 2)  # cut mid-file, as a full disk or a bad copy leaves it
+    refused(capsys, ["collect", "--source", "expert", "--episodes", "2", "--out", store, "--camera-size", "64"],
+            bad, "damaged", "re-run the same `wamplan collect`")
+    refused(capsys, ["data", "alignment", store], bad, "damaged")
+
+
 def test_data_check_lists_each_damaged_file(expert_store, tmp_path, capsys):
     store = Path(shutil.copytree(expert_store, tmp_path / "store"))
     first, second = sorted((store / "episodes").glob("*.h5"))
