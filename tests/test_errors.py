@@ -384,11 +384,14 @@ def test_eval_settings_the_run_cannot_use_are_refused_before_any_work(ckpts, tmp
     assert not out.exists()
 
 
-def test_collect_without_a_renderer_is_refused_before_any_work(tmp_path, capsys):
+def test_commands_that_need_views_refuse_no_renderer_before_any_work(tmp_path, capsys):
     out = tmp_path / "store"
-    refused(capsys, ["collect", "--source", "expert", "--episodes", "1", "--out", out, "--render-backend", "none"],
-            "--render-backend none renders no camera views", "pass --render-backend cpu")
-    assert not out.exists()
+    for argv in (["collect", "--source", "expert", "--episodes", "1", "--out", out],
+                 ["env", "render", "--out", tmp_path / "v.png"],
+                 ["env", "rollout", "--policy", MINI / "tinywam", "--episodes", "1"]):
+        refused(capsys, [*argv, "--render-backend", "none"], "--render-backend none renders no camera views",
+                "pass --render-backend cpu")
+    assert not out.exists() and not (tmp_path / "v.png").exists()
 
 
 def test_settings_stored_without_records_do_not_lock_the_folder(tmp_path):

@@ -27,7 +27,8 @@ class EnvConfig:
                                                 "task's)")
     sim_backend: str = field("physx_cpu", "ManiSkill sim backend: physx_cpu (one env per process) or physx_cuda "
                              "(cuda:N for a device)")
-    render_backend: str = field("cpu", "ManiSkill render backend: cpu (lavapipe), gpu, cuda:N (a device) or none")
+    render_backend: str = field("cpu", "ManiSkill render backend: cpu (lavapipe), gpu, cuda:N (a device), or none "
+                                "(no camera views: state-only rollouts; eval and collect refuse it)")
 
     def __post_init__(self):
         get_task(self.task)  # one line naming the registered tasks if unknown
