@@ -394,6 +394,15 @@ def test_commands_that_need_views_refuse_no_renderer_before_any_work(tmp_path, c
     assert not out.exists() and not (tmp_path / "v.png").exists()
 
 
+def test_a_replanning_period_the_world_model_cannot_roll_out_is_refused_before_settings_are_stored(ckpts, tmp_path,
+                                                                                                   capsys):
+    out = tmp_path / "eval"
+    refused(capsys, ["eval", "--conditions", "7", "--episodes", "1", "--out", out, "--wam", ckpts / "tinywam",
+                     "--wm-augmented", ckpts / "wm_augmented", "--replan-every", "2"],
+            "replan_every=2 must be a multiple of the world model's frameskip 4")
+    assert not (out / "eval_config.json").exists()
+
+
 def test_settings_stored_without_records_do_not_lock_the_folder(tmp_path):
     """A run that stopped before its first record stored its settings; the corrected command replaces them."""
     from wamplan.errors import UserError
