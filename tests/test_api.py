@@ -80,3 +80,28 @@ def test_the_tasks_are_part_of_the_api():
     assert wamplan.register_task is __import__("wamplan.envs.spec", fromlist=["x"]).register_task
     with pytest.raises(UserError, match="unknown task 'nope'; choose one of"):
         wamplan.make_env(task="nope")
+
+
+def test_a_dict_for_an_observation_says_how_to_make_one():
+    wam = wamplan.load_wam(WAM, device="cpu")
+    obs = {"proprio": np.zeros(10, np.float32)}
+    with pytest.raises(TypeError, match=r"PlannedPolicy.plan_chunk takes a wamplan.Observation, got a dict; take one "
+                                        r"from env.reset\(seed, with_images=True\)"):
+        wamplan.planned_policy(wam, WM, device="cpu").plan_chunk(obs)
+    from wamplan.wam import WAMPolicy
+
+    with pytest.raises(TypeError, match="WAMPolicy.act takes a wamplan.Observation, got a dict"):
+        WAMPolicy(wam).act(obs)
+
+
+def test_a_policy_in_an_env_of_another_task_fails_before_the_episode_in_python_terms():
+    from types import SimpleNamespace
+
+    from wamplan.errors import TaskMismatch
+    from wamplan.wam import WAMPolicy
+
+    env = SimpleNamespace(task=wamplan.get_task("stack-cube"))  # what run_episode reads before anything runs
+    with pytest.raises(TaskMismatch, match=r"made for task 'cube-insertion', but this run uses task 'stack-cube'; "
+                                           r"run it in make_env\(task='cube-insertion'\)") as e:
+        wamplan.run_episode(env, WAMPolicy(wamplan.load_wam(WAM, device="cpu")), seed=0)
+    assert isinstance(e.value, ValueError) and "--task" not in str(e.value)

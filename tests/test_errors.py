@@ -7,6 +7,7 @@ Each case runs ``wamplan`` in-process and stops before any episode runs, so the 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import re
 import shutil
@@ -70,6 +71,22 @@ def test_truncated_or_empty_weights(ckpts, tmp_path, capsys):
     refused(capsys, ["wam", "serve", "--ckpt", wam], weights)
 
 
+def test_nan_weights_are_damage_found_on_load(ckpts, tmp_path):
+    from safetensors.torch import load_file, save_file
+
+    wam = _copy(ckpts, "tinywam", tmp_path)
+    weights = load_file(str(wam / "model.safetensors"))
+    name = next(k for k, t in weights.items() if t.is_floating_point())
+    weights[name][...] = float("nan")
+    save_file(weights, str(wam / "model.safetensors"))
+    from wamplan.checkpoint import CheckpointError
+    from wamplan.wam import load_wam
+
+    with pytest.raises(CheckpointError, match=rf"model.safetensors is damaged: tensor\(s\) \['{re.escape(name)}'\] "
+                                              r"hold NaN"):
+        load_wam(wam, device="cpu")  # on load, before any query
+
+
 @pytest.mark.parametrize("damage", [b"{not json", b"\xff\xfe\x00garbage"])
 def test_garbage_or_non_utf8_config(ckpts, tmp_path, capsys, damage):
     wm = _copy(ckpts, "wm_augmented", tmp_path)
@@ -80,6 +97,13 @@ def test_garbage_or_non_utf8_config(ckpts, tmp_path, capsys, damage):
     wam = _copy(ckpts, "tinywam", tmp_path)
     (wam / "config.json").write_bytes(damage)
     refused(capsys, ["wam", "serve", "--ckpt", wam], wam / "config.json")
+
+
+def test_a_config_without_a_kind_is_not_a_checkpoint_config(ckpts, tmp_path, capsys):
+    wam = _copy(ckpts, "tinywam", tmp_path)
+    (wam / "config.json").write_text("{}")
+    line = refused(capsys, ["wam", "serve", "--ckpt", wam], wam / "config.json", "is not a wamplan checkpoint config")
+    assert "None" not in line
 
 
 def test_config_that_no_longer_fits_the_weights(ckpts, tmp_path, capsys):
@@ -125,6 +149,21 @@ def test_number_lists_parse_ranges_and_refuse_garbage_in_one_line():
         int_list(" , ", "--seeds")
     with pytest.raises(UserError, match="--steps '160-128': the range 160-128 runs backwards; write 128-160"):
         int_list("160-128", "--steps")
+    from wamplan.evaluation.conditions import parse_conditions
+
+    with pytest.raises(UserError, match="--conditions '7-1': the range 7-1 runs backwards; write 1-7"):
+        parse_conditions("7-1")
+    with pytest.raises(UserError, match="--conditions needs at least one number, e.g. 1,6,7"):
+        parse_conditions("")
+
+
+def test_a_nan_gate_is_refused():
+    from wamplan.config import ConfigError
+    from wamplan.planning.policy_config import PlannedPolicyConfig
+
+    for name in ("gate_threshold", "gate_above"):
+        with pytest.raises(ConfigError, match=f"{name} is NaN"):
+            PlannedPolicyConfig(**{name: float("nan")})
 
 
 @pytest.mark.skipif(__import__("torch").cuda.is_available(), reason="this machine has CUDA")
@@ -157,6 +196,52 @@ def test_out_that_is_a_file(tmp_path, capsys):
     refused(capsys, ["data", "info", f], f, "is a file")
 
 
+def _unwritable(tmp_path: Path) -> Path:
+    """A directory in which no file can be created: a 0o555 one (root ignores its mode: then /sys, which refuses
+    new files to root too); skips where neither holds."""
+    ro = tmp_path / "read_only"
+    ro.mkdir()
+    ro.chmod(0o555)
+    for d in (ro, Path("/sys")):
+        try:
+            (d / "probe").mkdir()
+        except OSError:
+            return d
+        (d / "probe").rmdir()
+    pytest.skip("no unwritable directory here")
+
+
+@pytest.mark.parametrize("argv", [
+    ["eval", "--conditions", "1", "--episodes", "1", "--wam", MINI / "tinywam"],
+    ["collect", "--source", "expert", "--episodes", "1"],
+    ["wm", "train", "--data", "nosuch"],
+    ["wam", "train", "--data", "nosuch"],
+])
+def test_out_that_cannot_be_written_before_any_work(tmp_path, capsys, argv):
+    ro = _unwritable(tmp_path)
+    refused(capsys, [*argv, "--out", ro / "out"], f"--out {ro / 'out'} cannot be written", "you can write")
+    in_the_way = tmp_path / "a_file"
+    in_the_way.write_text("x")
+    refused(capsys, [*argv, "--out", in_the_way / "out"], f"{in_the_way} is a file")
+
+
+def test_encoding_a_store_that_cannot_be_written(expert_store, tmp_path, capsys):
+    """wm encode writes its cache into the store: a store it cannot write is refused before any encoding; one whose
+    features are all cached is only read."""
+    store = Path(shutil.copytree(expert_store, tmp_path / "store"))
+    shutil.rmtree(store / "features", ignore_errors=True)
+    (store / "features").write_text("in the way")  # where the cache's directory must go
+    refused(capsys, ["wm", "encode", "--data", store], f"{store / 'features'} is a file")
+    (store / "features").unlink()
+    assert main(["wm", "encode", "--data", str(store)]) == 0
+    capsys.readouterr()
+    store.chmod(0o555)
+    try:
+        assert main(["wm", "encode", "--data", str(store)]) == 0  # all cached: nothing to write
+    finally:
+        store.chmod(0o755)
+
+
 # ------------------------------------------------------------------------------------------- damaged episodes
 def _damage_image_chunk(path: Path) -> None:
     """Overwrite 8 bytes in the middle of one stored image (a chunk of the data, not the file's structure)."""
@@ -178,6 +263,15 @@ def test_damaged_episode_is_named_by_check_view_and_encode(expert_store, tmp_pat
     assert f"damaged: {bad} (OSError" in refused.out  # listed above the error line, with HDF5's reason
     refused(capsys, ["data", "view", store, "--episode", "1", "--out", tmp_path / "s.png"], bad, "damaged")
     refused(capsys, ["wm", "encode", "--data", store], bad, "damaged")
+
+
+def test_a_truncated_episode_is_not_counted_as_collected(expert_store, tmp_path, capsys):
+    store = Path(shutil.copytree(expert_store, tmp_path / "store"))
+    bad = sorted((store / "episodes").glob("*.h5"))[1]
+    _truncate(bad, bad.stat().st_size // 2)  # cut mid-file, as a full disk or a bad copy leaves it
+    refused(capsys, ["collect", "--source", "expert", "--episodes", "2", "--out", store, "--camera-size", "64"],
+            bad, "damaged", "re-run the same `wamplan collect`")
+    refused(capsys, ["data", "alignment", store], bad, "damaged")
 
 
 def test_data_check_lists_each_damaged_file(expert_store, tmp_path, capsys):
@@ -215,6 +309,23 @@ def test_an_old_store_without_checksums_still_reads(expert_store, tmp_path, caps
     assert len(s.load(s.episode_paths()[0]).actions) > 0 and len(WAMSamples([store], split="all")[0]) > 0
 
 
+def test_training_on_a_source_the_store_does_not_hold(expert_store, tmp_path, capsys):
+    line = refused(capsys, ["wam", "train", "--data", expert_store, "--sources", "expert,nosuch", "--out",
+                            tmp_path / "wam"], "no episodes of source 'nosuch'", "their sources are expert")
+    assert "0 items" not in line
+
+
+def test_eval_refuses_to_write_into_a_store_or_a_training_run(expert_store, tmp_path, capsys):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "metrics.jsonl").write_text("{}\n")
+    for out in (expert_store, run):
+        before = sorted(p.name for p in out.iterdir())
+        refused(capsys, ["eval", "--conditions", "1", "--episodes", "1", "--out", out, "--wam", MINI / "tinywam"],
+                f"--out {out} exists and is not an evaluation directory", "pass a new or empty directory")
+        assert sorted(p.name for p in out.iterdir()) == before
+
+
 def test_collect_refuses_a_store_of_another_source(expert_store, tmp_path, capsys):
     """The store's files under the expert's names hold another source's episodes: collect must not mix them."""
     store = Path(shutil.copytree(expert_store, tmp_path / "store"))
@@ -225,6 +336,22 @@ def test_collect_refuses_a_store_of_another_source(expert_store, tmp_path, capsy
     refused(capsys, ["collect", "--source", "expert", "--episodes", "3", "--out", store, "--camera-size", "64"],
             store, "holds episodes of source 'policy:expert'")
     assert sorted(p.name for p in (store / "episodes").iterdir()) == before
+
+
+def test_importing_a_file_that_is_not_hdf5_leaves_nothing_beside_it(tmp_path, capsys):
+    traj = tmp_path / "demos" / "trajectory.h5"
+    traj.parent.mkdir()
+    traj.write_text("not an HDF5 file")
+    traj.with_suffix(".json").write_text(json.dumps({"env_info": {"env_id": "PegInsertionSide-v1", "env_kwargs": {
+        "control_mode": "pd_joint_pos"}}, "episodes": [{"episode_id": 0}]}))
+    line = refused(capsys, ["data", "import", traj, tmp_path / "store", "--format", "maniskill"], traj,
+                   "is not an HDF5 file")
+    assert "pd_joint_pos" not in line
+    assert sorted(p.name for p in traj.parent.iterdir()) == ["trajectory.h5", "trajectory.json"]
+    h5py.File(traj, "w").close()  # an HDF5 file, but its .json is not ManiSkill's
+    traj.with_suffix(".json").write_text("[]")
+    refused(capsys, ["data", "import", traj, tmp_path / "store", "--format", "maniskill"], traj.with_suffix(".json"),
+            "is not a ManiSkill trajectory's metadata")
 
 
 # ---------------------------------------------------------------------------------------- a failed start
@@ -240,6 +367,59 @@ def test_a_failed_eval_start_does_not_lock_its_folder(ckpts, tmp_path, capsys):
     (wam / "model.safetensors").write_bytes(weights)  # the mistake fixed, the same command again
     assert main([str(a) for a in argv]) == 0
     assert json.loads((out / "eval_config.json").read_text())["wam"] == str(wam)
+
+
+@pytest.mark.parametrize("extra, named", [
+    (["--render-backend", "none"], "--render-backend none renders no camera views"),
+    (["--cost-view-weights", "1", "1"], "--cost-view-weights gives 2 weights, but task 'cube-insertion' has 3"),
+    (["--replan-every", "5"], "replan_every=5 must divide the WAM's 16-step chunk"),
+    (["--replan-every", "8", "--num-optimized", "8"], "drop --num-optimized or --replan-every"),
+    (["--num-optimized", "20"], "num_optimized=20 exceeds task 'cube-insertion''s 16-step chunk"),
+    (["--init-std-per-dim", "0.1", "0.1"], "init_std_per_dim has 2 entries but task 'cube-insertion' has 5-D"),
+])
+def test_eval_settings_the_run_cannot_use_are_refused_before_any_work(ckpts, tmp_path, capsys, extra, named):
+    out = tmp_path / "eval"
+    refused(capsys, ["eval", "--conditions", "1,7", "--episodes", "1", "--out", out, "--wam", ckpts / "tinywam",
+                     "--wm-augmented", ckpts / "wm_augmented", *extra], named)
+    assert not out.exists()
+
+
+def test_commands_that_need_views_refuse_no_renderer_before_any_work(tmp_path, capsys):
+    out = tmp_path / "store"
+    for argv in (["collect", "--source", "expert", "--episodes", "1", "--out", out],
+                 ["env", "render", "--out", tmp_path / "v.png"],
+                 ["env", "rollout", "--policy", MINI / "tinywam", "--episodes", "1"]):
+        refused(capsys, [*argv, "--render-backend", "none"], "--render-backend none renders no camera views",
+                "pass --render-backend cpu")
+    assert not out.exists() and not (tmp_path / "v.png").exists()
+
+
+def test_a_replanning_period_the_world_model_cannot_roll_out_is_refused_before_settings_are_stored(ckpts, tmp_path,
+                                                                                                   capsys):
+    out = tmp_path / "eval"
+    refused(capsys, ["eval", "--conditions", "7", "--episodes", "1", "--out", out, "--wam", ckpts / "tinywam",
+                     "--wm-augmented", ckpts / "wm_augmented", "--replan-every", "2"],
+            "replan_every=2 must be a multiple of the world model's frameskip 4")
+    assert not (out / "eval_config.json").exists()
+
+
+def test_settings_stored_without_records_do_not_lock_the_folder(tmp_path):
+    """A run that stopped before its first record stored its settings; the corrected command replaces them."""
+    from wamplan.errors import UserError
+    from wamplan.evaluation.config import EvalConfig
+    from wamplan.evaluation.records import append_record
+    from wamplan.evaluation.runner import run_evaluation
+    from wamplan.planning.policy_config import PlannedPolicyConfig
+
+    out = tmp_path / "eval"
+    out.mkdir()
+    (out / "eval_config.json").write_text(json.dumps({"planner": "wamplan", "policy.replan_every": 5}))
+    cfg = EvalConfig(wam=str(MINI / "tinywam"), policy=PlannedPolicyConfig(replan_every=8))
+    run_evaluation(cfg, [1], [], out)  # no jobs: only the settings
+    assert json.loads((out / "eval_config.json").read_text())["policy.replan_every"] == 8
+    append_record(out, dict(condition=1, seed=0, variant="open-loop"))
+    with pytest.raises(UserError, match="holds an evaluation with other settings"):
+        run_evaluation(dataclasses.replace(cfg, policy=PlannedPolicyConfig(replan_every=4)), [1], [], out)
 
 
 # --------------------------------------------------------------------------------------------- /act requests
@@ -281,6 +461,9 @@ def _body(**changes) -> str:
     (_body(primary_image=np.zeros((8, 8, 3), np.float32)), 400, "has dtype float32, expected uint8"),
     (_body(proprio=np.array([np.nan] * 10, np.float32)), 400, "non-finite values"),
     (_body(task_description="fold the shirt"), 422, "knows only the instruction 't'"),
+    (_body(left_wrist_image=np.zeros((8, 16, 3), np.uint8)), 400,
+     "'left_wrist_image' has shape (8, 16, 3) but 'primary_image' has (8, 8, 3)"),
+    ("[" * 100_000 + "]" * 100_000, 400, "nests JSON arrays or objects too deeply"),
 ])
 def test_bad_act_requests_get_a_4xx_and_the_reason(act_server, body, status, reason):
     r = requests.post(act_server.act_url, data=body, headers={"Content-Type": "application/json"}, timeout=10)
@@ -299,6 +482,35 @@ def test_the_client_prints_the_servers_reason(act_server):
     with pytest.raises(WAMServerError, match=r"refused the request \(HTTP 422: the WAM 'strict' cannot answer this "
                                              r"request: knows only the instruction 't', got 'fold'\)"):
         client.predict(obs, "fold")
+
+
+def test_serve_on_a_busy_port_announces_nothing(capsys):
+    import socket
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        refused(capsys, ["wam", "serve", "--ckpt", MINI / "tinywam", "--port", port], f"127.0.0.1:{port}",
+                "pick another --port")
+    assert "serving" not in refused.out
+
+
+def test_env_check_names_a_broken_vk_icd_filenames(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("VK_ICD_FILENAMES", str(tmp_path / "nosuch_icd.json"))
+    refused(capsys, ["env", "check"], "VK_ICD_FILENAMES=", "nosuch_icd.json does not exist", "unset it")
+    (tmp_path / "bad_icd.json").write_text("{not json")
+    monkeypatch.setenv("VK_ICD_FILENAMES", str(tmp_path / "bad_icd.json"))
+    refused(capsys, ["env", "check"], "VK_ICD_FILENAMES=", "cannot be read as JSON")
+
+
+def test_report_of_a_condition_the_run_does_not_hold(tmp_path, capsys):
+    from wamplan.evaluation.records import append_record
+
+    run = tmp_path / "run"
+    run.mkdir()
+    append_record(run, dict(condition=1, seed=0, variant="open-loop", success=False, outcome="failure", length=10))
+    refused(capsys, ["report", run, f"{run}:5"], f"{run}:5", "no records of condition(s) [5]", "it has 1")
 
 
 # --------------------------------------------------------------------------------------------- the parser

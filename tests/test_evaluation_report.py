@@ -206,7 +206,9 @@ def test_report_merges_runs_of_different_conditions(tmp_path, capsys):
     assert main(["report", str(merged), str(c7)]) == 2
     assert "condition 7 (open-loop) seed 0 is in both" in capsys.readouterr().err
     assert not (merged / "report.md").exists()
-    assert main(["report", str(merged), f"{c7}:1"]) == 0  # only condition 1 of that run: none, no clash
+    assert main(["report", str(merged), f"{c1}:1"]) == 0  # only the conditions named: no clash
+    assert main(["report", str(merged), f"{c7}:1"]) == 2  # a condition that run does not hold is named
+    assert "holds no records of condition(s) [1]" in capsys.readouterr().err
     assert main(["report", str(merged), str(tmp_path / "missing")]) == 2
     assert "has no evaluation records" in capsys.readouterr().err
 

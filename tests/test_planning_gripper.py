@@ -140,7 +140,7 @@ def test_the_gripper_settings_come_from_the_task():
     mine = CEMGripperConfig(gripper_dim=2, gripper_open=0.5, gripper_closed=-1.0, init_std_per_dim=(0.1,) * 7)
     assert mine.for_task(seven) is mine  # settings given stay as given
     p = make_planner("cem-gripper")
-    assert p.for_task(CUBE) is not p and planner(mine).for_task(seven).config is mine
+    assert p.for_task(CUBE) is not p and make_planner("cem-gripper", mine).for_task(seven).config is mine
     with pytest.raises(ConfigError, match="build the planned policy for a task"):
         p.plan(grasp_seed(), toy_cost(step_gripper(8)), seed=0)  # nothing filled it
     no_gripper = maniskill_task("Toy-v1", name="toy", cameras=("c",), action_dim=6, proprio_dim=3,

@@ -117,7 +117,8 @@ def read_meta(path: str | Path) -> dict[str, Any]:
         raise CheckpointError(f"{p} is not a wamplan checkpoint (needs {CONFIG_FILE} and {MODEL_FILE}); "
                               f"train one first or fix the path")
     meta = read_json(p / CONFIG_FILE)
-    if not isinstance(meta, dict) or not isinstance(meta.get("config", {}), dict):
+    if not isinstance(meta, dict) or not isinstance(meta.get("kind"), str) or \
+            not isinstance(meta.get("config", {}), dict):
         raise CheckpointError(f"{p / CONFIG_FILE} is not a wamplan checkpoint config (a JSON object with 'kind' and "
                               f"'config'); restore the checkpoint from a copy or train it again")
     return meta
@@ -133,12 +134,18 @@ def read_config(path: str | Path, kind: str) -> dict[str, Any]:
 
 
 def load_tensors(path: str | Path, device: str | torch.device = "cpu") -> dict[str, torch.Tensor]:
-    """The tensors of a safetensors file; a truncated or damaged one is a one-line error naming it."""
+    """The tensors of a safetensors file; a truncated or damaged one, or one whose tensors hold NaN (damage, or a
+    run that diverged: no model computes with them), is a one-line error naming it, found here, on load."""
     try:
-        return load_file(str(path), device=str(device))
+        tensors = load_file(str(path), device=str(device))
     except SafetensorError as e:
         raise CheckpointError(f"{path} is damaged or incomplete ({e}); restore it from a copy or train the "
                               f"checkpoint again") from None
+    bad = [k for k, t in tensors.items() if t.is_floating_point() and bool(torch.isnan(t).any())]
+    if bad:
+        raise CheckpointError(f"{path} is damaged: tensor(s) {bad[:3]}{' ...' if len(bad) > 3 else ''} hold NaN "
+                              f"(or its training diverged); restore it from a copy or train the checkpoint again")
+    return tensors
 
 
 def load_weights(path: str | Path, model: torch.nn.Module, device: str | torch.device = "cpu",

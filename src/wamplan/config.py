@@ -90,22 +90,23 @@ def from_dict(cls: type[T], data: dict[str, Any]) -> T:
     return cls(**kwargs)
 
 
-def int_list(spec: str, flag: str) -> list[int]:
+def int_list(spec: str, flag: str, example: str = "500-503 or 500,510") -> list[int]:
     """The integers of a command-line list such as ``500-503,510`` (ranges inclusive), in the order given.
 
-    A malformed, backward or empty ``spec`` raises :class:`UserError` naming ``flag`` and the expected form."""
+    A malformed, backward or empty ``spec`` raises :class:`UserError` naming ``flag`` and the expected form
+    (``example``)."""
     out: list[int] = []
     for part in (p.strip() for p in spec.split(",") if p.strip()):
         lo, _, hi = part.partition("-")
         try:
             first, last = int(lo), int(hi or lo)
         except ValueError:
-            raise UserError(f"{flag} '{spec}' is not a list like 500-503 or 500,510") from None
+            raise UserError(f"{flag} '{spec}' is not a list like {example}") from None
         if last < first:
             raise UserError(f"{flag} '{spec}': the range {part} runs backwards; write {last}-{first}")
         out.extend(range(first, last + 1))
     if not out:
-        raise UserError(f"{flag} needs at least one number, e.g. 500-503")
+        raise UserError(f"{flag} needs at least one number, e.g. {example.split(' or ')[0]}")
     return out
 
 

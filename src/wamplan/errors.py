@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import tempfile
 from pathlib import Path
 from typing import Iterable
 
 
 class UserError(Exception):
     """Bad input or a missing prerequisite; the message names the problem and the fix."""
+
+
+class TaskMismatch(UserError, ValueError):
+    """Two things made for different tasks (an env and a policy, a WAM and a world model, a store and a run)."""
 
 
 def require_paths(paths: Iterable[str], flag: str, fix: str) -> None:
@@ -29,11 +34,42 @@ def require_seeds(first: int, count: int = 1, flag: str = "--seed-start") -> Non
 
 
 def require_dir(path: str | Path, flag: str = "--out") -> Path:
-    """``path`` as a directory to write into (created later if missing); one line if it is an existing file."""
+    """``path`` as a directory to write into (created later if missing); one line, before any work, if it is an
+    existing file or cannot be written (:func:`require_writable`)."""
     p = Path(path)
     if p.exists() and not p.is_dir():
         raise UserError(f"{flag} {p} is a file, not a directory; pass a directory (a new one is created)")
+    require_writable(p, flag)
     return p
+
+
+def require_own_dir(path: str | Path, marks: Iterable[str], what: str, flag: str = "--out") -> None:
+    """One line if ``path`` is a non-empty directory holding none of ``marks`` (the names that mark it as
+    ``what``): writing there would mix ``what`` into something else (an episode store, a training run)."""
+    p, marks = Path(path), tuple(marks)
+    if p.is_dir() and any(p.iterdir()) and not any((p / m).exists() for m in marks):
+        raise UserError(f"{flag} {p} exists and is not {what} (no {' or '.join(marks)} inside, it would be mixed "
+                        f"up); pass a new or empty directory")
+
+
+def require_writable(path: str | Path, flag: str = "--out") -> None:
+    """One line unless files can be created in the directory ``path``, or, where it does not exist yet, in its
+    nearest existing parent (where it will be created): a file in the way, a read-only filesystem or missing
+    permissions. The check creates (and at once removes) a nameless file there, so it sees what the filesystem
+    allows, whoever runs it."""
+    p = Path(path)
+    probe = p.absolute()
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    if not probe.is_dir():
+        raise UserError(f"{flag} {p}: {probe} is a file, so no directory can be made under it; pass a path whose "
+                        f"parents are directories")
+    try:
+        with tempfile.TemporaryFile(dir=probe):
+            pass
+    except OSError as e:
+        raise UserError(f"{flag} {p} cannot be written ({e.strerror or reason(e)} in {probe}); pass a directory you can write "
+                        f"to (or make it writable)") from None
 
 
 def require_file(path: str | Path | None, flag: str) -> Path | None:

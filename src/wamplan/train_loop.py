@@ -38,7 +38,7 @@ from torch.utils.data import DataLoader, Dataset
 from wamplan.checkpoint import (CKPT_DIR, CONFIG_FILE, STATE_DIR, has_training_state, load_training_state,
                                 load_weights, read_config, save_checkpoint)
 from wamplan.config import field, require
-from wamplan.errors import SEED_LIMIT, UserError
+from wamplan.errors import SEED_LIMIT, UserError, require_own_dir
 from wamplan.optim import make_adamw, optimizer_step, warmup_cosine
 from wamplan.progress import progress_bar
 
@@ -155,9 +155,7 @@ def check_run_dir(run_dir: str | Path, what: str = "a training run") -> None:
     if (run / CONFIG_FILE).is_file():
         raise UserError(f"--out {run} is a checkpoint directory itself (the layout before run directories); it "
                         f"still loads for inference, but train into a new --out")
-    if run.is_dir() and any(run.iterdir()) and not (run / CKPT_DIR).exists() and not (run / METRICS_FILE).exists():
-        raise UserError(f"--out {run} exists and is not {what} (no {CKPT_DIR}/ inside, it would be mixed up); "
-                        f"pass a new or empty directory")
+    require_own_dir(run, (f"{CKPT_DIR}/", METRICS_FILE), what)
 
 
 def saved_progress(run_dir: str | Path) -> dict[str, Any] | None:

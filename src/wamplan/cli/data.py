@@ -168,6 +168,8 @@ def cmd_collect(args: argparse.Namespace) -> int:
 
     require_seeds(args.seed_start, args.episodes)
     require_dir(args.out)
+    env = from_args(EnvConfig, args)
+    env.require_views()  # every episode records the task's views
     branch = None
     if args.branch_steps and not args.branches:
         raise UserError("--branch-steps chooses where to branch: add --branches N (branches per boundary)")
@@ -183,7 +185,7 @@ def cmd_collect(args: argparse.Namespace) -> int:
                             context_steps=args.branch_context, steps=steps)
     summary = collect(args.source, args.episodes, args.out, seed_start=args.seed_start, workers=args.workers,
                       policy=args.policy, image_every=args.image_every, max_steps=args.max_steps,
-                      env=from_args(EnvConfig, args), loader=load_policy, backend=Backend.from_option(args.ray),
+                      env=env, loader=load_policy, backend=Backend.from_option(args.ray),
                       branch=branch, policy_kwargs=expert_kwargs(args), plan_with=args.plan_with)
     print(json.dumps(summary))
     return 0

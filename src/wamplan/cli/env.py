@@ -97,8 +97,11 @@ def cmd_check(args: argparse.Namespace) -> int:
     import numpy as np
 
     from wamplan.envs.config import EnvConfig
-    from wamplan.envs.diagnose import diagnose_renderer, mesa_version
+    from wamplan.envs.diagnose import diagnose_renderer, driver_file_problem, mesa_version
 
+    bad = driver_file_problem()
+    if bad:  # before any renderer starts: its own error would not name the variable
+        raise UserError(bad)
     problems = diagnose_renderer()
     print(f"VK_ICD_FILENAMES={os.environ.get('VK_ICD_FILENAMES', '(unset)')}  mesa-vulkan-drivers={mesa_version()}")
     cfg = EnvConfig(task=args.task)
@@ -142,7 +145,9 @@ def cmd_render(args: argparse.Namespace) -> int:
 
     require_seeds(args.seed, flag="--seed")
     require_file(args.out, "--out")
-    env = TaskEnv(from_args(EnvConfig, args))
+    cfg = from_args(EnvConfig, args)
+    cfg.require_views()
+    env = TaskEnv(cfg)
     obs = env.reset(args.seed, with_images=True)
     save_views(obs.images, args.out)
     print(f"wrote {args.out} ({' | '.join(env.task.cameras)}, seed {args.seed})")
@@ -168,6 +173,8 @@ def cmd_rollout(args: argparse.Namespace) -> int:
         require_dir(args.video, "--video")
     cfg = from_args(EnvConfig, args)
     policy = load_policy(args.policy, args.instruction, task=cfg.spec)
+    if args.video is not None or policy.wants_images(0):  # a video, or a policy that reads the views
+        cfg.require_views()
     env = TaskEnv(cfg)
     records, counts = [], Counter()
     seeds = range(args.seed_start, args.seed_start + args.episodes)

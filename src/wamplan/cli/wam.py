@@ -95,11 +95,16 @@ def _serve(args: argparse.Namespace) -> int:
 
     secret = args.secret if args.secret is not None else os.environ.get(protocol.SECRET_ENV) or None
     resolve_device(args.device)  # before loading anything
-    wam = load_wam(args.ckpt, device=args.device)
-    from wamplan.wam.server import serve
+    from wamplan.wam.server import bind_socket, serve
 
     from wamplan.wam.server import field_map, resolve_maps
 
+    sock = bind_socket(args.host, args.port)  # a busy port fails here, before loading or announcing anything
+    try:
+        wam = load_wam(args.ckpt, device=args.device)
+    except BaseException:
+        sock.close()
+        raise
     errors = "upstream" if args.bare_errors else args.errors
     failures = 'failures answered HTTP 200 "error" (upstream error mode)' if errors == "upstream" else \
         "failures answered 4xx/5xx with a reason"
@@ -109,7 +114,7 @@ def _serve(args: argparse.Namespace) -> int:
           f"{wam.task.proprio_dim}; {wam.chunk_length} x {wam.action_dim} actions", flush=True)
     try:
         serve(wam, host=args.host, port=args.port, instruction_default=args.instruction, log_level=args.log_level,
-              secret=secret, max_request_bytes=int(args.max_request_mb * 2**20), errors=errors)
+              secret=secret, max_request_bytes=int(args.max_request_mb * 2**20), errors=errors, sock=sock)
     finally:
         wam.close()
     return 0

@@ -174,6 +174,8 @@ def collect(source: str, episodes: int, out: str | Path, *, seed_start: int = 0,
         log(f"removed {n} partial episode file(s) left by an interrupted run")
     store.check_source(tag)
     have = store.finished_seeds(tag) & set(seeds)
+    for seed in sorted(have):  # a file that does not open as an episode is not done: one line naming it
+        store.meta(store.episode_path(tag, seed))
     if have:
         log(f"resuming: {len(have)} of {len(seeds)} episodes already in {out}")
     if len(have) < len(seeds) and not checked:

@@ -48,20 +48,31 @@ def check_features(path: str | Path, key: str) -> None:
 
 
 def encode_store(root: str | Path, encoder, batch_size: int = 64) -> Iterator[str]:
-    """Encode every episode of ``root`` not yet cached; yields the episode names as they finish."""
+    """Encode every episode of ``root`` not yet cached; yields the episode names as they finish. A store whose
+    features are all cached is only read (it may be read-only); one that needs encoding and cannot be written
+    is refused in one line before any encoding."""
+    from wamplan.errors import require_writable
+
     store = EpisodeStore(root)
     cameras = store.cameras
     key = feature_key(encoder.config_dict())
     out_dir = feature_dir(root, key)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    for p in out_dir.glob(TMP_PREFIX + "*"):
-        p.unlink()
-    cfg = json.dumps(encoder.config_dict())
+    todo = []
     for path in store.episode_paths():
         final = out_dir / f"{path.stem}.h5"
         if final.exists():
             check_features(final, key)
-            continue
+        else:
+            todo.append(path)
+    if not todo:
+        return
+    require_writable(out_dir, "--data")  # the cache lives in the store
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for p in out_dir.glob(TMP_PREFIX + "*"):
+        p.unlink()
+    cfg = json.dumps(encoder.config_dict())
+    for path in todo:
+        final = out_dir / f"{path.stem}.h5"
         with store.open_episode(path) as f:
             frames = {c: f["images"][c][:] for c in cameras}  # (K, H, W, 3) each
         views = [encoder.encode_batched(frames[c], batch_size) for c in cameras]  # V x (K, N, D)

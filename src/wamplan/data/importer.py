@@ -21,11 +21,13 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import h5py
+
 from wamplan.data.collect import collect
 from wamplan.data.store import EpisodeStore
 from wamplan.envs.config import EnvConfig
 from wamplan.envs.spec import TASKS, TaskSpec, get_task
-from wamplan.errors import UserError
+from wamplan.errors import UserError, reason
 from wamplan.parallel import Backend
 from wamplan.policies.replay import trajectory_episodes
 
@@ -40,8 +42,15 @@ def read_trajectory_info(path: Path) -> dict[str, Any]:
     meta = path.with_suffix(".json")
     if not meta.is_file():
         raise UserError(f"{meta} is missing: a ManiSkill trajectory is an .h5 file with a .json of the same name")
-    info = json.loads(meta.read_text())["env_info"]
-    return dict(env_id=info["env_id"], control_mode=info["env_kwargs"].get("control_mode"))
+    if not h5py.is_hdf5(path):
+        raise UserError(f"{path} is not an HDF5 file, so not a ManiSkill trajectory; pass the .h5 that ManiSkill "
+                        f"wrote (its .json lies beside it)")
+    try:
+        info = json.loads(meta.read_text(encoding="utf-8"))["env_info"]
+        return dict(env_id=info["env_id"], control_mode=info["env_kwargs"].get("control_mode"))
+    except (ValueError, KeyError, TypeError, AttributeError) as e:  # not JSON, or not ManiSkill's layout
+        raise UserError(f"{meta} is not a ManiSkill trajectory's metadata ({reason(e)}); pass the .h5 and .json "
+                        f"that ManiSkill wrote") from None
 
 
 def task_for(env_id: str, task: str | None) -> TaskSpec:
@@ -75,6 +84,8 @@ def convert(path: Path, control_mode: str, count: int | None = None, workers: in
            "--allow-failure", "--count", str(want), "-n", str(workers)]
     done = subprocess.run(cmd, capture_output=True, text=True)
     if done.returncode != 0 or not out.is_file():
+        for left in (out, out.with_suffix(".json")):  # a failed conversion leaves nothing beside the input
+            left.unlink(missing_ok=True)
         lines = [ln for ln in (done.stderr + done.stdout).splitlines() if ln.strip() and "step/s" not in ln]
         raise UserError(f"ManiSkill could not convert {path} to {control_mode} ({(lines or ['no output'])[-1].strip()});"
                         f" its replay tool converts from pd_joint_pos trajectories (record or replay them in it)")

@@ -58,10 +58,11 @@ class EpisodeRef:
 
 def index_episodes(stores: Sequence[str | Path], split: str = "all", val_fraction: float = 0.1,
                    features: str | None = None, sources: Sequence[str] | None = None) -> list[EpisodeRef]:
-    """The episodes of ``stores`` in ``split`` ('train', 'val' or 'all'), optionally only some sources."""
+    """The episodes of ``stores`` in ``split`` ('train', 'val' or 'all'), optionally only some sources (one line
+    naming the stores' sources if one of ``sources`` is none of them)."""
     if split not in ("train", "val", "all"):
         raise ValueError(f"split must be train, val or all, got {split!r}")
-    refs, envs = [], {}
+    refs, envs, seen = [], {}, set()
     for root in stores:
         store = EpisodeStore(root)
         envs[str(root)] = dict(store.env, cameras=list(store.cameras))
@@ -76,6 +77,7 @@ def index_episodes(stores: Sequence[str | Path], split: str = "all", val_fractio
                 check_features(feat, features)
             with store.open_episode(p) as f:
                 src, seed = str(f.attrs["source"]), int(f.attrs["seed"])
+                seen.add(src)
                 if sources is not None and src not in sources:
                     continue
                 if split != "all" and split_of(src, seed, val_fraction) != split:
@@ -86,6 +88,11 @@ def index_episodes(stores: Sequence[str | Path], split: str = "all", val_fractio
                                  int(json.loads(f.attrs["provenance"])["start_step"]))
                 refs.append(EpisodeRef(str(p), src, seed, int(f.attrs["length"]),
                                        tuple(int(s) for s in f["image_steps"][:]), store.image_every, feat, branch_at))
+    unknown = [s for s in sources or () if s not in seen]
+    if unknown:
+        raise StoreError(f"the stores {[str(r) for r in stores]} hold no episodes of source "
+                         f"{', '.join(repr(s) for s in unknown)}; their sources are {', '.join(sorted(seen)) or 'none'}"
+                         f" (`wamplan data info` lists them); choose among those")
     if len({json.dumps(e, sort_keys=True) for e in envs.values()}) > 1:
         tasks = sorted({e["task"] for e in envs.values()})
         what = f"for different tasks ({', '.join(tasks)})" if len(tasks) > 1 else "with different env settings"

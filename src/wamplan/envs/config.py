@@ -27,7 +27,8 @@ class EnvConfig:
                                                 "task's)")
     sim_backend: str = field("physx_cpu", "ManiSkill sim backend: physx_cpu (one env per process) or physx_cuda "
                              "(cuda:N for a device)")
-    render_backend: str = field("cpu", "ManiSkill render backend: cpu (lavapipe), gpu, cuda:N (a device) or none")
+    render_backend: str = field("cpu", "ManiSkill render backend: cpu (lavapipe), gpu, cuda:N (a device), or none "
+                                "(no camera views: state-only rollouts; eval and collect refuse it)")
 
     def __post_init__(self):
         get_task(self.task)  # one line naming the registered tasks if unknown
@@ -47,6 +48,12 @@ class EnvConfig:
                 f"--clearance must be in (0, --cube-half-size={self.cube_half_size}), got {self.clearance}")
         require(self.max_episode_steps is None or self.max_episode_steps > 0,
                 f"--max-episode-steps must be > 0, got {self.max_episode_steps}")
+
+    def require_views(self) -> None:
+        """One line if this env cannot render the task's camera views (``render_backend`` none), which every
+        policy of a WAM and every recorded episode needs."""
+        require(self.render_backend != "none", f"--render-backend none renders no camera views, but the task's "
+                f"views ({', '.join(self.spec.cameras)}) are needed here; pass --render-backend cpu (or gpu)")
 
     @property
     def spec(self) -> TaskSpec:

@@ -136,10 +136,19 @@ def get_task(task: "str | TaskSpec") -> TaskSpec:
     return task if isinstance(task, TaskSpec) else TASKS.lookup(task)
 
 
-def check_same_task(expected: str, found: str | None, what: str) -> None:
-    """One line when ``what`` (a store, a checkpoint) was made for another task than the one in use."""
-    from wamplan.errors import UserError
+def check_same_task(expected: str, found: str | None, what: str, fix: str | None = None) -> None:
+    """One line (a :class:`~wamplan.errors.TaskMismatch`) when ``what`` (a store, a checkpoint) was made for
+    another task than the one in use; ``fix`` says what to do (default: the command line's ``--task``)."""
+    from wamplan.errors import TaskMismatch
 
     if found is not None and found != expected:
-        raise UserError(f"{what} was made for task '{found}', but this run uses task '{expected}'; pass "
-                        f"--task {found} or use a {what.split()[0]} made for '{expected}'")
+        fix = fix or f"pass --task {found} or use a {what.split()[0]} made for '{expected}'"
+        raise TaskMismatch(f"{what} was made for task '{found}', but this run uses task '{expected}'; {fix}")
+
+
+def require_observation(obs: Any, where: str) -> None:
+    """A TypeError in one line unless ``obs`` is an :class:`Observation` (what every policy acts on)."""
+    if not isinstance(obs, Observation):
+        raise TypeError(f"{where} takes a wamplan.Observation, got a {type(obs).__name__}; take one from "
+                        f"env.reset(seed, with_images=True) or env.step(action), or build one: "
+                        f"Observation(step=t, proprio=(P,) float32, images={{camera: (H, W, 3) uint8}})")

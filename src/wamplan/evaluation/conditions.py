@@ -36,23 +36,12 @@ CONDITIONS: dict[int, Condition] = {c.id: c for c in (
 
 
 def parse_conditions(spec: str) -> list[int]:
-    """'1,6,7' or '1-7' -> [1, 6, 7]; unknown ids are a one-line error."""
+    """'1,6,7' or '1-7' -> [1, 6, 7]; a malformed, backward or empty list and unknown ids are a one-line error."""
+    from wamplan.config import int_list
     from wamplan.errors import UserError
 
-    ids: list[int] = []
-    for part in spec.split(","):
-        part = part.strip()
-        if not part:
-            continue
-        try:
-            if "-" in part:
-                lo, hi = (int(x) for x in part.split("-"))
-                ids.extend(range(lo, hi + 1))
-            else:
-                ids.append(int(part))
-        except ValueError:
-            raise UserError(f"--conditions '{spec}' is not a list like 1,6,7 or 1-7") from None
-    bad = [i for i in ids if i not in CONDITIONS]
-    if bad or not ids:
+    ids = int_list(spec, "--conditions", example="1,6,7 or 1-7")
+    bad = sorted({i for i in ids if i not in CONDITIONS})
+    if bad:
         raise UserError(f"--conditions '{spec}': unknown condition(s) {bad}; the paper's are 1-7")
     return sorted(set(ids))

@@ -112,12 +112,20 @@ class EvalConfig:
             # a bad URL, profile or camera mapping for the task fails now, in one line
             profile_config(self.wam_profile, url=self.wam_url, task=self.env.task)
         spec = self.env.spec
+        self.env.require_views()  # every condition feeds the WAM the task's views
+        weights = self.cost.view_weights
+        if weights and len(weights) != len(spec.cameras):
+            raise UserError(f"--cost-view-weights gives {len(weights)} weights, but task '{spec.name}' has "
+                            f"{len(spec.cameras)} cameras ({', '.join(spec.cameras)}); give one weight per camera, "
+                            f"in that order")
         expert = [c for c in conditions if "expert" in (CONDITIONS[c].seed, CONDITIONS[c].target)]
         if expert and spec.expert is None:
             raise UserError(f"conditions {expert} seed or aim the search with the scripted expert, but task "
                             f"'{spec.name}' has none; run conditions 1, 5, 6 and 7")
         if any(CONDITIONS[c].dynamics != "none" for c in conditions):
-            _ = self.task_planner_config  # the planner fits the task
+            from wamplan.planning.policy_config import check_settings
+
+            check_settings(self.policy, spec.chunk_len, self.task_planner_config)  # the planner fits the task
         if self.oracle_blend > 0 and not any(CONDITIONS[c].learned for c in conditions):
             raise UserError(f"--oracle-blend blends a world model's predictions, but conditions {conditions} plan in "
                             "none; add condition 6 or 7, or drop --oracle-blend")

@@ -372,7 +372,13 @@ def merged_records(specs: list[str | Path]) -> list[dict[str, Any]]:
     records = []
     for spec in specs:
         d, conditions = run_spec(spec)
-        for r in read_records(d):
+        recs = read_records(d)
+        held = {r["condition"] for r in recs}
+        missing = sorted((conditions or set()) - held)
+        if missing:
+            raise UserError(f"{spec}: {d} holds no records of condition(s) {missing} (it has "
+                            f"{', '.join(map(str, sorted(held))) or 'none'}); name conditions it ran")
+        for r in recs:
             if conditions is not None and r["condition"] not in conditions:
                 continue
             key = (r["condition"], r.get("variant", "open-loop"), r["seed"])

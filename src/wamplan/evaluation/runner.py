@@ -28,12 +28,13 @@ from wamplan.config import to_dict
 from wamplan.envs.spec import check_same_task
 from wamplan.evaluation.conditions import CONDITIONS
 from wamplan.evaluation.config import EvalConfig
-from wamplan.evaluation.records import append_record, read_records, record_key
+from wamplan.evaluation.records import RECORDS, append_record, read_records, record_key
 from wamplan.parallel import Backend, imap_workers
 from wamplan.planning.dynamics import task_name
 from wamplan.planning.gates import DISCARDED
 from wamplan.planning.defaults import DEFAULT_PLANNER
 
+CONFIG = "eval_config.json"  # the settings every record of a directory shares (see settings)
 TRACE_EVERY = 4  # steps between the cube's privileged samples in a record's "trace" (evaluation/trace.py)
 
 
@@ -171,17 +172,19 @@ def _check_same_settings(out: Path, cfg: EvalConfig) -> None:
 
 
 def _store_settings(out: Path, now: dict[str, Any]) -> None:
-    (out / "eval_config.json").write_text(json.dumps(now, indent=1, sort_keys=True) + "\n")
+    (out / CONFIG).write_text(json.dumps(now, indent=1, sort_keys=True) + "\n")
 
 
-def _settings_to_store(out: Path, cfg: EvalConfig) -> dict[str, Any]:
+def _settings_to_store(out: Path, cfg: EvalConfig, recorded: bool = True) -> dict[str, Any]:
     """Records of one directory must come from one configuration (see :func:`settings`); a world model
-    or simulator encoder not given before may be added later. Returns the settings to store (nothing is written)."""
+    or simulator encoder not given before may be added later. ``recorded``: ``out`` holds records; settings
+    stored without any (a run that failed before its first episode ended) bind nothing and are replaced.
+    Returns the settings to store (nothing is written)."""
     from wamplan.errors import UserError
 
-    path = out / "eval_config.json"
+    path = out / CONFIG
     now = settings(cfg)
-    if path.is_file():
+    if path.is_file() and recorded:
         before = json.loads(path.read_text())
         ran = before.get("planner", "cem")  # a directory that names no planner was written when cem was the default
         if ran != now["planner"]:
@@ -204,6 +207,7 @@ def _check_inputs(cfg: EvalConfig, conditions: list[int]) -> None:
     """Load the WAM and the world models the conditions need once, here, on the CPU: a damaged or foreign
     checkpoint stops the run (in one line) before it stores its settings, so a failed start never locks its
     output directory. The workers load their own copies."""
+    from wamplan.planning.policy_config import check_replan_every
     from wamplan.worldmodel.train import load_world_model
 
     if cfg.wam:
@@ -218,6 +222,8 @@ def _check_inputs(cfg: EvalConfig, conditions: list[int]) -> None:
         for path in cfg.world_models(c):
             predictor, _ = load_world_model(path, device="cpu")  # the predictor and its encoder
             check_world_model_task(cfg, path, predictor)
+            if cfg.policy.replan_every is not None:  # the re-plans' rollouts must end at the target's step
+                check_replan_every(cfg.policy.replan_every, cfg.env.spec.chunk_len, predictor.cfg.frameskip)
 
 
 def run_evaluation(cfg: EvalConfig, conditions: list[int], seeds: list[int], out_dir: str | Path,
@@ -225,16 +231,17 @@ def run_evaluation(cfg: EvalConfig, conditions: list[int], seeds: list[int], out
     """Run the missing (condition, seed) jobs on ``backend``, appending each record as it finishes (here, in the
     driver, whatever runs the episodes); yields the records. The checks (settings, inputs) run when this is
     called, before the first record is asked for."""
-    from wamplan.errors import require_dir
+    from wamplan.errors import require_dir, require_own_dir
 
     backend.check()
     out = require_dir(out_dir)
+    require_own_dir(out, (RECORDS, CONFIG), "an evaluation directory")  # not a store or a training run
     out.mkdir(parents=True, exist_ok=True)
     done = {record_key(r) for r in read_records(out, repair=True)}
     # Seed-major order: a run stopped early (or fanned out and cut short) has every condition on the same
     # seeds, so its partial table still compares like with like.
     jobs = [(c, s) for s in seeds for c in conditions if (c, s, cfg.policy.first_chunk) not in done]
-    now = _settings_to_store(out, cfg)
+    now = _settings_to_store(out, cfg, recorded=bool(done))
     if jobs:
         _check_inputs(cfg, conditions)
     _store_settings(out, now)  # only now that the inputs loaded: a failed start leaves the directory free

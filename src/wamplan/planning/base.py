@@ -113,7 +113,14 @@ class SamplingConfig:
         """This config with the settings it leaves to the task (None, or an empty tuple where documented) filled
         from ``task``; a config that leaves none returns itself. One line when the task cannot fill them.
         Here: an empty ``init_std_per_dim`` becomes ``init_std`` times the task's ``sigma_scale`` (an explicit
-        ``init_std_per_dim`` is taken as it is)."""
+        ``init_std_per_dim`` is taken as it is): one line if it has not one entry per action entry, or if
+        ``num_optimized`` exceeds the task's chunk."""
+        require(not self.init_std_per_dim or len(self.init_std_per_dim) == task.action_dim,
+                f"init_std_per_dim has {len(self.init_std_per_dim)} entries but task '{task.name}' has "
+                f"{task.action_dim}-D actions; give one std per action entry")
+        require(self.num_optimized is None or self.num_optimized <= task.chunk_len,
+                f"num_optimized={self.num_optimized} exceeds task '{task.name}''s {task.chunk_len}-step chunk; "
+                f"set it to at most {task.chunk_len} (or None for all)")
         if self.init_std_per_dim or all(s == 1 for s in task.sigma_scale):
             return self
         scaled = tuple(round(self.init_std * s, 12) for s in task.sigma_scale)  # (A,)

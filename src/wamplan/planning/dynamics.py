@@ -57,7 +57,8 @@ def _shared_task(parts: list[Dynamics], what: str) -> TaskSpec | None:
     the part's number, from 1) if another was made for a different task."""
     named = [(i, p) for i, p in enumerate(parts) if p.task is not None]
     for i, p in named[1:]:
-        check_same_task(named[0][1].task.name, p.task.name, what.format(i=i + 1))
+        check_same_task(named[0][1].task.name, p.task.name, what.format(i=i + 1),
+                        f"combine only parts made for '{named[0][1].task.name}'")
     return named[0][1].task if named else None
 
 

@@ -29,6 +29,9 @@ class Gates:
     accept_margin: float | None = None
 
     def __post_init__(self):
+        for name, v in (("gate_threshold", self.threshold), ("gate_above", self.above)):
+            require(v is None or v == v, f"{name} is NaN, which no cost passes or fails; give a number (see "
+                                         f"`wamplan gate-calibrate`) or leave it off")
         require(self.accept_margin is None or 0.0 <= self.accept_margin < 1.0,
                 f"accept_margin must be in [0, 1) or None, got {self.accept_margin}")
         require(self.threshold is None or self.above is None or self.threshold < self.above,

@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from wamplan.config import to_dict
-from wamplan.envs.spec import Observation, check_same_task
+from wamplan.envs.spec import Observation, check_same_task, require_observation
 from wamplan.planning.base import Planner
 from wamplan.planning.costs import CostFn
 from wamplan.planning.decision import ChunkCosts, ChunkDecision, ChunkTimings
@@ -60,9 +60,12 @@ class PlannedPolicy(Policy):
                  instruction: str | None = None, world_models: tuple[str, ...] = ()):
         self.wam, self.target_wam = wam, target_wam or wam
         self.task = wam.task
-        check_same_task(self.task.name, task_name(self.target_wam), f"WAM {self.target_wam.name} (the target)")
+        check_same_task(self.task.name, task_name(self.target_wam), f"WAM {self.target_wam.name} (the target)",
+                        f"aim with a WAM made for '{self.task.name}', the planned WAM's task")
         check_same_task(self.task.name, task_name(dynamics),
-                        "checkpoint of the world model" if dynamics.needs_history else "simulator env")
+                        "checkpoint of the world model" if dynamics.needs_history else "simulator env",
+                        f"plan in {'a world model' if dynamics.needs_history else 'an env'} made for "
+                        f"'{self.task.name}', the WAM's task")
         self.planner = planner.for_task(self.task)
         self.dynamics, self.encoder, self.cost = dynamics, encoder, cost
         self.cameras = dynamics.cameras or self.task.cameras  # the order the encoded views are stacked in
@@ -110,6 +113,7 @@ class PlannedPolicy(Policy):
         return self.period if self._replan is not None else self.chunk
 
     def act(self, obs: Observation) -> np.ndarray:
+        require_observation(obs, "PlannedPolicy.act")
         t = obs.step
         self.history.observe(obs, self._frame_period())
         if t % self.chunk == 0:
@@ -143,6 +147,7 @@ class PlannedPolicy(Policy):
         its chunk or run it open loop. The frame of ``obs`` joins the history, the decision joins ``chunks``
         (its record) and becomes ``last_decision``. Call it once per boundary, in step order after ``reset``
         (``act`` does); between boundaries, ``act`` must see every step."""
+        require_observation(obs, "PlannedPolicy.plan_chunk")
         t = obs.step
         if t % self.chunk:
             raise PlanningError(f"plan_chunk plans at chunk boundaries (steps 0, {self.chunk}, "

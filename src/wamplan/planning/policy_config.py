@@ -4,6 +4,7 @@ dynamics or WAM cannot run (:func:`check_fits`)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 from wamplan.config import field, require
 from wamplan.planning.base import Planner
@@ -83,20 +84,29 @@ def check_replan_every(k: int, chunk: int, frameskip: int | None) -> None:
                             f"{frameskip}, so that the rest's rollout ends at the target's step")
 
 
+def check_settings(cfg: PlannedPolicyConfig, chunk: int, planner_config: Any) -> None:
+    """Refuse settings of ``cfg`` that the planner (its config ``planner_config``) or the WAM's ``chunk`` cannot
+    run, in one line that names the fix: the part of :func:`check_fits` that needs no dynamics, so a command can
+    check before it loads or runs anything."""
+    if cfg.replan_every is not None:
+        check_replan_every(cfg.replan_every, chunk, None)
+        if getattr(planner_config, "num_optimized", None) is not None:
+            raise PlanningError("replan_every re-plans the rest of a chunk, all of which the search optimises; "
+                                "drop --num-optimized or --replan-every")
+    if cfg.rank_gate is not None and not getattr(planner_config, "include_mean", False):
+        raise PlanningError("rank_gate compares the WAM's chunk with the search's first samples, so the planner "
+                            "must score it: drop --no-include-mean or the rank gate")
+
+
 def check_fits(cfg: PlannedPolicyConfig, chunk: int, planner: Planner, dynamics: Dynamics) -> int:
     """Refuse settings of ``cfg`` that the ``planner``, the ``dynamics`` or the WAM's ``chunk`` cannot run, in one
     line that names the fix -> the steps between planning points (the chunk, or ``replan_every``)."""
+    check_settings(cfg, chunk, planner.config)
     frameskip = getattr(dynamics, "frameskip", chunk)
     period = chunk
     if cfg.replan_every is not None:
         period = cfg.replan_every
         check_replan_every(period, chunk, frameskip if dynamics.needs_history else None)
-        if getattr(planner.config, "num_optimized", None) is not None:
-            raise PlanningError("replan_every re-plans the rest of a chunk, all of which the search optimises; "
-                                "drop --num-optimized or --replan-every")
-    if cfg.rank_gate is not None and not getattr(planner.config, "include_mean", False):
-        raise PlanningError("rank_gate compares the WAM's chunk with the search's first samples, so the planner "
-                            "must score it: drop --no-include-mean or the rank gate")
     if cfg.bias_correction > 0 and dynamics.needs_history:
         if dynamics.covered(chunk) != chunk:
             raise PlanningError(f"bias_correction compares the model's prediction with the frame at the next "

@@ -8,7 +8,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from wamplan.envs.spec import Observation
+from wamplan.envs.spec import Observation, TaskSpec, check_same_task
 from wamplan.envs.core import TaskEnv
 from wamplan.policies.base import Policy
 
@@ -39,7 +39,13 @@ def run_episode(env: TaskEnv, policy: Policy, seed: int, *, images_at: Callable[
     Images are rendered at step t when ``policy.wants_images(t)`` or ``images_at(t)`` is true.
     The episode ends at the first success (``stop_on_success``) or at the step limit (``max_steps``,
     default the env's ``max_episode_steps``).
+    A policy that names its task (``policy.task``, as WAM, planned and scripted policies do) must act in an env of
+    that task: another task is one line (:class:`~wamplan.errors.TaskMismatch`) before the episode starts.
     """
+    task = getattr(policy, "task", None)
+    if isinstance(task, TaskSpec):
+        check_same_task(env.task.name, task.name, f"the policy ({type(policy).__name__})",
+                        f"run it in make_env(task='{task.name}') or use a policy made for '{env.task.name}'")
     limit = min(max_steps or env.max_episode_steps, env.max_episode_steps)
     t0 = time.perf_counter()
     want = (lambda t: policy.wants_images(t) or (images_at is not None and images_at(t)))

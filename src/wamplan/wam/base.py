@@ -23,7 +23,7 @@ from typing import Any, Callable, ClassVar
 
 import numpy as np
 
-from wamplan.envs.spec import Observation, TaskSpec, check_same_task, get_task
+from wamplan.envs.spec import Observation, TaskSpec, check_same_task, get_task, require_observation
 from wamplan.errors import UserError
 from wamplan.policies.base import Policy
 from wamplan.registry import Registry
@@ -209,7 +209,10 @@ class WAMPolicy(Policy):
                  refine: Callable[[Observation, WAMOutput], np.ndarray] | None = None,
                  task: str | TaskSpec | None = None):
         task = get_task(task) if task is not None else wam.task
-        check_same_task(task.name, wam.task.name, f"WAM '{wam.name}'")
+        check_same_task(task.name, wam.task.name, f"WAM '{wam.name}'",
+                        f"act in task '{wam.task.name}' (make_env(task='{wam.task.name}')) or use a WAM made for "
+                        f"'{task.name}'")
+        self.task = task  # the task of the env it acts in
         if wam.action_dim != task.action_dim:
             raise WAMError(f"WAM '{wam.name}' outputs {wam.action_dim}-D actions but task {task.name} takes "
                            f"{task.action_dim}-D ones; configure the WAM's action dimensions")
@@ -235,6 +238,7 @@ class WAMPolicy(Policy):
         return step % self.chunk_length == 0
 
     def act(self, obs: Observation) -> np.ndarray:
+        require_observation(obs, "WAMPolicy.act")
         if self.current_chunk is None or self._index >= self.chunk_length:
             self._start_chunk(obs)
         assert self.current_chunk is not None

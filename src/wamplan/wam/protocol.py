@@ -104,6 +104,9 @@ def _loads(body: bytes | str, what: str) -> Any:
         return json_numpy.loads(body)
     except (ValueError, TypeError, KeyError) as e:  # bad JSON, bad base64, size/shape mismatch
         raise ProtocolError(f"the {what} is not valid json_numpy JSON ({type(e).__name__}: {e})") from e
+    except RecursionError:  # arrays or objects nested past the parser's depth
+        raise ProtocolError(f"the {what} nests JSON arrays or objects too deeply to parse; send the protocol's "
+                            f"flat fields") from None
 
 
 def _image(x: Any, what: str) -> np.ndarray:
@@ -174,6 +177,12 @@ def decode_request(body: bytes | str, image_fields: tuple[str, ...] = REQUEST_IM
     if missing:
         raise ProtocolError(f"the request lacks field(s) {missing}")
     images = {k: _image(payload[k], f"request field '{k}'") for k in image_fields}
+    shapes = {k: img.shape for k, img in images.items()}
+    first = next(iter(shapes), None)
+    odd = [k for k in shapes if shapes[k] != shapes[first]]
+    if odd:  # a WAM stacks its views: one size for all
+        raise ProtocolError(f"request field '{odd[0]}' has shape {shapes[odd[0]]} but '{first}' has "
+                            f"{shapes[first]}; send every view at one size")
     proprio = _numbers(payload["proprio"], "request field 'proprio'", ndim=1)  # (P,)
     task = payload["task_description"]
     if not isinstance(task, str):

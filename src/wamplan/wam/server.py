@@ -282,19 +282,22 @@ def is_loopback(host: str) -> bool:
 def serve(wam: WAM, host: str = DEFAULT_HOST, port: int = protocol.DEFAULT_PORT,
           instruction_default: str | None = None, log_level: str = "info", secret: str | None = None,
           max_request_bytes: int = protocol.DEFAULT_MAX_REQUEST_BYTES, bare_errors: bool = False,
-          errors: str = "http") -> None:
-    """Serve ``wam`` until interrupted (blocking)."""
+          errors: str = "http", sock: socket.socket | None = None) -> None:
+    """Serve ``wam`` until interrupted (blocking), on ``sock`` (from :func:`bind_socket`) or a socket bound to
+    ``host:port`` here."""
     app = create_app(wam, instruction_default, secret=secret, max_request_bytes=max_request_bytes,
                      bare_errors=bare_errors, errors=errors)
-    run_app(app, host, port, secret, log_level)
+    run_app(app, host, port, secret, log_level, sock)
 
 
-def run_app(app: FastAPI, host: str, port: int, secret: str | None, log_level: str = "info") -> None:
-    """Serve ``app`` on ``host:port`` until interrupted (blocking); warn when it is open to other machines."""
+def run_app(app: FastAPI, host: str, port: int, secret: str | None, log_level: str = "info",
+            sock: socket.socket | None = None) -> None:
+    """Serve ``app`` on ``sock`` or ``host:port`` until interrupted (blocking); warn when it is open to other
+    machines."""
     if not is_loopback(host) and not secret:
         log.warning("listening on %s without a shared secret: anyone who reaches this port can query it; "
                     "set $%s (or --secret)", host, protocol.SECRET_ENV)
-    sock = bind_socket(host, port)
+    sock = sock or bind_socket(host, port)
     config = uvicorn.Config(app, log_level=log_level)
     uvicorn.Server(config).run(sockets=[sock])
 
