@@ -320,3 +320,26 @@ def test_every_command_that_makes_an_env_takes_the_task(capsys):
     assert "demonstrations scripted expert (policy 'expert')" in cube
     peg = next(line for line in lines if line.startswith("peg-insertion-side "))
     assert "demonstrations maniskill-motion-planning" in peg
+
+
+def test_a_directory_refuses_another_world_model_and_accepts_one_added_later(tmp_path):
+    """A world model is a setting of the directory: one given for the first time joins it (its conditions had not
+    run), the same checkpoint spelled another way resumes it, and another checkpoint in its place is refused."""
+    from wamplan.evaluation.runner import run_evaluation
+
+    out, a, b = tmp_path / "eval", tmp_path / "wm_a", tmp_path / "wm_b"
+    for d in (a, b):
+        d.mkdir()
+
+    def resume(*argv: str) -> None:  # the run's checks, with every job done (no seeds): nothing is loaded
+        run_evaluation(_cfg(*argv), [6, 7], [], out)
+
+    resume("--wm-plain", str(a))
+    resume("--wm-plain", str(a), "--wm-augmented", str(b))  # added: stored beside it
+    assert json.loads((out / "eval_config.json").read_text())["wm_augmented"] == str(b)
+    (tmp_path / "link_a").symlink_to(a)
+    resume("--wm-plain", str(tmp_path / "link_a"))  # the same model; the augmented one stays stored
+    for plain, augmented in ((b, b), (a, a)):
+        with pytest.raises(UserError, match="other settings") as e:
+            resume("--wm-plain", str(plain), "--wm-augmented", str(augmented))
+        assert str(plain) in str(e.value)  # the changed setting, as requested
