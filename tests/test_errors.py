@@ -345,3 +345,45 @@ def test_help_is_cached_and_matches_argparse(tmp_path, monkeypatch, capsys):
     with pytest.raises(SystemExit):
         build_parser().parse_args(["report", "--help"])
     assert "evaluation directory" in capsys.readouterr().out
+
+
+def test_cached_help_answers_only_for_the_sources_it_was_built_from(tmp_path, monkeypatch, capsys):
+    """The cache is stamped with the package's sources (each file's path, size and modification time): a cache of
+    other sources is built again rather than printed, and any source file added or modified changes the stamp."""
+    import importlib
+    import os
+
+    cli_main = importlib.import_module("wamplan.cli.main")  # the module (the package's `main` is its function)
+
+    monkeypatch.setenv("WAMPLAN_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setenv("COLUMNS", "100")
+
+    def eval_help() -> str:
+        with pytest.raises(SystemExit):
+            main(["eval", "--help"])
+        return capsys.readouterr().out
+
+    built = eval_help()
+    [path] = (tmp_path / "cache").glob("help/*.json")
+    cached = json.loads(path.read_text())
+    cached["help"] = {key: "the cached text\n" for key in cached["help"]}
+    path.write_text(json.dumps(cached))
+    assert eval_help() == "the cached text\n"  # these sources: the cache answers
+    path.write_text(json.dumps(dict(cached, stamp="other sources")))
+    assert eval_help() == built  # other sources: built again ...
+    assert json.loads(path.read_text())["stamp"] == cached["stamp"]  # ... and cached for these
+
+    pkg = tmp_path / "pkg"  # a package of two sources in the place of wamplan's
+    (pkg / "cli").mkdir(parents=True)
+    (pkg / "cli" / "main.py").write_text("")
+    (pkg / "x.py").write_text("a = 1\n")
+    monkeypatch.setattr(cli_main, "__file__", str(pkg / "cli" / "main.py"))
+    stamps = [cli_main._help_cache()[1]]
+    os.utime(pkg / "x.py", ns=(0, 10**9))  # modified: another time
+    stamps.append(cli_main._help_cache()[1])
+    (pkg / "x.py").write_text("a = 10\n")
+    os.utime(pkg / "x.py", ns=(0, 10**9))  # modified: another size
+    stamps.append(cli_main._help_cache()[1])
+    (pkg / "y.py").write_text("")  # added
+    stamps.append(cli_main._help_cache()[1])
+    assert len(set(stamps)) == 4 and cli_main._help_cache()[1] == stamps[-1]
