@@ -191,6 +191,47 @@ def test_data_check_lists_each_damaged_file(expert_store, tmp_path, capsys):
     assert f"damaged: episode file {second}" in refused.out
 
 
+def test_every_dataset_of_a_written_episode_is_checksummed(tmp_path):
+    """A new episode file carries fletcher32 on every dataset: damage inside any dataset's data, the uncompressed
+    arrays included (which nothing else would notice), fails the read instead of returning other numbers."""
+    from wamplan.data.store import EpisodeData, EpisodeStore, StoreError, verify_episode
+    from wamplan.envs.config import EnvConfig
+
+    env = EnvConfig(camera_size=16)
+    task = env.spec
+    store = EpisodeStore(tmp_path / "store", create=True, env=env.task_kwargs(), image_every=4)
+    rng = np.random.default_rng(0)
+    T, arr = 8, lambda *shape: rng.normal(size=shape).astype(np.float32)  # noqa: E731
+    ep = EpisodeData(seed=1, source="expert", success=False, outcome="never_grasped", actions=arr(T, task.action_dim),
+                     proprio=arr(T + 1, task.proprio_dim), stages=rng.random((T + 1, len(task.stages))) < 0.5,
+                     cube_pose=arr(T + 1, 7), tcp_pose=arr(T + 1, 7), sim_state=arr(T + 1, 40),
+                     drive_targets=arr(T + 1, 9), image_steps=np.array([0, 4, 8]),
+                     images={c: rng.integers(0, 256, (3, 16, 16, 3), np.uint8) for c in task.cameras},
+                     reached={s: False for s in task.stages}, policy={}, provenance={})
+    path = store.write(ep)
+    assert verify_episode(path) == (None, True)  # (no problem, every dataset checksummed)
+    with h5py.File(path, "r") as f:
+        names: list[str] = []
+        f.visititems(lambda name, obj: names.append(name) if isinstance(obj, h5py.Dataset) else None)
+        spans = {}
+        for name in names:
+            ds = f[name]
+            info = ds.id.get_chunk_info(0) if ds.chunks else None  # contiguous data: one span
+            spans[name] = (info.byte_offset, info.size) if info else (ds.id.get_offset(), ds.id.get_storage_size())
+    assert len(names) == 11  # 8 arrays and the 3 cameras
+    intact = path.read_bytes()
+    for name, (offset, size) in spans.items():
+        data = bytearray(intact)
+        at = offset + size // 2
+        data[at:at + 4] = bytes(255 - b for b in data[at:at + 4])
+        path.write_bytes(bytes(data))
+        with pytest.raises(StoreError, match="damaged"):
+            store.load(path)
+        assert verify_episode(path)[0] is not None, name
+    path.write_bytes(intact)
+    np.testing.assert_array_equal(store.load(path).actions, ep.actions)
+
+
 def test_an_old_store_without_checksums_still_reads(expert_store, tmp_path, capsys):
     """Stores written before checksums (h5py's default format, no fletcher32) read as before."""
     from wamplan.data.readers import WAMSamples
