@@ -84,6 +84,22 @@ def test_train_plan_and_evaluate_on_the_imported_task(store, tmp_path, capsys):
     assert "push-cube" in err and "cube-insertion" in err and len(err.splitlines()) == 1
 
 
+def test_import_drops_an_episode_whose_replay_fails(trajectory, tmp_path, capsys):
+    """The wandering episode of seed 11 misses PushCube's goal: without --keep-failed the store does not keep it
+    and the report names it, also after a re-run of the same import."""
+    out = tmp_path / "store"
+    argv = ["data", "import", "--format", "maniskill", str(trajectory), str(out), "--camera-size", "16",
+            "--episodes", "1"]
+    assert main(argv) == 0
+    report = json.loads((out / "import.json").read_text())
+    assert (report["episodes"], report["replay_success"], report["failed_seeds"], report["kept"]) == (1, 0, [11], 0)
+    assert EpisodeStore(out).episode_paths() == []
+    capsys.readouterr()
+    assert main(argv) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["failed_seeds"] == [11]
+    assert EpisodeStore(out).episode_paths() == []
+
+
 def test_import_refuses_a_task_that_runs_another_env(trajectory, tmp_path, capsys):
     assert main(["data", "import", "--format", "maniskill", str(trajectory), str(tmp_path / "x"),
                  "--task", "cube-insertion"]) == 2
