@@ -17,9 +17,10 @@ TASK, ENV_ID, SIZE = "push-cube", "PushCube-v1", 64
 
 
 @pytest.fixture(scope="module")
-def trajectory(tmp_path_factory):
+def trajectory(tmp_path_factory, small_env):
     """Two short episodes of PushCube-v1 with joint targets wandering from the start, in ManiSkill's trajectory
-    format."""
+    format. (``small_env`` stays alive meanwhile: while one env lives, SAPIEN keeps its compiled shaders, so the
+    envs each import builds and drops render at once instead of compiling them again, about 10 s each here.)"""
     import mani_skill.envs  # noqa: F401
     from mani_skill.utils.wrappers.record import RecordEpisode
 
