@@ -12,7 +12,7 @@ import torch
 from wamplan.config import ConfigError
 from wamplan.envs.contract import ACTION_DIM, CAMERAS, HOLD_ACTION, PROPRIO_DIM, Observation
 from wamplan.planning import CEMConfig, make_cost, make_planner
-from wamplan.planning.decision import OPEN_LOOP, ChunkDecision
+from wamplan.planning.decision import OPEN_LOOP, ChunkDecision, ChunkTimings
 from wamplan.planning.dynamics import Dynamics
 from wamplan.planning.gates import Gates
 from wamplan.planning.history import FrameHistory, PlanningError
@@ -146,6 +146,43 @@ def test_a_decision_checks_itself():
         ChunkDecision(0, seed, seed, None)
     with pytest.raises(ConfigError, match="one shape"):
         ChunkDecision(0, seed, seed[:4], "gated")
+
+
+def test_each_timing_of_a_chunk_is_its_own_stages():
+    """A record's wam_s, target_encode_s and search_s are the seconds of the WAM query, the target's encoding and
+    the search: each stage of these toys sleeps a different time, and each timing holds at least its own stage's
+    (a timing swapped with another would hold the shorter one)."""
+    import time
+
+    naps = dict(wam_s=0.05, target_encode_s=0.15, search_s=0.3)
+
+    class SlowWAM(ToyWAM):
+        def predict(self, obs, instruction):
+            time.sleep(naps["wam_s"])
+            return super().predict(obs, instruction)
+
+    class SlowEncoder(ToyEncoder):
+        def encode(self, x):
+            time.sleep(naps["target_encode_s"])
+            return super().encode(x)
+
+    class SlowDynamics(ToyDynamics):
+        def prepare(self, context):  # part of the search
+            time.sleep(naps["search_s"])
+            super().prepare(context)
+
+    pol = PlannedPolicy(SlowWAM(0.2), make_planner("cem", CEMConfig(num_candidates=4, num_elites=2, iterations=1)),
+                        SlowDynamics(), SlowEncoder(), make_cost("patch"))
+    pol.reset(0)
+    rec = pol.plan_chunk(_obs(H)).record()
+    assert list(rec)[:5] == ["step", "planned", "wam_s", "target_encode_s", "search_s"] and rec["planned"]
+    for key, nap in naps.items():
+        assert rec[key] >= nap, (key, rec)
+    assert pol.info()["mean_s"] == {key: rec[key] for key in naps}
+    timings = ChunkTimings(wam_s=1.0, target_encode_s=2.0, search_s=3.0)
+    seed = np.zeros((H, ACTION_DIM), np.float32)
+    rec = ChunkDecision(H, seed, seed, "gated", timings=timings).record()
+    assert (rec["wam_s"], rec["target_encode_s"], rec["search_s"]) == (1.0, 2.0, 3.0)
 
 
 # ------------------------------------------------------------------ FrameHistory

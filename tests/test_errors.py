@@ -285,6 +285,47 @@ def test_data_check_lists_each_damaged_file(expert_store, tmp_path, capsys):
     assert f"damaged: episode file {second}" in refused.out
 
 
+def test_every_dataset_of_a_written_episode_is_checksummed(tmp_path):
+    """A new episode file carries fletcher32 on every dataset: damage inside any dataset's data, the uncompressed
+    arrays included (which nothing else would notice), fails the read instead of returning other numbers."""
+    from wamplan.data.store import EpisodeData, EpisodeStore, StoreError, verify_episode
+    from wamplan.envs.config import EnvConfig
+
+    env = EnvConfig(camera_size=16)
+    task = env.spec
+    store = EpisodeStore(tmp_path / "store", create=True, env=env.task_kwargs(), image_every=4)
+    rng = np.random.default_rng(0)
+    T, arr = 8, lambda *shape: rng.normal(size=shape).astype(np.float32)  # noqa: E731
+    ep = EpisodeData(seed=1, source="expert", success=False, outcome="never_grasped", actions=arr(T, task.action_dim),
+                     proprio=arr(T + 1, task.proprio_dim), stages=rng.random((T + 1, len(task.stages))) < 0.5,
+                     cube_pose=arr(T + 1, 7), tcp_pose=arr(T + 1, 7), sim_state=arr(T + 1, 40),
+                     drive_targets=arr(T + 1, 9), image_steps=np.array([0, 4, 8]),
+                     images={c: rng.integers(0, 256, (3, 16, 16, 3), np.uint8) for c in task.cameras},
+                     reached={s: False for s in task.stages}, policy={}, provenance={})
+    path = store.write(ep)
+    assert verify_episode(path) == (None, True)  # (no problem, every dataset checksummed)
+    with h5py.File(path, "r") as f:
+        names: list[str] = []
+        f.visititems(lambda name, obj: names.append(name) if isinstance(obj, h5py.Dataset) else None)
+        spans = {}
+        for name in names:
+            ds = f[name]
+            info = ds.id.get_chunk_info(0) if ds.chunks else None  # contiguous data: one span
+            spans[name] = (info.byte_offset, info.size) if info else (ds.id.get_offset(), ds.id.get_storage_size())
+    assert len(names) == 11  # 8 arrays and the 3 cameras
+    intact = path.read_bytes()
+    for name, (offset, size) in spans.items():
+        data = bytearray(intact)
+        at = offset + size // 2
+        data[at:at + 4] = bytes(255 - b for b in data[at:at + 4])
+        path.write_bytes(bytes(data))
+        with pytest.raises(StoreError, match="damaged"):
+            store.load(path)
+        assert verify_episode(path)[0] is not None, name
+    path.write_bytes(intact)
+    np.testing.assert_array_equal(store.load(path).actions, ep.actions)
+
+
 def test_an_old_store_without_checksums_still_reads(expert_store, tmp_path, capsys):
     """Stores written before checksums (h5py's default format, no fletcher32) read as before."""
     from wamplan.data.readers import WAMSamples
@@ -560,3 +601,45 @@ def test_help_is_cached_and_matches_argparse(tmp_path, monkeypatch, capsys):
     with pytest.raises(SystemExit):
         build_parser().parse_args(["report", "--help"])
     assert "evaluation directory" in capsys.readouterr().out
+
+
+def test_cached_help_answers_only_for_the_sources_it_was_built_from(tmp_path, monkeypatch, capsys):
+    """The cache is stamped with the package's sources (each file's path, size and modification time): a cache of
+    other sources is built again rather than printed, and any source file added or modified changes the stamp."""
+    import importlib
+    import os
+
+    cli_main = importlib.import_module("wamplan.cli.main")  # the module (the package's `main` is its function)
+
+    monkeypatch.setenv("WAMPLAN_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setenv("COLUMNS", "100")
+
+    def eval_help() -> str:
+        with pytest.raises(SystemExit):
+            main(["eval", "--help"])
+        return capsys.readouterr().out
+
+    built = eval_help()
+    [path] = (tmp_path / "cache").glob("help/*.json")
+    cached = json.loads(path.read_text())
+    cached["help"] = {key: "the cached text\n" for key in cached["help"]}
+    path.write_text(json.dumps(cached))
+    assert eval_help() == "the cached text\n"  # these sources: the cache answers
+    path.write_text(json.dumps(dict(cached, stamp="other sources")))
+    assert eval_help() == built  # other sources: built again ...
+    assert json.loads(path.read_text())["stamp"] == cached["stamp"]  # ... and cached for these
+
+    pkg = tmp_path / "pkg"  # a package of two sources in the place of wamplan's
+    (pkg / "cli").mkdir(parents=True)
+    (pkg / "cli" / "main.py").write_text("")
+    (pkg / "x.py").write_text("a = 1\n")
+    monkeypatch.setattr(cli_main, "__file__", str(pkg / "cli" / "main.py"))
+    stamps = [cli_main._help_cache()[1]]
+    os.utime(pkg / "x.py", ns=(0, 10**9))  # modified: another time
+    stamps.append(cli_main._help_cache()[1])
+    (pkg / "x.py").write_text("a = 10\n")
+    os.utime(pkg / "x.py", ns=(0, 10**9))  # modified: another size
+    stamps.append(cli_main._help_cache()[1])
+    (pkg / "y.py").write_text("")  # added
+    stamps.append(cli_main._help_cache()[1])
+    assert len(set(stamps)) == 4 and cli_main._help_cache()[1] == stamps[-1]

@@ -119,6 +119,36 @@ def test_the_world_models_arithmetic_is_a_setting_of_the_directory(tmp_path, cap
         _check_same_settings(tmp_path, _cfg("--wm-dtype", "bfloat16"))
 
 
+def test_the_world_models_arithmetic_reaches_the_models_the_runs_plan_in(tmp_path):
+    """`wamplan eval --wm-dtype bfloat16` runs with that setting, and it is the dtype of the world models its
+    workers load for conditions 6 and 7 (and the one the API's planned policy loads); their encoders stay float32."""
+    from pathlib import Path
+
+    from wamplan.evaluation.build import plan_in_world_model
+    from wamplan.evaluation.records import append_record
+    from wamplan.evaluation.runner import EvalWorker
+
+    mini = Path(__file__).resolve().parents[1] / "checkpoints" / "mini"
+    argv = ["--wm-dtype", "bfloat16", "--wam", str(mini / "tinywam"), "--wm-plain", str(mini / "wm_plain"),
+            "--wm-augmented", str(mini / "wm_augmented"), "--camera-size", "64"]
+    out = tmp_path / "eval"
+    out.mkdir()
+    append_record(out, dict(condition=6, seed=0, variant="open-loop", success=True, outcome="success"))
+    assert main(["eval", "--conditions", "6", "--episodes", "1", "--out", str(out), *argv]) == 0  # nothing left to run
+    assert json.loads((out / "eval_config.json").read_text())["wm_dtype"] == "bfloat16"  # the settings it ran with
+    cfg = eval_config_from_args(build_parser().parse_args(["eval", "--out", str(out), *argv]))
+    worker = EvalWorker(cfg)
+    try:
+        for cid in (6, 7):
+            policy = worker.policy(cid)
+            assert policy.dynamics.dtype == torch.bfloat16, cid
+            assert next(policy.encoder.parameters(), torch.zeros(1)).dtype == torch.float32
+    finally:
+        worker.env.close()
+    assert plan_in_world_model(cfg, str(mini / "tinywam"), [str(mini / "wm_plain")]).dynamics.dtype == torch.bfloat16
+    assert plan_in_world_model(_cfg(), str(mini / "tinywam"), [str(mini / "wm_plain")]).dynamics.dtype == torch.float32
+
+
 def test_a_directory_from_before_a_new_setting_resumes_at_its_default(tmp_path):
     """A setting added after a directory was written (here the planner's noise_beta) does not block resuming
     it when requested at its default, which is what the older version ran with; another value still does."""
@@ -320,3 +350,26 @@ def test_every_command_that_makes_an_env_takes_the_task(capsys):
     assert "demonstrations scripted expert (policy 'expert')" in cube
     peg = next(line for line in lines if line.startswith("peg-insertion-side "))
     assert "demonstrations maniskill-motion-planning" in peg
+
+
+def test_a_directory_refuses_another_world_model_and_accepts_one_added_later(tmp_path):
+    """A world model is a setting of the directory: one given for the first time joins it (its conditions had not
+    run), the same checkpoint spelled another way resumes it, and another checkpoint in its place is refused."""
+    from wamplan.evaluation.runner import run_evaluation
+
+    out, a, b = tmp_path / "eval", tmp_path / "wm_a", tmp_path / "wm_b"
+    for d in (a, b):
+        d.mkdir()
+
+    def resume(*argv: str) -> None:  # the run's checks, with every job done (no seeds): nothing is loaded
+        run_evaluation(_cfg(*argv), [6, 7], [], out)
+
+    resume("--wm-plain", str(a))
+    resume("--wm-plain", str(a), "--wm-augmented", str(b))  # added: stored beside it
+    assert json.loads((out / "eval_config.json").read_text())["wm_augmented"] == str(b)
+    (tmp_path / "link_a").symlink_to(a)
+    resume("--wm-plain", str(tmp_path / "link_a"))  # the same model; the augmented one stays stored
+    for plain, augmented in ((b, b), (a, a)):
+        with pytest.raises(UserError, match="other settings") as e:
+            resume("--wm-plain", str(plain), "--wm-augmented", str(augmented))
+        assert str(plain) in str(e.value)  # the changed setting, as requested

@@ -331,3 +331,19 @@ def test_the_report_of_a_task_without_stages_leaves_the_cube_readings_out(tmp_pa
     append_record(cube, _rec(1, 9, "success"))
     assert main(["report", str(tmp_path / "both"), str(run), str(cube)]) == 2
     assert "the runs evaluated different tasks" in capsys.readouterr().err
+
+
+def test_gap_interval_leaves_out_resamples_without_a_gap():
+    """On 5 seeds where only seed 0 separates the oracle from the baseline, every resample that misses it (about a
+    third) has no gap and no ratio: the interval comes from the resamples that have one (here all 1), never NaN."""
+    base, this, ceil = np.zeros(5), np.array([1.0, 0, 0, 0, 0]), np.array([1.0, 0, 0, 0, 0])
+    idx = np.random.default_rng(0).integers(0, 5, size=(2000, 5))
+    assert 300 < (ceil[idx].mean(-1) <= base[idx].mean(-1)).sum() < 1000  # the table has resamples without a gap
+    assert gap_closed(base, this, ceil) == (1.0, 1.0, 1.0)
+    this = np.array([1.0, 1, 0, 0, 0])  # seed 1 solved by this alone: the resamples' ratios spread above 1
+    point, lo, hi = gap_closed(base, this, ceil)
+    gapped = idx[ceil[idx].mean(-1) > 0]
+    ratios = this[gapped].mean(-1) / ceil[gapped].mean(-1)
+    assert point == 2.0
+    assert (lo, hi) == (pytest.approx(np.quantile(ratios, 0.025)), pytest.approx(np.quantile(ratios, 0.975)))
+    assert np.isfinite([lo, hi]).all() and lo < hi

@@ -17,9 +17,10 @@ TASK, ENV_ID, SIZE = "push-cube", "PushCube-v1", 64
 
 
 @pytest.fixture(scope="module")
-def trajectory(tmp_path_factory):
+def trajectory(tmp_path_factory, small_env):
     """Two short episodes of PushCube-v1 with joint targets wandering from the start, in ManiSkill's trajectory
-    format."""
+    format. (``small_env`` stays alive meanwhile: while one env lives, SAPIEN keeps its compiled shaders, so the
+    envs each import builds and drops render at once instead of compiling them again, about 10 s each here.)"""
     import mani_skill.envs  # noqa: F401
     from mani_skill.utils.wrappers.record import RecordEpisode
 
@@ -82,6 +83,45 @@ def test_train_plan_and_evaluate_on_the_imported_task(store, tmp_path, capsys):
                  "--wam", str(tmp_path / "wam"), "--camera-size", str(SIZE), "--max-steps", "4"]) == 2
     err = capsys.readouterr().err.strip()
     assert "push-cube" in err and "cube-insertion" in err and len(err.splitlines()) == 1
+
+
+def test_import_drops_an_episode_whose_replay_fails(trajectory, tmp_path, capsys):
+    """The wandering episode of seed 11 misses PushCube's goal: without --keep-failed the store does not keep it
+    and the report names it, also after a re-run of the same import."""
+    out = tmp_path / "store"
+    argv = ["data", "import", "--format", "maniskill", str(trajectory), str(out), "--camera-size", "16",
+            "--episodes", "1"]
+    assert main(argv) == 0
+    report = json.loads((out / "import.json").read_text())
+    assert (report["episodes"], report["replay_success"], report["failed_seeds"], report["kept"]) == (1, 0, [11], 0)
+    assert EpisodeStore(out).episode_paths() == []
+    capsys.readouterr()
+    assert main(argv) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["failed_seeds"] == [11]
+    assert EpisodeStore(out).episode_paths() == []
+
+
+def test_a_noisy_import_keeps_its_episodes_and_runs_the_noisy_actions(trajectory, tmp_path):
+    """--noise-std: the episodes are exploration data, kept whatever their outcome, and what they ran is the
+    converted demonstration plus noise on the arm's entries (the gripper's as recorded)."""
+    import h5py
+
+    from wamplan.policies.replay import trajectory_episodes
+
+    out = tmp_path / "store"
+    assert main(["data", "import", "--format", "maniskill", str(trajectory), str(out), "--camera-size", "16",
+                 "--noise-std", "0.2", "--episodes", "1"]) == 0
+    report = json.loads((out / "import.json").read_text())
+    assert (report["source"], report["kept"], report["failed_seeds"]) == ("demo-noise0.2", 1, [11])
+    s = EpisodeStore(out)
+    [ep] = [s.load(p) for p in s.episode_paths()]
+    converted = trajectory.with_name("demo.none.pd_ee_delta_pose.physx_cpu.h5")
+    with h5py.File(converted, "r") as f:
+        demo = f[f"traj_{trajectory_episodes(converted)[11]['episode_id']}"]["actions"][:]  # (T, 7)
+    assert ep.seed == 11 and len(ep.actions) >= len(demo)
+    noise = ep.actions[:len(demo)] - np.clip(demo, -1, 1)  # (T, 7)
+    np.testing.assert_allclose(noise[:, 6], 0.0, atol=1e-6)
+    assert 0.1 < np.abs(noise[:, :6]).mean() < 0.3  # |N(0, 0.2)| averages 0.16
 
 
 def test_import_refuses_a_task_that_runs_another_env(trajectory, tmp_path, capsys):

@@ -106,6 +106,31 @@ def test_culled_render_is_pixel_identical(env):
     assert all(b.visibility == 1.0 for b in env._bodies[1])  # and every body is shown again
 
 
+def test_culling_follows_the_scene_a_reset_rebuilds(env, monkeypatch):
+    """A reset after steps rebuilds the scene (new bodies); a render then still hides, while its camera draws, the
+    new scene's bodies outside that camera's view, and shows them all again afterwards."""
+    import sapien
+
+    seen: list[int] = []
+    for seed in (0, 1):
+        env.reset(seed)
+        env.step(np.zeros(5, np.float32))  # physics stepped: the next reset rebuilds the scene
+        before = env.base.scene.sub_scenes[0]
+        env.reset(seed)
+        scene = env.base.scene.sub_scenes[0]
+        assert scene is not before
+        bodies = [c for c in (e.find_component_by_type(sapien.render.RenderBodyComponent) for e in scene.entities)
+                  if c is not None]  # (the rebuilt scene's render bodies)
+        wrist = env.base.scene.sensors["wrist"]
+        capture = wrist.capture
+        monkeypatch.setattr(wrist, "capture", lambda: (seen.append(sum(c.visibility == 0.0 for c in bodies)),
+                                                       capture()))
+        env.render(("wrist",))
+        monkeypatch.undo()
+        assert all(c.visibility == 1.0 for c in bodies)
+    assert min(seen) >= 5  # the wrist camera sees little of the arm: its links are hidden while it draws
+
+
 def test_simulate_guards_the_stale_env(env):
     env.reset(2)
     snap = env.snapshot()
