@@ -119,3 +119,14 @@ def test_python_block_runs(path: Path, line: int, code: str, shown: str | None):
         why = output_mismatch(shown, run.stdout)
         assert why is None, (f"the ```python block at {where}:{line} does not print the ```text block after it "
                              f"({why}):\n--- printed ---\n{run.stdout}--- shown ---\n{shown}")
+
+
+def test_the_task_list_shown_is_what_wamplan_tasks_prints(capsys):
+    from wamplan.cli import main
+
+    text = (ROOT / "README.md").read_text()
+    shown = re.search(r"`wamplan tasks` lists the registered ones:\n\n```\n(.*?)```", text, re.DOTALL)
+    assert shown, "README.md should show `wamplan tasks`' output after 'lists the registered ones:'"
+    assert main(["tasks"]) == 0
+    printed = capsys.readouterr().out
+    assert printed.split() == shown.group(1).split(), f"printed:\n{printed}\nshown:\n{shown.group(1)}"
