@@ -56,7 +56,7 @@ def test_state_weight_trains_a_head_and_a_fine_tune_adds_it_to_a_checkpoint_with
     train_logs = [m for m in logged if "train/state_mm_h1" in m]
     assert train_logs and all(m["train/state_mm_true"] > 0 for m in train_logs)
     val = [m for m in logged if "val/state_pred_mm_h1" in m]
-    assert val and val[-1]["val/state_true_mm_h1"] > 0
+    assert val and val[-1]["val/state_true_mm_h1"] > 0 and val[-1]["val/state_gap_mm_h1"] >= 0
     # the head reads a frame's latents into the six quantities, true or predicted alike
     z = torch.randn(2, 3, 16, 128)  # (B, V, N, D)
     assert tuned.read_state(z).shape == (2, 6)
@@ -109,3 +109,28 @@ def test_stack_cube_stores_record_both_cubes_and_the_state_is_relative_to_the_ta
     assert a.shape == b.shape == (9, 3) and 0.02 < np.linalg.norm(a[0, :2] - b[0, :2]) < 0.5  # two cubes apart
     np.testing.assert_allclose(s[:, :3], (a - tcp)[[0, 8]] * 100, rtol=1e-6)
     np.testing.assert_allclose(s[:, 3:], (a - b)[[0, 8]] * 100, rtol=1e-6)
+
+
+def test_the_state_loss_trains_the_head_on_true_latents_and_the_predictor_through_the_fixed_head():
+    from wamplan.worldmodel.config import PredictorConfig
+    from wamplan.worldmodel.predictor import WorldModelPredictor
+    from wamplan.worldmodel.train import state_loss
+
+    torch.manual_seed(0)
+    cfg = PredictorConfig(num_views=1, num_patches=4, enc_dim=8, proprio_dim=2, action_dim=1, frameskip=1,
+                          context=2, depth=1, heads=1, head_dim=8, mlp_dim=16, state_dim=6)
+    model = WorldModelPredictor(cfg)
+    batch = {"z": torch.randn(2, 4, 1, 4, 8), "s": torch.randn(2, 4, 6)}
+    zp = torch.randn(2, 2, 1, 4, 8, requires_grad=True)
+    zt = batch["z"][:, 2:]
+    _, logs = state_loss(model, batch, zp, zt, 2)
+    # the predicted-reading term alone: its gradient reaches the predictions, never the head
+    e_true = (model.read_state(batch["z"]) - batch["s"]).pow(2).mean()
+    loss, _ = state_loss(model, batch, zp, zt, 2)
+    (loss - e_true).backward()
+    assert zp.grad is not None and zp.grad.abs().sum() > 0
+    assert all(p.grad is None or p.grad.abs().sum() == 0 for p in model.state_head.parameters())
+    assert logs["state_mm_true"] > 0 and logs["state_mm_h1"] > 0
+    # predictions equal to the truth read the same: the second term is zero
+    zero, logs = state_loss(model, batch, zt.clone(), zt, 2)
+    assert logs["state_mm_h1"] == 0 and torch.isclose(zero, e_true)

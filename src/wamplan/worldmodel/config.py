@@ -175,9 +175,10 @@ class TrainConfig(AdamWConfig):
                                       "over the window's tokens), divided by 1 + W so the loss keeps its scale "
                                       "(0: off, every token weighs the same)")
     state_weight: float = field(0.0, "weight of the state-head loss (0: off): a small head learns the frames' "
-                                     "privileged poses (the held object relative to the gripper and in the world, "
-                                     "cm) from their true latents and from the predicted ones, so the predictor "
-                                     "must keep what says where the object is; needs stores with privileged poses")
+                                     "privileged poses (the held object relative to the gripper and to its target, "
+                                     "cm) from their true latents, and the predictor learns to make its predictions "
+                                     "read as the true frames do through that head (held fixed), so it must get "
+                                     "right what says where the object is; needs stores with privileged poses")
 
     def __post_init__(self) -> None:
         super().__post_init__()

@@ -73,16 +73,25 @@ def change_weights(z_cur: torch.Tensor, z_target: torch.Tensor, change_weight: f
     return (1 + change_weight * rel) / (1 + change_weight)
 
 
-def state_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], zp: torch.Tensor, horizon: int
-               ) -> tuple[torch.Tensor, dict[str, float]]:
-    """The state head's loss on a batch of windows: the MSE of its reading of every true frame's latent (the head
-    learns to read) plus that of every predicted one (the predictor learns to keep what the head reads), against
-    the privileged targets ``batch["s"]`` (B, T, S); zp (B, K, V, N, D) the predictions of frames H_ctx..H_ctx+K-1.
-    Logs the root-mean-square errors in mm (``state_mm_true``, ``state_mm_h1``)."""
-    h = model.cfg.context
+def state_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], zp: torch.Tensor, zt: torch.Tensor,
+               horizon: int) -> tuple[torch.Tensor, dict[str, float]]:
+    """The state head's loss on a batch of windows, two terms that never mix:
+
+    * the head learns to read the privileged targets ``batch["s"]`` (B, T, S) from every true frame's latent
+      (the latents are frozen features, so this trains the head alone);
+    * the predictor learns to make its predictions zp (B, K, V, N, D) read as the true frames zt (B, K, V, N, D)
+      do, through the head with its weights held fixed: the squared difference of the two readings, whose
+      gradient reaches the predictor only. The head is defined by the true latents, so the predictor cannot hide
+      a private code of the state in its predictions (a head trained on predictions too let it: the latent error
+      tripled); it can only get the directions of the latent that the head reads right.
+
+    Logs the root-mean-square errors in mm of the head on true latents against the targets (``state_mm_true``) and
+    of the predictions' reading against the true latents' at the first step (``state_mm_h1``)."""
     s = batch["s"].float()  # (B, T, S) cm
     e_true = (model.read_state(batch["z"].float()) - s).pow(2).mean()
-    e_pred = (model.read_state(zp) - s[:, h:h + horizon]).pow(2).mean(dim=(0, 2))  # (K,)
+    fixed = {k: v.detach() for k, v in model.state_head.named_parameters()}
+    read = lambda z: torch.func.functional_call(model.state_head, fixed, ((z - model.z_mean) / model.z_std,))  # noqa: E731
+    e_pred = (read(zp) - read(zt).detach()).pow(2).mean(dim=(0, 2))  # (K,)
     mm = STATE_UNIT_MM
     return e_true + e_pred.mean(), {"state_mm_true": float(e_true.detach().sqrt()) * mm,
                                     "state_mm_h1": float(e_pred[0].detach().sqrt()) * mm}
@@ -107,7 +116,7 @@ def window_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], hori
     w = gamma ** torch.arange(horizon, device=ez.device, dtype=ez.dtype)  # (K,)
     loss = (w * (ez + q_weight * eq)).sum()
     if state_weight > 0:
-        st, st_logs = state_loss(model, batch, zp, horizon)
+        st, st_logs = state_loss(model, batch, zp, zt, horizon)
         loss, logs = loss + state_weight * st, {**logs, **st_logs}
     return loss, logs
 
@@ -301,6 +310,7 @@ def evaluate_predictor(model: WorldModelPredictor, dataset: Dataset, horizon: in
                 st = batch["s"][:, model.cfg.context:model.cfg.context + horizon].float()  # (B, K, S)
                 parts["state_pred_se"] = (model.read_state(zp) - st).pow(2).mean(dim=-1)  # (B, K)
                 parts["state_true_se"] = (model.read_state(zt) - st).pow(2).mean(dim=-1)  # (B, K)
+                parts["state_gap_se"] = (model.read_state(zp) - model.read_state(zt)).pow(2).mean(dim=-1)  # (B, K)
             for k, v in parts.items():
                 sums[k] = sums.get(k, 0) + v.sum(dim=0).double()  # (K,)
             count += zc.shape[0]
@@ -309,7 +319,7 @@ def evaluate_predictor(model: WorldModelPredictor, dataset: Dataset, horizon: in
     for k, v in sums.items():
         mean = (v / max(count, 1)).cpu()  # (K,)
         out.update({f"{k}_h{i + 1}": float(mean[i]) for i in range(horizon)})
-    for k in ("state_pred", "state_true"):  # root-mean-square state errors in mm
+    for k in ("state_pred", "state_true", "state_gap"):  # root-mean-square state errors in mm
         for i in range(horizon):
             if f"{k}_se_h{i + 1}" in out:
                 out[f"{k}_mm_h{i + 1}"] = out.pop(f"{k}_se_h{i + 1}") ** 0.5 * STATE_UNIT_MM
