@@ -187,7 +187,8 @@ class Shaped(Upstream):
 
 @pytest.mark.parametrize("shape, said", [
     (dict(chunk_length=50), "returns 50-step chunks, not 16"),  # --chunk-length 16 said otherwise
-    (dict(chunk_length=2), "shorter than the world model's frameskip 4"),
+    (dict(chunk_length=2), "shorter than the world model's frameskip 4; plan with a world model whose frameskip "
+                           "divides the chunk (`wamplan wm train --frameskip 2`)"),
     (dict(action_dim=3), "its actions have 3 columns"),
     (dict(cameras=("front",)), "predicts views of ['front']"),
     (dict(image_size=32), "predicts 32-px views, the world model's encoder reads 64 px"),
