@@ -246,6 +246,7 @@ def test_wm_train_frameskip_of_the_chunk_trains_a_boundary_history_model(expert_
     assert FrameHistory(16, cfg.frameskip, cfg.context, None, torch.device("cpu")).steps(48) == [16, 32, 48]
     capsys.readouterr()
     assert main([*common, "--out", str(tmp_path / "wm6"), "--frameskip", "6"]) == 2
-    err = capsys.readouterr().err.strip().splitlines()[-1]  # after the encoding's progress bar
-    assert err.startswith("wamplan: error: frameskip 6 is not a multiple of the store's image stride 4")
-    assert "--image-every" in err
+    err = capsys.readouterr().err.strip().splitlines()  # refused before the store is encoded again
+    assert len(err) == 1 and err[0].startswith("wamplan: error: frameskip 6 is not a multiple of the store's image "
+                                               "stride 4") and "--image-every" in err[0]
+    assert not (tmp_path / "wm6").exists()
