@@ -4,6 +4,7 @@ the error mode, and an upstream-style client parsing its answers."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import threading
 from pathlib import Path
@@ -12,8 +13,11 @@ import json_numpy
 import numpy as np
 import pytest
 import requests
+import torch
 
 from wamplan.api import planned_policy
+from wamplan.checkpoint import save_checkpoint
+from wamplan.config import to_dict
 from wamplan.envs.spec import Observation
 from wamplan.errors import UserError
 from wamplan.proxy.app import create_proxy_app
@@ -23,6 +27,8 @@ from wamplan.proxy.upstream import LocalUpstream, Upstream, UpstreamShape
 from wamplan.wam import protocol
 from wamplan.wam.base import load_wam
 from wamplan.wam.server import BackgroundServer, create_app
+from wamplan.worldmodel import WorldModelPredictor, load_predictor
+from wamplan.worldmodel.train import KIND as PREDICTOR_KIND
 
 CKPTS = Path(__file__).resolve().parents[1] / "checkpoints" / "mini"
 WAM_CKPT, WM_CKPT = str(CKPTS / "tinywam"), str(CKPTS / "wm_augmented")
@@ -59,9 +65,9 @@ def proxy():
     p.close()
 
 
-def in_process_episode(client: int, chunks: int) -> np.ndarray:
+def in_process_episode(client: int, chunks: int, world_model: str = WM_CKPT) -> np.ndarray:
     """The same episode planned in process (same WAM, world model, planner, seed) -> (chunks x H, A) actions."""
-    policy = planned_policy(load_wam(WAM_CKPT, device="cpu"), world_model=WM_CKPT, device="cpu")
+    policy = planned_policy(load_wam(WAM_CKPT, device="cpu"), world_model=world_model, device="cpu")
     policy.reset(seed=0)
     return np.stack([policy.act(observation(client, t, policy.wants_images(t))) for t in range(chunks * H)])
 
@@ -181,7 +187,8 @@ class Shaped(Upstream):
 
 @pytest.mark.parametrize("shape, said", [
     (dict(chunk_length=50), "returns 50-step chunks, not 16"),  # --chunk-length 16 said otherwise
-    (dict(chunk_length=2), "shorter than the world model's frameskip 4"),
+    (dict(chunk_length=2), "shorter than the world model's frameskip 4; plan with a world model whose frameskip "
+                           "divides the chunk (`wamplan wm train --frameskip 2`)"),
     (dict(action_dim=3), "its actions have 3 columns"),
     (dict(cameras=("front",)), "predicts views of ['front']"),
     (dict(image_size=32), "predicts 32-px views, the world model's encoder reads 64 px"),
@@ -277,3 +284,47 @@ def test_a_boundary_retried_after_a_refusal_plans_as_if_sent_once(proxy):
                                                                 for o in (4, 8, 12)}))
     got = np.concatenate([np.stack(a["actions"]) for a in (first, second, third)])
     np.testing.assert_allclose(got, in_process_episode(c, 3), atol=1e-6)  # chunk 2 reads chunk 1's actions
+
+
+def boundary_world_model(out: Path, frameskip: int = H) -> str:
+    """A world model whose frameskip is the chunk (Δ = 16), saved as `wm train --frameskip 16` saves one: the
+    shipped predictor's weights where their shapes allow, a fresh action projector (its input is Δ·A wide)."""
+    saved = json.loads((Path(WM_CKPT) / "config.json").read_text())["config"]
+    shipped = load_predictor(WM_CKPT)
+    cfg = dataclasses.replace(shipped.cfg, frameskip=frameskip)
+    torch.manual_seed(0)
+    model = WorldModelPredictor(cfg, shipped.task, shipped.cameras)
+    own = model.state_dict()
+    model.load_state_dict({k: v if v.shape == own[k].shape else own[k] for k, v in shipped.state_dict().items()})
+    save_checkpoint(out, model, {**saved, "predictor": to_dict(cfg)}, kind=PREDICTOR_KIND)
+    return str(out)
+
+
+def test_a_boundary_world_model_plans_behind_a_client_that_posts_only_boundaries(tmp_path):
+    """With Δ = the chunk the history of boundary t is t-32, t-16, t: what an unmodified client posts. The first
+    chunk runs open loop (first-chunk), the second too (warm-up: its history reaches before step 0); from the third
+    on every chunk is planned without chunk_frames, taking the actions of the same episode planned in process."""
+    wm = boundary_world_model(tmp_path / "wm16")
+    p = build_proxy(ProxyConfig(upstream=WAM_CKPT, world_model=wm, device="cpu", errors="http"))
+    try:
+        assert p.frameskip == H
+        with BackgroundServer(create_proxy_app(p)) as srv:
+            answers = drive(f"{srv.url}/s/plain/act", 8, 4, frames=False)
+    finally:
+        p.close()
+    reports = [a["wamplan"] for a in answers]
+    assert [r["open_loop"] for r in reports] == ["first-chunk", "warm-up", None, None]
+    assert [r["planned"] for r in reports] == [False, False, True, True]
+    assert not any("chunk_frames" in n for r in reports for n in r.get("notes", []))
+    got = np.concatenate([np.stack(a["actions"]) for a in answers])  # (4 x H, A)
+    np.testing.assert_allclose(got, in_process_episode(8, 4, wm), atol=1e-6)
+
+
+def test_planning_refuses_a_frameskip_longer_than_the_chunk_in_one_line(tmp_path):
+    from wamplan.planning.history import PlanningError
+
+    wm = boundary_world_model(tmp_path / "wm32", frameskip=2 * H)
+    with pytest.raises(PlanningError) as e:
+        planned_policy(load_wam(WAM_CKPT, device="cpu"), world_model=wm, device="cpu")
+    assert "frameskip 32 is longer than the WAM's 16-step chunk" in str(e.value) and "\n" not in str(e.value)
+    assert "wamplan wm train --frameskip 16" in str(e.value)

@@ -74,10 +74,11 @@ def test_wm_train_takes_architecture_options_over_the_preset():
     base = PredictorConfig()
     assert architecture_from_args(p.parse_args([]), base) == base
     args = p.parse_args(["--depth", "6", "--head-dim", "48", "--action-conditioning", "adaln", "--action-tokens",
-                         "--no-predict-delta"])
+                         "--no-predict-delta", "--frameskip", "16", "--context", "2"])
     cfg = architecture_from_args(args, base)
     assert (cfg.depth, cfg.width, cfg.action_conditioning, cfg.action_tokens, cfg.predict_delta) == \
         (6, 4 * 48, "adaln", True, False)
+    assert (cfg.frameskip, cfg.context, cfg.action_block_dim) == (16, 2, 16 * base.action_dim)
     assert cfg.num_patches == base.num_patches and "num_patches" not in ARCHITECTURE_FIELDS  # the encoder's layout
     with pytest.raises(ConfigError, match="action_conditioning"):
         architecture_from_args(p.parse_args(["--action-conditioning", "tokens"]), base)
@@ -227,3 +228,25 @@ def test_wm_train_encoder_kwargs_reach_the_features_and_the_checkpoint(expert_st
                  "--encoder-kwargs", "{basis: dct}"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--encoder-kwargs '{basis: dct}' is not JSON" in err[0] and not (tmp_path / "bad").exists()
+
+
+def test_wm_train_frameskip_of_the_chunk_trains_a_boundary_history_model(expert_store, tmp_path, capsys):
+    """`wm train --frameskip 16` (the WAM's chunk): the checkpoint's history frames are the chunk boundaries; a
+    frameskip off the stores' image stride is refused in one line that names the fix."""
+    import shutil
+
+    from wamplan.cli import main
+    from wamplan.planning.history import FrameHistory
+
+    store = shutil.copytree(expert_store, tmp_path / "expert")  # a copy: training caches features in the store
+    common = ["wm", "train", "--data", str(store), "--max-steps", "1", "--batch-size", "4", "--depth", "1"]
+    assert main([*common, "--out", str(tmp_path / "wm16"), "--frameskip", "16", "--horizon", "1"]) == 0
+    cfg = load_predictor(tmp_path / "wm16").cfg
+    assert (cfg.frameskip, cfg.context, cfg.depth) == (16, 3, 1)
+    assert FrameHistory(16, cfg.frameskip, cfg.context, None, torch.device("cpu")).steps(48) == [16, 32, 48]
+    capsys.readouterr()
+    assert main([*common, "--out", str(tmp_path / "wm6"), "--frameskip", "6"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()  # refused before the store is encoded again
+    assert len(err) == 1 and err[0].startswith("wamplan: error: frameskip 6 is not a multiple of the store's image "
+                                               "stride 4") and "--image-every" in err[0]
+    assert not (tmp_path / "wm6").exists()

@@ -207,7 +207,7 @@ def _check_inputs(cfg: EvalConfig, conditions: list[int]) -> None:
     """Load the WAM and the world models the conditions need once, here, on the CPU: a damaged or foreign
     checkpoint stops the run (in one line) before it stores its settings, so a failed start never locks its
     output directory. The workers load their own copies."""
-    from wamplan.planning.policy_config import check_replan_every
+    from wamplan.planning.policy_config import check_frameskip, check_replan_every
     from wamplan.worldmodel.train import load_world_model
 
     if cfg.wam:
@@ -222,6 +222,7 @@ def _check_inputs(cfg: EvalConfig, conditions: list[int]) -> None:
         for path in cfg.world_models(c):
             predictor, _ = load_world_model(path, device="cpu")  # the predictor and its encoder
             check_world_model_task(cfg, path, predictor)
+            check_frameskip(predictor.cfg.frameskip, cfg.env.spec.chunk_len)
             if cfg.policy.replan_every is not None:  # the re-plans' rollouts must end at the target's step
                 check_replan_every(cfg.policy.replan_every, cfg.env.spec.chunk_len, predictor.cfg.frameskip)
 

@@ -72,6 +72,16 @@ class PlannedPolicyConfig:
                      accept_margin=self.accept_margin)
 
 
+def check_frameskip(frameskip: int, chunk: int) -> None:
+    """Refuse a learned model whose frameskip Δ exceeds the WAM's ``chunk``: one rollout step would run past the
+    chunk. Δ = the chunk plans from the chunk boundaries alone; a Δ that does not divide the chunk plans its first
+    Δ·floor(H/Δ) steps (the paper's Δ 5 with 16-step chunks)."""
+    if frameskip > chunk:
+        raise PlanningError(f"the world model's frameskip {frameskip} is longer than the WAM's {chunk}-step chunk; "
+                            f"plan with a world model whose frameskip divides the chunk "
+                            f"(`wamplan wm train --frameskip {chunk}`)")
+
+
 def check_replan_every(k: int, chunk: int, frameskip: int | None) -> None:
     """Refuse a re-planning period that does not fit: K must divide the ``chunk`` and be shorter than it, and be
     a multiple of a learned model's ``frameskip`` (None: the simulator, any K) so the rest's rollout ends at
@@ -103,6 +113,8 @@ def check_fits(cfg: PlannedPolicyConfig, chunk: int, planner: Planner, dynamics:
     line that names the fix -> the steps between planning points (the chunk, or ``replan_every``)."""
     check_settings(cfg, chunk, planner.config)
     frameskip = getattr(dynamics, "frameskip", chunk)
+    if dynamics.needs_history:
+        check_frameskip(frameskip, chunk)
     period = chunk
     if cfg.replan_every is not None:
         period = cfg.replan_every

@@ -12,7 +12,7 @@ What a request may add for the proxy (all optional; none is forwarded to the ups
   chunk, whole); ``chunk_frames``: the frames the robot saw during that chunk, ``{"<offset>": {<image fields>,
   "proprio": (P,)}}`` with offsets 1..H-1 from the chunk's start. A learned world model needs a frame every Δ
   steps (Δ = its frameskip; 4 for the shipped one): without those frames a chunk is answered open loop with the
-  reason ``no-history``.
+  reason ``no-history``. One whose Δ is the chunk needs none: the boundaries the robot posts are its frames.
 
 Upstream's eval client's ``proprio_history`` (N proprio vectors) / ``images_history`` (N left-wrist, N right-wrist,
 then N primary images, each oldest first; ALOHA's fields) are forwarded to the upstream untouched; their frames,

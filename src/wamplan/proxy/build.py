@@ -25,7 +25,8 @@ def check_fit(task: TaskSpec, upstream: Upstream, chunk: int, columns: tuple[int
         raise UserError(f"{where}: it returns {s.chunk_length}-step chunks, not {chunk}; drop --chunk-length or fix it")
     if chunk < frameskip:
         raise UserError(f"{where}: its {chunk}-step chunks are shorter than the world model's frameskip {frameskip}; "
-                        f"plan with a world model whose frameskip divides the chunk")
+                        f"plan with a world model whose frameskip divides the chunk "
+                        f"(`wamplan wm train --frameskip {chunk}`)")
     if s.action_dim is not None and max(columns) >= s.action_dim:
         raise UserError(f"{where}: its actions have {s.action_dim} columns, the world model's task {task.name} "
                         f"takes columns {list(columns)}")

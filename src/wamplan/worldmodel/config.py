@@ -95,10 +95,12 @@ class PredictorConfig:
         return self.tokens_per_frame + (self.frameskip if self.action_tokens else 0)
 
 
-# The predictor's architecture fields that `wamplan wm train` may override on top of a preset (the rest, the
-# encoder's token layout, the frameskip and the window, are fixed by the preset's encoder and data).
-ARCHITECTURE_FIELDS = ("depth", "heads", "head_dim", "mlp_dim", "proprio_emb", "action_emb", "dropout",
-                       "predict_delta", "action_conditioning", "action_tokens")
+# The predictor's fields that `wamplan wm train` may override on top of a preset (the rest, the encoder's token
+# layout, are fixed by the encoder). ``frameskip`` must be a multiple of the stores' image stride (the readers
+# refuse it otherwise); to plan, it must not exceed the WAM's chunk (``planning.policy_config.check_frameskip``).
+# Δ = the chunk (16 for the cube task) makes the history the chunk boundaries alone: t-2H, t-H, t with context 3.
+ARCHITECTURE_FIELDS = ("frameskip", "context", "depth", "heads", "head_dim", "mlp_dim", "proprio_emb", "action_emb",
+                       "dropout", "predict_delta", "action_conditioning", "action_tokens")
 
 
 def add_architecture_arguments(parser: Any) -> None:

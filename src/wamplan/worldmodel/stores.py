@@ -39,6 +39,17 @@ def stores_task(stores: Sequence[str | Path]) -> tuple[TaskSpec, tuple[str, ...]
     return first.task, first.cameras
 
 
+def check_image_stride(stores: Sequence[str | Path], frameskip: int) -> None:
+    """Every store's image stride must divide the ``frameskip`` (the windows read a frame every Δ steps)."""
+    from wamplan.data.store import EpisodeStore, StoreError
+
+    for root in stores:
+        every = EpisodeStore(root).image_every
+        if frameskip % every:
+            raise StoreError(f"frameskip {frameskip} is not a multiple of the store's image stride {every} ({root}); "
+                             f"collect with --image-every dividing it or pick --frameskip a multiple of {every}")
+
+
 def predictor_for_task(cfg: PredictorConfig, task: TaskSpec, cameras: Sequence[str]) -> PredictorConfig:
     """``cfg`` with the views, proprio and action sizes of ``task``'s stores holding ``cameras``."""
     return dataclasses.replace(cfg, num_views=len(cameras), proprio_dim=task.proprio_dim, action_dim=task.action_dim)
@@ -115,6 +126,7 @@ def train_predictor_on_stores(stores: Sequence[str | Path], out: str | Path, pre
     from wamplan.worldmodel.train import KIND, train_predictor
 
     task, cameras = stores_task(stores)
+    check_image_stride(stores, predictor.frameskip)  # before encoding, which may take long
     predictor = predictor_for_task(predictor, task, cameras)
     predictor = dataclasses.replace(predictor, state_dim=len(STATE_QUANTITIES) if train.state_weight > 0 else 0)
     data, resume, info, key, (name, n, d) = _prepare(stores, out, KIND, encoder, encoder_kwargs, encoder_path,
