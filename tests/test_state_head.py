@@ -134,3 +134,19 @@ def test_the_state_loss_trains_the_head_on_true_latents_and_the_predictor_throug
     # predictions equal to the truth read the same: the second term is zero
     zero, logs = state_loss(model, batch, zt.clone(), zt, 2)
     assert logs["state_mm_h1"] == 0 and torch.isclose(zero, e_true)
+
+
+def test_a_ridge_state_head_starts_from_the_ridge_fit_of_the_true_latents():
+    from wamplan.worldmodel.config import PredictorConfig
+    from wamplan.worldmodel.predictor import WorldModelPredictor
+
+    torch.manual_seed(0)
+    cfg = PredictorConfig(num_views=1, num_patches=4, enc_dim=8, proprio_dim=2, action_dim=1, frameskip=1,
+                          context=2, depth=1, heads=1, head_dim=8, mlp_dim=16, state_dim=6, state_head="ridge")
+    model = WorldModelPredictor(cfg)
+    z = torch.randn(400, 1, 4, 8)  # (n, V, N, D); normalisation is the identity here
+    w = torch.randn(32, 6)
+    s = z.flatten(1) @ w + 3.0  # an exactly linear state
+    model.state_head.fit_ridge(z, s, alpha=1e-6)
+    torch.testing.assert_close(model.read_state(z), s, atol=1e-3, rtol=1e-3)
+    assert sum(p.numel() for p in model.state_head.parameters()) == 32 * 6 + 6

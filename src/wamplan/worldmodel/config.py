@@ -15,6 +15,7 @@ from wamplan.config import add_field_argument, field, require
 from wamplan.train_loop import AdamWConfig
 
 ACTION_CONDITIONING = ("input", "adaln")  # PredictorConfig.action_conditioning
+STATE_HEADS = ("mlp", "ridge")  # PredictorConfig.state_head
 # The task of a world-model checkpoint that records none: every one made before tasks was trained on it.
 
 
@@ -58,6 +59,9 @@ class PredictorConfig:
     state_dim: int = field(0, "S, privileged state quantities a training-only state head reads from any frame's "
                               "latent, true or predicted (0: no head); set by `wm train --state-weight`, and "
                               "nothing privileged is read at test time")
+    state_head: str = field("mlp", "the state head: 'mlp' (each token squeezed to 16 features, then an MLP; trained "
+                                   "from its random start) or 'ridge' (one linear read-out of the frame's tokens, "
+                                   "started from a ridge fit on the training set's true latents before training)")
 
     def __post_init__(self) -> None:
         for name in ("num_views", "num_patches", "enc_dim", "proprio_dim", "action_dim", "frameskip",
@@ -66,6 +70,8 @@ class PredictorConfig:
             require(isinstance(v, int) and v > 0, f"PredictorConfig.{name} must be a positive int, got {v!r}")
         require(isinstance(self.state_dim, int) and self.state_dim >= 0,
                 f"PredictorConfig.state_dim must be an int >= 0 (0: no state head), got {self.state_dim!r}")
+        require(self.state_head in STATE_HEADS,
+                f"PredictorConfig.state_head must be one of {list(STATE_HEADS)}, got {self.state_head!r}")
         require(self.head_dim % 2 == 0, f"PredictorConfig.head_dim must be even (rotary pairs), got {self.head_dim}")
         require(self.rope_base > 1.0, f"PredictorConfig.rope_base must be > 1, got {self.rope_base}")
         require(0.0 <= self.dropout < 1.0, f"PredictorConfig.dropout must be in [0, 1), got {self.dropout}")

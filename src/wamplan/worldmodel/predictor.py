@@ -83,20 +83,41 @@ class PrefixCache:
 
 
 class StateHead(nn.Module):
-    """Privileged state (S,) from one frame's normalised latents (V, N, D): each token squeezed to a few features,
-    then an MLP over the frame. Trained only as an auxiliary target (``TrainConfig.state_weight``)."""
+    """Privileged state (S,) from one frame's normalised latents (V, N, D), trained only as an auxiliary target
+    (``TrainConfig.state_weight``). ``cfg.state_head``: 'mlp' (each token squeezed to a few features, then an MLP
+    over the frame) or 'ridge' (one linear read-out of the frame's tokens; :func:`fit_ridge` starts it)."""
 
     SQUEEZE, HIDDEN = 16, 256
 
     def __init__(self, cfg: PredictorConfig) -> None:
         super().__init__()
+        self.kind = cfg.state_head
+        if self.kind == "ridge":
+            self.linear = nn.Linear(cfg.tokens_per_frame * cfg.enc_dim, cfg.state_dim)
+            return
         self.token = nn.Linear(cfg.enc_dim, self.SQUEEZE)
         self.mlp = nn.Sequential(nn.GELU(), nn.Linear(cfg.tokens_per_frame * self.SQUEEZE, self.HIDDEN), nn.GELU(),
                                  nn.Linear(self.HIDDEN, cfg.state_dim))
 
     def forward(self, zn: torch.Tensor) -> torch.Tensor:
         """zn (..., V, N, D) normalised latents -> (..., S)."""
+        if self.kind == "ridge":
+            return self.linear(zn.flatten(-3))  # (..., V N D) -> (..., S)
         return self.mlp(self.token(zn).flatten(-3))  # (..., V N 16) -> (..., S)
+
+    @torch.no_grad()
+    def fit_ridge(self, zn: torch.Tensor, s: torch.Tensor, alpha: float = 1e-2) -> None:
+        """Set the linear read-out to the ridge solution on normalised latents zn (n, V, N, D) and targets s (n, S):
+        ``alpha`` times the mean squared feature is the penalty (the features are standardised, so about alpha)."""
+        x = zn.flatten(1).double()  # (n, V N D)
+        y = s.double()  # (n, S)
+        xm, ym = x.mean(0), y.mean(0)
+        xc, yc = x - xm, y - ym
+        gram = xc.T @ xc  # (F, F)
+        gram.diagonal().add_(alpha * float(gram.diagonal().mean()))
+        w = torch.linalg.solve(gram, xc.T @ yc)  # (F, S)
+        self.linear.weight.copy_(w.T.to(self.linear.weight))
+        self.linear.bias.copy_((ym - xm @ w).to(self.linear.bias))
 
 
 class WorldModelPredictor(nn.Module):

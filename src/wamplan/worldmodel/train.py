@@ -328,6 +328,18 @@ def evaluate_predictor(model: WorldModelPredictor, dataset: Dataset, horizon: in
     return out
 
 
+def fit_state_head(model: WorldModelPredictor, dataset: Dataset, max_items: int = 1500, seed: int = 0) -> None:
+    """Start a 'ridge' state head from the ridge fit of the privileged targets on the true latents of up to
+    ``max_items`` random windows of ``dataset`` (every frame of each)."""
+    n = len(dataset)  # type: ignore[arg-type]
+    idx = torch.randperm(n, generator=torch.Generator().manual_seed(seed))[:max_items].tolist()
+    items = [dataset[i] for i in idx]
+    z = torch.cat([it["z"].float() for it in items])  # (n T, V, N, D)
+    s = torch.cat([it["s"].float() for it in items])  # (n T, S)
+    dev = model.z_mean.device
+    model.state_head.fit_ridge(((z.to(dev) - model.z_mean) / model.z_std), s.to(dev))
+
+
 def compute_feature_stats(dataset: Dataset, max_items: int = 2000, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-dimension mean and std (D,) of the visual features over up to ``max_items`` random windows."""
     n = len(dataset)  # type: ignore[arg-type]
@@ -377,9 +389,11 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
         if init is not None:
             load_weights(checkpoint_dir(init), model, dev, new=NEW_ON_INIT)
             model.float()
-            return
-        mean, std = compute_feature_stats(train_set, seed=train.seed)
-        model.set_feature_stats(mean, std)
+        else:
+            mean, std = compute_feature_stats(train_set, seed=train.seed)
+            model.set_feature_stats(mean, std)
+        if model.state_head is not None and cfg.state_head == "ridge":
+            fit_state_head(model, train_set, seed=train.seed)
 
     def evaluate(m: torch.nn.Module) -> dict[str, float]:
         out = evaluate_predictor(m, val_set, train.horizon, train.gamma,  # type: ignore[arg-type]
@@ -429,7 +443,7 @@ def _check_init(init: str | Path, cfg: PredictorConfig, encoder_info: dict[str, 
     """A fine-tuning start must be a predictor of the same architecture over the same encoder's tokens."""
     saved = read_config(checkpoint_dir(init), KIND)
     theirs = to_dict(from_dict(PredictorConfig, saved["predictor"]))  # fields added since it was saved: their defaults
-    theirs["state_dim"] = cfg.state_dim  # a state head may be added (or dropped) when fine-tuning
+    theirs.update(state_dim=cfg.state_dim, state_head=cfg.state_head)  # a fine-tune may add (or drop) a state head
     if theirs != to_dict(cfg):
         diff = {k: (theirs.get(k), v) for k, v in to_dict(cfg).items() if theirs.get(k) != v}
         raise UserError(f"--init {init} is another predictor {diff} (its, this run's); fine-tune with the preset "
