@@ -106,7 +106,7 @@ class PredictorConfig:
 # refuse it otherwise); to plan, it must not exceed the WAM's chunk (``planning.policy_config.check_frameskip``).
 # Δ = the chunk (16 for the cube task) makes the history the chunk boundaries alone: t-2H, t-H, t with context 3.
 ARCHITECTURE_FIELDS = ("frameskip", "context", "depth", "heads", "head_dim", "mlp_dim", "proprio_emb", "action_emb",
-                       "dropout", "predict_delta", "action_conditioning", "action_tokens")
+                       "dropout", "predict_delta", "action_conditioning", "action_tokens", "state_head")
 
 
 def add_architecture_arguments(parser: Any) -> None:
