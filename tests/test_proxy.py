@@ -192,7 +192,7 @@ class Shaped(Upstream):
     (dict(action_dim=3), "its actions have 3 columns"),
     (dict(cameras=("front",)), "predicts views of ['front']"),
     (dict(image_size=32), "predicts 32-px views, the world model's encoder reads 64 px"),
-    (dict(task="push-cube"), "push-cube"),
+    (dict(task="push-cube"), "serve a world model made for 'push-cube' (--world-model)"),
 ])
 def test_a_world_model_that_does_not_fit_the_upstream_is_refused_in_one_line(shape, said):
     cfg = ProxyConfig(upstream="http://127.0.0.1:1/act", world_model=WM_CKPT, device="cpu",

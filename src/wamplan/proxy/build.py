@@ -18,7 +18,9 @@ def check_fit(task: TaskSpec, upstream: Upstream, chunk: int, columns: tuple[int
     where = f"world model {world_model} does not fit {upstream.where}"
     if s.task is not None:
         try:
-            check_same_task(task.name, s.task, upstream.where)
+            check_same_task(task.name, s.task, upstream.where,
+                            f"serve a world model made for '{s.task}' (--world-model), or put a WAM made for "
+                            f"'{task.name}' upstream")
         except UserError as e:
             raise UserError(f"{where}: {e}") from e
     if s.chunk_length is not None and s.chunk_length != chunk:
