@@ -1,0 +1,80 @@
+"""Sibling chunks in pictures: for one counterfactual branch group of a store, each sibling's real view K frames
+into its chunk beside the decoded predictions of one or more world models (same context, each sibling's own
+actions), so one sees whether a model moves its prediction with the chunk as the world does.
+
+    python scripts/wm_sibling_picture.py STORE --wm shipped=checkpoints/mini/wm_augmented,new=RUN \\
+        --decoder checkpoints/mini/decoder --camera wrist --group 0 --out sib.png
+
+The models must share the decoder's encoder (the features are read from the store's cache of that encoder).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import torch
+
+
+@torch.inference_mode()
+def main(argv: list[str] | None = None) -> Path:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("store", type=Path, help="a store with counterfactual branches (collect --branches)")
+    p.add_argument("--wm", required=True, help="LABEL=CHECKPOINT, comma separated")
+    p.add_argument("--decoder", required=True, help="a decoder of the models' encoder")
+    p.add_argument("--camera", default="wrist")
+    p.add_argument("--group", type=int, default=0, help="which branch group of the validation split")
+    p.add_argument("--horizon", type=int, default=4, help="frames into the chunk (4 = the chunk's end at Δ 4)")
+    p.add_argument("--siblings", type=int, default=4)
+    p.add_argument("--out", type=Path, default=Path("wm_siblings.png"))
+    args = p.parse_args(argv)
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from wamplan.data.features import feature_key
+    from wamplan.data.readers import BranchGroups
+    from wamplan.plot import save_figure
+    from wamplan.worldmodel.decoder import load_decoder
+    from wamplan.worldmodel.train import load_world_model
+
+    models = [(lab, *load_world_model(path)) for lab, _, path in (s.partition("=") for s in args.wm.split(","))]
+    first, enc = models[0][1], models[0][2]
+    dec = load_decoder(args.decoder, encoder=enc)
+    key = feature_key(enc.config_dict())
+    cfg = first.cfg
+    groups = BranchGroups([args.store], cfg.frameskip, cfg.context, args.horizon, split="val", features=key)
+    images = BranchGroups([args.store], cfg.frameskip, cfg.context, args.horizon, split="val")
+    g, pics = groups[args.group], images[args.group]  # z (G, T, V, N, D); images (G, T, V, H, W, 3)
+    v, hc, k = list(first.cameras).index(args.camera), cfg.context, args.horizon
+    n = min(args.siblings, g["z"].shape[0])
+    rows = []
+    for i in range(n):
+        z, q, a = g["z"][i:i + 1].float(), g["q"][i:i + 1].float(), g["a"][i:i + 1].float()
+        row = [("real", pics["images"][i, hc - 1 + k, v].numpy())]
+        for label, model, _ in models:
+            zp, _ = model.rollout(z[:, :hc], q[:, :hc], a[:, :hc - 1], a[:, hc - 1:hc - 1 + k])  # (1, K, V, N, D)
+            row.append((label, dec(zp[:, -1, v]).permute(0, 2, 3, 1)[0].numpy()))
+        rows.append(row)
+    fig, axes = plt.subplots(n, len(rows[0]) + 1, figsize=(2 * (len(rows[0]) + 1), 2.1 * n), squeeze=False)
+    for i, row in enumerate(rows):
+        axes[i][0].imshow(pics["images"][i, hc - 1, v].numpy())  # the shared boundary frame
+        axes[i][0].set_ylabel(f"sibling {i}", fontsize=8)
+        for j, (label, pic) in enumerate(row, start=1):
+            axes[i][j].imshow(np.clip(pic, 0, 255 if pic.dtype == np.uint8 else 1))
+            if i == 0:
+                axes[i][j].set_title(label if label == "real" else f"{label}: predicted", fontsize=9)
+        if i == 0:
+            axes[i][0].set_title("at the boundary", fontsize=9)
+    for ax in axes.flat:
+        ax.set_xticks([]), ax.set_yticks([])
+    fig.suptitle(f"{args.store.name}: validation branch group {args.group}, {args.camera} view, {k * cfg.frameskip} "
+                 f"steps into each sibling's chunk", fontsize=9)
+    return save_figure(fig, args.out)
+
+
+if __name__ == "__main__":
+    print(main())
