@@ -365,7 +365,10 @@ def test_a_directory_refuses_another_world_model_and_accepts_one_added_later(tmp
         run_evaluation(_cfg(*argv), [6, 7], [], out)
 
     resume("--wm-plain", str(a))
-    resume("--wm-plain", str(a), "--wm-augmented", str(b))  # added: stored beside it
+    from wamplan.evaluation.records import append_record
+
+    append_record(out, dict(condition=6, seed=0, variant="plain", success=False, outcome="failure", length=10))
+    resume("--wm-plain", str(a), "--wm-augmented", str(b))  # added: stored beside it (condition 7 has not run)
     assert json.loads((out / "eval_config.json").read_text())["wm_augmented"] == str(b)
     (tmp_path / "link_a").symlink_to(a)
     resume("--wm-plain", str(tmp_path / "link_a"))  # the same model; the augmented one stays stored
