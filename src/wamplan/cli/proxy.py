@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from wamplan.cli.main import add_command, register_command
+from wamplan.cli.server_options import add_listen_options, listen_secret
 
 
 @register_command("serve")
@@ -21,31 +22,21 @@ def _options(p: argparse.ArgumentParser) -> None:
     from wamplan.proxy.config import ProxyConfig
 
     add_arguments(p, ProxyConfig)
-    p.add_argument("--host", default="127.0.0.1",
-                   help="address to listen on (default: 127.0.0.1, this machine only; 0.0.0.0: every interface)")
-    p.add_argument("--port", type=int, default=8778, help="port to listen on (default: 8778)")
-    p.add_argument("--secret", default=None,
-                   help="shared secret every request must carry (X-WAMplan-Secret header, Authorization: Bearer, or "
-                        "?token=SECRET in the URL); default: $WAMPLAN_ACT_SECRET, none if unset. The upstream's own "
-                        "secret, if any, is read from $WAMPLAN_UPSTREAM_SECRET")
-    p.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"],
-                   help="uvicorn log level (default: info)")
+    add_listen_options(p, 8778, "shared secret every request must carry (X-WAMplan-Secret header, Authorization: "
+                                "Bearer, or ?token=SECRET in the URL); default: $WAMPLAN_ACT_SECRET, none if unset. "
+                                "The upstream's own secret, if any, is read from $WAMPLAN_UPSTREAM_SECRET")
     p.set_defaults(func=_serve)
 
 
 def _serve(args: argparse.Namespace) -> int:
     import dataclasses
-    import os
 
-    from wamplan.errors import UserError
     from wamplan.proxy.config import ProxyConfig
-    from wamplan.wam import protocol
 
-    if not 0 < args.port < 65536:
-        raise UserError(f"--port must be in 1..65535, got {args.port}")
-    given = {f.name: getattr(args, f.name) for f in dataclasses.fields(ProxyConfig) if getattr(args, f.name) is not None}
-    cfg = ProxyConfig(**given)
-    secret = args.secret if args.secret is not None else os.environ.get(protocol.SECRET_ENV) or None
+    secret = listen_secret(args)
+    # the options given, onto the defaults; not from_args: ProxyConfig() alone is refused (no upstream)
+    cfg = ProxyConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(ProxyConfig)
+                         if getattr(args, f.name) is not None})
     from wamplan.device import resolve_device
     from wamplan.proxy.app import create_proxy_app
     from wamplan.proxy.build import build_proxy

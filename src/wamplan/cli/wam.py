@@ -7,6 +7,7 @@ from pathlib import Path
 
 from wamplan.errors import UserError
 from wamplan.cli.main import add_command, add_group, register_command
+from wamplan.cli.server_options import add_listen_options, listen_secret
 
 
 @register_command("wam")
@@ -28,14 +29,10 @@ def _wam_commands(parser: argparse.ArgumentParser) -> None:
 
 def _serve_options(serve: argparse.ArgumentParser) -> None:
     serve.add_argument("--ckpt", required=True, help="WAM checkpoint directory (model.safetensors + config.json)")
-    serve.add_argument("--host", default="127.0.0.1",
-                       help="address to listen on (default: 127.0.0.1, this machine only; 0.0.0.0: every interface)")
-    serve.add_argument("--port", type=int, default=8777, help="port to listen on (default: 8777)")
-    serve.add_argument("--secret", default=None,
-                       help="shared secret every /act request must carry in the X-WAMplan-Secret header, as "
-                            "Authorization: Bearer, or as ?token=SECRET in the URL (for clients that cannot send "
-                            "headers); default: $WAMPLAN_ACT_SECRET, none if unset. Prefer the variable: a command "
-                            "line is visible to other users of the machine")
+    add_listen_options(serve, 8777, "shared secret every /act request must carry in the X-WAMplan-Secret header, as "
+                                    "Authorization: Bearer, or as ?token=SECRET in the URL (for clients that cannot "
+                                    "send headers); default: $WAMPLAN_ACT_SECRET, none if unset. Prefer the "
+                                    "variable: a command line is visible to other users of the machine")
     serve.add_argument("--max-request-mb", type=float, default=16.0,
                        help="refuse /act bodies larger than this with HTTP 413 (default: 16 MiB)")
     serve.add_argument("--instruction", default=None,
@@ -49,8 +46,6 @@ def _serve_options(serve: argparse.ArgumentParser) -> None:
     serve.add_argument("--bare-errors", action="store_true", help="the same as --errors upstream")
     serve.add_argument("--device", default="auto", help="torch device for the WAM: auto, cpu, cuda, cuda:1, ... "
                                                         "(default: auto)")
-    serve.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"],
-                       help="uvicorn log level (default: info)")
     serve.set_defaults(func=_serve)
 
 
@@ -82,22 +77,14 @@ def _train_options(train: argparse.ArgumentParser) -> None:
 
 
 def _serve(args: argparse.Namespace) -> int:
-    import os
-
-    if not 0 < args.port < 65536:
-        raise UserError(f"--port must be in 1..65535, got {args.port}")
+    secret = listen_secret(args)
     if not args.max_request_mb > 0:
         raise UserError(f"--max-request-mb must be > 0, got {args.max_request_mb}")
-    from wamplan.wam import protocol
-    from wamplan.wam.base import load_wam
-
     from wamplan.device import resolve_device
+    from wamplan.wam.base import load_wam
+    from wamplan.wam.server import bind_socket, field_map, resolve_maps, serve
 
-    secret = args.secret if args.secret is not None else os.environ.get(protocol.SECRET_ENV) or None
     resolve_device(args.device)  # before loading anything
-    from wamplan.wam.server import bind_socket, serve
-
-    from wamplan.wam.server import field_map, resolve_maps
 
     sock = bind_socket(args.host, args.port)  # a busy port fails here, before loading or announcing anything
     try:

@@ -232,9 +232,10 @@ def cmd_train(args: argparse.Namespace) -> int:
     require_dir(args.out)
     resolve_device(args.device)
     p = get_world_model_preset(args.preset)
+    encoder, encoder_kwargs = _encoder(args, p)
     metrics = train_predictor_on_stores(_stores(args.data), args.out, architecture_from_args(args, p.predictor),
                                         from_args(TrainConfig, args, p.train),
-                                        **dict(zip(("encoder", "encoder_kwargs"), _encoder(args, p))),
+                                        encoder=encoder, encoder_kwargs=encoder_kwargs,
                                         encoder_path=args.encoder_path, val_fraction=args.val_fraction,
                                         device=args.device, max_steps=args.max_steps, init=args.init)
     print(json.dumps(metrics))
@@ -249,9 +250,10 @@ def cmd_train_decoder(args: argparse.Namespace) -> int:
     require_dir(args.out)
     resolve_device(args.device)
     p = get_world_model_preset(args.preset)
+    encoder, encoder_kwargs = _encoder(args, p)
     metrics = train_decoder_on_stores(_stores(args.data), args.out, p.decoder,
                                       from_args(DecoderTrainConfig, args, p.decoder_train),
-                                      **dict(zip(("encoder", "encoder_kwargs"), _encoder(args, p))),
+                                      encoder=encoder, encoder_kwargs=encoder_kwargs,
                                       encoder_path=args.encoder_path,
                                       val_fraction=args.val_fraction, device=args.device, max_steps=args.max_steps)
     print(json.dumps(metrics))

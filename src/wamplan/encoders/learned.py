@@ -126,17 +126,9 @@ class EncoderTrainer(nn.Module):
     def __init__(self, cfg: EncoderTrainConfig, views: int, state_dim: int) -> None:
         super().__init__()
         self.net = CNNTokens(cfg.width)
-        self.encoder = TaskCNNEncoder(net=self.net)  # its preprocessing; shares the CNN
         self.readout = nn.ModuleList(nn.Linear(16 * cfg.width, state_dim) for _ in range(views))
         self.decoder = nn.Sequential(nn.ConvTranspose2d(cfg.width, 64, 4, stride=2, padding=1), nn.GELU(),
                                      nn.ConvTranspose2d(64, 3, 4, stride=2, padding=1))
-
-    def state_dict(self, *args, **kwargs):  # the encoder wrapper shares the CNN: keep one copy of its weights
-        return {k: v for k, v in super().state_dict(*args, **kwargs).items() if not k.startswith("encoder.")}
-
-    def load_state_dict(self, state, strict: bool = True, assign: bool = False):
-        return super().load_state_dict({**state, **{f"encoder.{k}": v for k, v in state.items()
-                                                     if k.startswith(NET_PREFIX)}}, strict, assign)
 
     def losses(self, pixels: torch.Tensor, state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """pixels (B, V, 3, 64, 64) preprocessed (:func:`preprocessed`), state (B, S) -> (state MSE in cm^2, 16-px
@@ -187,7 +179,8 @@ def train_task_cnn(stores: Sequence[str | Path], out: str | Path, cfg: EncoderTr
     model = EncoderTrainer(cfg, len(tr.cameras), len(STATE_QUANTITIES)).to(dev)
     cameras = tr.cameras
 
-    tr, va = preprocessed(tr, model.encoder, progress), preprocessed(va, model.encoder, progress)
+    pixels_of = TaskCNNEncoder(net=CNNTokens(cfg.width))  # the encoder's preprocessing (its CNN unused)
+    tr, va = preprocessed(tr, pixels_of, progress), preprocessed(va, pixels_of, progress)
 
     def step(m: EncoderTrainer, batch: list[torch.Tensor]) -> tuple[torch.Tensor, dict[str, float]]:
         e_state, e_recon = m.losses(batch[0].to(dev), batch[1].to(dev).float())

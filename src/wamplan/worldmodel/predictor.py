@@ -269,7 +269,11 @@ class WorldModelPredictor(nn.Module):
         if self.state_head is None:
             raise ValueError("this predictor has no state head (PredictorConfig.state_dim is 0); train one with "
                              "`wamplan wm train --state-weight W`")
-        return self.state_head((z.to(self.z_mean.dtype) - self.z_mean) / self.z_std)
+        return self.state_head(self.normalised(z))
+
+    def normalised(self, z: torch.Tensor) -> torch.Tensor:
+        """Latents z (..., D) in the units the predictor reads them: per-dim standardised by the feature stats."""
+        return (z.to(self.z_mean.dtype) - self.z_mean) / self.z_std
 
     def forward(self, z: torch.Tensor, q: torch.Tensor, a: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Teacher-forced: z (B, T, V, N, D), q (B, T, P), a (B, T, Delta*A) -> predictions of frames

@@ -90,7 +90,7 @@ def state_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], zp: t
     s = batch["s"].float()  # (B, T, S) cm
     e_true = (model.read_state(batch["z"].float()) - s).pow(2).mean()
     fixed = {k: v.detach() for k, v in model.state_head.named_parameters()}
-    read = lambda z: torch.func.functional_call(model.state_head, fixed, ((z - model.z_mean) / model.z_std,))  # noqa: E731
+    read = lambda z: torch.func.functional_call(model.state_head, fixed, (model.normalised(z),))  # noqa: E731
     e_pred = (read(zp) - read(zt).detach()).pow(2).mean(dim=(0, 2))  # (K,)
     mm = STATE_UNIT_MM
     return e_true + e_pred.mean(), {"state_mm_true": float(e_true.detach().sqrt()) * mm,
@@ -337,7 +337,7 @@ def fit_state_head(model: WorldModelPredictor, dataset: Dataset, max_items: int 
     z = torch.cat([it["z"].float() for it in items])  # (n T, V, N, D)
     s = torch.cat([it["s"].float() for it in items])  # (n T, S)
     dev = model.z_mean.device
-    model.state_head.fit_ridge(((z.to(dev) - model.z_mean) / model.z_std), s.to(dev))
+    model.state_head.fit_ridge(model.normalised(z.to(dev)), s.to(dev))
 
 
 def compute_feature_stats(dataset: Dataset, max_items: int = 2000, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
