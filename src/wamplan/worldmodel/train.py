@@ -82,8 +82,8 @@ def state_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], zp: t
     * the predictor learns to make its predictions zp (B, K, V, N, D) read as the true frames zt (B, K, V, N, D)
       do, through the head with its weights held fixed: the squared difference of the two readings, whose
       gradient reaches the predictor only. The head is defined by the true latents, so the predictor cannot hide
-      a private code of the state in its predictions (a head trained on predictions too let it: the latent error
-      tripled); it can only get the directions of the latent that the head reads right.
+      a private code of the state in its predictions; it can only get the directions of the latent that the head
+      reads right.
 
     Logs the root-mean-square errors in mm of the head on true latents against the targets (``state_mm_true``) and
     of the predictions' reading against the true latents' at the first step (``state_mm_h1``)."""
