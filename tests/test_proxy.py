@@ -16,6 +16,7 @@ import requests
 import torch
 
 from wamplan.api import planned_policy
+from wamplan.planning import CostConfig
 from wamplan.checkpoint import save_checkpoint
 from wamplan.config import to_dict
 from wamplan.envs.spec import Observation
@@ -239,6 +240,40 @@ def test_serve_refuses_a_world_model_that_does_not_fit_in_one_line(capsys):
     err = capsys.readouterr().err.strip()
     assert code == 2 and len(err.splitlines()) == 1
     assert "does not fit the WAM 'tinywam': it returns 16-step chunks, not 50" in err
+
+
+def test_the_proxy_plans_with_the_planner_cost_and_rules_it_is_given():
+    """`serve --planner cem --num-candidates 8 --cost-view-weights 0 0 1` plans as the same settings in process."""
+    planning = dict(planner="cem", planner_config={"num_candidates": 8, "num_elites": 2},
+                    cost=CostConfig(view_weights=(0.0, 0.0, 1.0)))
+    p = build_proxy(ProxyConfig(upstream=WAM_CKPT, world_model=WM_CKPT, device="cpu", errors="http"),
+                    planning=planning)
+    try:
+        with BackgroundServer(create_proxy_app(p)) as srv:
+            answers = drive(f"{srv.url}/s/cem/act", 5, 2)
+        policy = planned_policy(load_wam(WAM_CKPT, device="cpu"), WM_CKPT, device="cpu", **planning)
+        policy.reset(seed=0)
+        want = np.stack([policy.act(observation(5, t, policy.wants_images(t))) for t in range(2 * H)])  # (32, 5)
+        got = np.concatenate([np.stack(a["actions"]) for a in answers])
+        np.testing.assert_allclose(got, want, atol=1e-6)
+        assert answers[1]["wamplan"]["open_loop"] is None
+        np.testing.assert_raises(AssertionError, np.testing.assert_allclose, got, in_process_episode(5, 2), atol=1e-6)
+    finally:
+        p.close()
+
+
+@pytest.mark.parametrize("flags, said", [
+    (["--cost-view-weights", "1", "1"], "--cost-view-weights gives 2 weights, but task 'cube-insertion' has 3 "
+                                        "cameras"),
+    (["--num-elites", "4"], "--num-elites is an option of planner(s) ['cem', 'cem-gripper'], not of 'wamplan'"),
+    (["--replan-every", "5"], "replan_every=5"),
+])
+def test_serve_refuses_planning_settings_that_do_not_fit_in_one_line(capsys, flags, said):
+    from wamplan.cli.main import main
+
+    code = main(["serve", "--upstream", WAM_CKPT, "--world-model", WM_CKPT, "--device", "cpu", *flags])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1 and said in err, err
 
 
 def test_an_episode_through_the_proxy_takes_the_in_process_episodes_actions(proxy, small_env):

@@ -21,7 +21,10 @@ def _options(p: argparse.ArgumentParser) -> None:
     from wamplan.config import add_arguments
     from wamplan.proxy.config import ProxyConfig
 
+    from wamplan.cli.eval_options import add_planning_arguments
+
     add_arguments(p, ProxyConfig)
+    add_planning_arguments(p)  # the planner, cost and chunk rules, as `wamplan eval` takes them
     add_listen_options(p, 8778, "shared secret every request must carry (X-WAMplan-Secret header, Authorization: "
                                 "Bearer, or ?token=SECRET in the URL); default: $WAMPLAN_ACT_SECRET, none if unset. "
                                 "The upstream's own secret, if any, is read from $WAMPLAN_UPSTREAM_SECRET")
@@ -37,13 +40,14 @@ def _serve(args: argparse.Namespace) -> int:
     # the options given, onto the defaults; not from_args: ProxyConfig() alone is refused (no upstream)
     cfg = ProxyConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(ProxyConfig)
                          if getattr(args, f.name) is not None})
+    from wamplan.cli.eval_options import planning_from_args
     from wamplan.device import resolve_device
     from wamplan.proxy.app import create_proxy_app
     from wamplan.proxy.build import build_proxy
     from wamplan.wam.server import run_app
 
     resolve_device(cfg.device)
-    proxy = build_proxy(cfg)
+    proxy = build_proxy(cfg, planning=planning_from_args(args))
     errors = 'HTTP 200 "error" (upstream error mode)' if cfg.errors == "upstream" else "4xx/5xx with a reason"
     budget = f"{cfg.budget_ms:g} ms planning budget" if cfg.budget_ms else "no planning budget"
     print(f"planning proxy for {proxy.upstream.where} with world model {cfg.world_model} at "

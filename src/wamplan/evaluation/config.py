@@ -113,11 +113,7 @@ class EvalConfig:
             profile_config(self.wam_profile, url=self.wam_url, task=self.env.task)
         spec = self.env.spec
         self.env.require_views()  # every condition feeds the WAM the task's views
-        weights = self.cost.view_weights
-        if weights and len(weights) != len(spec.cameras):
-            raise UserError(f"--cost-view-weights gives {len(weights)} weights, but task '{spec.name}' has "
-                            f"{len(spec.cameras)} cameras ({', '.join(spec.cameras)}); give one weight per camera, "
-                            f"in that order")
+        self.cost.check_cameras(spec.name, spec.cameras)
         expert = [c for c in conditions if "expert" in (CONDITIONS[c].seed, CONDITIONS[c].target)]
         if expert and spec.expert is None:
             raise UserError(f"conditions {expert} seed or aim the search with the scripted expert, but task "

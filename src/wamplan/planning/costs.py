@@ -110,6 +110,13 @@ class CostConfig:
                 f"view_weights must be >= 0 with a positive sum, got {self.view_weights}")
         require(self.state_weight >= 0, f"state_weight must be a number >= 0 (0: off), got {self.state_weight}")
 
+    def check_cameras(self, task: str, cameras: Sequence[str]) -> None:
+        """Refuse, in one line, view weights that are not one per camera of ``task`` (its ``cameras``, in order)."""
+        w = self.view_weights
+        require(not w or len(w) == len(cameras),
+                f"--cost-view-weights gives {len(w)} weights, but task '{task}' has {len(cameras)} cameras "
+                f"({', '.join(cameras)}); give one weight per camera, in that order")
+
     def build(self, read_state: StateReader | None = None) -> CostFn:
         """The cost; with ``state_weight`` > 0, plus the pose term read by ``read_state`` (a world model's state
         head: ``LearnedDynamics.read_state``)."""

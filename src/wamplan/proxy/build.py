@@ -3,6 +3,8 @@ other (:func:`check_fit`), refused in one line at start-up."""
 
 from __future__ import annotations
 
+from typing import Any
+
 from wamplan.envs.spec import TaskSpec, check_same_task, get_task
 from wamplan.errors import UserError
 from wamplan.proxy.app import Proxy
@@ -40,9 +42,21 @@ def check_fit(task: TaskSpec, upstream: Upstream, chunk: int, columns: tuple[int
                         f"(the target would be upsampled); use a world model trained at {size} px or less")
 
 
-def build_proxy(cfg: ProxyConfig, upstream: Upstream | None = None) -> Proxy:
-    """The proxy of ``cfg``: the world model loaded, the upstream reached (or ``upstream``), the fit checked."""
+def check_planning(ecfg: Any, task: TaskSpec, chunk: int) -> None:
+    """Refuse, in one line, planning settings the world model's task or the upstream's chunk cannot take: view
+    weights not one per camera, chunk rules or a planner config that do not fit the chunk."""
+    from wamplan.planning.policy_config import check_settings
+
+    ecfg.cost.check_cameras(task.name, task.cameras)
+    check_settings(ecfg.policy, chunk, ecfg.task_planner_config)
+
+
+def build_proxy(cfg: ProxyConfig, upstream: Upstream | None = None, planning: dict[str, Any] | None = None) -> Proxy:
+    """The proxy of ``cfg``: the world model loaded, the upstream reached (or ``upstream``), the fit checked.
+    ``planning``: :class:`~wamplan.evaluation.config.EvalConfig`'s ``planner``, ``planner_config``, ``policy`` and
+    ``cost`` (any of them; unset: condition 7's defaults), checked against the world model's task and the chunk."""
     from wamplan.evaluation.build import planned_policy
+    from wamplan.envs.config import EnvConfig
     from wamplan.evaluation.config import EvalConfig
     from wamplan.planning.dynamics import learned_dynamics, task_name
     from wamplan.wam.base import LEGACY_TASK, load_wam
@@ -50,9 +64,10 @@ def build_proxy(cfg: ProxyConfig, upstream: Upstream | None = None) -> Proxy:
     from wamplan.worldmodel.train import load_world_model
 
     paths = [p for p in cfg.world_model.split(",") if p]
-    ecfg = EvalConfig(wm_augmented=",".join(paths), device=cfg.device)
-    dynamics, encoder = learned_dynamics([load_world_model(p, device=ecfg.device) for p in paths])
+    dynamics, encoder = learned_dynamics([load_world_model(p, device=cfg.device) for p in paths])
     task = get_task(task_name(dynamics) or LEGACY_TASK)
+    ecfg = EvalConfig(wm_augmented=",".join(paths), device=cfg.device, env=EnvConfig(task=task.name),
+                      **(planning or {}))
     cameras = tuple(dynamics.cameras or task.cameras)
     profile = cfg.profile
     client = profile_config(profile, task=task.name) if profile else None
@@ -75,6 +90,7 @@ def build_proxy(cfg: ProxyConfig, upstream: Upstream | None = None) -> Proxy:
     chunk = cfg.chunk_length or upstream.shape.chunk_length or profile_chunk or task.chunk_length
     size = getattr(encoder, "input_size", None)
     check_fit(task, upstream, chunk, columns, cameras, getattr(dynamics, "frameskip", chunk), size, cfg.world_model)
+    check_planning(ecfg, task, chunk)
     return Proxy(cfg, upstream, dynamics, encoder, task,
                  lambda wam: planned_policy(ecfg, wam, dynamics, encoder, world_models=paths),
                  request_map, response_map, columns, chunk)
