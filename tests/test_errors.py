@@ -274,6 +274,23 @@ def test_a_truncated_episode_is_not_counted_as_collected(expert_store, tmp_path,
     refused(capsys, ["data", "alignment", store], bad, "damaged")
 
 
+def test_an_episode_damaged_inside_its_images_is_not_counted_as_collected(expert_store, tmp_path, capsys):
+    """Damage inside an image chunk leaves the header readable; resuming reads every byte and names the file."""
+    store = Path(shutil.copytree(expert_store, tmp_path / "store"))
+    bad = sorted((store / "episodes").glob("*.h5"))[1]
+    with h5py.File(bad, "r") as f:
+        ds = f["images/wrist"]
+        info = ds.id.get_chunk_info(ds.id.get_num_chunks() - 1)  # the last frame's chunk, which no header read touches
+    data = bytearray(bad.read_bytes())
+    mid = info.byte_offset + info.size // 2
+    data[mid:mid + 8] = bytes(255 - b for b in data[mid:mid + 8])
+    bad.write_bytes(bytes(data))
+    assert main(["data", "info", str(store)]) == 0  # the header still reads
+    capsys.readouterr()
+    refused(capsys, ["collect", "--source", "expert", "--episodes", "2", "--out", store, "--camera-size", "64"],
+            bad, "damaged", "re-run the same `wamplan collect`")
+
+
 def test_data_check_lists_each_damaged_file(expert_store, tmp_path, capsys):
     store = Path(shutil.copytree(expert_store, tmp_path / "store"))
     first, second = sorted((store / "episodes").glob("*.h5"))

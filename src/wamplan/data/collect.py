@@ -94,6 +94,20 @@ def run_collection(job: CollectJob, seeds: list[int], workers: int = 1,
         yield rec
 
 
+def check_done(store: EpisodeStore, paths: Sequence[Path], progress: bool = True) -> None:
+    """Refuse to resume over a damaged episode file: every byte of each of ``paths`` is read through its
+    checksums (about 0.15 s a 300-step episode on one core); one :class:`StoreError` line names the first damaged
+    file and the fix (delete it, re-run)."""
+    from wamplan.data.store import RECOLLECT, StoreError, verify_episode
+    from wamplan.progress import progress_bar
+
+    for path in progress_bar(paths, desc="check collected", unit="ep", disable=not progress or len(paths) < 20):
+        store.meta(path)  # a damaged header: its own line
+        problem, _ = verify_episode(path)
+        if problem is not None:
+            raise StoreError(f"episode file {path} is damaged ({problem}); {RECOLLECT}")
+
+
 def throughput(start: float, n: int) -> float:
     """Episodes per minute since ``start``."""
     return 60.0 * n / max(time.perf_counter() - start, 1e-9)
@@ -174,8 +188,7 @@ def collect(source: str, episodes: int, out: str | Path, *, seed_start: int = 0,
         log(f"removed {n} partial episode file(s) left by an interrupted run")
     store.check_source(tag)
     have = store.finished_seeds(tag) & set(seeds)
-    for seed in sorted(have):  # a file that does not open as an episode is not done: one line naming it
-        store.meta(store.episode_path(tag, seed))
+    check_done(store, [store.episode_path(tag, seed) for seed in sorted(have)], progress)
     if have:
         log(f"resuming: {len(have)} of {len(seeds)} episodes already in {out}")
     if len(have) < len(seeds) and not checked:
