@@ -363,3 +363,22 @@ def test_planning_refuses_a_frameskip_longer_than_the_chunk_in_one_line(tmp_path
         planned_policy(load_wam(WAM_CKPT, device="cpu"), world_model=wm, device="cpu")
     assert "frameskip 32 is longer than the WAM's 16-step chunk" in str(e.value) and "\n" not in str(e.value)
     assert "wamplan wm train --frameskip 16" in str(e.value)
+
+
+def test_deploy_docs_smoke_test_prints_what_it_shows(proxy, capsys):
+    """docs/deploy.md's smoke test (a ```py block, then the ```text it prints) run against a proxy of the shipped
+    models, as the document starts one."""
+    import contextlib
+    import io
+    import re
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "deploy.md").read_text()
+    m = re.search(r"\*\*Smoke test\.\*\*.*?```py\n(.*?)```.*?```text\n(.*?)```", text, re.DOTALL)
+    assert m, "docs/deploy.md lost its smoke test (a ```py block and the ```text it prints)"
+    code, shown = m.groups()
+    srv, _ = proxy
+    assert "http://127.0.0.1:8778" in code
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        exec(compile(code.replace("http://127.0.0.1:8778", srv.url), "deploy.md", "exec"), {})
+    assert out.getvalue() == shown
