@@ -382,3 +382,34 @@ def test_deploy_docs_smoke_test_prints_what_it_shows(proxy, capsys):
     with contextlib.redirect_stdout(out):
         exec(compile(code.replace("http://127.0.0.1:8778", srv.url), "deploy.md", "exec"), {})
     assert out.getvalue() == shown
+
+
+def test_deploy_docs_world_model_from_robot_logs(tmp_path, monkeypatch):
+    """docs/deploy.md's robot-log block, run on random logs: the store it writes trains a boundary world model of
+    the robot's task; a log that does not fit the task is refused in one line."""
+    import re
+
+    from wamplan.cli.main import main
+    from wamplan.data.store import EpisodeData, StoreError
+    from wamplan.envs.spec import TASKS
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "deploy.md").read_text()
+    m = re.search(r"\*\*A world model for your robot\.\*\*.*?```py\n(.*?)```", text, re.DOTALL)
+    assert m, "docs/deploy.md lost its robot-log block"
+    rng = np.random.default_rng(0)
+    steps = np.arange(0, 97, 4)  # (25,)
+    logs = [dict(actions=rng.uniform(-1, 1, (96, 7)), proprio=rng.normal(size=(97, 8)), image_steps=steps,
+                 images={c: rng.integers(0, 256, (len(steps), 32, 32, 3), np.uint8) for c in ("scene", "wrist")})
+            for _ in range(6)]
+    monkeypatch.chdir(tmp_path)
+    try:
+        scope = {"my_logs": logs}
+        exec(compile(m.group(1), "deploy.md", "exec"), scope)
+        assert main(["wm", "train", "--data", "data/my-arm", "--frameskip", "16", "--out", "runs/wm_my_arm",
+                     "--epochs", "1", "--batch-size", "8", "--depth", "1"]) == 0
+        cfg = json.loads((tmp_path / "runs/wm_my_arm/checkpoint/config.json").read_text())
+        assert "my-arm" in json.dumps(cfg) and cfg["config"]["predictor"]["frameskip"] == 16
+        with pytest.raises(StoreError, match=r"episode 9 does not fit task 'my-arm': proprio is \(96, 8\)"):
+            EpisodeData.logged(scope["arm"], 9, logs[0]["actions"], logs[0]["proprio"][:-1], logs[0]["images"], steps)
+    finally:
+        dict.pop(TASKS, "my-arm", None)

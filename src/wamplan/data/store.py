@@ -149,6 +149,39 @@ class EpisodeData:
     def length(self) -> int:
         return int(len(self.actions))
 
+    @classmethod
+    def logged(cls, task: TaskSpec, seed: int, actions: np.ndarray, proprio: np.ndarray,
+               images: dict[str, np.ndarray], image_steps: Sequence[int], *, source: str = "robot",
+               success: bool = False, outcome: str = "logged", provenance: dict | None = None) -> EpisodeData:
+        """An episode recorded without a simulator (a real robot's log) for ``task``: what the world model and
+        TinyWAM train on, the simulator's fields (stages, poses, physics state) left empty.
+        ``actions`` (T, A) as executed, ``proprio`` (T+1, P) at steps 0..T, ``images[camera]`` (K, H, W, 3) uint8 at
+        ``image_steps`` (K,), every ``image_every``-th step of the store. One :class:`StoreError` names a shape or
+        camera that does not fit ``task``."""
+        actions, proprio = np.asarray(actions, np.float32), np.asarray(proprio, np.float32)
+        steps = np.asarray(image_steps, np.int32)
+        t = len(actions)
+        problems = []
+        if actions.shape != (t, task.action_dim):
+            problems.append(f"actions are {actions.shape}, want (T, {task.action_dim})")
+        if proprio.shape != (t + 1, task.proprio_dim):
+            problems.append(f"proprio is {proprio.shape}, want (T+1, {task.proprio_dim}) = ({t + 1}, {task.proprio_dim})")
+        if sorted(images) != sorted(task.cameras):
+            problems.append(f"images are of cameras {sorted(images)}, want {sorted(task.cameras)}")
+        if steps.ndim != 1 or not len(steps) or steps.min() < 0 or steps.max() > t or np.any(np.diff(steps) <= 0):
+            problems.append(f"image_steps must rise within 0..T={t}, got {steps.tolist()[:8]}")
+        for cam, arr in images.items():
+            a = np.asarray(arr)
+            if a.dtype != np.uint8 or a.ndim != 4 or a.shape[0] != len(steps) or a.shape[-1] != 3:
+                problems.append(f"images[{cam!r}] is {a.dtype} {a.shape}, want uint8 ({len(steps)}, H, W, 3)")
+        if problems:
+            raise StoreError(f"episode {seed} does not fit task '{task.name}': {'; '.join(problems)}")
+        empty = np.zeros((t + 1, 0), np.float32)
+        return cls(seed=seed, source=source, success=success, outcome=outcome, actions=actions, proprio=proprio,
+                   stages=np.zeros((t + 1, 0), bool), cube_pose=None, tcp_pose=None, sim_state=empty,
+                   drive_targets=empty, image_steps=steps, images={c: np.asarray(images[c]) for c in task.cameras},
+                   reached={}, policy={"name": source}, provenance=provenance or {})
+
 
 TMP_PREFIX = ".tmp-"  # files being written; never *.h5 until complete, so listings cannot see them
 
