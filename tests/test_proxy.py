@@ -262,6 +262,14 @@ def test_the_proxy_plans_with_the_planner_cost_and_rules_it_is_given():
         p.close()
 
 
+def test_the_proxy_rolls_the_world_model_out_in_the_dtype_it_is_given():
+    p = build_proxy(ProxyConfig(upstream=WAM_CKPT, world_model=WM_CKPT, device="cpu", wm_dtype="bfloat16"))
+    try:
+        assert p.dynamics.dtype == torch.bfloat16
+    finally:
+        p.close()
+
+
 @pytest.mark.parametrize("flags, said", [
     (["--cost-view-weights", "1", "1"], "--cost-view-weights gives 2 weights, but task 'cube-insertion' has 3 "
                                         "cameras"),

@@ -64,10 +64,10 @@ def build_proxy(cfg: ProxyConfig, upstream: Upstream | None = None, planning: di
     from wamplan.worldmodel.train import load_world_model
 
     paths = [p for p in cfg.world_model.split(",") if p]
-    dynamics, encoder = learned_dynamics([load_world_model(p, device=cfg.device) for p in paths])
+    dynamics, encoder = learned_dynamics([load_world_model(p, device=cfg.device, dtype=cfg.wm_dtype) for p in paths])
     task = get_task(task_name(dynamics) or LEGACY_TASK)
-    ecfg = EvalConfig(wm_augmented=",".join(paths), device=cfg.device, env=EnvConfig(task=task.name),
-                      **(planning or {}))
+    ecfg = EvalConfig(wm_augmented=",".join(paths), device=cfg.device, wm_dtype=cfg.wm_dtype,
+                      env=EnvConfig(task=task.name), **(planning or {}))
     cameras = tuple(dynamics.cameras or task.cameras)
     profile = cfg.profile
     client = profile_config(profile, task=task.name) if profile else None

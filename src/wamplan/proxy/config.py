@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from wamplan.config import field, require
+from wamplan.evaluation.config import WM_DTYPES
 from wamplan.wam import protocol
 
 ERROR_MODES = ("http", "upstream")  # as `wamplan wam serve` answers failures (wamplan.wam.server.ERROR_MODES)
@@ -33,6 +34,9 @@ class ProxyConfig:
                                      "images_history (its history_spacing_factor)")
     max_request_bytes: int = field(protocol.DEFAULT_MAX_REQUEST_BYTES, "refuse larger /act bodies (HTTP 413)")
     device: str = field("auto", "torch device for the world model (and a local upstream)")
+    wm_dtype: str = field("float32", "arithmetic of the world model's rollouts in the search: float32, or bfloat16 "
+                                     "(faster on a GPU; benchmarks/planner.py --dtypes times both); the cost is "
+                                     "computed in float32 either way", choices=WM_DTYPES)
 
     def __post_init__(self) -> None:
         require(bool(self.upstream), "--upstream: name the WAM to plan for (an /act URL or a WAM checkpoint)")
@@ -48,6 +52,7 @@ class ProxyConfig:
         require(self.upstream_timeout_s > 0, f"--upstream-timeout-s must be > 0, got {self.upstream_timeout_s}")
         require(self.chunk_length is None or self.chunk_length >= 1,
                 f"--chunk-length must be >= 1 (or unset), got {self.chunk_length}")
+        require(self.wm_dtype in WM_DTYPES, f"--wm-dtype must be one of {list(WM_DTYPES)}, got {self.wm_dtype!r}")
         require(self.history_spacing >= 1, f"--history-spacing must be >= 1, got {self.history_spacing}")
         require(self.max_request_bytes >= 1, f"--max-request-bytes must be >= 1, got {self.max_request_bytes}")
 
