@@ -4,6 +4,7 @@ a planner registered in planning/ appears in `eval` with no edit to the evaluati
 from __future__ import annotations
 
 import json
+from pathlib import Path
 from dataclasses import dataclass
 
 import pytest
@@ -17,6 +18,7 @@ from wamplan.evaluation.config import EvalConfig
 from wamplan.evaluation.runner import _check_same_settings
 from wamplan.planning import PLANNERS, CEMConfig, CostConfig, MPPIConfig, PlanResult, Planner, register_planner
 from wamplan.planning.policy import PlannedPolicyConfig
+from wamplan.planning.configs import PLANNER_CONFIGS
 from wamplan.planning.defaults import WamplanConfig
 
 
@@ -41,6 +43,7 @@ def toy_planner():
 
     yield ToyPlanner
     PLANNERS.pop("toy")
+    PLANNER_CONFIGS.pop("toy")
 
 
 def _cfg(*argv: str) -> EvalConfig:
@@ -376,3 +379,30 @@ def test_a_directory_refuses_another_world_model_and_accepts_one_added_later(tmp
         with pytest.raises(UserError, match="other settings") as e:
             resume("--wm-plain", str(plain), "--wm-augmented", str(augmented))
         assert str(plain) in str(e.value)  # the changed setting, as requested
+
+
+@pytest.mark.parametrize("argv", [
+    ["--conditions", "9"],
+    ["--episodes", "0"],
+    [],  # no --wam
+    ["--wam", "no/such/ckpt"],
+    ["--num-elites", "3"],  # an option of another planner
+    ["--planner", "cem", "--num-elites", "99"],  # a config that refuses its values
+    ["--cost-name", "nope"],
+    ["--wam", "checkpoints/mini/tinywam", "--cost-view-weights", "1", "1"],
+    ["--wam", "checkpoints/mini/tinywam", "--replan-every", "5"],
+])
+def test_eval_refuses_bad_arguments_before_torch_loads(argv, tmp_path):
+    """An argument error is answered from the settings alone: torch (seconds to import) is not loaded first."""
+    import subprocess
+    import sys
+
+    code = ("import sys\nfrom wamplan.cli.main import main\n"
+            "try:\n    rc = main(sys.argv[1:])\nexcept SystemExit as e:\n    rc = e.code\n"
+            "print('torch' in sys.modules, rc)")
+    run = subprocess.run([sys.executable, "-c", code, "eval", "--out", str(tmp_path / "run"), "--conditions", "1,7",
+                          "--wm-augmented", "checkpoints/mini/wm_augmented", *argv],
+                         cwd=Path(__file__).resolve().parents[1], capture_output=True, text=True, timeout=120)
+    assert run.stdout.split() == ["False", "2"], (run.stdout, run.stderr)
+    assert len(run.stderr.strip().splitlines()) <= 2 and "error" in run.stderr  # one line (argparse: usage + line)
+    assert not (tmp_path / "run").exists()

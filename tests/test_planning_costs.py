@@ -7,7 +7,9 @@ import torch
 
 from wamplan.config import ConfigError
 from wamplan.errors import UserError
+from wamplan.planning.cost_config import COST_NAMES
 from wamplan.planning import COSTS, CostConfig, cls_cost, make_cost, patch_cost, register_cost
+from wamplan.planning.costs import build_cost
 
 B, V, N, D = 4, 3, 6, 8  # candidates, views, patches, embedding dim
 
@@ -45,7 +47,7 @@ def test_cls_cost_and_registry():
     g = torch.Generator().manual_seed(2)
     pred, target = torch.randn(B, V, D, generator=g), torch.randn(V, D, generator=g)
     torch.testing.assert_close(cls_cost(pred, target), ((pred - target) ** 2).mean((1, 2)))
-    assert make_cost("cls") is cls_cost and CostConfig(name="cls").build() is cls_cost
+    assert make_cost("cls") is cls_cost and build_cost(CostConfig(name="cls")) is cls_cost
     with pytest.raises(ValueError, match="use the patch cost"):
         cls_cost(pred[:, :, None], target)
     with pytest.raises(ValueError, match="drop the target's batch"):
@@ -65,6 +67,7 @@ def test_cls_cost_and_registry():
             register_cost("test_l1")(l1)
     finally:
         COSTS.pop("test_l1")
+        COST_NAMES.discard("test_l1")
 
 
 def test_low_precision_predictions_scored_in_float32():

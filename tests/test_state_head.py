@@ -70,7 +70,7 @@ def test_state_weight_trains_a_head_and_a_fine_tune_adds_it_to_a_checkpoint_with
 
 def test_the_pose_term_adds_the_squared_distance_of_the_state_readings():
     from wamplan.config import ConfigError
-    from wamplan.planning.costs import CostConfig, patch_cost, with_state_term
+    from wamplan.planning.costs import CostConfig, build_cost, patch_cost, with_state_term
 
     read = lambda z: z.flatten(-3)[..., :2]  # noqa: E731  (a reader of two "quantities": the first two entries)
     pred, target = torch.zeros(3, 2, 1, 2), torch.zeros(2, 1, 2)  # (B, V, N, D), (V, N, D)
@@ -78,9 +78,9 @@ def test_the_pose_term_adds_the_squared_distance_of_the_state_readings():
     cost = with_state_term(patch_cost, read, 0.5)
     # patch: the mean of 4 squared entries; pose: the mean of the 2 read ones, times 0.5
     torch.testing.assert_close(cost(pred, target), torch.tensor([0.0, 4 / 4 + 0.5 * 4 / 2, 16 / 4 + 0.5 * 16 / 2]))
-    assert CostConfig().build() is patch_cost
+    assert build_cost(CostConfig()) is patch_cost
     with pytest.raises(ConfigError, match="needs a world model with a state head"):
-        CostConfig(state_weight=0.1).build()
+        build_cost(CostConfig(state_weight=0.1))
     with pytest.raises(ConfigError, match="state_weight"):
         CostConfig(state_weight=-1)
 

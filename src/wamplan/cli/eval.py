@@ -112,26 +112,27 @@ def cmd_explain(args: argparse.Namespace) -> int:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    from wamplan.progress import progress_bar
-
-    from wamplan.device import resolve_device
+    from wamplan.cli.eval_options import eval_config_from_args
     from wamplan.errors import UserError, require_dir, require_seeds
     from wamplan.evaluation.conditions import parse_conditions
-    from wamplan.cli.eval_options import eval_config_from_args
     from wamplan.evaluation.records import read_records, record_key
-    from wamplan.evaluation.runner import run_evaluation
     from wamplan.parallel import Backend
+    from wamplan.progress import progress_bar
 
+    # every check that needs no torch first: a mistyped option is answered before torch loads
     backend = Backend.from_option(args.ray)
-    backend.check()
     conds = parse_conditions(args.conditions)
     if args.episodes <= 0 or args.workers <= 0:
         raise UserError("--episodes and --workers must be positive")
     require_seeds(args.seed_start, args.episodes)
     require_dir(args.out)
     cfg = eval_config_from_args(args)  # the env's settings (backends) are checked here, before any work
-    resolve_device(cfg.device)
     cfg.check_for(conds)
+    backend.check()
+    from wamplan.device import resolve_device
+    from wamplan.evaluation.runner import run_evaluation
+
+    resolve_device(cfg.device)
     seeds = list(range(args.seed_start, args.seed_start + args.episodes))
     done = {record_key(r) for r in read_records(args.out)}
     total = len(conds) * len(seeds)

@@ -12,9 +12,9 @@ from typing import Any
 from wamplan.config import add_arguments, from_args
 from wamplan.envs.config import EnvConfig
 from wamplan.evaluation.config import EvalConfig
-from wamplan.planning import CostConfig
 from wamplan.cli.planner_options import add_planner_arguments, planner_config_from_args
-from wamplan.planning.policy import PlannedPolicyConfig
+from wamplan.planning.cost_config import CostConfig
+from wamplan.planning.policy_config import PlannedPolicyConfig
 
 
 def add_planning_arguments(p: argparse.ArgumentParser) -> None:

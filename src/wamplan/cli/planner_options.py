@@ -22,15 +22,14 @@ from typing import Any
 
 from wamplan.config import add_field_argument
 from wamplan.errors import UserError
-from wamplan.planning.base import PLANNERS
-from wamplan.planning.defaults import DEFAULT_PLANNER
+from wamplan.planning.configs import DEFAULT_PLANNER, PLANNER_CONFIGS
 
 _DEST = "planner_opt__"  # dest prefix: planner_opt__<planner or empty>__<field>
 
 
 def add_planner_arguments(parser: argparse.ArgumentParser, default: str = DEFAULT_PLANNER) -> None:
     """Add ``--planner`` and one option per planner config field (see the module docstring)."""
-    names = sorted(PLANNERS)
+    names = sorted(PLANNER_CONFIGS)
     parser.add_argument("--planner", default=None, choices=names,
                         help=f"planner by registry name (default: {default}); wamplan: MPPI at wamplan's default settings "
                              f"(planning/defaults.py); cem: the paper's CEM")
@@ -39,7 +38,7 @@ def add_planner_arguments(parser: argparse.ArgumentParser, default: str = DEFAUL
         "planner options", "settings of the planner's config; each applies to the planners listed in brackets")
     fields: dict[str, list[tuple[str, dataclasses.Field, Any]]] = defaultdict(list)
     for name in names:
-        cls = PLANNERS[name].config_cls
+        cls = PLANNER_CONFIGS[name]
         hints = typing.get_type_hints(cls)
         for f in dataclasses.fields(cls):
             fields[f.name].append((name, f, hints[f.name]))
@@ -65,7 +64,7 @@ def _add(group: Any, flag: str, dest: str, entries: list[tuple[str, dataclasses.
 def planner_config_from_args(args: argparse.Namespace) -> tuple[str, Any]:
     """``(planner name, its config)`` from parsed options; an option of another planner is an error."""
     name = getattr(args, "planner", None) or getattr(args, "planner_default", DEFAULT_PLANNER)
-    cls = PLANNERS.lookup(name).config_cls
+    cls = PLANNER_CONFIGS.lookup(name)
     known = {f.name for f in dataclasses.fields(cls)}
     changes = {}
     for dest, v in vars(args).items():
@@ -74,8 +73,7 @@ def planner_config_from_args(args: argparse.Namespace) -> tuple[str, Any]:
         owner, fname = dest[len(_DEST):].split("__", 1)
         flag = "--" + (f"{owner}-{fname}" if owner else fname).replace("_", "-")
         if (owner and owner != name) or fname not in known:
-            takers = sorted(p for p, c in PLANNERS.items()
-                            if fname in {g.name for g in dataclasses.fields(c.config_cls)})
+            takers = sorted(p for p, c in PLANNER_CONFIGS.items() if fname in {g.name for g in dataclasses.fields(c)})
             raise UserError(f"{flag} is an option of planner(s) {takers}, not of '{name}'; "
                             f"drop it or pass --planner {takers[0] if takers else '...'}")
         changes[fname] = tuple(v) if isinstance(v, list) else v

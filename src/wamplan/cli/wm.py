@@ -384,10 +384,10 @@ def _view_cost(flag: str, weights: list[float] | None):
     """The patch cost with ``weights`` per camera (None: uniform, the paper's); CostConfig's refusal of weights
     below 0 or summing to 0 as one line naming ``flag``."""
     from wamplan.config import ConfigError
-    from wamplan.planning.costs import CostConfig
+    from wamplan.planning.costs import CostConfig, build_cost
 
     try:
-        return CostConfig(view_weights=tuple(weights or ())).build()
+        return build_cost(CostConfig(view_weights=tuple(weights or ())))
     except ConfigError:
         raise UserError(f"{flag} {' '.join(f'{w:g}' for w in weights or ())}: give weights >= 0 with a positive sum, "
                         f"one per camera (e.g. 1 1 0.5)") from None

@@ -25,9 +25,10 @@ def planned_policy(cfg: EvalConfig, wam: WAM, dynamics: Dynamics, encoder: Any, 
     place the evaluation, the planned collection and the Python API build a planned policy.
     ``world_models``: the checkpoints behind ``dynamics``, recorded resolved (none for the simulator)."""
     from wamplan.planning import make_planner
+    from wamplan.planning.costs import build_cost
     from wamplan.planning.policy import PlannedPolicy
 
-    cost = cfg.cost.build(getattr(dynamics, "read_state", None))  # the pose term reads the model's state head
+    cost = build_cost(cfg.cost, getattr(dynamics, "read_state", None))  # the pose term reads the model's state head
     return PlannedPolicy(wam, make_planner(cfg.planner, cfg.planner_config), dynamics, encoder, cost,
                          target_wam=target_wam, config=cfg.policy,
                          world_models=tuple(str(Path(p).resolve()) for p in world_models))

@@ -10,8 +10,8 @@ from typing import Any
 from wamplan.config import field, from_dict, require
 from wamplan.envs.config import EnvConfig
 from wamplan.evaluation.conditions import CONDITIONS
-from wamplan.planning import PLANNERS, CostConfig
-from wamplan.planning.defaults import DEFAULT_PLANNER
+from wamplan.planning.configs import DEFAULT_PLANNER, PLANNER_CONFIGS
+from wamplan.planning.cost_config import CostConfig
 from wamplan.planning.policy_config import PlannedPolicyConfig
 
 
@@ -65,7 +65,7 @@ class EvalConfig:
                            default_factory=_env_default)
 
     def __post_init__(self):
-        cls = PLANNERS.lookup(self.planner).config_cls
+        cls = PLANNER_CONFIGS.lookup(self.planner)
         pc = self.planner_config
         pc = cls() if pc is None else from_dict(cls, pc) if isinstance(pc, dict) else pc
         require(isinstance(pc, cls), f"planner '{self.planner}' needs a {cls.__name__} as planner_config, "

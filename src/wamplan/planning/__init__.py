@@ -2,29 +2,35 @@
 
 Planners are pure: ``make_planner(name, config).plan(seed_actions (H, A), objective) -> PlanResult``,
 where ``objective(candidates (B, H_opt, A)) -> costs (B,)`` wraps the caller's dynamics and cost.
+
+The names below are loaded on first use, so that importing a torch-free part of this package (the settings in
+``configs``, ``cost_config`` and ``policy_config``) does not import torch.
 """
 
-from wamplan.planning.base import (
-    PLANNERS,
-    IterationStats,
-    Objective,
-    PlanResult,
-    Planner,
-    SamplingConfig,
-    SamplingPlanner,
-    make_planner,
-    register_planner,
-)
-from wamplan.planning.cem import CEMConfig, CEMPlanner
-from wamplan.planning.cem_gripper import CEMGripperConfig, CEMGripperPlanner
-from wamplan.planning.drift import DriftConfig, DriftPlanner
-from wamplan.planning.costs import COSTS, CostConfig, CostFn, cls_cost, make_cost, patch_cost, register_cost
-from wamplan.planning.mppi import MPPIConfig, MPPIPlanner
+from __future__ import annotations
 
-__all__ = [
-    "COSTS", "PLANNERS", "CEMConfig", "CEMGripperConfig", "CEMGripperPlanner", "CEMPlanner", "CostConfig", "CostFn", "DriftConfig",
-    "DriftPlanner", "IterationStats",
-    "MPPIConfig", "MPPIPlanner", "Objective", "PlanResult", "Planner", "SamplingConfig",
-    "SamplingPlanner", "cls_cost", "make_cost", "make_planner", "patch_cost", "register_cost",
-    "register_planner",
-]
+import importlib
+from typing import Any
+
+_HOMES = {
+    "base": ("PLANNERS", "IterationStats", "Objective", "PlanResult", "Planner", "SamplingPlanner", "make_planner",
+             "register_planner"),
+    "configs": ("CEMConfig", "CEMGripperConfig", "DriftConfig", "MPPIConfig", "SamplingConfig"),
+    "cost_config": ("CostConfig",),
+    "cem": ("CEMPlanner",),
+    "cem_gripper": ("CEMGripperPlanner",),
+    "drift": ("DriftPlanner",),
+    "mppi": ("MPPIPlanner",),
+    "costs": ("COSTS", "CostFn", "cls_cost", "make_cost", "patch_cost", "register_cost"),
+}
+_WHERE = {name: module for module, names in _HOMES.items() for name in names}
+__all__ = sorted(_WHERE)
+
+
+def __getattr__(name: str) -> Any:
+    module = _WHERE.get(name)
+    if module is None:
+        raise AttributeError(f"module 'wamplan.planning' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"wamplan.planning.{module}"), name)
+    globals()[name] = value  # later lookups skip this function
+    return value

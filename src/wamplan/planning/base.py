@@ -24,7 +24,8 @@ from typing import TYPE_CHECKING, Any, Callable, ClassVar
 import torch
 from torch import Tensor
 
-from wamplan.config import ConfigError, field, from_dict, require
+from wamplan.config import ConfigError, from_dict, require
+from wamplan.planning.configs import SamplingConfig, register_planner_config
 from wamplan.registry import Registry
 
 if TYPE_CHECKING:
@@ -68,63 +69,6 @@ class PlanResult:
         return {"best_cost": self.best_cost, "seed_cost": self.seed_cost, "seed_rank": self.seed_rank,
                 "num_evaluations": self.num_evaluations,
                 "history": [dataclasses.asdict(h) for h in self.history]}
-
-
-@dataclass(frozen=True)
-class SamplingConfig:
-    """Fields shared by the Gaussian sampling planners (CEM, MPPI). Defaults follow the paper."""
-
-    num_candidates: int = field(32, "candidates scored per iteration (the current mean included)")
-    iterations: int = field(4, "optimisation iterations")
-    init_std: float = field(0.10, "initial sigma for every action dimension")
-    init_std_per_dim: tuple[float, ...] = field(
-        (), "initial sigma per action dimension (length A), overriding init_std; e.g. "
-        "0.1 0.1 0.1 0.1 0.0 freezes the gripper at the WAM's value. Empty = uniform init_std")
-    min_std: float = field(
-        0.0, "floor on sigma after each update (0 = none, as in the paper); dimensions whose initial "
-        "sigma is 0 stay frozen")
-    include_mean: bool = field(True, "score the current mean as candidate 0 of every iteration")
-    num_optimized: int | None = field(
-        None, "optimise the first N actions of the chunk and keep the rest from the seed "
-        "(None = all; 15 for the paper's frameskip 5 with 16-step chunks)")
-    action_low: float = field(-1.0, "lower action bound; candidates are clipped to it")
-    action_high: float = field(1.0, "upper action bound; candidates are clipped to it")
-    noise_beta: float = field(
-        0.0, "temporal colour of the sampling noise along the chunk, power spectrum 1/f^beta: 0 = white, "
-        "i.i.d. per step (the paper); 1 = pink; 2 = smooth drifts that move the chunk's endpoint (as in iCEM)")
-
-    def __post_init__(self) -> None:
-        require(self.noise_beta >= 0, f"noise_beta must be >= 0 (0 = white noise), got {self.noise_beta}")
-        require(self.num_candidates >= 2, f"num_candidates must be >= 2, got {self.num_candidates}")
-        require(self.iterations >= 1, f"iterations must be >= 1, got {self.iterations}; "
-                "to skip planning, execute the WAM's chunk directly")
-        require(self.init_std > 0, f"init_std must be > 0, got {self.init_std}; use init_std_per_dim "
-                "to freeze single dimensions")
-        require(all(s >= 0 for s in self.init_std_per_dim) and
-                (not self.init_std_per_dim or max(self.init_std_per_dim) > 0),
-                f"init_std_per_dim entries must be >= 0 with at least one > 0, got {self.init_std_per_dim}")
-        require(self.min_std >= 0, f"min_std must be >= 0, got {self.min_std}")
-        require(self.num_optimized is None or self.num_optimized >= 1,
-                f"num_optimized must be None (all) or >= 1, got {self.num_optimized}")
-        require(self.action_low < self.action_high,
-                f"action_low ({self.action_low}) must be < action_high ({self.action_high})")
-
-    def for_task(self, task: TaskSpec) -> SamplingConfig:
-        """This config with the settings it leaves to the task (None, or an empty tuple where documented) filled
-        from ``task``; a config that leaves none returns itself. One line when the task cannot fill them.
-        Here: an empty ``init_std_per_dim`` becomes ``init_std`` times the task's ``sigma_scale`` (an explicit
-        ``init_std_per_dim`` is taken as it is): one line if it has not one entry per action entry, or if
-        ``num_optimized`` exceeds the task's chunk."""
-        require(not self.init_std_per_dim or len(self.init_std_per_dim) == task.action_dim,
-                f"init_std_per_dim has {len(self.init_std_per_dim)} entries but task '{task.name}' has "
-                f"{task.action_dim}-D actions; give one std per action entry")
-        require(self.num_optimized is None or self.num_optimized <= task.chunk_len,
-                f"num_optimized={self.num_optimized} exceeds task '{task.name}''s {task.chunk_len}-step chunk; "
-                f"set it to at most {task.chunk_len} (or None for all)")
-        if self.init_std_per_dim or all(s == 1 for s in task.sigma_scale):
-            return self
-        scaled = tuple(round(self.init_std * s, 12) for s in task.sigma_scale)  # (A,)
-        return dataclasses.replace(self, init_std_per_dim=scaled)
 
 
 class Planner(abc.ABC):
@@ -299,7 +243,16 @@ def _score(objective: Objective, cand: Tensor) -> Tensor:
 PLANNERS = Registry("planner", set_name=True, modules=("wamplan.planning.cem", "wamplan.planning.mppi",
                                                           "wamplan.planning.cem_gripper", "wamplan.planning.drift",
                                                           "wamplan.planning.defaults"))
-register_planner = PLANNERS.register  # class decorator: make a planner constructible by name
+
+
+def register_planner(name: str) -> Callable[[type], type]:
+    """Class decorator: make a planner (its ``config_cls`` a frozen config dataclass) constructible by name, and
+    enter its config in ``PLANNER_CONFIGS``, which the command line's options are built from."""
+    def deco(cls: type) -> type:
+        register_planner_config(name, cls.config_cls)
+        return PLANNERS.register(name)(cls)
+
+    return deco
 
 
 def make_planner(name: str, config: Any = None) -> Planner:

@@ -26,30 +26,11 @@ the search flip it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import torch
 from torch import Tensor
 
-from wamplan.config import field, require
-from wamplan.planning.base import SamplingConfig, SamplingPlanner, register_planner
-
-
-@dataclass(frozen=True)
-class CEMConfig(SamplingConfig):
-    """CEM hyperparameters; defaults are the paper's (32 candidates = mean + 31, 8 elites, 4 iterations,
-    sigma0 = 0.10). Set ``num_optimized=15`` for frameskip 5 (the trailing action stays the WAM's)."""
-
-    num_elites: int = field(8, "lowest-cost candidates mu and sigma are refit to")
-    std_ddof: int = field(0, "delta degrees of freedom of the elite std: 0 = population std (default), "
-                             "1 = sample std as in DINO-WM")
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        require(self.std_ddof in (0, 1), f"std_ddof must be 0 or 1, got {self.std_ddof}")
-        require(self.std_ddof < self.num_elites <= self.num_candidates,
-                f"num_elites must be in [{self.std_ddof + 1}, num_candidates={self.num_candidates}], "
-                f"got {self.num_elites}; lower num_elites or raise num_candidates")
+from wamplan.planning.base import SamplingPlanner, register_planner
+from wamplan.planning.configs import CEMConfig
 
 
 @register_planner("cem")

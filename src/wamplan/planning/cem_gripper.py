@@ -35,55 +35,13 @@ searches the same continuous dimensions), never a silent fall-back.
 
 from __future__ import annotations
 
-import dataclasses
-from dataclasses import dataclass
-from typing import TYPE_CHECKING
-
 import torch
 from torch import Tensor
 
-from wamplan.config import ConfigError, field, require
+from wamplan.config import ConfigError
 from wamplan.planning.base import register_planner
-from wamplan.planning.cem import CEMConfig, CEMPlanner
-
-if TYPE_CHECKING:
-    from wamplan.envs.spec import TaskSpec
-
-
-@dataclass(frozen=True)
-class CEMGripperConfig(CEMConfig):
-    """CEM over the continuous dimensions plus a categorical search over gripper switch times."""
-
-    gripper_dim: int | None = field(None, "index of the gripper in the action vector (its Gaussian sigma is unused); "
-                                          "None = the task's")
-    gripper_open: float | None = field(None, "the gripper command that means open; None = the task's")
-    gripper_closed: float | None = field(None, "the gripper command that means closed; None = the task's")
-    gripper_prior_steps: float = field(
-        16.0, "width of the initial categorical prior: logit = -(steps differing from the WAM's gripper) / this")
-    gripper_smoothing: float = field(
-        0.3, "categorical refit: p = (1 - s) * elite frequencies + s * previous p (0 = plain CEM refit)")
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        require(self.gripper_open is None or self.gripper_open != self.gripper_closed,
-                "gripper_open and gripper_closed must differ")
-        require(self.gripper_prior_steps > 0, f"gripper_prior_steps must be > 0, got {self.gripper_prior_steps}")
-        require(0.0 <= self.gripper_smoothing < 1.0,
-                f"gripper_smoothing must be in [0, 1), got {self.gripper_smoothing}")
-
-    def for_task(self, task: TaskSpec) -> CEMGripperConfig:
-        """The gripper settings left None filled from ``task``, and sigma scaled as in
-        :meth:`SamplingConfig.for_task`; one line if the task has no gripper."""
-        cfg = super().for_task(task)
-        unset = {k: v for k, v in (("gripper_dim", task.gripper_index), ("gripper_open", task.gripper_open),
-                                   ("gripper_closed", task.gripper_closed)) if getattr(cfg, k) is None}
-        if not unset:
-            return cfg
-        if task.gripper_index is None:
-            raise ConfigError(f"planner cem-gripper searches when the gripper opens and closes, but task "
-                              f"'{task.name}' has no gripper; use --planner cem (the same search without the "
-                              f"gripper's categories)")
-        return dataclasses.replace(cfg, **unset)
+from wamplan.planning.cem import CEMPlanner
+from wamplan.planning.configs import CEMGripperConfig
 
 
 def gripper_categories(seed_gripper: Tensor, open_: float, closed: float) -> tuple[Tensor, list[str]]:

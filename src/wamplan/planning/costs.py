@@ -20,19 +20,29 @@ where the WAM's predicted images show it.
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
 from typing import Callable, Sequence
 
 import torch
 from torch import Tensor
 
-from wamplan.config import field, require
+from wamplan.config import require
+from wamplan.planning.cost_config import COST_NAMES, CostConfig
 from wamplan.registry import Registry
 
 CostFn = Callable[[Tensor, Tensor], Tensor]  # (pred (B, V, ...), target (V, ...)) -> (B,)
 StateReader = Callable[[Tensor], Tensor]  # a world model's state head: z (..., V, N, D) -> (..., S)
 COSTS = Registry("cost")
-register_cost = COSTS.register  # decorator: ``fn(pred, target, view_weights=None) -> (B,)`` by name
+
+
+def register_cost(name: str) -> Callable[[CostFn], CostFn]:
+    """Decorator: make ``fn(pred, target, view_weights=None) -> (B,)`` a cost by name (``CostConfig(name=...)``,
+    ``--cost-name``)."""
+    def deco(fn: CostFn) -> CostFn:
+        COSTS.register(name)(fn)
+        COST_NAMES.add(name)
+        return fn
+
+    return deco
 
 
 def _check(pred: Tensor, target: Tensor, layout: str) -> None:
@@ -93,36 +103,12 @@ def with_state_term(cost: CostFn, read_state: StateReader, weight: float) -> Cos
     return fn
 
 
-@dataclass(frozen=True)
-class CostConfig:
-    """Which planning cost to use (paper: the patch cost over all three cameras)."""
-
-    name: str = field("patch", "planning cost: 'patch' (eq. 3) or 'cls' (class tokens)", choices=lambda: sorted(COSTS))
-    view_weights: tuple[float, ...] = field((), "per-camera weights (empty = uniform, the paper)")
-    state_weight: float = field(0.0, "weight of the pose term (0: off): the squared distance (cm^2) between the "
-                                     "world model's state-head reading of each candidate's predicted outcome and of "
-                                     "the target; needs a world model trained with `wm train --state-weight`")
-
-    def __post_init__(self) -> None:
-        require(self.name in COSTS, f"unknown cost '{self.name}'; choose one of {sorted(COSTS)}")
-        require(all(w >= 0 for w in self.view_weights) and
-                (not self.view_weights or sum(self.view_weights) > 0),
-                f"view_weights must be >= 0 with a positive sum, got {self.view_weights}")
-        require(self.state_weight >= 0, f"state_weight must be a number >= 0 (0: off), got {self.state_weight}")
-
-    def check_cameras(self, task: str, cameras: Sequence[str]) -> None:
-        """Refuse, in one line, view weights that are not one per camera of ``task`` (its ``cameras``, in order)."""
-        w = self.view_weights
-        require(not w or len(w) == len(cameras),
-                f"--cost-view-weights gives {len(w)} weights, but task '{task}' has {len(cameras)} cameras "
-                f"({', '.join(cameras)}); give one weight per camera, in that order")
-
-    def build(self, read_state: StateReader | None = None) -> CostFn:
-        """The cost; with ``state_weight`` > 0, plus the pose term read by ``read_state`` (a world model's state
-        head: ``LearnedDynamics.read_state``)."""
-        cost = make_cost(self.name, self.view_weights or None)
-        if not self.state_weight:
-            return cost
-        require(read_state is not None, f"a pose term (state_weight {self.state_weight:g}) needs a world model with "
-                                        f"a state head (`wamplan wm train --state-weight W`); this one has none")
-        return with_state_term(cost, read_state, self.state_weight)
+def build_cost(cfg: CostConfig, read_state: StateReader | None = None) -> CostFn:
+    """The cost ``cfg`` names, with its view weights; with ``state_weight`` > 0, plus the pose term read by
+    ``read_state`` (a world model's state head: ``LearnedDynamics.read_state``)."""
+    cost = make_cost(cfg.name, cfg.view_weights or None)
+    if not cfg.state_weight:
+        return cost
+    require(read_state is not None, f"a pose term (state_weight {cfg.state_weight:g}) needs a world model with "
+                                    f"a state head (`wamplan wm train --state-weight W`); this one has none")
+    return with_state_term(cost, read_state, cfg.state_weight)

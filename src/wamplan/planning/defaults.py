@@ -13,22 +13,11 @@ planner, and an evaluation directory records all of its settings. The paper's CE
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
-from wamplan.config import with_default
 from wamplan.planning.base import register_planner
-from wamplan.planning.mppi import MPPIConfig, MPPIPlanner
+from wamplan.planning.configs import DEFAULT_PLANNER, TEMPERATURE, WamplanConfig
+from wamplan.planning.mppi import MPPIPlanner
 
-DEFAULT_PLANNER = "wamplan"  # what `wamplan eval` plans with when no --planner is given
-TEMPERATURE = 0.1  # the softmax temperature of wamplan's MPPI
-
-
-@dataclass(frozen=True)
-class WamplanConfig(MPPIConfig):
-    """MPPI's config with the temperature pinned at :data:`TEMPERATURE`; every MPPI option still applies."""
-
-    temperature: float = with_default(MPPIConfig, "temperature", TEMPERATURE)
-
+__all__ = ["DEFAULT_PLANNER", "TEMPERATURE", "WamplanConfig", "WamplanPlanner"]
 
 @register_planner(DEFAULT_PLANNER)
 class WamplanPlanner(MPPIPlanner):

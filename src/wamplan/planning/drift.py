@@ -24,52 +24,12 @@ Which dimensions are searched is the task's: ``search_dims`` left empty means th
 
 from __future__ import annotations
 
-import dataclasses
-from dataclasses import dataclass
-from typing import TYPE_CHECKING
-
 import torch
 from torch import Tensor
 
-from wamplan.config import ConfigError, field, require
-from wamplan.planning.base import SamplingConfig, SamplingPlanner, register_planner
-
-if TYPE_CHECKING:
-    from wamplan.envs.spec import TaskSpec
-
-
-@dataclass(frozen=True)
-class DriftConfig(SamplingConfig):
-    """Drift search; sigma is the std of the per-step drift (0.025 moves the chunk's end point by ~8 mm at 2 cm
-    per unit action over 16 steps)."""
-
-    iterations: int = field(2, "response-surface fits, each around the previous step's centre")
-    init_std: float = field(0.025, "std of the per-step drift for every searched action dimension")
-    search_dims: tuple[int, ...] = field(
-        (), "action dimensions whose drift is searched (empty = the task's arm entries: x, y, z, yaw for the cube); "
-        "the others, the gripper among them, stay the WAM's. init_std_per_dim, if given, sets their stds (a 0 also "
-        "leaves one out)")
-    step_radius: float = field(1.0, "farthest step from the current centre, in units of sigma (a trust region: "
-                                    "1 = no farther than the samples the surface was fitted on reach)")
-    std_shrink: float = field(0.5, "sigma is multiplied by this after each iteration")
-    ridge: float = field(1e-4, "ridge on the response surface's coefficients (stabilises the fit)")
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        require(self.noise_beta == 0, "drift searches constant per-step offsets; noise_beta does not apply "
-                                      f"(got {self.noise_beta}); leave it at 0")
-        require(not self.search_dims or (min(self.search_dims) >= 0 and
-                                         len(set(self.search_dims)) == len(self.search_dims)),
-                f"search_dims must be distinct action indices >= 0, got {self.search_dims}")
-        require(self.step_radius > 0, f"step_radius must be > 0, got {self.step_radius}")
-        require(0 < self.std_shrink <= 1, f"std_shrink must be in (0, 1], got {self.std_shrink}")
-        require(self.ridge >= 0, f"ridge must be >= 0, got {self.ridge}")
-
-    def for_task(self, task: TaskSpec) -> DriftConfig:
-        """Empty ``search_dims`` filled with ``task``'s arm entries, and sigma scaled as in
-        :meth:`SamplingConfig.for_task`."""
-        cfg = super().for_task(task)
-        return cfg if cfg.search_dims else dataclasses.replace(cfg, search_dims=task.arm)
+from wamplan.config import ConfigError
+from wamplan.planning.base import SamplingPlanner, register_planner
+from wamplan.planning.configs import DriftConfig
 
 
 def quadratic_features(x: Tensor) -> Tensor:

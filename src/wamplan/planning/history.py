@@ -17,15 +17,10 @@ import numpy as np
 import torch
 
 from wamplan.envs.spec import Observation
-from wamplan.errors import UserError
 from wamplan.planning.dynamics import Dynamics, PlanningContext
+from wamplan.planning.policy_config import PlanningError
 
 Encode = Callable[[dict[str, np.ndarray]], torch.Tensor]  # camera -> (H, W, 3) uint8 views -> (V, N, D)
-
-
-class PlanningError(UserError):
-    """The planned policy cannot plan as driven or configured: a history frame it never saw, or settings that
-    do not fit its dynamics or planner."""
 
 
 class FrameHistory:

@@ -17,29 +17,11 @@ The gripper behaves as under CEM (see ``wamplan.planning.cem``).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import torch
 from torch import Tensor
 
-from wamplan.config import field, require
-from wamplan.planning.base import SamplingConfig, SamplingPlanner, register_planner
-
-
-@dataclass(frozen=True)
-class MPPIConfig(SamplingConfig):
-    """MPPI hyperparameters; sampling fields (candidates, iterations, sigma0, bounds) as in CEM."""
-
-    temperature: float = field(0.1, "softmax temperature of the path-integral weights")
-    normalize_costs: bool = field(True, "divide costs by this iteration's cost range before the "
-                                        "softmax, so temperature is scale-free")
-    momentum: float = field(0.0, "new mu = momentum * old mu + (1 - momentum) * weighted mean")
-    update_std: bool = field(True, "refit sigma to the weighted std of the candidates; off = keep sigma0")
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        require(self.temperature > 0, f"temperature must be > 0, got {self.temperature}")
-        require(0.0 <= self.momentum < 1.0, f"momentum must be in [0, 1), got {self.momentum}")
+from wamplan.planning.base import SamplingPlanner, register_planner
+from wamplan.planning.configs import MPPIConfig
 
 
 @register_planner("mppi")

@@ -41,8 +41,8 @@ from wamplan.planning.base import Planner
 from wamplan.planning.costs import CostFn
 from wamplan.planning.decision import ChunkCosts, ChunkDecision, ChunkTimings
 from wamplan.planning.dynamics import Dynamics, PlanningContext, task_name
-from wamplan.planning.history import FrameHistory, PlanningError
-from wamplan.planning.policy_config import PlannedPolicyConfig, check_fits
+from wamplan.planning.history import FrameHistory
+from wamplan.planning.policy_config import PlannedPolicyConfig, PlanningError, check_fits
 from wamplan.policies.base import Policy
 from wamplan.wam.base import WAM, WAMOutput
 

@@ -1,16 +1,23 @@
 """The planned policy's settings, :class:`PlannedPolicyConfig`, and the checks that refuse settings its planner,
-dynamics or WAM cannot run (:func:`check_fits`)."""
+dynamics or WAM cannot run (:func:`check_fits`); importable without torch, so a command checks them first."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from wamplan.config import field, require
-from wamplan.planning.base import Planner
-from wamplan.planning.dynamics import Dynamics, LearnedDynamics
+from wamplan.errors import UserError
 from wamplan.planning.gates import Gates
-from wamplan.planning.history import PlanningError
+
+if TYPE_CHECKING:
+    from wamplan.planning.base import Planner
+    from wamplan.planning.dynamics import Dynamics
+
+class PlanningError(UserError):
+    """The planned policy cannot plan as driven or configured: a history frame it never saw, or settings that
+    do not fit its dynamics or planner."""
+
 
 WARM_STARTS = ("none", "residual")
 FIRST_CHUNKS = ("open-loop", "rest-history")
@@ -127,6 +134,8 @@ def check_fits(cfg: PlannedPolicyConfig, chunk: int, planner: Planner, dynamics:
         if cfg.replan_every is not None:
             raise PlanningError("bias_correction measures the error of whole chunks; drop --replan-every or "
                                 "--bias-correction")
+    from wamplan.planning.dynamics import LearnedDynamics
+
     if cfg.disagreement_weight > 0 and isinstance(dynamics, LearnedDynamics):
         raise PlanningError("disagreement_weight needs an ensemble of world models, got one; pass several "
                             "comma-separated checkpoints (e.g. --wm-augmented A,B,C) or set it to 0")

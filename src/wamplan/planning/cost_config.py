@@ -1,0 +1,37 @@
+"""The planning cost's settings, :class:`CostConfig`, importable without torch (the costs themselves are in
+:mod:`wamplan.planning.costs`, whose ``register_cost`` enters a new cost's name in :data:`COST_NAMES`, and whose
+``build_cost`` makes the cost a config names)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+from wamplan.config import field, require
+
+COST_NAMES = {"patch", "cls"}  # the names of costs.COSTS, known without importing it (register_cost adds to both)
+
+
+@dataclass(frozen=True)
+class CostConfig:
+    """Which planning cost to use (paper: the patch cost over all three cameras)."""
+
+    name: str = field("patch", "planning cost: 'patch' (eq. 3) or 'cls' (class tokens)", choices=lambda: sorted(COST_NAMES))
+    view_weights: tuple[float, ...] = field((), "per-camera weights (empty = uniform, the paper)")
+    state_weight: float = field(0.0, "weight of the pose term (0: off): the squared distance (cm^2) between the "
+                                     "world model's state-head reading of each candidate's predicted outcome and of "
+                                     "the target; needs a world model trained with `wm train --state-weight`")
+
+    def __post_init__(self) -> None:
+        require(self.name in COST_NAMES, f"unknown cost '{self.name}'; choose one of {sorted(COST_NAMES)}")
+        require(all(w >= 0 for w in self.view_weights) and
+                (not self.view_weights or sum(self.view_weights) > 0),
+                f"view_weights must be >= 0 with a positive sum, got {self.view_weights}")
+        require(self.state_weight >= 0, f"state_weight must be a number >= 0 (0: off), got {self.state_weight}")
+
+    def check_cameras(self, task: str, cameras: Sequence[str]) -> None:
+        """Refuse, in one line, view weights that are not one per camera of ``task`` (its ``cameras``, in order)."""
+        w = self.view_weights
+        require(not w or len(w) == len(cameras),
+                f"--cost-view-weights gives {len(w)} weights, but task '{task}' has {len(cameras)} cameras "
+                f"({', '.join(cameras)}); give one weight per camera, in that order")
