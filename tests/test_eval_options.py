@@ -391,6 +391,7 @@ def test_a_directory_refuses_another_world_model_and_accepts_one_added_later(tmp
     ["--cost-name", "nope"],
     ["--wam", "checkpoints/mini/tinywam", "--cost-view-weights", "1", "1"],
     ["--wam", "checkpoints/mini/tinywam", "--replan-every", "5"],
+    ["--wam", "checkpoints/mini/tinywam", "--wam-send-chunk-frames", "4"],  # frames go to a served WAM only
 ])
 def test_eval_refuses_bad_arguments_before_torch_loads(argv, tmp_path):
     """An argument error is answered from the settings alone: torch (seconds to import) is not loaded first."""
@@ -406,3 +407,12 @@ def test_eval_refuses_bad_arguments_before_torch_loads(argv, tmp_path):
     assert run.stdout.split() == ["False", "2"], (run.stdout, run.stderr)
     assert len(run.stderr.strip().splitlines()) <= 2 and "error" in run.stderr  # one line (argparse: usage + line)
     assert not (tmp_path / "run").exists()
+
+
+def test_the_client_refuses_frame_offsets_outside_the_chunk():
+    from wamplan.wam.cosmos_client import CosmosClientConfig
+
+    assert CosmosClientConfig(send_chunk_frames=(4, 8, 12)).send_chunk_frames == (4, 8, 12)
+    for bad in ((0,), (16,), (4, 4)):
+        with pytest.raises(ConfigError, match=r"--wam-send-chunk-frames must be distinct step offsets in 1\.\.15"):
+            CosmosClientConfig(send_chunk_frames=bad)

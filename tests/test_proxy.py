@@ -313,6 +313,18 @@ def test_an_episode_through_the_proxy_takes_the_in_process_episodes_actions(prox
                 seen[str((t + 1) % H)] = fields(obs)
     np.testing.assert_allclose(np.stack(got), np.stack(want), atol=1e-6)
 
+    # wamplan's own client does the same with send_chunk_frames (`eval --wam-url PROXY --wam-send-chunk-frames 4 8
+    # 12`): condition 1's open-loop driver, its WAM the proxy, takes the planned episode's actions
+    from wamplan.wam.base import WAMPolicy
+    from wamplan.wam.cosmos_client import CosmosPolicyClient
+
+    client = CosmosPolicyClient(url=f"{srv.url}/s/client/act", send_chunk_frames=(4, 8, 12))
+    through: list[np.ndarray] = []
+    run_episode(env, WAMPolicy(client), seed, max_steps=steps, stop_on_success=False,
+                on_obs=lambda e, o, a: through.append(a) if a is not None else None)
+    client.close()
+    np.testing.assert_allclose(np.stack(through), np.stack(want), atol=1e-6)
+
 
 def test_a_boundary_retried_after_a_refusal_plans_as_if_sent_once(proxy):
     srv, _ = proxy

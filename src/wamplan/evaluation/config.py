@@ -44,6 +44,10 @@ class EvalConfig:
     wam_profile: str = field("", "with --wam-url: the server's field mapping and sizes by name "
                              "(cosmos-robocasa, cosmos-aloha); left out: ALOHA's field names with the task's "
                              "cameras by position and the task's action size", choices=_profiles)
+    wam_send_chunk_frames: tuple[int, ...] = field(
+        (), "with --wam-url: in-chunk step offsets whose frames go to the server with the next request, with the "
+        "episode's start and seed: what a planning proxy (`wamplan serve`) needs for a world model whose frameskip "
+        "is shorter than the chunk, e.g. 4 8 12")
     wm_plain: str = field("", "plain world model checkpoint (condition 6)")
     wm_augmented: str = field("", "augmented world model checkpoint (condition 7); several comma-separated "
                               "checkpoints form an ensemble (see --disagreement-weight); the same for --wm-plain")
@@ -106,11 +110,14 @@ class EvalConfig:
             raise UserError("pass only one of --wam CKPT and --wam-url URL (one WAM per evaluation)")
         if self.wam_profile and not self.wam_url:
             raise UserError("--wam-profile needs --wam-url (a profile describes a served WAM)")
+        if self.wam_send_chunk_frames and not self.wam_url:
+            raise UserError("--wam-send-chunk-frames needs --wam-url (the frames go to a served WAM or planning proxy)")
         if self.wam_url:
             from wamplan.wam.cosmos_client import profile_config
 
             # a bad URL, profile or camera mapping for the task fails now, in one line
-            profile_config(self.wam_profile, url=self.wam_url, task=self.env.task)
+            profile_config(self.wam_profile, url=self.wam_url, task=self.env.task,
+                           send_chunk_frames=self.wam_send_chunk_frames)
         spec = self.env.spec
         self.env.require_views()  # every condition feeds the WAM the task's views
         self.cost.check_cameras(spec.name, spec.cameras)

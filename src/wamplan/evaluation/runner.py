@@ -50,7 +50,8 @@ class EvalWorker:
         if cfg.wam_url:
             from wamplan.wam.cosmos_client import CosmosPolicyClient
 
-            self.wam = CosmosPolicyClient(profile=cfg.wam_profile, url=cfg.wam_url, task=cfg.env.task)
+            self.wam = CosmosPolicyClient(profile=cfg.wam_profile, url=cfg.wam_url, task=cfg.env.task,
+                                          send_chunk_frames=cfg.wam_send_chunk_frames)
         else:
             self.wam = load_wam(cfg.wam, device=cfg.device)
         check_wam_task(cfg, self.wam)

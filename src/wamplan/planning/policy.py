@@ -92,9 +92,9 @@ class PlannedPolicy(Policy):
 
     # ------------------------------------------------------------------ Policy
     def reset(self, seed: int | None = None) -> None:
-        self.wam.reset()
+        self.wam.begin_episode(seed)
         if self.target_wam is not self.wam:
-            self.target_wam.reset()
+            self.target_wam.begin_episode(seed)
         self.history.reset()
         self._queue: list[np.ndarray] = []  # (A,) the actions still to run of the current chunk
         self.chunks: list[dict[str, Any]] = []  # one record a chunk (ChunkDecision.record, plus its re-plans)
@@ -106,7 +106,8 @@ class PlannedPolicy(Policy):
         self._bias: torch.Tensor | None = None  # (V, N, D) the model's error on the chunk before (bias_correction)
 
     def wants_images(self, step: int) -> bool:
-        return step % self.chunk == 0 or self.history.wants(step, self._frame_period())
+        return (step % self.chunk == 0 or step % self.chunk in self.wam.frame_offsets
+                or self.history.wants(step, self._frame_period()))
 
     def _frame_period(self) -> int:
         """The spacing of the planning points ahead: ``replan_every`` inside a chunk that re-plans, else H."""
@@ -116,6 +117,8 @@ class PlannedPolicy(Policy):
         require_observation(obs, "PlannedPolicy.act")
         t = obs.step
         self.history.observe(obs, self._frame_period())
+        if t % self.chunk in self.wam.frame_offsets:
+            self.wam.observe(obs)
         if t % self.chunk == 0:
             self._queue = list(self.plan_chunk(obs).executed)
         elif t % self.period == 0 and self._replan is not None:

@@ -149,8 +149,19 @@ class WAM(abc.ABC):
     def predict(self, obs: Observation, instruction: str) -> WAMOutput:
         """The chunk and predicted images for ``obs`` (which carries images for ``self.cameras``)."""
 
+    frame_offsets: tuple[int, ...] = ()  # in-chunk step offsets (1..H-1) whose observations observe() takes
+
     def reset(self) -> None:
         """Start a new episode (clear any internal state, e.g. a history of frames)."""
+
+    def begin_episode(self, seed: int | None = None) -> None:
+        """Start episode ``seed``: what the policies driving a WAM call. Default: :meth:`reset`, for a WAM that
+        needs no seed."""
+        self.reset()
+
+    def observe(self, obs: Observation) -> None:
+        """The observation (with images) at an in-chunk step whose offset is in ``frame_offsets``; the policy
+        driving the WAM calls it before the next chunk's :meth:`predict`. Default: no offsets, never called."""
 
     def close(self) -> None:
         """Release resources (network sessions, worker processes)."""
@@ -226,7 +237,7 @@ class WAMPolicy(Policy):
         return int(self.wam.chunk_length)
 
     def reset(self, seed: int | None = None) -> None:
-        self.wam.reset()
+        self.wam.begin_episode(seed)
         self.last_output: WAMOutput | None = None  # the WAM's latest proposal (planner target, diagnostics)
         self.current_chunk: np.ndarray | None = None  # (H, A) the chunk being executed
         self._index = 0  # next row of current_chunk
@@ -235,10 +246,12 @@ class WAMPolicy(Policy):
         self._refine_s: list[float] = []
 
     def wants_images(self, step: int) -> bool:
-        return step % self.chunk_length == 0
+        return step % self.chunk_length == 0 or step % self.chunk_length in self.wam.frame_offsets
 
     def act(self, obs: Observation) -> np.ndarray:
         require_observation(obs, "WAMPolicy.act")
+        if obs.step % self.chunk_length in self.wam.frame_offsets:
+            self.wam.observe(obs)
         if self.current_chunk is None or self._index >= self.chunk_length:
             self._start_chunk(obs)
         assert self.current_chunk is not None

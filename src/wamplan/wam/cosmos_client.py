@@ -98,6 +98,10 @@ class CosmosClientConfig:
     connect_timeout_s: float = field(5.0, "seconds to wait for a connection")
     retries: int = field(2, "extra attempts when the server cannot be reached (not after a timeout)")
     backoff_s: float = field(0.5, "wait before the first retry; doubles after each")
+    send_chunk_frames: tuple[int, ...] = field(
+        (), "in-chunk step offsets (1..H-1) whose frames go with the next request as chunk_frames, with reset and "
+        "the episode seed on an episode's first request: what a wamplan planning proxy (`wamplan serve`) needs to "
+        "plan with a world model whose frameskip is shorter than the chunk (4 8 12 for the shipped one); empty: none")
 
     def __post_init__(self) -> None:
         get_task(self.task)  # one line naming the registered tasks if unknown
@@ -133,6 +137,10 @@ class CosmosClientConfig:
                 f"{_flag('timeout_s')} and {_flag('connect_timeout_s')} must be > 0")
         require(self.retries >= 0, f"{_flag('retries')} must be >= 0, got {self.retries}")
         require(self.backoff_s >= 0, f"{_flag('backoff_s')} must be >= 0, got {self.backoff_s}")
+        offs = self.send_chunk_frames
+        require(all(0 < o < self.chunk_length for o in offs) and len(set(offs)) == len(offs),
+                f"{_flag('send_chunk_frames')} must be distinct step offsets in 1..{self.chunk_length - 1}, got "
+                f"{list(offs)}")
 
     @property
     def cameras(self) -> tuple[str, ...]:
@@ -266,6 +274,20 @@ class CosmosPolicyClient(WAM):
         secret = secret if secret is not None else os.environ.get(protocol.SECRET_ENV)
         self._headers = {**protocol.JSON_HEADERS, **({protocol.SECRET_HEADER: secret} if secret else {})}
         self.attempts_made = 0  # HTTP attempts of the last query (diagnostics, tests)
+        self.frame_offsets = base.send_chunk_frames
+        self.begin_episode()
+
+    def begin_episode(self, seed: int | None = None) -> None:
+        self.reset()
+        self._episode_start = {"reset": True, "seed": int(seed or 0)} if self.frame_offsets else {}
+
+    def reset(self) -> None:
+        self._frames: dict[str, dict[str, Any]] = {}  # offset -> the fields of the frame seen there
+        self._episode_start: dict[str, Any] = {"reset": True} if self.frame_offsets else {}
+
+    def observe(self, obs: Observation) -> None:
+        images, proprio = self._fields(obs)
+        self._frames[str(obs.step % self.chunk_length)] = {**images, "proprio": proprio}
 
     @property
     def _where(self) -> str:
@@ -283,6 +305,15 @@ class CosmosPolicyClient(WAM):
 
     # -- request -------------------------------------------------------------------------------------
     def _request(self, obs: Observation, instruction: str) -> protocol.ActRequest:
+        images, proprio = self._fields(obs)
+        extra = dict(self._episode_start)
+        if self.frame_offsets and obs.step % self.chunk_length == 0 and obs.step > 0:
+            extra["chunk_frames"] = self._frames
+        self._episode_start, self._frames = {}, {}
+        return protocol.ActRequest(images=images, proprio=proprio, task_description=instruction, extra=extra)
+
+    def _fields(self, obs: Observation) -> tuple[dict[str, np.ndarray], np.ndarray]:
+        """The request's image fields ((H, W, 3) uint8 each) and (P,) proprio for ``obs``."""
         cfg = self.config
         if obs.images is None:
             raise WAMError(f"the observation at step {obs.step} has no images; the Cosmos client needs "
@@ -303,7 +334,7 @@ class CosmosPolicyClient(WAM):
             n = min(cfg.proprio_dim, proprio.shape[0])
             out[:n] = proprio[:n]
             proprio = out
-        return protocol.ActRequest(images=images, proprio=proprio, task_description=instruction)
+        return images, proprio
 
     # -- transport -----------------------------------------------------------------------------------
     def _post(self, body: bytes) -> requests.Response:
