@@ -1,0 +1,84 @@
+"""How well a world model's state head reads the pose from the WAM's predicted views, against the real ones.
+
+The pose term of the planning cost (``eval --cost-state-weight``) compares the head's reading of each candidate's
+predicted outcome with its reading of the WAM's predicted images at t + H. The head learnt from real frames; this
+script measures, at every chunk boundary t of held-out episodes of a WAM policy (a store from `wamplan collect
+--source policy`), the head's error against the simulator's truth at t + H, read from the real frame at t + H and from
+the WAM's prediction of it made at t:
+
+    python scripts/state_head_reading.py --store STORE --wam checkpoints/mini/tinywam \\
+        --wm checkpoints/candidates/s56_state_ridge [--json OUT.json]
+
+Prints the root mean square error (mm) per quantity (``wamplan.data.readers.STATE_QUANTITIES``) of both readings,
+and of the quantity the pose term uses: the head on the WAM's view minus the head on the real view.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+import torch
+
+from wamplan.api import load_wam, planned_policy
+from wamplan.data.readers import STATE_QUANTITIES, STATE_UNIT_MM, state_targets
+from wamplan.data.store import EpisodeStore
+from wamplan.envs.spec import Observation
+
+
+def readings(store: str, wam_path: str, wm_path: str) -> dict[str, np.ndarray]:
+    """(B, S) arrays in mm: ``truth``, ``real`` (the head on the real frame at t + H), ``wam`` (on the WAM's
+    prediction of it, made at t), over every boundary t of the store's episodes with frames at t and t + H."""
+    wam = load_wam(wam_path, device="cpu")
+    policy = planned_policy(wam, wm_path, device="cpu")
+    read = policy.dynamics.read_state
+    if read is None:
+        raise SystemExit(f"{wm_path} has no state head (train one with `wamplan wm train --state-weight W`)")
+    H, cams = wam.chunk_length, policy.cameras
+    out: dict[str, list[np.ndarray]] = {"truth": [], "real": [], "wam": []}
+    st = EpisodeStore(store)
+    for path in st.episode_paths():
+        with st.open_episode(path) as f:
+            steps = [int(s) for s in f["image_steps"][:]]
+            at = {s: k for k, s in enumerate(steps)}
+            for t in [s for s in steps if s % H == 0 and s + H in at]:
+                views = {c: f[f"images/{c}"][at[t]] for c in cams}  # (H, W, 3) each
+                obs = Observation(step=t, images=views, proprio=f["proprio"][t])
+                predicted = wam.predict(obs, wam.default_instruction).images
+                real = {c: f[f"images/{c}"][at[t + H]] for c in cams}
+                with torch.inference_mode():
+                    out["wam"].append(read(policy.encode(predicted)[None])[0].numpy())
+                    out["real"].append(read(policy.encode(real)[None])[0].numpy())
+                out["truth"].append(state_targets(f, [t + H], str(path))[0])
+    return {k: np.stack(v) * STATE_UNIT_MM for k, v in out.items()}  # (B, S) mm
+
+
+def rms(x: np.ndarray) -> np.ndarray:
+    return np.sqrt(np.mean(np.square(x), axis=0))  # (S,)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--store", required=True, help="episodes of a WAM policy (`wamplan collect --source policy`)")
+    p.add_argument("--wam", required=True, help="the WAM checkpoint whose predictions are read")
+    p.add_argument("--wm", required=True, help="a world model with a state head (`wm train --state-weight`)")
+    p.add_argument("--json", default="", help="also write the figures to this file")
+    args = p.parse_args()
+    r = readings(args.store, args.wam, args.wm)
+    rows = {"head on the real frame vs truth": rms(r["real"] - r["truth"]),
+            "head on the WAM's view vs truth": rms(r["wam"] - r["truth"]),
+            "head on the WAM's view vs on the real frame": rms(r["wam"] - r["real"]),
+            "truth's spread (predicting its mean)": rms(r["truth"] - r["truth"].mean(0))}
+    print(f"{len(r['truth'])} boundaries; root mean square error in mm")
+    print(f"{'':46s}" + "".join(f"{q:>14s}" for q in STATE_QUANTITIES) + f"{'all':>8s}")
+    for name, v in rows.items():
+        print(f"{name:46s}" + "".join(f"{x:14.1f}" for x in v) + f"{np.sqrt(np.mean(v ** 2)):8.1f}")
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump({"boundaries": len(r["truth"]), "quantities": list(STATE_QUANTITIES),
+                       **{k: v.tolist() for k, v in rows.items()}}, fh, indent=1)
+
+
+if __name__ == "__main__":
+    main()
