@@ -4,13 +4,14 @@ The pose term of the planning cost (``eval --cost-state-weight``) compares the h
 predicted outcome with its reading of the WAM's predicted images at t + H. The head learnt from real frames; this
 script measures, at every chunk boundary t of held-out episodes of a WAM policy (a store from `wamplan collect
 --source policy`), the head's error against the simulator's truth at t + H, read from the real frame at t + H and from
-the WAM's prediction of it made at t:
+the WAM's prediction of it made at t, and from the world model's own prediction of it (the executed chunk
+rolled out from the real history at t, as the planner rolls out each candidate):
 
     python scripts/state_head_reading.py --store STORE --wam checkpoints/mini/tinywam \\
         --wm checkpoints/candidates/s56_state_ridge [--json OUT.json]
 
 Prints the root mean square error (mm) per quantity (``wamplan.data.readers.STATE_QUANTITIES``) of both readings,
-and of the quantity the pose term uses: the head on the WAM's view minus the head on the real view.
+and of the target the pose term aims at: the head on the WAM's view minus the head on the real view.
 """
 
 from __future__ import annotations
@@ -25,24 +26,28 @@ from wamplan.api import load_wam, planned_policy
 from wamplan.data.readers import STATE_QUANTITIES, STATE_UNIT_MM, state_targets
 from wamplan.data.store import EpisodeStore
 from wamplan.envs.spec import Observation
+from wamplan.planning.dynamics import PlanningContext
 
 
 def readings(store: str, wam_path: str, wm_path: str) -> dict[str, np.ndarray]:
     """(B, S) arrays in mm: ``truth``, ``real`` (the head on the real frame at t + H), ``wam`` (on the WAM's
-    prediction of it, made at t), over every boundary t of the store's episodes with frames at t and t + H."""
+    prediction of it, made at t), ``model`` (on the world model's prediction of it under the executed chunk), over
+    every boundary t of the store's episodes whose history frames and frame at t + H are stored."""
     wam = load_wam(wam_path, device="cpu")
     policy = planned_policy(wam, wm_path, device="cpu")
     read = policy.dynamics.read_state
     if read is None:
         raise SystemExit(f"{wm_path} has no state head (train one with `wamplan wm train --state-weight W`)")
-    H, cams = wam.chunk_length, policy.cameras
-    out: dict[str, list[np.ndarray]] = {"truth": [], "real": [], "wam": []}
+    H, cams, dyn = wam.chunk_length, policy.cameras, policy.dynamics
+    hist = [-i * dyn.frameskip for i in range(dyn.context - 1, -1, -1)]  # history offsets, oldest first
+    out: dict[str, list[np.ndarray]] = {"truth": [], "real": [], "wam": [], "model": []}
     st = EpisodeStore(store)
     for path in st.episode_paths():
         with st.open_episode(path) as f:
             steps = [int(s) for s in f["image_steps"][:]]
             at = {s: k for k, s in enumerate(steps)}
-            for t in [s for s in steps if s % H == 0 and s + H in at]:
+            acts = torch.from_numpy(f["actions"][:].astype(np.float32))  # (T, A)
+            for t in [s for s in steps if s % H == 0 and s + H in at and all(s + o in at for o in hist)]:
                 views = {c: f[f"images/{c}"][at[t]] for c in cams}  # (H, W, 3) each
                 obs = Observation(step=t, images=views, proprio=f["proprio"][t])
                 predicted = wam.predict(obs, wam.default_instruction).images
@@ -50,6 +55,11 @@ def readings(store: str, wam_path: str, wm_path: str) -> dict[str, np.ndarray]:
                 with torch.inference_mode():
                     out["wam"].append(read(policy.encode(predicted)[None])[0].numpy())
                     out["real"].append(read(policy.encode(real)[None])[0].numpy())
+                    z = torch.stack([policy.encode({c: f[f"images/{c}"][at[t + o]] for c in cams}) for o in hist])
+                    q = torch.from_numpy(f["proprio"][[t + o for o in hist]].astype(np.float32))  # (Tc, P)
+                    a = acts[t + hist[0]:t].reshape(len(hist) - 1, -1)  # (Tc-1, Δ·A)
+                    dyn.prepare(PlanningContext(z, q, a))
+                    out["model"].append(read(dyn.terminal(acts[t:t + H][None]))[0].numpy())
                 out["truth"].append(state_targets(f, [t + H], str(path))[0])
     return {k: np.stack(v) * STATE_UNIT_MM for k, v in out.items()}  # (B, S) mm
 
@@ -69,6 +79,8 @@ def main() -> None:
     rows = {"head on the real frame vs truth": rms(r["real"] - r["truth"]),
             "head on the WAM's view vs truth": rms(r["wam"] - r["truth"]),
             "head on the WAM's view vs on the real frame": rms(r["wam"] - r["real"]),
+            "head on the model's prediction vs truth": rms(r["model"] - r["truth"]),
+            "head on the model's prediction vs on the real frame": rms(r["model"] - r["real"]),
             "truth's spread (predicting its mean)": rms(r["truth"] - r["truth"].mean(0))}
     print(f"{len(r['truth'])} boundaries; root mean square error in mm")
     print(f"{'':46s}" + "".join(f"{q:>14s}" for q in STATE_QUANTITIES) + f"{'all':>8s}")
