@@ -453,14 +453,14 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
         models += [Scored(viewed(label), plain[label].dynamics, plain[label].encoder, cost=plan_cost)
                    for label, _ in specs]
     if args.plan_state_weight is not None:  # each model with a state head, planning with the pose term
-        from wamplan.planning.costs import CostConfig
+        from wamplan.planning.costs import CostConfig, build_cost
 
         headed = [m for m in models if m.label in dict(specs) and getattr(m.dynamics, "read_state", None)]
         if not headed:
             raise UserError("--plan-state-weight needs a --wm model with a state head (`wamplan wm train "
                             "--state-weight W`); none of these has one")
         pose = CostConfig(view_weights=tuple(args.cost_view_weights or ()), state_weight=args.plan_state_weight)
-        models += [Scored(posed(m.label), m.dynamics, m.encoder, cost=pose.build(m.dynamics.read_state))
+        models += [Scored(posed(m.label), m.dynamics, m.encoder, cost=build_cost(pose, m.dynamics.read_state))
                    for m in headed]
         labels += [posed(m.label) for m in headed]
     wam = load_wam(args.wam, device=args.device)
