@@ -97,13 +97,13 @@ def test_fidelity_refuses_a_pose_term_for_models_without_a_state_head(capsys):
 
 
 def test_fidelity_plans_with_the_pose_term_of_a_model_with_a_state_head(tmp_path, capsys):
-    """The headed model gets a twin LABEL+pose planning with the pose term; its plan is scored beside the model's."""
+    """The headed model gets a twin LABEL+pose that scores (and with --plan, plans) with the pose term."""
     from wamplan.cli import main
 
     out = tmp_path / "f.json"
     assert main(["wm", "fidelity", "--wam", "checkpoints/mini/tinywam", "--wm",
                  "s=checkpoints/candidates/s56_state_ridge", "--seeds", "500", "--boundaries", "1", "--candidates", "4",
-                 "--top-k", "2", "--plan", "--plan-state-weight", "0.3", "--camera-size", "64", "--json", str(out)]) == 0
+                 "--top-k", "2", "--plan-state-weight", "0.3", "--camera-size", "64", "--json", str(out)]) == 0
     rec = json.loads(out.read_text())["records"][0]
     assert set(rec["models"]) == {"s", "s+pose"}
     assert rec["models"]["s+pose"]["model_costs"] != rec["models"]["s"]["model_costs"]  # the term adds to the cost
