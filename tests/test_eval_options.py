@@ -416,3 +416,8 @@ def test_the_client_refuses_frame_offsets_outside_the_chunk():
     for bad in ((0,), (16,), (4, 4)):
         with pytest.raises(ConfigError, match=r"--wam-send-chunk-frames must be distinct step offsets in 1\.\.15"):
             CosmosClientConfig(send_chunk_frames=bad)
+
+
+def test_every_planner_has_its_config_in_the_settings_registry():
+    """PLANNER_CONFIGS (torch-free, what the command line is built from) holds exactly the planners' configs."""
+    assert {n: c.config_cls for n, c in PLANNERS.items()} == dict(PLANNER_CONFIGS)

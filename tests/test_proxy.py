@@ -274,7 +274,9 @@ def test_the_proxy_rolls_the_world_model_out_in_the_dtype_it_is_given():
     (["--cost-view-weights", "1", "1"], "--cost-view-weights gives 2 weights, but task 'cube-insertion' has 3 "
                                         "cameras"),
     (["--num-elites", "4"], "--num-elites is an option of planner(s) ['cem', 'cem-gripper'], not of 'wamplan'"),
-    (["--replan-every", "5"], "replan_every=5"),
+    (["--replan-every", "8"], "cannot re-plan inside one; drop --replan-every"),
+    (["--cost-state-weight", "0.3"], "needs a world model with a state head"),  # what only the model can refuse
+    (["--disagreement-weight", "0.1"], "needs an ensemble of world models"),
 ])
 def test_serve_refuses_planning_settings_that_do_not_fit_in_one_line(capsys, flags, said):
     from wamplan.cli.main import main
@@ -431,5 +433,45 @@ def test_deploy_docs_world_model_from_robot_logs(tmp_path, monkeypatch):
         assert "my-arm" in json.dumps(cfg) and cfg["config"]["predictor"]["frameskip"] == 16
         with pytest.raises(StoreError, match=r"episode 9 does not fit task 'my-arm': proprio is \(96, 8\)"):
             EpisodeData.logged(scope["arm"], 9, logs[0]["actions"], logs[0]["proprio"][:-1], logs[0]["images"], steps)
+        dropped = {c: v[[0, 1, 3]] for c, v in logs[0]["images"].items()}  # the frame at step 8 lost
+        with pytest.raises(StoreError, match="step 8 missing or moved"):
+            EpisodeData.logged(scope["arm"], 9, logs[0]["actions"][:12], logs[0]["proprio"][:13], dropped, [0, 4, 12])
     finally:
         dict.pop(TASKS, "my-arm", None)
+
+
+def test_the_client_keeps_its_frames_and_episode_start_until_an_answer_is_read():
+    """A request that fails (here one HTTP 500) is sent again whole: the chunk_frames, reset, seed and session_id of a
+    client with send_chunk_frames reach the server with the retried request, and are sent only once answered."""
+    from wamplan.wam.cosmos_client import CosmosPolicyClient
+
+    class Flaky(requests.Session):  # the first POST answers HTTP 500, the others go through
+        def __init__(self):
+            super().__init__()
+            self.trust_env, self.sent, self.failed = False, [], False
+
+        def post(self, url, data=None, **kw):
+            self.sent.append(json_numpy.loads(data))
+            if not self.failed:
+                self.failed = True
+                bad = requests.Response()
+                bad.status_code, bad._content = 500, b'{"error": "busy"}'
+                return bad
+            return super().post(url, data=data, **kw)
+
+    with BackgroundServer(create_app(load_wam(WAM_CKPT, device="cpu"))) as srv:
+        flaky = Flaky()
+        client = CosmosPolicyClient(url=srv.act_url, send_chunk_frames=(4, 8, 12), session=flaky)
+        client.begin_episode(7)
+        obs = observation(1, 0)
+        with pytest.raises(Exception, match="500"):
+            client.predict(obs, "x")
+        client.predict(obs, "x")  # the retry
+        for t in (4, 8, 12):
+            client.observe(observation(1, t))
+        client.predict(observation(1, 16), "x")
+    first, retry, second = flaky.sent
+    for k in ("reset", "seed", "session_id"):
+        assert first[k] == retry[k] and k in first, k
+    assert first["seed"] == 7 and "reset" not in second and second["session_id"] == first["session_id"]
+    assert sorted(second["chunk_frames"]) == ["12", "4", "8"] and "chunk_frames" not in first

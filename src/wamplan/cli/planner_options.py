@@ -32,7 +32,7 @@ def add_planner_arguments(parser: argparse.ArgumentParser, default: str = DEFAUL
     names = sorted(PLANNER_CONFIGS)
     parser.add_argument("--planner", default=None, choices=names,
                         help=f"planner by registry name (default: {default}); wamplan: MPPI at wamplan's default settings "
-                             f"(planning/defaults.py); cem: the paper's CEM")
+                             f"(planning/configs.py); cem: the paper's CEM")
     parser.set_defaults(planner_default=default)
     group = parser.add_argument_group(
         "planner options", "settings of the planner's config; each applies to the planners listed in brackets")

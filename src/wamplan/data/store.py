@@ -151,13 +151,15 @@ class EpisodeData:
 
     @classmethod
     def logged(cls, task: TaskSpec, seed: int, actions: np.ndarray, proprio: np.ndarray,
-               images: dict[str, np.ndarray], image_steps: Sequence[int], *, source: str = "robot",
-               success: bool = False, outcome: str = "logged", provenance: dict | None = None) -> EpisodeData:
+               images: dict[str, np.ndarray], image_steps: Sequence[int], *, image_every: int = 4,
+               source: str = "robot", success: bool = False, outcome: str = "logged",
+               provenance: dict | None = None) -> EpisodeData:
         """An episode recorded without a simulator (a real robot's log) for ``task``: what the world model and
         TinyWAM train on, the simulator's fields (stages, poses, physics state) left empty.
         ``actions`` (T, A) as executed, ``proprio`` (T+1, P) at steps 0..T, ``images[camera]`` (K, H, W, 3) uint8 at
-        ``image_steps`` (K,), every ``image_every``-th step of the store. One :class:`StoreError` names a shape or
-        camera that does not fit ``task``."""
+        ``image_steps`` (K,): 0, ``image_every``, 2 ``image_every``, ... up to T, and T (the store's ``image_every``;
+        the world model pairs frames with actions by that spacing). One :class:`StoreError` names a shape, camera or
+        frame spacing that does not fit."""
         actions, proprio = np.asarray(actions, np.float32), np.asarray(proprio, np.float32)
         steps = np.asarray(image_steps, np.int32)
         t = len(actions)
@@ -168,8 +170,13 @@ class EpisodeData:
             problems.append(f"proprio is {proprio.shape}, want (T+1, {task.proprio_dim}) = ({t + 1}, {task.proprio_dim})")
         if sorted(images) != sorted(task.cameras):
             problems.append(f"images are of cameras {sorted(images)}, want {sorted(task.cameras)}")
-        if steps.ndim != 1 or not len(steps) or steps.min() < 0 or steps.max() > t or np.any(np.diff(steps) <= 0):
-            problems.append(f"image_steps must rise within 0..T={t}, got {steps.tolist()[:8]}")
+        want = list(range(0, t + 1, image_every)) + ([t] if t % image_every else [])
+        if steps.ndim != 1 or steps.tolist() != want:
+            have = steps.ravel().tolist()
+            gap = next((f"step {w} missing or moved (has {h})" for w, h in zip(want, have) if w != h),
+                       f"{len(have)} frames for {len(want)}")
+            problems.append(f"image_steps must be 0, {image_every}, {2 * image_every}, ... up to T={t} and T "
+                            f"(every {image_every}th step): {gap}")
         for cam, arr in images.items():
             a = np.asarray(arr)
             if a.dtype != np.uint8 or a.ndim != 4 or a.shape[0] != len(steps) or a.shape[-1] != 3:

@@ -240,19 +240,24 @@ def _score(objective: Objective, cand: Tensor) -> Tensor:
     return costs.to(device=cand.device, dtype=torch.float32)
 
 
-PLANNERS = Registry("planner", set_name=True, modules=("wamplan.planning.cem", "wamplan.planning.mppi",
-                                                          "wamplan.planning.cem_gripper", "wamplan.planning.drift",
-                                                          "wamplan.planning.defaults"))
+class _PlannerRegistry(Registry):
+    """The planners by name; registering one (``register_planner``) also enters its ``config_cls`` in
+    ``PLANNER_CONFIGS``, the torch-free registry the command line's options and ``EvalConfig`` are built from."""
+
+    def register(self, name: str) -> Callable[[type], type]:
+        enter = super().register(name)
+
+        def deco(cls: type) -> type:
+            register_planner_config(name, cls.config_cls)
+            return enter(cls)
+
+        return deco
 
 
-def register_planner(name: str) -> Callable[[type], type]:
-    """Class decorator: make a planner (its ``config_cls`` a frozen config dataclass) constructible by name, and
-    enter its config in ``PLANNER_CONFIGS``, which the command line's options are built from."""
-    def deco(cls: type) -> type:
-        register_planner_config(name, cls.config_cls)
-        return PLANNERS.register(name)(cls)
-
-    return deco
+PLANNERS = _PlannerRegistry("planner", set_name=True, modules=(
+    "wamplan.planning.cem", "wamplan.planning.mppi", "wamplan.planning.cem_gripper", "wamplan.planning.drift",
+    "wamplan.planning.defaults"))
+register_planner = PLANNERS.register  # class decorator: make a planner (with its config_cls) constructible by name
 
 
 def make_planner(name: str, config: Any = None) -> Planner:

@@ -2,7 +2,8 @@
 command builds its options from them and refuses bad settings before torch loads. Each planner's module
 (``cem``, ``mppi``, ``drift``, ``cem_gripper``, ``defaults``) holds its search and takes its config from here;
 ``register_planner`` (``wamplan.planning.base``) enters a new planner's config in :data:`PLANNER_CONFIGS`, so its
-options appear on the command line as the built-in planners' do.
+options appear on the command line as the built-in planners' do. ``TEMPERATURE`` pins the temperature of wamplan's
+default planner (MPPI, ``DEFAULT_PLANNER``) here, so that it stays the same planner if MPPI's default changes.
 """
 
 from __future__ import annotations
@@ -190,7 +191,7 @@ class CEMGripperConfig(CEMConfig):
 
 
 
-PLANNER_CONFIGS = Registry("planner")  # planner name -> its config class (the built-in ones below, then plug-ins)
+PLANNER_CONFIGS = Registry("planner")  # planner name -> its config class (the built-in ones above, then plug-ins)
 PLANNER_CONFIGS.update({"cem": CEMConfig, "mppi": MPPIConfig, DEFAULT_PLANNER: WamplanConfig, "drift": DriftConfig,
                         "cem-gripper": CEMGripperConfig})
 

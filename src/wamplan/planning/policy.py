@@ -106,8 +106,12 @@ class PlannedPolicy(Policy):
         self._bias: torch.Tensor | None = None  # (V, N, D) the model's error on the chunk before (bias_correction)
 
     def wants_images(self, step: int) -> bool:
-        return (step % self.chunk == 0 or step % self.chunk in self.wam.frame_offsets
+        return (step % self.chunk == 0 or any(step % self.chunk in w.frame_offsets for w in self._wams())
                 or self.history.wants(step, self._frame_period()))
+
+    def _wams(self) -> tuple[WAM, ...]:
+        """The WAM and, where it is another, the target's WAM: each gets the in-chunk frames it asks for."""
+        return (self.wam,) if self.target_wam is self.wam else (self.wam, self.target_wam)
 
     def _frame_period(self) -> int:
         """The spacing of the planning points ahead: ``replan_every`` inside a chunk that re-plans, else H."""
@@ -117,8 +121,9 @@ class PlannedPolicy(Policy):
         require_observation(obs, "PlannedPolicy.act")
         t = obs.step
         self.history.observe(obs, self._frame_period())
-        if t % self.chunk in self.wam.frame_offsets:
-            self.wam.observe(obs)
+        for w in self._wams():
+            if t % self.chunk in w.frame_offsets:
+                w.observe(obs)
         if t % self.chunk == 0:
             self._queue = list(self.plan_chunk(obs).executed)
         elif t % self.period == 0 and self._replan is not None:

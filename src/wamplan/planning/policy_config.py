@@ -14,6 +14,7 @@ if TYPE_CHECKING:
     from wamplan.planning.base import Planner
     from wamplan.planning.dynamics import Dynamics
 
+
 class PlanningError(UserError):
     """The planned policy cannot plan as driven or configured: a history frame it never saw, or settings that
     do not fit its dynamics or planner."""

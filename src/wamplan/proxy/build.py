@@ -9,7 +9,7 @@ from wamplan.envs.spec import TaskSpec, check_same_task, get_task
 from wamplan.errors import UserError
 from wamplan.proxy.app import Proxy
 from wamplan.proxy.config import ProxyConfig
-from wamplan.proxy.upstream import HttpUpstream, LocalUpstream, Upstream
+from wamplan.proxy.upstream import AnsweredWAM, HttpUpstream, LocalUpstream, Upstream
 from wamplan.wam.server import resolve_maps
 
 
@@ -44,9 +44,12 @@ def check_fit(task: TaskSpec, upstream: Upstream, chunk: int, columns: tuple[int
 
 def check_planning(ecfg: Any, task: TaskSpec, chunk: int) -> None:
     """Refuse, in one line, planning settings the world model's task or the upstream's chunk cannot take: view
-    weights not one per camera, chunk rules or a planner config that do not fit the chunk."""
-    from wamplan.planning.policy_config import check_settings
+    weights not one per camera, chunk rules or a planner config that do not fit the chunk, and re-planning inside a
+    chunk, which a proxy cannot do (it answers whole chunks)."""
+    from wamplan.planning.policy_config import PlanningError, check_settings
 
+    if ecfg.policy.replan_every is not None:
+        raise PlanningError("the proxy answers whole chunks and cannot re-plan inside one; drop --replan-every")
     ecfg.cost.check_cameras(task.name, task.cameras)
     check_settings(ecfg.policy, chunk, ecfg.task_planner_config)
 
@@ -91,6 +94,7 @@ def build_proxy(cfg: ProxyConfig, upstream: Upstream | None = None, planning: di
     size = getattr(encoder, "input_size", None)
     check_fit(task, upstream, chunk, columns, cameras, getattr(dynamics, "frameskip", chunk), size, cfg.world_model)
     check_planning(ecfg, task, chunk)
-    return Proxy(cfg, upstream, dynamics, encoder, task,
-                 lambda wam: planned_policy(ecfg, wam, dynamics, encoder, world_models=paths),
-                 request_map, response_map, columns, chunk)
+    make = lambda wam: planned_policy(ecfg, wam, dynamics, encoder, world_models=paths)  # noqa: E731
+    make(AnsweredWAM(task, chunk, cameras))  # what only the world model can refuse (a pose term, an ensemble's
+    # disagreement, bias correction's frameskip) is refused now, once, not on every robot's first request
+    return Proxy(cfg, upstream, dynamics, encoder, task, make, request_map, response_map, columns, chunk)

@@ -36,12 +36,14 @@ from __future__ import annotations
 import dataclasses
 import os
 import time
+import uuid
 from dataclasses import dataclass
 from typing import Any
 from urllib.parse import urlparse
 
 import numpy as np
 import requests
+import urllib3
 
 from wamplan.config import ConfigError, field, require, to_dict
 from wamplan.envs.spec import TASKS, Observation, get_task
@@ -275,13 +277,18 @@ class CosmosPolicyClient(WAM):
         self._headers = {**protocol.JSON_HEADERS, **({protocol.SECRET_HEADER: secret} if secret else {})}
         self.attempts_made = 0  # HTTP attempts of the last query (diagnostics, tests)
         self.frame_offsets = base.send_chunk_frames
+        self._session_id = uuid.uuid4().hex[:12]  # sent with send_chunk_frames: one proxy session a client
         self.begin_episode()
 
     def begin_episode(self, seed: int | None = None) -> None:
         self.reset()
-        self._episode_start = {"reset": True, "seed": int(seed or 0)} if self.frame_offsets else {}
+        if self.frame_offsets:
+            self._episode_start["seed"] = int(seed or 0)
 
     def reset(self) -> None:
+        """A new episode: with ``send_chunk_frames``, the next request carries ``reset`` (and the seed of
+        :meth:`begin_episode`), and every request this client's ``session_id``, so that several clients (an
+        evaluation's workers) keep their episodes apart behind one proxy URL."""
         self._frames: dict[str, dict[str, Any]] = {}  # offset -> the fields of the frame seen there
         self._episode_start: dict[str, Any] = {"reset": True} if self.frame_offsets else {}
 
@@ -306,10 +313,11 @@ class CosmosPolicyClient(WAM):
     # -- request -------------------------------------------------------------------------------------
     def _request(self, obs: Observation, instruction: str) -> protocol.ActRequest:
         images, proprio = self._fields(obs)
-        extra = dict(self._episode_start)
-        if self.frame_offsets and obs.step % self.chunk_length == 0 and obs.step > 0:
-            extra["chunk_frames"] = self._frames
-        self._episode_start, self._frames = {}, {}
+        extra: dict[str, Any] = {}
+        if self.frame_offsets:  # what a planning proxy reads (cleared in predict once the answer is read)
+            extra = {**self._episode_start, "session_id": self._session_id}
+            if obs.step % self.chunk_length == 0 and obs.step > 0:
+                extra["chunk_frames"] = dict(self._frames)
         return protocol.ActRequest(images=images, proprio=proprio, task_description=instruction, extra=extra)
 
     def _fields(self, obs: Observation) -> tuple[dict[str, np.ndarray], np.ndarray]:
@@ -348,6 +356,12 @@ class CosmosPolicyClient(WAM):
                                           timeout=(cfg.connect_timeout_s, cfg.timeout_s))
             except requests.exceptions.ConnectionError as e:  # refused, reset, connect timeout: retry
                 reason = _short_reason(e, cfg.connect_timeout_s)
+                if self.frame_offsets and not isinstance(e, requests.exceptions.ConnectTimeout) and \
+                        not isinstance(getattr(e.args[0] if e.args else None, "reason", None),
+                                       urllib3.exceptions.NewConnectionError):
+                    # a proxy that already took this boundary would take a repeat as the next one
+                    raise WAMServerError(f"{self._where} dropped the connection ({reason}); not retried, as a "
+                                         f"planning proxy may have taken the request already") from e
                 if attempt + 1 < attempts:
                     time.sleep(cfg.backoff_s * 2 ** attempt)
             except requests.exceptions.Timeout as e:  # read timeout: the server is busy; do not pile on
@@ -422,6 +436,7 @@ class CosmosPolicyClient(WAM):
         resp = self._post(body)
         http_s = time.perf_counter() - t_post
         out = self._output(self._decode(resp, sent_proprio=req.proprio.shape[0]))
+        self._episode_start, self._frames = {}, {}  # delivered: the next request starts afresh
         try:
             self.validate(out)
         except WAMOutputError as e:
