@@ -102,8 +102,7 @@ def check_done(store: EpisodeStore, paths: Sequence[Path], progress: bool = True
     from wamplan.progress import progress_bar
 
     for path in progress_bar(paths, desc="check collected", unit="ep", disable=not progress or len(paths) < 20):
-        store.meta(path)  # a damaged header: its own line
-        problem, _ = verify_episode(path)
+        problem, _ = verify_episode(path)  # the header, attributes and every chunk
         if problem is not None:
             raise StoreError(f"episode file {path} is damaged ({problem}); {RECOLLECT}")
 

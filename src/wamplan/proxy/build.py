@@ -42,16 +42,15 @@ def check_fit(task: TaskSpec, upstream: Upstream, chunk: int, columns: tuple[int
                         f"(the target would be upsampled); use a world model trained at {size} px or less")
 
 
-def check_planning(ecfg: Any, task: TaskSpec, chunk: int) -> None:
-    """Refuse, in one line, planning settings the world model's task or the upstream's chunk cannot take: view
-    weights not one per camera, chunk rules or a planner config that do not fit the chunk, and re-planning inside a
-    chunk, which a proxy cannot do (it answers whole chunks)."""
-    from wamplan.planning.policy_config import PlanningError, check_settings
+def check_planning(ecfg: Any, task: TaskSpec) -> None:
+    """Refuse, in one line, what the planned policy itself would not: view weights not one per camera of the world
+    model's task, and re-planning inside a chunk, which a proxy cannot do (it answers whole chunks). The rest of the
+    chunk rules are checked by building one planned policy at start-up (``build_proxy``)."""
+    from wamplan.planning.policy_config import PlanningError
 
     if ecfg.policy.replan_every is not None:
         raise PlanningError("the proxy answers whole chunks and cannot re-plan inside one; drop --replan-every")
     ecfg.cost.check_cameras(task.name, task.cameras)
-    check_settings(ecfg.policy, chunk, ecfg.task_planner_config)
 
 
 def build_proxy(cfg: ProxyConfig, upstream: Upstream | None = None, planning: dict[str, Any] | None = None) -> Proxy:
@@ -93,7 +92,7 @@ def build_proxy(cfg: ProxyConfig, upstream: Upstream | None = None, planning: di
     chunk = cfg.chunk_length or upstream.shape.chunk_length or profile_chunk or task.chunk_length
     size = getattr(encoder, "input_size", None)
     check_fit(task, upstream, chunk, columns, cameras, getattr(dynamics, "frameskip", chunk), size, cfg.world_model)
-    check_planning(ecfg, task, chunk)
+    check_planning(ecfg, task)
     make = lambda wam: planned_policy(ecfg, wam, dynamics, encoder, world_models=paths)  # noqa: E731
     make(AnsweredWAM(task, chunk, cameras))  # what only the world model can refuse (a pose term, an ensemble's
     # disagreement, bias correction's frameskip) is refused now, once, not on every robot's first request

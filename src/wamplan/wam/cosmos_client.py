@@ -235,6 +235,13 @@ def _short_reason(e: requests.exceptions.ConnectionError, connect_timeout_s: flo
     return text[:160]
 
 
+def _never_connected(e: requests.exceptions.ConnectionError) -> bool:
+    """Whether the request never reached the server (refused, or the connection timed out), so resending it cannot
+    repeat it."""
+    cause = getattr(e.args[0] if e.args else None, "reason", None)
+    return isinstance(e, requests.exceptions.ConnectTimeout) or isinstance(cause, urllib3.exceptions.NewConnectionError)
+
+
 def _reason(resp: requests.Response) -> str:
     """The one-line reason of a wamplan server's refusal (``{"error": "..."}``), or "" for any other body."""
     try:
@@ -356,9 +363,7 @@ class CosmosPolicyClient(WAM):
                                           timeout=(cfg.connect_timeout_s, cfg.timeout_s))
             except requests.exceptions.ConnectionError as e:  # refused, reset, connect timeout: retry
                 reason = _short_reason(e, cfg.connect_timeout_s)
-                if self.frame_offsets and not isinstance(e, requests.exceptions.ConnectTimeout) and \
-                        not isinstance(getattr(e.args[0] if e.args else None, "reason", None),
-                                       urllib3.exceptions.NewConnectionError):
+                if self.frame_offsets and not _never_connected(e):
                     # a proxy that already took this boundary would take a repeat as the next one
                     raise WAMServerError(f"{self._where} dropped the connection ({reason}); not retried, as a "
                                          f"planning proxy may have taken the request already") from e
