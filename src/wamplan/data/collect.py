@@ -96,8 +96,7 @@ def run_collection(job: CollectJob, seeds: list[int], workers: int = 1,
 
 def check_done(store: EpisodeStore, paths: Sequence[Path], progress: bool = True) -> None:
     """Refuse to resume over a damaged episode file: every byte of each of ``paths`` is read through its
-    checksums (about 0.15 s a 300-step episode on one core); one :class:`StoreError` line names the first damaged
-    file and the fix (delete it, re-run)."""
+    checksums; one :class:`StoreError` line names the first damaged file and the fix (delete it, re-run)."""
     from wamplan.data.store import RECOLLECT, StoreError, verify_episode
     from wamplan.progress import progress_bar
 
