@@ -431,3 +431,31 @@ def test_a_decoder_draws_only_the_tokens_of_the_encoder_it_was_trained_on():
     low_pass = make_encoder("patch-pixels", input_size=64, patch_size=16, proj_dim=128, basis="dct")
     with pytest.raises(UserError, match="trained on the tokens of encoder .* pass a decoder trained with the same"):
         load_decoder(shipped, encoder=low_pass)
+
+
+def test_init_grows_onto_a_concat_encoder_whose_first_part_it_was_trained_on(tmp_path):
+    from wamplan.checkpoint import load_weights
+    from wamplan.encoders import make_encoder
+    from wamplan.worldmodel.train import grow_weights
+
+    pp = make_encoder("patch-pixels", input_size=32, patch_size=16, proj_dim=8).config_dict()  # 4 tokens x 8, as TINY
+    extra = dict(name="patch-pixels", input_size=32, patch_size=16, proj_dim=4, seed=1)
+    concat = make_encoder("concat", parts=[pp, extra], scales=[1, 0.5]).config_dict()
+    base, _ = train_predictor(_windows(), TINY, TRAIN, tmp_path / "base", device="cpu", max_steps=2, progress=False,
+                              encoder_info=pp)
+    grown_cfg = dataclasses.replace(TINY, encoder="concat", enc_dim=12)
+    grown = WorldModelPredictor(grown_cfg).eval()
+    load_weights(tmp_path / "base" / CKPT_DIR, grown, adapt=lambda w: grow_weights(w, grown, 8))
+    grown.set_feature_stats(torch.cat([base.z_mean, torch.rand(4)]), torch.cat([base.z_std, torch.rand(4) + 0.5]))
+    z, q, a = _frames(grown_cfg, 2, 3)
+    with torch.no_grad():  # the old dims are predicted as the start predicts them, whatever the new dims hold
+        torch.testing.assert_close(grown(z, q, a)[0][..., :8], base(z[..., :8], q, a)[0], atol=1e-5, rtol=0)
+    data = SyntheticWindows(14, grown_cfg, TINY.context + TRAIN.horizon, seed=4)
+    tuned, _ = train_predictor(data, grown_cfg, TRAIN, tmp_path / "grown", device="cpu", max_steps=1, progress=False,
+                               encoder_info=concat, init=tmp_path / "base")
+    assert torch.equal(tuned.z_mean[:8], base.z_mean) and torch.equal(tuned.z_std[:8], base.z_std)
+    assert (tuned.z_std[8:] > 1e-3).all()  # the new dims' statistics come from the data
+    scaled = make_encoder("concat", parts=[pp, extra], scales=[2, 0.5]).config_dict()
+    with pytest.raises(UserError, match="is another predictor"):  # a rescaled first part is not the start's tokens
+        train_predictor(data, grown_cfg, TRAIN, tmp_path / "bad", device="cpu", progress=False,
+                        encoder_info=scaled, init=tmp_path / "base")

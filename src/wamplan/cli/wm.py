@@ -52,7 +52,8 @@ def _wm_commands(wm: argparse.ArgumentParser) -> None:
 
 
 ENCODER_KWARGS_HELP = ("the preset's encoder settings, overridden by this JSON object, e.g. '{\"basis\": \"dct\"}' "
-                       "(patch-pixels: input_size, patch_size, proj_dim, seed, basis)")
+                       "(patch-pixels: input_size, patch_size, proj_dim, seed, basis; task-cnn: ckpt; concat: parts, "
+                       "a list of encoder configs, and scales, one per part)")
 DEVICE_HELP = "torch device: auto, cpu, cuda, cuda:1, mps, ... (default: %(default)s)"
 
 

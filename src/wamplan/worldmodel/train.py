@@ -367,7 +367,8 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
     ``checkpoint/`` + ``metrics.jsonl``). ``encoder_info`` (e.g. ``encoder.config_dict()``) is stored as
     provenance; ``data`` identifies the training data (``data.store.describe_stores``), checked on resume.
     ``init`` (a predictor checkpoint with the same config and encoder) fine-tunes: a fresh run starts from its
-    weights and feature statistics instead of a random initialisation and new statistics.
+    weights and feature statistics instead of a random initialisation and new statistics; with a ``concat``
+    encoder whose first part is the checkpoint's encoder it starts grown (:func:`grow_weights`).
     ``group_set`` (``data.readers.BranchGroups``) adds ``train.sibling_weight`` times :func:`sibling_loss` on
     ``train.sibling_groups`` groups to every step's loss; ``val_groups`` adds the held-out sibling error to the
     validation metrics (:func:`evaluate_siblings`). ``task`` and ``cameras`` (one per view) say what the windows
@@ -381,14 +382,20 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
                   **({"cameras": list(cameras)} if cameras is not None else {})}
     config = {"predictor": to_dict(cfg), "train": to_dict(train), "encoder": encoder_info,
               **({"data": trained_on} if trained_on else {})}
+    old_dim = None
     if init is not None:
         config["init"] = str(Path(init).resolve())
-        _check_init(init, cfg, encoder_info)
+        old_dim = _check_init(init, cfg, encoder_info)
 
     def fresh_stats() -> None:
         if init is not None:
-            load_weights(checkpoint_dir(init), model, dev, new=NEW_ON_INIT)
+            load_weights(checkpoint_dir(init), model, dev, new=NEW_ON_INIT,
+                         adapt=None if old_dim is None else lambda w: grow_weights(w, model, old_dim))
             model.float()
+            if old_dim is not None:  # the grown dims' statistics from the data, the start's kept for its own
+                mean, std = compute_feature_stats(train_set, seed=train.seed)
+                model.set_feature_stats(torch.cat([model.z_mean[:old_dim].cpu(), mean[old_dim:]]),
+                                        torch.cat([model.z_std[:old_dim].cpu(), std[old_dim:]]))
         else:
             mean, std = compute_feature_stats(train_set, seed=train.seed)
             model.set_feature_stats(mean, std)
@@ -439,19 +446,58 @@ def _group_batches(groups: Dataset, train: TrainConfig, start: int = 0):
         step += 1
 
 
-def _check_init(init: str | Path, cfg: PredictorConfig, encoder_info: dict[str, Any] | None) -> None:
-    """A fine-tuning start must be a predictor of the same architecture over the same encoder's tokens."""
+def _check_init(init: str | Path, cfg: PredictorConfig, encoder_info: dict[str, Any] | None) -> int | None:
+    """A fine-tuning start must be a predictor of the same architecture over the same encoder's tokens, or one this
+    run grows (:func:`grown_dims`). Returns the start's token size D when it is grown, else None."""
     saved = read_config(checkpoint_dir(init), KIND)
     theirs = to_dict(from_dict(PredictorConfig, saved["predictor"]))  # fields added since it was saved: their defaults
     theirs.update(state_dim=cfg.state_dim, state_head=cfg.state_head)  # a fine-tune may add (or drop) a state head
+    their_encoder = {k: v for k, v in (saved.get("encoder") or {}).items() if k != "path"}
+    old_dim = grown_dims(theirs, their_encoder, cfg, encoder_info)
+    if old_dim is not None:
+        theirs.update(encoder=cfg.encoder, enc_dim=cfg.enc_dim)
+        their_encoder = encoder_info or {}
     if theirs != to_dict(cfg):
         diff = {k: (theirs.get(k), v) for k, v in to_dict(cfg).items() if theirs.get(k) != v}
         raise UserError(f"--init {init} is another predictor {diff} (its, this run's); fine-tune with the preset "
                         f"it was trained with")
-    theirs = {k: v for k, v in (saved.get("encoder") or {}).items() if k != "path"}
-    if encoder_info is not None and theirs and theirs != encoder_info:
-        raise UserError(f"--init {init} was trained on encoder {theirs}, this run encodes with {encoder_info}; "
-                        f"use the encoder it was trained with")
+    if encoder_info is not None and their_encoder and their_encoder != encoder_info:
+        raise UserError(f"--init {init} was trained on encoder {their_encoder}, this run encodes with {encoder_info}; "
+                        f"use the encoder it was trained with, or a concat encoder whose first part it is (scale 1)")
+    return old_dim
+
+
+def grown_dims(theirs: dict[str, Any], their_encoder: dict[str, Any], cfg: PredictorConfig,
+               encoder_info: dict[str, Any] | None) -> int | None:
+    """The start's token size D when this run's encoder is a ``concat`` whose first part is the start's encoder at
+    scale 1 (the start then grows onto the wider tokens: :func:`grow_weights`); None otherwise."""
+    if not encoder_info or encoder_info.get("name") != "concat" or not their_encoder:
+        return None
+    first = {k: v for k, v in encoder_info["parts"][0].items() if k != "path"}
+    if first != their_encoder or encoder_info["scales"][0] != 1.0 or theirs["enc_dim"] >= cfg.enc_dim:
+        return None
+    return int(theirs["enc_dim"])
+
+
+def grow_weights(weights: dict[str, torch.Tensor], model: WorldModelPredictor, old_dim: int
+                 ) -> dict[str, torch.Tensor]:
+    """A predictor's weights over D = ``old_dim`` token dims, fitted to ``model``'s wider tokens (D' > D, the old
+    dims first): every tensor with one axis D' long where the file's is D long gets zeros for the new dims, inserted
+    after the first D entries of that axis (``in_proj``'s input columns [z | q | a] included). The grown model
+    predicts the old dims exactly as the start did; the new dims' feature statistics are the caller's to set."""
+    own = model.state_dict()
+    grow = model.cfg.enc_dim - old_dim
+    out = dict(weights)
+    for k, v in weights.items():
+        if k not in own or own[k].shape == v.shape:
+            continue
+        axes = [i for i, (a, b) in enumerate(zip(own[k].shape, v.shape)) if a != b]
+        if own[k].dim() != v.dim() or len(axes) != 1 or own[k].shape[axes[0]] - v.shape[axes[0]] != grow:
+            continue  # left for load_weights to name as a mismatch
+        i = axes[0]
+        zeros = v.new_zeros(v.shape[:i] + (grow,) + v.shape[i + 1:])
+        out[k] = torch.cat([v.narrow(i, 0, old_dim), zeros, v.narrow(i, old_dim, v.shape[i] - old_dim)], dim=i)
+    return out
 
 
 def load_predictor(path: str | Path, device: str | torch.device = "cpu") -> WorldModelPredictor:
