@@ -12,9 +12,10 @@ from wamplan.cli.server_options import add_listen_options, listen_secret
 def register(sub: argparse._SubParsersAction) -> None:
     add_command(sub, "serve", _options,
                 help="a planning proxy: an /act endpoint that plans each chunk of an upstream WAM in a world model",
-                description="Serve /act (and /s/ROBOT/act per robot): each request goes to --upstream, its chunk is "
-                            "planned in --world-model toward the upstream's predicted views, and the answer keeps "
-                            "the upstream's format (docs/deploy.md).")
+                description="Serve /act (and /s/ROBOT/act per robot), and openpi's WebSocket protocol on / (and "
+                            "/s/ROBOT): each request goes to --upstream, its chunk is planned in --world-model toward "
+                            "the upstream's predicted views, and the answer keeps the upstream's format "
+                            "(docs/deploy.md).")
 
 
 def _options(p: argparse.ArgumentParser) -> None:
@@ -26,7 +27,7 @@ def _options(p: argparse.ArgumentParser) -> None:
     add_arguments(p, ProxyConfig)
     add_planning_arguments(p)  # the planner, cost and chunk rules, as `wamplan eval` takes them
     add_listen_options(p, 8778, "shared secret every request must carry (X-WAMplan-Secret header, Authorization: "
-                                "Bearer, or ?token=SECRET in the URL); default: $WAMPLAN_ACT_SECRET, none if unset. "
+                                "Bearer or Api-Key, or ?token=SECRET in the URL); default: $WAMPLAN_ACT_SECRET, none if unset. "
                                 "The upstream's own secret, if any, is read from $WAMPLAN_UPSTREAM_SECRET")
     p.set_defaults(func=_serve)
 
@@ -51,11 +52,13 @@ def _serve(args: argparse.Namespace) -> int:
     errors = 'HTTP 200 "error" (upstream error mode)' if cfg.errors == "upstream" else "4xx/5xx with a reason"
     budget = f"{cfg.budget_ms:g} ms planning budget" if cfg.budget_ms else "no planning budget"
     print(f"planning proxy for {proxy.upstream.where} with world model {cfg.world_model} at "
-          f"http://{args.host}:{args.port}/act and /s/ROBOT/act ({'shared secret required' if secret else 'no shared secret'}; "
+          f"http://{args.host}:{args.port}/act and /s/ROBOT/act, openpi clients at ws://{args.host}:{args.port} "
+          f"({'shared secret required' if secret else 'no shared secret'}; "
           f"failures answered {errors}; {budget})", flush=True)
     print(proxy.describe(), flush=True)
     try:
-        run_app(create_proxy_app(proxy, secret), args.host, args.port, secret, args.log_level)
+        run_app(create_proxy_app(proxy, secret), args.host, args.port, secret, args.log_level,
+                ws_max_bytes=cfg.max_request_bytes)
     finally:
         proxy.close()
     return 0

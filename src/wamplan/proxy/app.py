@@ -44,7 +44,8 @@ from fastapi.responses import Response
 
 from wamplan.envs.spec import Observation, TaskSpec
 from wamplan.errors import UserError, reason
-from wamplan.proxy.config import ProxyConfig
+from wamplan.proxy.config import DEFAULT_ROBOT, PROXY_FIELDS, ProxyConfig
+from wamplan.proxy.openpi import add_openpi_routes
 from wamplan.proxy.sessions import Session, Sessions
 from wamplan.proxy.upstream import AnsweredWAM, Upstream, UpstreamError, to_output
 from wamplan.wam import protocol
@@ -54,12 +55,16 @@ log = logging.getLogger(__name__)
 
 SESSION_ROUTE = "/s/{robot}/act"
 RESET_ROUTE = "/s/{robot}/reset"
-DEFAULT_ROBOT = "default"  # the session of plain /act
-PROXY_FIELDS = ("session_id", "reset", "seed", "executed_actions", "chunk_frames")  # read here, never forwarded
 
 
 class BadRequest(protocol.ProtocolError):
     """A proxy field of the request is malformed (answered 400)."""
+
+
+def _seed(seed: Any) -> int | None:
+    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer))):
+        raise BadRequest(f"seed is {seed!r}, expected an integer")
+    return None if seed is None else int(seed)
 
 
 def _finite(x: float | None) -> float | None:
@@ -101,34 +106,52 @@ class Proxy:
 
     # ------------------------------------------------------------------ one request
     def handle(self, body: bytes, robot: str = DEFAULT_ROBOT) -> str:
+        """One ``/act`` body (json_numpy) -> the answer's JSON text."""
         t_in = time.perf_counter()
         req = protocol.decode_request(body, tuple(self.request_map))
+        return protocol.encode_response(self.respond(req, robot, t_in=t_in), double_encode=req.encoded)
+
+    def respond(self, req: protocol.ActRequest, robot: str = DEFAULT_ROBOT, key: str | None = None,
+                t_in: float | None = None) -> protocol.ActResponse:
+        """One checked request -> the answer. Its session: ``<robot>/<session_id>`` when it names one, else
+        ``key`` (default: ``robot``)."""
+        t_in = time.perf_counter() if t_in is None else t_in
         ours = {k: req.extra.pop(k) for k in PROXY_FIELDS if k in req.extra}
         sid = ours.get("session_id")
         if sid is not None and not isinstance(sid, (str, int)):
             raise BadRequest(f"session_id is a {type(sid).__name__}, expected a string")
-        key = robot if sid is None else f"{robot}/{sid}"
+        key = (key or robot) if sid is None else f"{robot}/{sid}"
         session, why = self.sessions.get(key)
         with session.lock:
-            if session.pending is not None:  # a plan that ran past its budget finishes first
-                try:
-                    session.pending.result()
-                except Exception:  # it was answered open loop already; its failure is only logged
-                    log.exception("a plan past its budget failed (session %s)", key)
-                session.pending = None
+            self._settle(session)
             if ours.get("reset"):
                 why = "reset"
-            seed = ours.get("seed")
-            if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer))):
-                raise BadRequest(f"seed is {seed!r}, expected an integer")
+            seed = _seed(ours.get("seed"))
             notes: list[str] = []
             if why in ("idle", "reset") or (why == "first-request" and seed is not None):
-                session.new_episode(int(seed or 0))
+                session.new_episode(seed or 0)
             elif session.chunks:
                 self._catch_up(session, ours, notes)
             if session.chunks:
                 self._upstream_history(session, req)
             return self._answer(session, req, why, notes, t_in)
+
+    def restart(self, key: str, seed: Any = None) -> None:
+        """Start a new episode in session ``key`` now (RoboArena's ``endpoint: reset``)."""
+        seed = _seed(seed)
+        session, _ = self.sessions.get(key)
+        with session.lock:
+            self._settle(session)
+            session.new_episode(seed or 0)
+
+    def _settle(self, session: Session) -> None:
+        """A plan that ran past its budget finishes before the session's next request is read."""
+        if session.pending is not None:
+            try:
+                session.pending.result()
+            except Exception:  # it was answered open loop already; its failure is only logged
+                log.exception("a plan past its budget failed (session %s)", session.key)
+            session.pending = None
 
     def _catch_up(self, session: Session, ours: dict[str, Any], notes: list[str]) -> None:
         """Record what the robot ran of the chunk answered last, and the frames it saw during it."""
@@ -192,7 +215,7 @@ class Proxy:
         return Observation(step=step, proprio=fit_proprio(q, self.task.proprio_dim)[0], images=images)
 
     def _answer(self, session: Session, req: protocol.ActRequest, why: str | None, notes: list[str],
-                t_in: float) -> str:
+                t_in: float) -> protocol.ActResponse:
         t, H = session.step, self.chunk
         proprio, note = fit_proprio(req.proprio, self.task.proprio_dim)  # (P,) what the world model reads
         notes += [f"world model: {note}"] if note else []
@@ -221,9 +244,8 @@ class Proxy:
             report["upstream"] = ans.wamplan
         if notes:
             report["notes"] = notes
-        resp = protocol.ActResponse(actions=actions, future_images=ans.future_images, value=ans.value,
+        return protocol.ActResponse(actions=actions, future_images=ans.future_images, value=ans.value,
                                     extra=ans.extra, wamplan=report)
-        return protocol.encode_response(resp, double_encode=req.encoded)
 
     def _decide(self, session: Session, obs: Observation, out: Any,
                 notes: list[str]) -> tuple[np.ndarray, str | None, dict[str, float | None]]:
@@ -273,7 +295,7 @@ class Proxy:
 
 def create_proxy_app(proxy: Proxy, secret: str | None = None) -> FastAPI:
     """The HTTP face of ``proxy``: ``POST /act``, ``POST /s/<robot>/act``, ``POST /s/<robot>/reset``,
-    ``GET /health``; ``secret`` as ``wamplan wam serve`` takes it (header, bearer or ``?token=``)."""
+    ``GET /health``, and openpi's WebSocket on ``/`` and ``/s/<robot>`` (``proxy.openpi``); ``secret`` as ``wamplan wam serve`` takes it (header, bearer or ``?token=``)."""
     cfg, secret = proxy.cfg, secret or None
     app = FastAPI(title="wamplan planning proxy")
 
@@ -314,6 +336,8 @@ def create_proxy_app(proxy: Proxy, secret: str | None = None) -> FastAPI:
             return error_answer(cfg.errors, r.status, r.message, request.url.path)
         n = proxy.reset(robot)
         return Response(content=json.dumps({"ok": True, "sessions_reset": n}), media_type="application/json")
+
+    add_openpi_routes(app, proxy, secret)
 
     @app.get(protocol.HEALTH_ROUTE)
     async def health() -> dict:

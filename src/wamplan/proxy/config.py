@@ -8,6 +8,8 @@ from wamplan.config import field, require
 from wamplan.evaluation.config import WM_DTYPES
 from wamplan.wam import protocol
 
+DEFAULT_ROBOT = "default"  # the session of plain /act (and of a WebSocket on /)
+PROXY_FIELDS = ("session_id", "reset", "seed", "executed_actions", "chunk_frames")  # read by the proxy, never forwarded
 ERROR_MODES = ("http", "upstream")  # as `wamplan wam serve` answers failures (wamplan.wam.server.ERROR_MODES)
 
 
@@ -30,6 +32,9 @@ class ProxyConfig:
     upstream_timeout_s: float = field(60.0, "seconds to wait for the upstream's answer")
     chunk_length: int | None = field(None, "actions per chunk the upstream returns; unset: its /health's (a wamplan "
                                            "server) or the world model's task's")
+    ws_fields: str = field("", "openpi WebSocket clients: renames of an observation's keys to the /act fields, "
+                               "FROM=TO comma-separated (nested keys joined with /; A+B=proprio joins vectors), e.g. "
+                               "images/cam_high=primary_image,state=proprio")
     history_spacing: int = field(12, "steps between the frames of upstream's eval client's proprio_history / "
                                      "images_history (its history_spacing_factor)")
     max_request_bytes: int = field(protocol.DEFAULT_MAX_REQUEST_BYTES, "refuse larger /act bodies (HTTP 413)")
@@ -54,6 +59,9 @@ class ProxyConfig:
                 f"--chunk-length must be >= 1 (or unset), got {self.chunk_length}")
         require(self.wm_dtype in WM_DTYPES, f"--wm-dtype must be one of {list(WM_DTYPES)}, got {self.wm_dtype!r}")
         require(self.history_spacing >= 1, f"--history-spacing must be >= 1, got {self.history_spacing}")
+        from wamplan.proxy.openpi import parse_ws_fields
+
+        parse_ws_fields(self.ws_fields)  # a malformed entry is refused here, in one line
         require(self.max_request_bytes >= 1, f"--max-request-bytes must be >= 1, got {self.max_request_bytes}")
 
     @property

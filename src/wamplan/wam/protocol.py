@@ -171,8 +171,15 @@ def decode_request(body: bytes | str, image_fields: tuple[str, ...] = REQUEST_IM
         if not isinstance(payload["encoded"], str):
             raise ProtocolError(f"'encoded' is a {type(payload['encoded']).__name__}, expected a json_numpy string")
         payload = _loads(payload["encoded"], "'encoded' request payload")
+    return request_from_payload(payload, image_fields, encoded=encoded)
+
+
+def request_from_payload(payload: Any, image_fields: tuple[str, ...] = REQUEST_IMAGE_FIELDS,
+                         encoded: bool = False) -> ActRequest:
+    """Check a decoded request (a mapping of the protocol's fields, however it travelled) that must carry
+    ``image_fields``; ``encoded``: it came double-encoded (answer it so)."""
     if not isinstance(payload, Mapping):
-        raise ProtocolError(f"the request body is a JSON {type(payload).__name__}, expected an object")
+        raise ProtocolError(f"the request is a {type(payload).__name__}, expected an object of the protocol's fields")
     missing = [k for k in (*image_fields, "proprio", "task_description") if k not in payload]
     if missing:
         raise ProtocolError(f"the request lacks field(s) {missing}")
@@ -199,12 +206,23 @@ def decode_request(body: bytes | str, image_fields: tuple[str, ...] = REQUEST_IM
 
 def encode_response(resp: ActResponse, *, all_query_results: bool = False, double_encode: bool = False) -> str:
     """The JSON answer, shaped like Cosmos Policy's (actions as a list of (A,) rows), that upstream's robot
-    client parses: the value under both ``VALUE_KEYS`` (``VALUE_STANDIN`` where ``resp.value`` is None, said in
-    the ``wamplan`` field), with ``all_query_results`` the ``all_*`` lists of one query at search depth 1, and
-    with ``double_encode`` as a JSON string holding the json_numpy text (upstream's answer to an ``encoded``
-    request). ``resp.extra`` fields go along; the answer's own fields take precedence over them."""
+    client parses (:func:`response_payload`); with ``double_encode`` as a JSON string holding the json_numpy text
+    (upstream's answer to an ``encoded`` request)."""
+    answer = response_payload(resp, all_query_results=all_query_results)
+    rows = [row for row in answer["actions"]]  # H x (A,)
+    answer["actions"] = rows
+    if all_query_results:
+        answer.update(all_actions=[rows], all_actions_by_depth=[[rows]])
+    text = json_numpy.dumps(answer)
+    return json.dumps(text) if double_encode else text
+
+
+def response_payload(resp: ActResponse, *, all_query_results: bool = False) -> dict[str, Any]:
+    """The answer's fields: ``actions`` (H, A) float32, ``future_image_predictions`` (every response field, None
+    for views left out), the value under both ``VALUE_KEYS`` (``VALUE_STANDIN`` where ``resp.value`` is None, said
+    in the ``wamplan`` field), with ``all_query_results`` the ``all_*`` lists of one query at search depth 1.
+    ``resp.extra`` fields go along; the answer's own fields take precedence over them."""
     actions = np.ascontiguousarray(resp.actions, dtype=np.float32)  # (H, A)
-    rows = [row for row in actions]  # H x (A,)
     future = {name: None for name in RESPONSE_IMAGE_FIELDS}
     future.update({name: np.ascontiguousarray(img, dtype=np.uint8) for name, img in resp.future_images.items()})
     value = VALUE_STANDIN if resp.value is None else float(resp.value)
@@ -214,15 +232,14 @@ def encode_response(resp: ActResponse, *, all_query_results: bool = False, doubl
         wamplan["notes"] = [*wamplan.get("notes", []), f"the model predicts no value: {VALUE_KEYS[0]} and "
                                                        f"{VALUE_KEYS[1]} carry {VALUE_STANDIN} in its place"]
     answer = dict(resp.extra)
-    answer.update({"actions": rows, "future_image_predictions": future, VALUE_KEYS[0]: value, VALUE_KEYS[1]: value})
+    answer.update({"actions": actions, "future_image_predictions": future, VALUE_KEYS[0]: value, VALUE_KEYS[1]: value})
     if all_query_results:
-        answer.update(all_actions=[rows], all_future_image_predictions=[future], all_value_predictions=[value],
-                      all_actions_by_depth=[[rows]], all_future_image_predictions_by_depth=[[future]],
+        answer.update(all_actions=[actions], all_future_image_predictions=[future], all_value_predictions=[value],
+                      all_actions_by_depth=[[actions]], all_future_image_predictions_by_depth=[[future]],
                       all_value_predictions_by_depth=[[value]])
     if wamplan:
         answer[WAMPLAN_FIELD] = wamplan
-    text = json_numpy.dumps(answer)
-    return json.dumps(text) if double_encode else text
+    return answer
 
 
 def error_reply() -> str:

@@ -72,11 +72,12 @@ class Refused(Exception):
 
 
 def presented_secret(request: Request) -> str | None:
-    """The secret a request carries: the header, a bearer token, or the ``?token=`` query parameter."""
+    """The secret a request (or WebSocket) carries: the header, ``Authorization: Bearer`` or ``Api-Key`` (openpi's
+    client), or the ``?token=`` query parameter."""
     given = request.headers.get(protocol.SECRET_HEADER)
     if given is None:
         scheme, _, token = request.headers.get("authorization", "").partition(" ")
-        given = token.strip() if scheme.lower() == "bearer" else None
+        given = token.strip() if scheme.lower() in ("bearer", "api-key") else None  # api-key: openpi's client
     if given is None:
         given = request.query_params.get(protocol.SECRET_QUERY)
     return given
@@ -291,14 +292,14 @@ def serve(wam: WAM, host: str = DEFAULT_HOST, port: int = protocol.DEFAULT_PORT,
 
 
 def run_app(app: FastAPI, host: str, port: int, secret: str | None, log_level: str = "info",
-            sock: socket.socket | None = None) -> None:
+            sock: socket.socket | None = None, ws_max_bytes: int = protocol.DEFAULT_MAX_REQUEST_BYTES) -> None:
     """Serve ``app`` on ``sock`` or ``host:port`` until interrupted (blocking); warn when it is open to other
-    machines."""
+    machines. ``ws_max_bytes``: the largest WebSocket message taken."""
     if not is_loopback(host) and not secret:
         log.warning("listening on %s without a shared secret: anyone who reaches this port can query it; "
                     "set $%s (or --secret)", host, protocol.SECRET_ENV)
     sock = sock or bind_socket(host, port)
-    config = uvicorn.Config(app, log_level=log_level)
+    config = uvicorn.Config(app, log_level=log_level, ws_max_size=ws_max_bytes)
     uvicorn.Server(config).run(sockets=[sock])
 
 

@@ -1,0 +1,135 @@
+"""openpi's WebSocket protocol on the planning proxy, driven by openpi's own client (``openpi-client``, unedited):
+the metadata on connect, ALOHA-style observations renamed by ``--ws-fields``, the same planned actions as over
+``/act``, one session per connection, RoboArena's ``endpoint: reset`` and ``session_id``, one-line errors that keep
+the connection, and the secret as openpi's ``api_key``."""
+
+from __future__ import annotations
+
+import time
+
+import msgpack
+import numpy as np
+import pytest
+import requests
+import websockets.sync.client
+from openpi_client import msgpack_numpy
+from openpi_client.websocket_client_policy import WebsocketClientPolicy
+from websockets.exceptions import InvalidStatus
+
+from wamplan.errors import UserError
+from wamplan.proxy.app import create_proxy_app
+from wamplan.proxy.build import build_proxy
+from wamplan.proxy.config import ProxyConfig
+from wamplan.wam.server import BackgroundServer
+
+from test_proxy import FIELDS, WAM_CKPT, WM_CKPT, H, in_process_episode, observation  # noqa: I001
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+ALOHA = {"primary_image": "images/cam_high", "left_wrist_image": "images/cam_left_wrist",
+         "right_wrist_image": "images/cam_right_wrist"}  # our field -> where openpi's ALOHA client puts the view
+WS_FIELDS = ",".join(f"{theirs}={ours}" for ours, theirs in ALOHA.items())
+
+
+def aloha(client: int, step: int) -> dict:
+    """``observation(client, step)`` as openpi's ALOHA client sends it: nested images, channels first, 14-D state."""
+    obs = observation(client, step)
+    images = {theirs.split("/")[1]: np.ascontiguousarray(obs.images[FIELDS[ours]].transpose(2, 0, 1))
+              for ours, theirs in ALOHA.items()}  # (3, H, W)
+    return {"images": images, "state": np.concatenate([obs.proprio, np.zeros(4, np.float32)]),
+            "prompt": "insert the cube into the square hole"}
+
+
+@pytest.fixture(scope="module")
+def proxy():
+    p = build_proxy(ProxyConfig(upstream=WAM_CKPT, world_model=WM_CKPT, device="cpu", ws_fields=WS_FIELDS))
+    with BackgroundServer(create_proxy_app(p, secret="s3cret")) as srv:
+        yield srv, p
+    p.close()
+
+
+def connect(srv, path: str = "") -> WebsocketClientPolicy:
+    return WebsocketClientPolicy(host=f"ws://{srv.host}:{srv.port}{path}", api_key="s3cret")
+
+
+def test_openpis_client_gets_planned_chunks_as_the_same_episode_in_process(proxy):
+    srv, p = proxy
+    client = connect(srv, "/s/arm")
+    meta = client.get_server_metadata()
+    assert meta["chunk_length"] == H and meta["image_fields"] == FIELDS and meta["needs_session_id"] is False
+    answers = []
+    for k in range(2):
+        obs = aloha(4, k * H)
+        if k:  # the frames seen during the chunk before, in the client's own layout
+            obs["chunk_frames"] = {str(off): aloha(4, (k - 1) * H + off) for off in (4, 8, 12)}
+        answers.append(client.infer(obs))
+    assert [a["wamplan"]["open_loop"] for a in answers] == ["first-chunk", None]
+    assert all(a["actions"].dtype == np.float32 and a["actions"].shape == (H, 5) for a in answers)
+    assert answers[0]["wamplan"]["session"].startswith("arm/ws-") and answers[1]["server_timing"]["infer_ms"] > 0
+    assert set(answers[0]["future_image_predictions"]) >= {"future_image", "future_wrist_image"}
+    np.testing.assert_allclose(np.concatenate([a["actions"] for a in answers]), in_process_episode(4, 2), atol=1e-6)
+
+
+def test_each_connection_is_its_own_episode_and_is_forgotten_when_it_closes(proxy):
+    srv, p = proxy
+    first, second = connect(srv), connect(srv)
+    a = first.infer(aloha(1, 0))["wamplan"]
+    assert first.infer(aloha(1, 16))["wamplan"]["step"] == 16
+    b = second.infer(aloha(2, 0))["wamplan"]
+    assert (b["step"], b["new_episode"]) == (0, "first-request") and a["session"] != b["session"]
+    before = len(p.sessions)
+    first._ws.close()  # the client has no close(); its connection is what a robot process's exit closes
+    second._ws.close()
+    deadline = time.monotonic() + 10
+    while len(p.sessions) > before - 2 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert len(p.sessions) == before - 2
+
+
+def test_roboarenas_reset_endpoint_and_session_id(proxy):
+    srv, _ = proxy
+    headers = {"Authorization": "Api-Key s3cret"}
+    with websockets.sync.client.connect(f"ws://{srv.host}:{srv.port}", additional_headers=headers) as ws:
+        msgpack_numpy.unpackb(ws.recv())  # the metadata
+        ask = lambda obs: msgpack_numpy.unpackb((ws.send(msgpack_numpy.packb(obs)), ws.recv())[1])  # noqa: E731
+        assert ask({**aloha(3, 0), "endpoint": "infer", "session_id": "ev-7"})["wamplan"]["session"] == "default/ev-7"
+        assert ask({**aloha(3, 16), "session_id": "ev-7"})["wamplan"]["step"] == 16
+        ws.send(msgpack_numpy.packb({"endpoint": "reset", "session_id": "ev-7", "seed": 5}))
+        assert ws.recv() == "reset successful"
+        again = ask({**aloha(3, 0), "session_id": "ev-7"})["wamplan"]
+        assert (again["step"], again["session"]) == (0, "default/ev-7")
+
+
+@pytest.mark.parametrize("message, said", [
+    (b"\xc1 not msgpack", "not msgpack"),
+    (msgpack.packb([1, 2]), "expected a dict"),
+    (msgpack_numpy.packb({"endpoint": "plan"}), "endpoint 'plan' is not 'infer' or 'reset'"),
+    (msgpack_numpy.packb({"state": np.zeros(14)}), "lacks ['images/cam_high'], which --ws-fields maps to"),
+    (msgpack_numpy.packb({**aloha(0, 0), "prompt": 3}), "'task_description' is a int"),
+    (msgpack.packb({"x": {"__ndarray__": True, "data": b"12", "dtype": "<f4", "shape": [4]}}), "array in the message"),
+    ("a text frame", "binary msgpack frame"),
+])
+def test_a_bad_message_gets_one_line_and_the_connection_stays_open(proxy, message, said):
+    srv, _ = proxy
+    with websockets.sync.client.connect(f"ws://{srv.host}:{srv.port}/?token=s3cret") as ws:
+        ws.recv()
+        ws.send(message)
+        reply = ws.recv()
+        assert isinstance(reply, str) and reply.startswith("wamplan proxy: ") and said in reply
+        assert "\n" not in reply
+        ws.send(msgpack_numpy.packb(aloha(0, 0)))
+        assert "actions" in msgpack_numpy.unpackb(ws.recv())
+
+
+def test_a_wrong_secret_refuses_the_connection_and_healthz_answers(proxy):
+    srv, _ = proxy
+    with pytest.raises(InvalidStatus, match="401"):
+        WebsocketClientPolicy(host=f"ws://{srv.host}:{srv.port}", api_key="wrong")
+    with pytest.raises(InvalidStatus, match="401"):
+        WebsocketClientPolicy(host=f"ws://{srv.host}:{srv.port}")
+    assert requests.get(f"{srv.url}/healthz", timeout=10).text == "OK\n"
+
+
+def test_ws_fields_are_checked_when_the_proxy_is_configured():
+    with pytest.raises(UserError, match="--ws-fields entry 'state' is not FROM=TO"):
+        ProxyConfig(upstream=WAM_CKPT, world_model=WM_CKPT, ws_fields="images/cam_high=primary_image,state")
