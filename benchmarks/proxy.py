@@ -3,7 +3,9 @@
 * ``direct``: the WAM served by ``wamplan wam serve``'s app, one request a chunk;
 * ``proxy open loop``: the same request through the proxy when the world model lacks its history (forward,
   decode, re-encode: the proxy's own overhead);
-* ``proxy planned``: through the proxy with the frames seen during the chunk sent (the world model plans).
+* ``proxy planned``: through the proxy with the frames seen during the chunk sent (the world model plans);
+* ``openpi open loop`` / ``openpi planned``: the same two through the proxy's WebSocket front end, sent by
+  openpi's own client (``openpi_client.WebsocketClientPolicy``, msgpack instead of json_numpy).
 
 Every request carries three views of --size px and a 10-D proprio; the upstream is the shipped TinyWAM
 (in the proxy's process) and the world model the shipped wm_augmented. Prints p50 / mean per kind in ms.
@@ -22,6 +24,7 @@ from pathlib import Path
 import json_numpy
 import numpy as np
 import requests
+from openpi_client.websocket_client_policy import WebsocketClientPolicy
 
 from wamplan.proxy.app import create_proxy_app
 from wamplan.proxy.build import build_proxy
@@ -53,12 +56,14 @@ def main() -> None:
     args = ap.parse_args()
     warnings.simplefilter("ignore", UserWarning)  # TinyWAM's note on the view size; it does not change timings
     rng = np.random.default_rng(0)
-    times: dict[str, list[float]] = {"direct": [], "proxy open loop": [], "proxy planned": []}
+    times: dict[str, list[float]] = {"direct": [], "proxy open loop": [], "proxy planned": [],
+                                     "openpi open loop": [], "openpi planned": []}
     proxy = build_proxy(ProxyConfig(upstream=str(CKPTS / "tinywam"), world_model=str(CKPTS / "wm_augmented"),
                                     device="cpu", errors="http"))
     with BackgroundServer(create_app(load_wam(CKPTS / "tinywam", device="cpu"))) as direct, \
             BackgroundServer(create_proxy_app(proxy)) as srv:
         task = {"task_description": "insert the cube into the square hole"}
+        ws = {with_frames: WebsocketClientPolicy(host=f"ws://{srv.host}:{srv.port}") for with_frames in (False, True)}
         for k in range(args.chunks):
             times["direct"].append(timed(direct.act_url, {**frame(rng, args.size), **task})[0])
             for robot, with_frames in (("blind", False), ("seeing", True)):
@@ -73,6 +78,13 @@ def main() -> None:
                 elif k:
                     assert reason == "no-history", reason
                     times["proxy open loop"].append(dt)
+            for with_frames, client in ws.items():
+                extra = {"chunk_frames": {str(o): frame(rng, args.size) for o in (4, 8, 12)}} if with_frames and k else {}
+                t0 = time.perf_counter()
+                reason = client.infer({**frame(rng, args.size), **task, **extra})["wamplan"]["open_loop"]
+                if k:
+                    assert reason == (None if with_frames else "no-history"), reason
+                    times["openpi planned" if with_frames else "openpi open loop"].append(time.perf_counter() - t0)
     proxy.close()
     print(f"{args.size}-px views, {args.chunks} chunks a kind (the first of an episode left out for the proxy)")
     for kind, ts in times.items():
