@@ -71,10 +71,12 @@ def test_the_secret_is_enforced(guarded, tiny_ckpt, monkeypatch):
                     {"Authorization": SECRET}):
         r = post(guarded.act_url, body(0), **headers)
         assert r.status_code == 401
-        assert r.json() == {"error": "missing or wrong shared secret: send it in the X-WAMplan-Secret header or as "
-                                     "?token=SECRET in the URL (the wamplan client reads $WAMPLAN_ACT_SECRET)"}
+        assert r.json() == {"error": "missing or wrong shared secret: send it in the X-WAMplan-Secret header, as "
+                                     "Authorization: Bearer or Api-Key (openpi's api_key), or as ?token=SECRET in the "
+                                     "URL (the wamplan client reads $WAMPLAN_ACT_SECRET)"}
         assert "\n" not in r.text
-    for headers in ({protocol.SECRET_HEADER: SECRET}, {"Authorization": f"Bearer {SECRET}"}):
+    for headers in ({protocol.SECRET_HEADER: SECRET}, {"Authorization": f"Bearer {SECRET}"},
+                    {"Authorization": f"Api-Key {SECRET}"}):
         r = post(guarded.act_url, body(0), **headers)
         assert r.status_code == 200 and "actions" in json.loads(r.text)
     # a client that cannot send headers (upstream's) carries the secret in its server URL

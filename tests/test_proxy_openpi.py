@@ -5,6 +5,7 @@ the connection, and the secret as openpi's ``api_key``."""
 
 from __future__ import annotations
 
+import functools
 import time
 
 import msgpack
@@ -12,14 +13,17 @@ import numpy as np
 import pytest
 import requests
 import websockets.sync.client
-from openpi_client import msgpack_numpy
-from openpi_client.websocket_client_policy import WebsocketClientPolicy
 from websockets.exceptions import InvalidStatus
+
+pytest.importorskip("openpi_client", reason="openpi's client is installed by scripts/setup.sh (make test)")
+from openpi_client import msgpack_numpy  # noqa: E402
+from openpi_client.websocket_client_policy import WebsocketClientPolicy  # noqa: E402
 
 from wamplan.errors import UserError
 from wamplan.proxy.app import create_proxy_app
 from wamplan.proxy.build import build_proxy
 from wamplan.proxy.config import ProxyConfig
+from wamplan.proxy.openpi import as_request, parse_ws_fields, unpack
 from wamplan.wam.server import BackgroundServer
 
 from test_proxy import FIELDS, WAM_CKPT, WM_CKPT, H, in_process_episode, observation  # noqa: I001
@@ -65,7 +69,7 @@ def test_openpis_client_gets_planned_chunks_as_the_same_episode_in_process(proxy
         answers.append(client.infer(obs))
     assert [a["wamplan"]["open_loop"] for a in answers] == ["first-chunk", None]
     assert all(a["actions"].dtype == np.float32 and a["actions"].shape == (H, 5) for a in answers)
-    assert answers[0]["wamplan"]["session"].startswith("arm/ws-") and answers[1]["server_timing"]["infer_ms"] > 0
+    assert answers[0]["wamplan"]["session"].startswith("arm/#ws-") and answers[1]["server_timing"]["infer_ms"] > 0
     assert set(answers[0]["future_image_predictions"]) >= {"future_image", "future_wrist_image"}
     np.testing.assert_allclose(np.concatenate([a["actions"] for a in answers]), in_process_episode(4, 2), atol=1e-6)
 
@@ -92,12 +96,28 @@ def test_roboarenas_reset_endpoint_and_session_id(proxy):
     with websockets.sync.client.connect(f"ws://{srv.host}:{srv.port}", additional_headers=headers) as ws:
         msgpack_numpy.unpackb(ws.recv())  # the metadata
         ask = lambda obs: msgpack_numpy.unpackb((ws.send(msgpack_numpy.packb(obs)), ws.recv())[1])  # noqa: E731
-        assert ask({**aloha(3, 0), "endpoint": "infer", "session_id": "ev-7"})["wamplan"]["session"] == "default/ev-7"
+        sid = np.array(["ev-7"])  # RoboArena may send the id as a (1,) array
+        assert ask({**aloha(3, 0), "endpoint": "infer", "session_id": sid})["wamplan"]["session"] == "default/ev-7"
         assert ask({**aloha(3, 16), "session_id": "ev-7"})["wamplan"]["step"] == 16
-        ws.send(msgpack_numpy.packb({"endpoint": "reset", "session_id": "ev-7", "seed": 5}))
+        ws.send(msgpack_numpy.packb({"endpoint": "reset", "session_id": sid, "seed": np.int64(5)}))
         assert ws.recv() == "reset successful"
         again = ask({**aloha(3, 0), "session_id": "ev-7"})["wamplan"]
-        assert (again["step"], again["session"]) == (0, "default/ev-7")
+        assert (again["step"], again["session"], again["new_episode"]) == (0, "default/ev-7", "reset")
+        # RoboArena's evaluator names the session only on reset: the connection's own episode restarts
+        own = [ask(aloha(3, t))["wamplan"] for t in (0, 16)]
+        ws.send(msgpack_numpy.packb({"endpoint": "reset", "session_id": "never-sent-before"}))
+        assert ws.recv() == "reset successful"
+        after = ask(aloha(3, 0))["wamplan"]
+        assert own[1]["step"] == 16 and (after["step"], after["new_episode"]) == (0, "reset")
+        assert after["session"] == own[0]["session"] and after["session"].startswith("default/#ws-")
+
+
+def test_observation_keys_numpy_scalars_and_joined_vectors_read_as_an_act_request():
+    obs = {**aloha(0, 0), "grip": np.float32(0.25), "seed": np.int64(3), "extra/unmapped": np.zeros(2)}
+    req = as_request(unpack(msgpack_numpy.packb(obs)), tuple(ALOHA), parse_ws_fields(f"{WS_FIELDS},state+grip=proprio"))
+    assert req.proprio.shape == (15,) and req.proprio[-1] == np.float32(0.25)
+    assert req.extra == {"seed": 3} and req.task_description == "insert the cube into the square hole"
+    assert req.images["primary_image"].shape == (64, 64, 3)  # channels moved last
 
 
 @pytest.mark.parametrize("message, said", [
@@ -107,6 +127,9 @@ def test_roboarenas_reset_endpoint_and_session_id(proxy):
     (msgpack_numpy.packb({"state": np.zeros(14)}), "lacks ['images/cam_high'], which --ws-fields maps to"),
     (msgpack_numpy.packb({**aloha(0, 0), "prompt": 3}), "'task_description' is a int"),
     (msgpack.packb({"x": {"__ndarray__": True, "data": b"12", "dtype": "<f4", "shape": [4]}}), "array in the message"),
+    (msgpack.packb(functools.reduce(lambda d, _: {"k": d}, range(50), {})), "nests dicts more than"),
+    (msgpack_numpy.packb({**aloha(0, 0), "session_id": "#ws-1"}), "starts with '#'"),
+    (msgpack_numpy.packb({"endpoint": "x" * 5000}), "is not 'infer' or 'reset'"),
     ("a text frame", "binary msgpack frame"),
 ])
 def test_a_bad_message_gets_one_line_and_the_connection_stays_open(proxy, message, said):
@@ -116,7 +139,7 @@ def test_a_bad_message_gets_one_line_and_the_connection_stays_open(proxy, messag
         ws.send(message)
         reply = ws.recv()
         assert isinstance(reply, str) and reply.startswith("wamplan proxy: ") and said in reply
-        assert "\n" not in reply
+        assert "\n" not in reply and len(reply) < 400
         ws.send(msgpack_numpy.packb(aloha(0, 0)))
         assert "actions" in msgpack_numpy.unpackb(ws.recv())
 

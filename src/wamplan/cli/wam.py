@@ -30,7 +30,7 @@ def _wam_commands(parser: argparse.ArgumentParser) -> None:
 def _serve_options(serve: argparse.ArgumentParser) -> None:
     serve.add_argument("--ckpt", required=True, help="WAM checkpoint directory (model.safetensors + config.json)")
     add_listen_options(serve, 8777, "shared secret every /act request must carry in the X-WAMplan-Secret header, as "
-                                    "Authorization: Bearer, or as ?token=SECRET in the URL (for clients that cannot "
+                                    "Authorization: Bearer (or Api-Key), or as ?token=SECRET in the URL (for clients that cannot "
                                     "send headers); default: $WAMPLAN_ACT_SECRET, none if unset. Prefer the "
                                     "variable: a command line is visible to other users of the machine")
     serve.add_argument("--max-request-mb", type=float, default=16.0,

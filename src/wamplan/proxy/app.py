@@ -46,7 +46,7 @@ from wamplan.envs.spec import Observation, TaskSpec
 from wamplan.errors import UserError, reason
 from wamplan.proxy.config import DEFAULT_ROBOT, PROXY_FIELDS, ProxyConfig
 from wamplan.proxy.openpi import add_openpi_routes
-from wamplan.proxy.sessions import Session, Sessions
+from wamplan.proxy.sessions import BadRequest, Session, Sessions, session_name
 from wamplan.proxy.upstream import AnsweredWAM, Upstream, UpstreamError, to_output
 from wamplan.wam import protocol
 from wamplan.wam.server import Refused, check_secret, error_answer, field_map, fit_proprio, read_body
@@ -55,10 +55,6 @@ log = logging.getLogger(__name__)
 
 SESSION_ROUTE = "/s/{robot}/act"
 RESET_ROUTE = "/s/{robot}/reset"
-
-
-class BadRequest(protocol.ProtocolError):
-    """A proxy field of the request is malformed (answered 400)."""
 
 
 def _seed(seed: Any) -> int | None:
@@ -117,9 +113,7 @@ class Proxy:
         ``key`` (default: ``robot``)."""
         t_in = time.perf_counter() if t_in is None else t_in
         ours = {k: req.extra.pop(k) for k in PROXY_FIELDS if k in req.extra}
-        sid = ours.get("session_id")
-        if sid is not None and not isinstance(sid, (str, int)):
-            raise BadRequest(f"session_id is a {type(sid).__name__}, expected a string")
+        sid = session_name(ours.get("session_id"))
         key = (key or robot) if sid is None else f"{robot}/{sid}"
         session, why = self.sessions.get(key)
         with session.lock:
@@ -134,15 +128,24 @@ class Proxy:
                 self._catch_up(session, ours, notes)
             if session.chunks:
                 self._upstream_history(session, req)
+            why, session.announce = why or session.announce, None
             return self._answer(session, req, why, notes, t_in)
 
     def restart(self, key: str, seed: Any = None) -> None:
-        """Start a new episode in session ``key`` now (RoboArena's ``endpoint: reset``)."""
+        """Start a new episode in session ``key`` now (RoboArena's ``endpoint: reset``); the next answer's
+        ``new_episode`` says ``reset``."""
         seed = _seed(seed)
         session, _ = self.sessions.get(key)
         with session.lock:
             self._settle(session)
             session.new_episode(seed or 0)
+            session.announce = "reset"
+
+    def summary(self) -> dict[str, Any]:
+        """What ``GET /health`` and the WebSocket's metadata say about the proxy."""
+        return {"upstream": self.upstream.where, "task": self.task.name, "chunk_length": self.chunk,
+                "action_dim": self.upstream.shape.action_dim or len(self.columns), "cameras": list(self.cameras),
+                "world_model": self.cfg.world_model}
 
     def _settle(self, session: Session) -> None:
         """A plan that ran past its budget finishes before the session's next request is read."""
@@ -341,9 +344,6 @@ def create_proxy_app(proxy: Proxy, secret: str | None = None) -> FastAPI:
 
     @app.get(protocol.HEALTH_ROUTE)
     async def health() -> dict:
-        return {"ok": True, "proxy": True, "upstream": proxy.upstream.where, "task": proxy.task.name,
-                "chunk_length": proxy.chunk, "action_dim": proxy.upstream.shape.action_dim or len(proxy.columns),
-                "cameras": list(proxy.cameras),
-                "world_model": cfg.world_model, "sessions": len(proxy.sessions)}
+        return {"ok": True, "proxy": True, **proxy.summary(), "sessions": len(proxy.sessions)}
 
     return app

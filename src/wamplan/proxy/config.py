@@ -37,7 +37,9 @@ class ProxyConfig:
                                "images/cam_high=primary_image,state=proprio")
     history_spacing: int = field(12, "steps between the frames of upstream's eval client's proprio_history / "
                                      "images_history (its history_spacing_factor)")
-    max_request_bytes: int = field(protocol.DEFAULT_MAX_REQUEST_BYTES, "refuse larger /act bodies (HTTP 413)")
+    max_request_bytes: int = field(protocol.DEFAULT_MAX_REQUEST_BYTES, "refuse larger /act bodies (HTTP 413) and "
+                                                                       "WebSocket messages (the connection is closed "
+                                                                       "with code 1009)")
     device: str = field("auto", "torch device for the world model (and a local upstream)")
     wm_dtype: str = field("float32", "arithmetic of the world model's rollouts in the search: float32, or bfloat16 "
                                      "(faster on a GPU; benchmarks/planner.py --dtypes times both); the cost is "

@@ -7,14 +7,17 @@ upstream's other fields, a ``wamplan`` field (as on ``/act``) and openpi's ``ser
 openpi's msgpack form ``{"__ndarray__": True, "data": bytes, "dtype": str, "shape": [...]}``.
 
 * **One session per connection**: a connection starts an episode and its session is dropped when it closes. A
-  message's ``session_id`` (RoboArena) names a session instead (``<robot>/<session_id>``, kept until idle).
+  message's ``session_id`` (RoboArena) names a session instead (``<robot>/<session_id>``, shared with ``/act``'s,
+  kept among the ``--max-sessions`` most recently used).
 * **RoboArena's** ``endpoint``: ``"infer"`` (the default) or ``"reset"``, which starts a new episode (with the
-  message's ``seed``, if any) and is answered with the text ``reset successful``.
+  message's ``seed``, if any) and is answered with the text ``reset successful``: the episode of the message's
+  ``session_id`` where this connection's observations have named it, else the connection's own.
 * **An observation** is read as an ``/act`` request (the same fields, the same proxy fields: ``reset``, ``seed``,
   ``chunk_frames``, ``executed_actions``) after three steps: nested dicts are flattened with ``/`` (openpi's ALOHA
   ``images`` -> ``images/cam_high``); ``--ws-fields`` renames keys (``FROM=TO``; ``A+B=proprio`` joins several
   vectors); openpi's ``prompt`` and ``state`` stand for ``task_description`` and ``proprio`` where those are
-  absent. Images may come channels-first (3, H, W), as openpi's ALOHA client sends them.
+  absent. Images may come channels-first (3, H, W), as openpi's ALOHA client sends them. Keys holding ``/`` that no
+  rename maps are not forwarded to the upstream.
 * **Errors** are a text frame with one line (openpi's client raises it as ``RuntimeError``): the connection stays
   open after a bad message or an upstream failure, and is closed (1011) only after a failure of the proxy itself.
   A missing or wrong secret refuses the connection (HTTP 401); openpi's client sends it as
@@ -36,6 +39,7 @@ from fastapi.responses import PlainTextResponse
 
 from wamplan.errors import UserError, reason
 from wamplan.proxy.config import DEFAULT_ROBOT, PROXY_FIELDS
+from wamplan.proxy.sessions import session_name
 from wamplan.proxy.upstream import UpstreamError
 from wamplan.wam import protocol
 from wamplan.wam.server import Refused, check_secret
@@ -69,8 +73,11 @@ def _packable(obj: Any) -> Any:
 
 
 def _array(obj: dict) -> Any:
-    """msgpack's object hook: openpi's array dicts (bytes or text keys) -> numpy arrays (writable copies)."""
-    d = {k.decode() if isinstance(k, bytes) else k: v for k, v in obj.items()}
+    """msgpack's object hook: openpi's array dicts (bytes or text keys) -> numpy arrays (writable copies), its
+    numpy scalars -> their Python values."""
+    d = {k.decode("utf-8", "replace") if isinstance(k, bytes) else k: v for k, v in obj.items()}
+    if d.get("__npgeneric__") is True and set(d) == {"__npgeneric__", "data", "dtype"}:
+        return d["data"]  # a numpy scalar, sent as its Python value
     if not d.get("__ndarray__"):
         return obj
     try:
@@ -112,12 +119,17 @@ def parse_ws_fields(spec: str) -> list[tuple[tuple[str, ...], str]]:
     return out
 
 
-def _flat(d: Mapping, prefix: str = "") -> dict[str, Any]:
+MAX_NESTING = 8  # dicts nested deeper in an observation are refused
+
+
+def _flat(d: Mapping, prefix: str = "", depth: int = 0) -> dict[str, Any]:
+    if depth >= MAX_NESTING:
+        raise BadMessage(f"the observation nests dicts more than {MAX_NESTING} deep (at {prefix!r}); send flat keys")
     out: dict[str, Any] = {}
     for k, v in d.items():
-        name = f"{prefix}{k.decode() if isinstance(k, bytes) else k}"
+        name = f"{prefix}{k.decode('utf-8', 'replace') if isinstance(k, bytes) else k}"
         if isinstance(v, Mapping) and name not in PROXY_FIELDS:  # chunk_frames keeps its nesting
-            out.update(_flat(v, name + "/"))
+            out.update(_flat(v, name + "/", depth + 1))
         else:
             out[name] = v
     return out
@@ -130,18 +142,25 @@ def _channels_last(x: Any) -> Any:
 
 
 def _renamed(message: Mapping, image_fields: tuple[str, ...], renames: list[tuple[tuple[str, ...], str]],
-             what: str) -> dict[str, Any]:
-    """One observation (or one frame of ``chunk_frames``) flattened, renamed, aliased, its images channels-last."""
+             what: str, strict: bool = True) -> dict[str, Any]:
+    """One observation (or one frame of ``chunk_frames``) flattened, renamed, aliased, its images channels-last;
+    ``strict``: a rename whose source keys are missing is refused (else skipped)."""
     obs = _flat(message)
     for sources, dst in renames:
         missing = [s for s in sources if s not in obs]
+        if missing and strict:
+            raise BadMessage(f"{what} lacks {missing}, which --ws-fields maps to {dst!r} (it has {_keys(obs)})")
         if missing:
-            raise BadMessage(f"{what} lacks {missing}, which --ws-fields maps to {dst!r} (it has {sorted(obs)})")
+            continue
         if len(sources) == 1:
             obs[dst] = obs.pop(sources[0])
-        else:
+            continue
+        try:
             parts = [np.atleast_1d(np.asarray(obs.pop(s), dtype=np.float32)).reshape(-1) for s in sources]
-            obs[dst] = np.concatenate(parts)
+        except (TypeError, ValueError) as e:
+            raise BadMessage(f"{what}: {'+'.join(sources)} cannot be joined into {dst!r} ({_short(e)}); send "
+                             f"numeric vectors") from None
+        obs[dst] = np.concatenate(parts)
     for theirs, ours in ALIASES.items():
         if ours not in obs and theirs in obs:
             obs[ours] = obs.pop(theirs)
@@ -158,24 +177,35 @@ def as_request(message: Mapping, image_fields: tuple[str, ...],
     obs = _renamed(message, image_fields, renames, "the observation")
     frames = obs.get("chunk_frames")
     if isinstance(frames, Mapping):
-        obs["chunk_frames"] = {str(k.decode() if isinstance(k, bytes) else k):
-                               _renamed(f, image_fields, renames, f"chunk_frames[{k}]") if isinstance(f, Mapping) else f
-                               for k, f in frames.items()}
-    sid = obs.get("session_id")
-    if isinstance(sid, np.ndarray) and sid.size == 1:  # RoboArena may send it as a (1,) array
-        obs["session_id"] = sid.reshape(-1)[0].item()
+        obs["chunk_frames"] = {str(k.decode("utf-8", "replace") if isinstance(k, bytes) else k):
+                               _renamed(f, image_fields, renames, f"chunk_frames[{k}]", strict=False)
+                               if isinstance(f, Mapping) else f for k, f in frames.items()}
     try:
-        return protocol.request_from_payload(obs, image_fields)
+        req = protocol.request_from_payload(obs, image_fields)
     except protocol.ProtocolError as e:
-        raise BadMessage(f"{e} (the observation's keys: {sorted(obs)}; rename with --ws-fields FROM=TO)") from None
+        raise BadMessage(f"{e} (the observation's keys: {_keys(obs)}; rename with --ws-fields FROM=TO)") from None
+    req.extra = {k: v for k, v in req.extra.items() if "/" not in k}  # a robot's own keys left unmapped: not sent on
+    return req
+
+
+def _keys(obs: Mapping) -> str:
+    keys = sorted(map(str, obs))
+    return ", ".join(keys[:20]) + (f" and {len(keys) - 20} more" if len(keys) > 20 else "")
+
+
+def _short(x: Any, n: int = 300) -> str:
+    """One line of at most ``n`` characters."""
+    text = " ".join(str(x).split())
+    return text if len(text) <= n else text[:n - 3] + "..."
 
 
 def metadata(proxy: "Proxy") -> dict[str, Any]:
-    """What the proxy sends first on every connection (openpi's metadata; RoboArena's ``needs_session_id``)."""
-    return {"server": "wamplan-proxy", "upstream": proxy.upstream.where, "task": proxy.task.name,
-            "chunk_length": proxy.chunk, "action_dim": proxy.upstream.shape.action_dim or len(proxy.columns),
-            "image_fields": dict(proxy.request_map), "ws_fields": proxy.cfg.ws_fields,
-            "world_model": proxy.cfg.world_model, "needs_session_id": False, "image_resolution": None}
+    """What the proxy sends first on every connection: ``Proxy.summary`` (as ``GET /health``), the image fields it
+    reads, and RoboArena's ``needs_session_id`` and ``image_resolution`` (the upstream's view size where known)."""
+    size = proxy.upstream.shape.image_size
+    return {"server": "wamplan-proxy", **proxy.summary(), "image_fields": dict(proxy.request_map),
+            "ws_fields": proxy.cfg.ws_fields, "needs_session_id": False,
+            "image_resolution": None if size is None else [size, size]}
 
 
 def add_openpi_routes(app: FastAPI, proxy: "Proxy", secret: str | None) -> None:
@@ -191,7 +221,7 @@ def add_openpi_routes(app: FastAPI, proxy: "Proxy", secret: str | None) -> None:
             await ws.send_denial_response(PlainTextResponse(r.message, status_code=r.status))
             return
         await ws.accept()
-        key = f"{robot}/ws-{next(connections)}"
+        conn = Connection(robot, f"{robot}/#ws-{next(connections)}")  # '#': no session_id can name it
         await ws.send_bytes(pack(metadata(proxy)))
         try:
             while True:
@@ -203,37 +233,43 @@ def add_openpi_routes(app: FastAPI, proxy: "Proxy", secret: str | None) -> None:
                     await ws.send_text("wamplan proxy: send each observation as a binary msgpack frame, not text")
                     continue
                 try:
-                    reply = await run_in_threadpool(answer, msg["bytes"], robot, key, t_in)
+                    reply = await run_in_threadpool(answer, msg["bytes"], conn, t_in)
                 except (protocol.ProtocolError, UserError, UpstreamError) as e:
-                    text = e.message if isinstance(e, UpstreamError) else str(e)
-                    log.warning("openpi %s: %s", key, text)
+                    text = _short(e.message if isinstance(e, UpstreamError) else e)
+                    log.warning("openpi %s: %s", conn.key, text)
                     await ws.send_text(f"wamplan proxy: {text}")
                     continue
                 except Exception as e:
-                    log.exception("openpi %s failed", key)
-                    await ws.send_text(f"wamplan proxy: the proxy failed on this message ({reason(e)}); its log has "
-                                       f"the traceback")
+                    log.exception("openpi %s failed", conn.key)
+                    await ws.send_text(f"wamplan proxy: the proxy failed on this message ({_short(reason(e))}); its "
+                                       f"log has the traceback")
                     await ws.close(code=1011)
                     return
                 await (ws.send_text(reply) if isinstance(reply, str) else ws.send_bytes(reply))
         except WebSocketDisconnect:
             pass
         finally:
-            proxy.sessions.drop(key)
+            proxy.sessions.drop(conn.key)
 
-    def answer(data: bytes, robot: str, key: str, t_in: float) -> bytes | str:
+    def answer(data: bytes, conn: "Connection", t_in: float) -> bytes | str:
         message = unpack(data)
         if not isinstance(message, Mapping):
             raise BadMessage(f"the message is a {type(message).__name__}, expected a dict (an observation)")
         message = dict(message)
         endpoint = message.pop("endpoint", "infer")
         if endpoint == "reset":
-            sid = message.get("session_id")
-            proxy.restart(key if sid is None else f"{robot}/{sid}", message.get("seed"))
+            sid = session_name(message.get("session_id"))
+            named = sid is not None and sid in conn.named  # else the connection's own episode (RoboArena sends
+            proxy.restart(f"{conn.robot}/{sid}" if named else conn.key, message.get("seed"))  # its id on reset only)
             return RESET_REPLY
         if endpoint != "infer":
-            raise BadMessage(f"endpoint {endpoint!r} is not 'infer' or 'reset'")
-        resp = proxy.respond(as_request(message, fields, renames), robot, key=key, t_in=t_in)
+            raise BadMessage(f"endpoint {_short(repr(endpoint), 60)} is not 'infer' or 'reset'")
+        req = as_request(message, fields, renames)
+        sid = session_name(req.extra.get("session_id"))
+        if sid is not None:
+            req.extra["session_id"] = sid
+            conn.named.add(sid)
+        resp = proxy.respond(req, conn.robot, key=conn.key, t_in=t_in)
         out = protocol.response_payload(resp)
         out["server_timing"] = {"infer_ms": 1000.0 * (time.perf_counter() - t_in)}
         return pack(out)
@@ -249,3 +285,11 @@ def add_openpi_routes(app: FastAPI, proxy: "Proxy", secret: str | None) -> None:
     @app.get(HEALTHZ_ROUTE)
     async def healthz() -> PlainTextResponse:
         return PlainTextResponse("OK\n")
+
+
+class Connection:
+    """One WebSocket connection: its robot, its own session's key, the session_ids its messages have named."""
+
+    def __init__(self, robot: str, key: str):
+        self.robot, self.key = robot, key
+        self.named: set[str] = set()

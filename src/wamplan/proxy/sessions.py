@@ -17,6 +17,30 @@ from typing import Any, Callable
 
 import numpy as np
 
+from wamplan.wam import protocol
+
+
+class BadRequest(protocol.ProtocolError):
+    """A proxy field of the request is malformed (answered 400)."""
+
+
+def session_name(sid: Any) -> str | None:
+    """A request's ``session_id`` as the proxy names it (a string; RoboArena may send a (1,) array), or None;
+    BadRequest for anything else, and for a name that starts with ``#`` (the proxy's own connections' names)."""
+    if isinstance(sid, np.ndarray) and sid.size == 1:
+        sid = sid.reshape(-1)[0].item()
+    if isinstance(sid, bytes):
+        sid = sid.decode("utf-8", "replace")
+    if sid is None:
+        return None
+    if isinstance(sid, bool) or not isinstance(sid, (str, int, np.integer)):
+        raise BadRequest(f"session_id is a {type(sid).__name__}, expected a string")
+    sid = str(sid)
+    if not sid or sid.startswith("#") or len(sid) > 200:
+        raise BadRequest(f"session_id {sid[:40]!r} is empty, over 200 characters or starts with '#'; name the "
+                         f"session with a plain string")
+    return sid
+
 
 class Session:
     """The planned policy of one robot's episode and where that episode stands (``step``: the next chunk
@@ -34,6 +58,7 @@ class Session:
         self.policy.reset(seed=seed)
         self.seed, self.step, self.chunks = seed, 0, 0
         self.answered: np.ndarray | None = None  # (H, A) the chunk the robot was told to run
+        self.announce: str | None = None  # why the episode is new, for the next answer when a request did not say
 
 
 class Sessions:

@@ -89,9 +89,9 @@ def check_secret(request: Request, secret: str | None) -> None:
         return
     given = presented_secret(request)
     if given is None or not hmac.compare_digest(given.encode(), secret.encode()):
-        raise Refused(401, f"missing or wrong shared secret: send it in the {protocol.SECRET_HEADER} header or as "
-                           f"?{protocol.SECRET_QUERY}=SECRET in the URL (the wamplan client reads "
-                           f"${protocol.SECRET_ENV})")
+        raise Refused(401, f"missing or wrong shared secret: send it in the {protocol.SECRET_HEADER} header, as "
+                           f"Authorization: Bearer or Api-Key (openpi's api_key), or as ?{protocol.SECRET_QUERY}=SECRET "
+                           f"in the URL (the wamplan client reads ${protocol.SECRET_ENV})")
 
 
 async def read_body(request: Request, limit: int) -> bytes:
