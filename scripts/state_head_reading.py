@@ -1,4 +1,5 @@
-"""How well a world model's state head reads the pose from the WAM's predicted views, against the real ones.
+"""How well a world model's state head (or a ridge probe on its encoder's tokens) reads the pose from the WAM's
+predicted views and from the model's own predictions, against the real ones.
 
 The pose term of the planning cost (``eval --cost-state-weight``) compares the head's reading of each candidate's
 predicted outcome with its reading of the WAM's predicted images at t + H. The head learnt from real frames; this
@@ -9,6 +10,10 @@ rolled out from the real history at t, as the planner rolls out each candidate):
 
     python scripts/state_head_reading.py --store STORE --wam checkpoints/mini/tinywam \\
         --wm checkpoints/candidates/s56_state_ridge [--json OUT.json]
+
+``--probe STORE2`` reads with a ridge probe instead of a head: fitted on the tokens of all views of every stored
+frame of STORE2 (other episodes than STORE's), in the world model's own encoder; a model without a
+head is read this way, so models on different encoders can be compared on what their predictions carry.
 
 Prints the root mean square error (mm) per quantity (``wamplan.data.readers.STATE_QUANTITIES``) of both readings,
 and of the target the pose term aims at: the head on the WAM's view minus the head on the real view.
@@ -25,17 +30,44 @@ import torch
 from wamplan.api import load_wam, planned_policy
 from wamplan.data.readers import STATE_QUANTITIES, STATE_UNIT_MM, state_targets
 from wamplan.data.store import EpisodeStore
+from wamplan.encoders.probe import ProbeConfig, Ridge
 from wamplan.envs.spec import Observation
 from wamplan.planning.dynamics import PlanningContext
 
 
-def readings(store: str, wam_path: str, wm_path: str) -> dict[str, np.ndarray]:
+def ridge_reader(policy, store: str, folds: int = 4):
+    """A linear read-out of the privileged state (cm) from ``policy``'s encoder tokens (V, N, D): a ridge fit on
+    every stored frame of ``store``, its strength chosen by cross-validation over whole episodes
+    (``encoders.probe``'s grid). z (B, V, N, D) -> (B, S)."""
+    zs, ss, ep = [], [], []
+    st = EpisodeStore(store)
+    for e, path in enumerate(st.episode_paths()):
+        with st.open_episode(path) as f:
+            steps = [int(s) for s in f["image_steps"][:]]
+            with torch.inference_mode():
+                zs += [policy.encode({c: f[f"images/{c}"][k] for c in policy.cameras}) for k in range(len(steps))]
+            ss.append(state_targets(f, steps, str(path)))
+            ep += [e] * len(steps)
+    x = torch.stack(zs).flatten(1).double().numpy()  # (n, V N D)
+    y, ep = np.concatenate(ss).astype(np.float64), np.asarray(ep)  # (n, S), (n,)
+    alphas = ProbeConfig().alphas
+    err = np.zeros(len(alphas))
+    for j in range(folds):
+        held = ep % folds == j
+        pred = Ridge(x[~held], y[~held]).predict(x[held], alphas)  # (A, m, S)
+        err += np.square(pred - y[held]).sum(axis=(1, 2))
+    alpha = alphas[int(np.argmin(err))]
+    ridge = Ridge(x, y)
+    return lambda z: torch.from_numpy(ridge.predict(z.flatten(1).double().numpy(), [alpha])[0]).float()
+
+
+def readings(store: str, wam_path: str, wm_path: str, probe: str | None = None) -> dict[str, np.ndarray]:
     """(B, S) arrays in mm: ``truth``, ``real`` (the head on the real frame at t + H), ``wam`` (on the WAM's
     prediction of it, made at t), ``model`` (on the world model's prediction of it under the executed chunk), over
     every boundary t of the store's episodes whose history frames and frame at t + H are stored."""
     wam = load_wam(wam_path, device="cpu")
     policy = planned_policy(wam, wm_path, device="cpu")
-    read = policy.dynamics.read_state
+    read = policy.dynamics.read_state if probe is None else ridge_reader(policy, probe)
     if read is None:
         raise SystemExit(f"{wm_path} has no state head (train one with `wamplan wm train --state-weight W`)")
     H, cams, dyn = wam.chunk_length, policy.cameras, policy.dynamics
@@ -73,9 +105,11 @@ def main() -> None:
     p.add_argument("--store", required=True, help="episodes of a WAM policy (`wamplan collect --source policy`)")
     p.add_argument("--wam", required=True, help="the WAM checkpoint whose predictions are read")
     p.add_argument("--wm", required=True, help="a world model with a state head (`wm train --state-weight`)")
+    p.add_argument("--probe", default=None, help="read with a ridge probe fitted on this store's frames instead of "
+                                                 "the model's state head")
     p.add_argument("--json", default="", help="also write the figures to this file")
     args = p.parse_args()
-    r = readings(args.store, args.wam, args.wm)
+    r = readings(args.store, args.wam, args.wm, args.probe)
     rows = {"head on the real frame vs truth": rms(r["real"] - r["truth"]),
             "head on the WAM's view vs truth": rms(r["wam"] - r["truth"]),
             "head on the WAM's view vs on the real frame": rms(r["wam"] - r["real"]),

@@ -139,7 +139,7 @@ def split_episodes(names: Sequence[str], val_fraction: float) -> np.ndarray:
     return held
 
 
-class _Ridge:
+class Ridge:
     """Ridge regression for many strengths from one SVD. x (M, F), y (M, T); centred on the fitting data."""
 
     def __init__(self, x: np.ndarray, y: np.ndarray):
@@ -199,11 +199,11 @@ def probe_arrays(data: ProbeData, config: ProbeConfig | None = None) -> dict[str
         x_fit, x_test = x[fit], x[test]
         cv = {t: np.zeros(len(cfg.alphas)) for t in TARGETS}
         for mask in folds:  # mask over the fitting frames: True = this fold's validation frames
-            ridge = _Ridge(x_fit[~mask], np.concatenate([data.targets[t][fit][~mask] for t in TARGETS], 1))
+            ridge = Ridge(x_fit[~mask], np.concatenate([data.targets[t][fit][~mask] for t in TARGETS], 1))
             pred = ridge.predict(x_fit[mask], cfg.alphas)  # (A, m, 3 * len(TARGETS))
             for j, t in enumerate(TARGETS):
                 cv[t] += _euclid_mm(pred[..., 3 * j:3 * j + 3], data.targets[t][fit][mask]) * mask.sum()
-        ridge = _Ridge(x_fit, np.concatenate([data.targets[t][fit] for t in TARGETS], 1))
+        ridge = Ridge(x_fit, np.concatenate([data.targets[t][fit] for t in TARGETS], 1))
         for j, t in enumerate(TARGETS):
             best = int(np.argmin(cv[t]))
             alpha = cfg.alphas[best]
