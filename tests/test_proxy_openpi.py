@@ -23,7 +23,8 @@ from wamplan.errors import UserError
 from wamplan.proxy.app import create_proxy_app
 from wamplan.proxy.build import build_proxy
 from wamplan.proxy.config import ProxyConfig
-from wamplan.proxy.openpi import as_request, parse_ws_fields, unpack
+from wamplan.proxy.config import parse_ws_fields
+from wamplan.proxy.openpi import as_request, unpack
 from wamplan.wam.server import BackgroundServer
 
 from test_proxy import FIELDS, WAM_CKPT, WM_CKPT, H, in_process_episode, observation  # noqa: I001

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from wamplan.config import field, require
+from wamplan.errors import UserError
 from wamplan.evaluation.config import WM_DTYPES
 from wamplan.wam import protocol
 
@@ -61,11 +62,22 @@ class ProxyConfig:
                 f"--chunk-length must be >= 1 (or unset), got {self.chunk_length}")
         require(self.wm_dtype in WM_DTYPES, f"--wm-dtype must be one of {list(WM_DTYPES)}, got {self.wm_dtype!r}")
         require(self.history_spacing >= 1, f"--history-spacing must be >= 1, got {self.history_spacing}")
-        from wamplan.proxy.openpi import parse_ws_fields
-
         parse_ws_fields(self.ws_fields)  # a malformed entry is refused here, in one line
         require(self.max_request_bytes >= 1, f"--max-request-bytes must be >= 1, got {self.max_request_bytes}")
 
     @property
     def upstream_is_url(self) -> bool:
         return self.upstream.startswith(("http://", "https://"))
+
+
+def parse_ws_fields(spec: str) -> list[tuple[tuple[str, ...], str]]:
+    """``"A=x,B+C=proprio"`` -> [(("A",), "x"), (("B", "C"), "proprio")]; UserError on a malformed entry."""
+    out = []
+    for item in filter(None, (p.strip() for p in spec.split(","))):
+        src, eq, dst = item.partition("=")
+        sources = tuple(s.strip() for s in src.split("+"))
+        if not eq or not dst.strip() or not all(sources):
+            raise UserError(f"--ws-fields entry {item!r} is not FROM=TO (e.g. observation/state=proprio, or "
+                            f"observation/joint_position+observation/gripper_position=proprio)")
+        out.append((sources, dst.strip()))
+    return out

@@ -29,7 +29,7 @@ from __future__ import annotations
 import itertools
 import logging
 import time
-from typing import TYPE_CHECKING, Any, Mapping
+from typing import Any, Mapping
 
 import msgpack
 import numpy as np
@@ -38,14 +38,11 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import PlainTextResponse
 
 from wamplan.errors import UserError, reason
-from wamplan.proxy.config import DEFAULT_ROBOT, PROXY_FIELDS
+from wamplan.proxy.config import DEFAULT_ROBOT, PROXY_FIELDS, parse_ws_fields
 from wamplan.proxy.sessions import session_name
 from wamplan.proxy.upstream import UpstreamError
 from wamplan.wam import protocol
 from wamplan.wam.server import Refused, check_secret
-
-if TYPE_CHECKING:
-    from wamplan.proxy.app import Proxy
 
 log = logging.getLogger(__name__)
 
@@ -106,19 +103,6 @@ def unpack(data: bytes) -> Any:
 
 
 # -- an observation read as an /act request --------------------------------------------------------------------
-def parse_ws_fields(spec: str) -> list[tuple[tuple[str, ...], str]]:
-    """``"A=x,B+C=proprio"`` -> [(("A",), "x"), (("B", "C"), "proprio")]; UserError on a malformed entry."""
-    out = []
-    for item in filter(None, (p.strip() for p in spec.split(","))):
-        src, eq, dst = item.partition("=")
-        sources = tuple(s.strip() for s in src.split("+"))
-        if not eq or not dst.strip() or not all(sources):
-            raise UserError(f"--ws-fields entry {item!r} is not FROM=TO (e.g. observation/state=proprio, or "
-                            f"observation/joint_position+observation/gripper_position=proprio)")
-        out.append((sources, dst.strip()))
-    return out
-
-
 MAX_NESTING = 8  # dicts nested deeper in an observation are refused
 
 
@@ -199,8 +183,8 @@ def _short(x: Any, n: int = 300) -> str:
     return text if len(text) <= n else text[:n - 3] + "..."
 
 
-def metadata(proxy: "Proxy") -> dict[str, Any]:
-    """What the proxy sends first on every connection: ``Proxy.summary`` (as ``GET /health``), the image fields it
+def metadata(proxy: Any) -> dict[str, Any]:
+    """What ``proxy`` (a ``proxy.app.Proxy``) sends first on every connection: ``Proxy.summary`` (as ``GET /health``), the image fields it
     reads, and RoboArena's ``needs_session_id`` and ``image_resolution`` (the upstream's view size where known)."""
     size = proxy.upstream.shape.image_size
     return {"server": "wamplan-proxy", **proxy.summary(), "image_fields": dict(proxy.request_map),
@@ -208,8 +192,9 @@ def metadata(proxy: "Proxy") -> dict[str, Any]:
             "image_resolution": None if size is None else [size, size]}
 
 
-def add_openpi_routes(app: FastAPI, proxy: "Proxy", secret: str | None) -> None:
-    """The WebSocket routes (``/`` and ``/s/<robot>``) and ``GET /healthz`` on the proxy's ``app``."""
+def add_openpi_routes(app: FastAPI, proxy: Any, secret: str | None) -> None:
+    """The WebSocket routes (``/`` and ``/s/<robot>``) and ``GET /healthz`` on ``app``, answered by ``proxy`` (a
+    ``proxy.app.Proxy``: its ``respond``, ``restart``, ``sessions``)."""
     renames = parse_ws_fields(proxy.cfg.ws_fields)
     fields = tuple(proxy.request_map)
     connections = itertools.count(1)
