@@ -298,7 +298,8 @@ class Proxy:
 
 def create_proxy_app(proxy: Proxy, secret: str | None = None) -> FastAPI:
     """The HTTP face of ``proxy``: ``POST /act``, ``POST /s/<robot>/act``, ``POST /s/<robot>/reset``,
-    ``GET /health``, and openpi's WebSocket on ``/`` and ``/s/<robot>`` (``proxy.openpi``); ``secret`` as ``wamplan wam serve`` takes it (header, bearer or ``?token=``)."""
+    ``GET /health``, and openpi's WebSocket on ``/`` and ``/s/<robot>`` (``proxy.openpi``); ``secret`` as
+    ``wamplan wam serve`` takes it (header, bearer, api-key or ``?token=``)."""
     cfg, secret = proxy.cfg, secret or None
     app = FastAPI(title="wamplan planning proxy")
 

@@ -140,7 +140,7 @@ def _renamed(message: Mapping, image_fields: tuple[str, ...], renames: list[tupl
             obs[dst] = obs.pop(sources[0])
             continue
         try:
-            parts = [np.atleast_1d(np.asarray(obs.pop(s), dtype=np.float32)).reshape(-1) for s in sources]
+            parts = [np.asarray(obs.pop(s), dtype=np.float32).reshape(-1) for s in sources]
         except (TypeError, ValueError) as e:
             raise BadMessage(f"{what}: {'+'.join(sources)} cannot be joined into {dst!r} ({_short(e)}); send "
                              f"numeric vectors") from None
@@ -184,8 +184,9 @@ def _short(x: Any, n: int = 300) -> str:
 
 
 def metadata(proxy: Any) -> dict[str, Any]:
-    """What ``proxy`` (a ``proxy.app.Proxy``) sends first on every connection: ``Proxy.summary`` (as ``GET /health``), the image fields it
-    reads, and RoboArena's ``needs_session_id`` and ``image_resolution`` (the upstream's view size where known)."""
+    """What ``proxy`` (a ``proxy.app.Proxy``) sends first on every connection: ``Proxy.summary`` (as ``GET /health``),
+    the image fields it reads, and RoboArena's ``needs_session_id`` and ``image_resolution`` (the upstream's view size
+    where known)."""
     size = proxy.upstream.shape.image_size
     return {"server": "wamplan-proxy", **proxy.summary(), "image_fields": dict(proxy.request_map),
             "ws_fields": proxy.cfg.ws_fields, "needs_session_id": False,
@@ -250,9 +251,8 @@ def add_openpi_routes(app: FastAPI, proxy: Any, secret: str | None) -> None:
         if endpoint != "infer":
             raise BadMessage(f"endpoint {_short(repr(endpoint), 60)} is not 'infer' or 'reset'")
         req = as_request(message, fields, renames)
-        sid = session_name(req.extra.get("session_id"))
+        sid = session_name(req.extra.get("session_id"))  # respond() reads the same name from the request
         if sid is not None:
-            req.extra["session_id"] = sid
             conn.named.add(sid)
         resp = proxy.respond(req, conn.robot, key=conn.key, t_in=t_in)
         out = protocol.response_payload(resp)
