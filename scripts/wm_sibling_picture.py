@@ -5,7 +5,8 @@ actions), so one sees whether a model moves its prediction with the chunk as the
     python scripts/wm_sibling_picture.py STORE --wm shipped=checkpoints/mini/wm_augmented,new=RUN \\
         --decoder checkpoints/mini/decoder --camera wrist --group 0 --out sib.png
 
-The models must share the decoder's encoder (the features are read from the store's cache of that encoder).
+Each model reads the store's cached features of its own encoder; a model on a ``concat`` encoder is drawn
+through its first part the decoder was trained on (e.g. the patch-pixels dims of patch-pixels + task-cnn).
 """
 
 from __future__ import annotations
@@ -15,6 +16,22 @@ from pathlib import Path
 
 import numpy as np
 import torch
+
+
+def drawer(encoder, decoder_path):
+    """(decoder, tokens -> the decoder's tokens) for a model's encoder; a concat is drawn through its first part
+    the decoder was trained on, its scale undone. A decoder of none of them is refused in one line."""
+    from wamplan.errors import UserError
+    from wamplan.worldmodel.decoder import load_decoder
+
+    parts = list(enumerate(encoder.parts)) if encoder.name == "concat" else [(None, encoder)]
+    for i, part in parts:
+        try:
+            dec = load_decoder(decoder_path, encoder=part)
+        except UserError:
+            continue
+        return dec, (lambda z: z) if i is None else (lambda z, i=i: encoder.part_tokens(z, i))
+    raise UserError(f"decoder {decoder_path} was trained on none of the encoders of {encoder.config_dict()}")
 
 
 @torch.inference_mode()
@@ -38,26 +55,28 @@ def main(argv: list[str] | None = None) -> Path:
     from wamplan.data.features import feature_key
     from wamplan.data.readers import BranchGroups
     from wamplan.plot import save_figure
-    from wamplan.worldmodel.decoder import load_decoder
     from wamplan.worldmodel.train import load_world_model
 
     models = [(lab, *load_world_model(path)) for lab, _, path in (s.partition("=") for s in args.wm.split(","))]
-    first, enc = models[0][1], models[0][2]
-    dec = load_decoder(args.decoder, encoder=enc)
-    key = feature_key(enc.config_dict())
-    cfg = first.cfg
-    groups = BranchGroups([args.store], cfg.frameskip, cfg.context, args.horizon, split="val", features=key)
-    images = BranchGroups([args.store], cfg.frameskip, cfg.context, args.horizon, split="val")
-    g, pics = groups[args.group], images[args.group]  # z (G, T, V, N, D); images (G, T, V, H, W, 3)
-    v, hc, k = list(first.cameras).index(args.camera), cfg.context, args.horizon
-    n = min(args.siblings, g["z"].shape[0])
+    cfg = models[0][1].cfg
+    groups = {}  # one branch group per encoder: z (G, T, V, N, D)
+    for _, _, enc in models:
+        key = feature_key(enc.config_dict())
+        if key not in groups:
+            groups[key] = BranchGroups([args.store], cfg.frameskip, cfg.context, args.horizon, split="val",
+                                       features=key)[args.group]
+    pics = BranchGroups([args.store], cfg.frameskip, cfg.context, args.horizon, split="val")[args.group]
+    v, hc, k = list(models[0][1].cameras).index(args.camera), cfg.context, args.horizon  # images (G, T, V, H, W, 3)
+    n = min(args.siblings, pics["images"].shape[0])
+    draw = [drawer(enc, args.decoder) for _, _, enc in models]
     rows = []
     for i in range(n):
-        z, q, a = g["z"][i:i + 1].float(), g["q"][i:i + 1].float(), g["a"][i:i + 1].float()
         row = [("real", pics["images"][i, hc - 1 + k, v].numpy())]
-        for label, model, _ in models:
+        for (label, model, enc), (dec, tokens) in zip(models, draw):
+            g = groups[feature_key(enc.config_dict())]
+            z, q, a = g["z"][i:i + 1].float(), g["q"][i:i + 1].float(), g["a"][i:i + 1].float()
             zp, _ = model.rollout(z[:, :hc], q[:, :hc], a[:, :hc - 1], a[:, hc - 1:hc - 1 + k])  # (1, K, V, N, D)
-            row.append((label, dec(zp[:, -1, v]).permute(0, 2, 3, 1)[0].numpy()))
+            row.append((label, dec(tokens(zp[:, -1, v])).permute(0, 2, 3, 1)[0].numpy()))
         rows.append(row)
     fig, axes = plt.subplots(n, len(rows[0]) + 1, figsize=(2 * (len(rows[0]) + 1), 2.1 * n), squeeze=False)
     for i, row in enumerate(rows):

@@ -183,6 +183,10 @@ def test_concat_puts_its_parts_tokens_side_by_side_scaled_and_rebuilds_from_its_
     torch.testing.assert_close(z[..., :8], make_encoder(**a).encode(images), atol=0, rtol=0)
     torch.testing.assert_close(z[..., 8:], 0.5 * make_encoder(**b).encode(images), atol=0, rtol=0)
     assert torch.equal(make_encoder(**enc.config_dict()).encode(images), z)
+    torch.testing.assert_close(enc.part_tokens(z, 1), make_encoder(**b).encode(images))  # its scale undone
+    assert torch.equal(enc.part_tokens(z, 0), z[..., :8])
+    with pytest.raises(UserError, match="part 2 asked for, it has 2 parts"):
+        enc.part_tokens(z, 2)
     assert not any(p.requires_grad for p in enc.parameters())
     for kwargs, message in [(dict(parts=[]), "parts must be a list"),
                             (dict(parts=[a, dict(a, patch_size=16)]), "same grid"),

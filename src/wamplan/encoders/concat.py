@@ -67,6 +67,14 @@ class ConcatEncoder(FrozenEncoder):
         z = torch.cat([e.encode(images) * s for e, s in zip(self.parts, self.scales)], dim=-1)  # (B, N, sum D)
         return (z, None) if return_cls else z
 
+    def part_tokens(self, z: torch.Tensor, i: int) -> torch.Tensor:
+        """Part ``i``'s own tokens from concat tokens (..., sum D) -> (..., D_i), its scale undone (e.g. to draw a
+        concat model's predictions with a decoder of that part's encoder)."""
+        if not 0 <= i < len(self.parts):
+            raise UserError(f"concat: part {i} asked for, it has {len(self.parts)} parts (0-{len(self.parts) - 1})")
+        start = sum(e.dim for e in self.parts[:i])
+        return z[..., start:start + self.parts[i].dim] / self.scales[i]
+
     def config_dict(self) -> dict[str, Any]:
         """The parts' configs without their weights' local ``path`` (as ``wm train`` records any encoder)."""
         parts = [{k: v for k, v in e.config_dict().items() if k != "path"} for e in self.parts]
