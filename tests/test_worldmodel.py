@@ -434,7 +434,7 @@ def test_a_decoder_draws_only_the_tokens_of_the_encoder_it_was_trained_on():
         load_decoder(shipped, encoder=low_pass)
 
 
-def test_init_grows_onto_a_concat_encoder_whose_first_part_it_was_trained_on(tmp_path):
+def test_init_grows_onto_a_concat_encoder_whose_first_part_it_was_trained_on_and_its_parts_reweigh(tmp_path):
     from wamplan.checkpoint import load_weights
     from wamplan.encoders import make_encoder
     from wamplan.worldmodel.train import grow_weights
@@ -460,6 +460,24 @@ def test_init_grows_onto_a_concat_encoder_whose_first_part_it_was_trained_on(tmp
     with pytest.raises(UserError, match="is another predictor"):  # a rescaled first part is not the start's tokens
         train_predictor(data, grown_cfg, TRAIN, tmp_path / "bad", device="cpu", progress=False,
                         encoder_info=scaled, init=tmp_path / "base")
+
+    from wamplan.worldmodel.reweigh import reweigh_parts
+    from wamplan.worldmodel.train import load_world_model
+
+    out = reweigh_parts(tmp_path / "grown", [1, 2.0], tmp_path / "w")  # part 1 from scale 0.5 to 2: 4x
+    heavy, enc = load_world_model(out)
+    assert enc.scales == [1.0, 2.0]
+    zz = torch.cat([z[..., :8], 4 * z[..., 8:]], -1)  # the same frames through the new scales
+    with torch.no_grad():
+        before, after = tuned(z, q, a)[0], heavy(zz, q, a)[0]  # (B, T, V, N, 12)
+    torch.testing.assert_close(after[..., :8], before[..., :8], atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(after[..., 8:], 4 * before[..., 8:], atol=1e-5, rtol=1e-5)
+    for bad, message in [((tmp_path / "base", [1, 1]), "only a concat model's parts"),
+                         ((tmp_path / "grown", [1]), "one positive number per part"),
+                         ((tmp_path / "grown", [1, -1]), "one positive number per part")]:
+        with pytest.raises(UserError, match=message):
+            reweigh_parts(*bad, tmp_path / "x")
+    assert not (tmp_path / "x").exists()
 
 
 def test_sibling_picture_draws_a_concat_model_through_the_part_its_decoder_knows(tmp_path, repo_script):
