@@ -203,6 +203,12 @@ def test_a_world_model_that_does_not_fit_the_upstream_is_refused_in_one_line(sha
     assert said in str(e.value) and "does not fit" in str(e.value) and "\n" not in str(e.value)
 
 
+def test_an_upstream_that_reports_no_chunk_length_gets_the_world_model_tasks():
+    """A Cosmos Policy server reports no chunk length; without --chunk-length or a profile, the task's is used."""
+    p = build_proxy(ProxyConfig(upstream="http://127.0.0.1:1/act", world_model=WM_CKPT, device="cpu"),
+                    upstream=Shaped(chunk_length=None))
+    assert p.chunk == 16
+
 def test_bad_proxy_fields_are_4xx(proxy):
     srv, _ = proxy
     url = f"{srv.url}/s/bad/act"

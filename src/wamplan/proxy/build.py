@@ -89,7 +89,7 @@ def build_proxy(cfg: ProxyConfig, upstream: Upstream | None = None, planning: di
             upstream = HttpUpstream(cfg.upstream, cfg.upstream_timeout_s, cfg.chunk_length)
         else:
             upstream = LocalUpstream(load_wam(cfg.upstream, device=ecfg.device), response_map)
-    chunk = cfg.chunk_length or upstream.shape.chunk_length or profile_chunk or task.chunk_length
+    chunk = cfg.chunk_length or upstream.shape.chunk_length or profile_chunk or task.chunk_len
     size = getattr(encoder, "input_size", None)
     check_fit(task, upstream, chunk, columns, cameras, getattr(dynamics, "frameskip", chunk), size, cfg.world_model)
     check_planning(ecfg, task)
