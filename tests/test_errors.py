@@ -143,8 +143,8 @@ def test_number_lists_parse_ranges_and_refuse_garbage_in_one_line():
     from wamplan.errors import UserError
 
     assert int_list("500-502, 510,7", "--seeds") == [500, 501, 502, 510, 7]
-    with pytest.raises(UserError, match="--boundaries '2-x' is not a list like 500-503 or 500,510"):
-        int_list("2-x", "--boundaries")
+    with pytest.raises(UserError, match="--seeds '2-x' is not a list like 500-503 or 500,510"):
+        int_list("2-x", "--seeds")
     with pytest.raises(UserError, match="--seeds needs at least one number"):
         int_list(" , ", "--seeds")
     with pytest.raises(UserError, match="--steps '160-128': the range 160-128 runs backwards; write 128-160"):
@@ -156,6 +156,13 @@ def test_number_lists_parse_ranges_and_refuse_garbage_in_one_line():
     with pytest.raises(UserError, match="--conditions needs at least one number, e.g. 1,6,7"):
         parse_conditions("")
 
+
+def test_a_json_file_in_a_folder_that_does_not_exist_is_refused_before_any_work(tmp_path, capsys):
+    base = ["wm", "fidelity", "--wam", "checkpoints/mini/tinywam", "--wm", "checkpoints/mini/wm_augmented",
+            "--seeds", "500"]
+    refused(capsys, [*base, "--json", tmp_path / "nowhere" / "x.json"], "--json", "nowhere does not exist")
+    refused(capsys, [*base, "--boundaries", "x"], "--boundaries 'x' is not a list like 2-8 or 2,5,8")
+    assert not (tmp_path / "nowhere").exists()
 
 def test_a_nan_gate_is_refused():
     from wamplan.config import ConfigError

@@ -405,7 +405,8 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
 
     cfg = FidelityConfig(num_candidates=args.candidates, sigma=args.sigma, noise_beta=args.noise_beta,
                          top_k=args.top_k,
-                         boundaries=tuple(int_list(args.boundaries, "--boundaries")), seed=args.sample_seed,
+                         boundaries=tuple(int_list(args.boundaries, "--boundaries", example="2-8 or 2,5,8")),
+                         seed=args.sample_seed,
                          plan=args.plan, execute=args.execute)
     seeds = int_list(args.seeds, "--seeds")
     for seed in (min(seeds), max(seeds)):
