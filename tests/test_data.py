@@ -219,6 +219,9 @@ def test_info_and_view(store, tmp_path, capsys):
     assert iio.imread(tmp_path / "s.png").ndim == 3
     assert main(["data", "view", str(store), "--episode", "99"]) == 2
     assert "out of range" in capsys.readouterr().err
+    for n in ("0", "-2"):
+        assert main(["data", "view", str(store), "--frames", n, "--out", str(tmp_path / "z.png")]) == 2
+        assert f"--frames {n}: a contact sheet needs at least 1 frame" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("workers", [1, pytest.param(2, marks=pytest.mark.slow)])

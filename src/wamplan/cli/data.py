@@ -106,9 +106,9 @@ def _alignment_options(p: argparse.ArgumentParser) -> None:
 
 def _view_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("dir", type=Path, help="an episode store directory (`wamplan collect --out`)")
-    p.add_argument("--episode", type=int, default=0, help="index in the store's sorted episode list")
+    p.add_argument("--episode", type=int, default=0, help="index in the store's sorted episode list (default: 0)")
     p.add_argument("--out", type=Path, default=Path("sheet.png"), help="PNG to write (default: sheet.png)")
-    p.add_argument("--frames", type=int, default=8, help="frames across the episode")
+    p.add_argument("--frames", type=int, default=8, help="frames across the episode (default: 8)")
     p.set_defaults(func=cmd_view)
 
 
@@ -342,6 +342,8 @@ def cmd_view(args: argparse.Namespace) -> int:
     from wamplan.data.store import EpisodeStore
 
     require_file(args.out, "--out")
+    if args.frames < 1:
+        raise UserError(f"--frames {args.frames}: a contact sheet needs at least 1 frame (default 8)")
     store = EpisodeStore(args.dir)
     cameras = store.cameras
     paths = store.episode_paths()
