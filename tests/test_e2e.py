@@ -119,3 +119,8 @@ def test_explain_draws_one_planned_chunk_in_the_model_and_in_the_simulator(run, 
     assert main(["explain", "--wam", str(run / "wam"), "--wm-augmented", str(run / "wm"), "--decoder",
                  str(run / "nope"), "--out", str(out)]) == 2
     assert "train-decoder" in capsys.readouterr().err
+    for bad, said in [(["--decoder", str(run / "wm")], "holds a 'wm-predictor' checkpoint, not 'wm-decoder'"),
+                      (["--decoder", str(run / "dec"), "--chunk", "19"], "the last is chunk 18; pick --chunk 1..18")]:
+        assert main(["explain", "--wam", str(run / "wam"), "--wm-augmented", str(run / "wm"), *bad,
+                     "--out", str(out)]) == 2  # refused before the episode runs
+        assert said in capsys.readouterr().err

@@ -92,7 +92,7 @@ def _report_options(p: argparse.ArgumentParser) -> None:
 
 def cmd_explain(args: argparse.Namespace) -> int:
     from wamplan.device import resolve_device
-    from wamplan.errors import require_file, require_paths, require_seeds
+    from wamplan.errors import UserError, require_file, require_paths, require_seeds
     from wamplan.evaluation.mechanism import explain_chunk, mechanism_figure
     from wamplan.cli.eval_options import eval_config_from_args
 
@@ -102,6 +102,16 @@ def cmd_explain(args: argparse.Namespace) -> int:
     cfg.check_for([7])
     require_paths([args.decoder], "--decoder", "train one with `wamplan wm train-decoder`")
     require_file(args.out, "--out")
+    spec = cfg.env.spec  # what can be refused before the episode runs: a chunk past the episode, a decoder's kind
+    steps = cfg.env.max_episode_steps or spec.max_episode_steps
+    last = -(-steps // spec.chunk_len) - 1
+    if args.chunk > last:
+        raise UserError(f"--chunk {args.chunk}: episodes of {spec.name} end by step {steps}, so with "
+                        f"{spec.chunk_len}-step chunks the last is chunk {last}; pick --chunk 1..{last}")
+    from wamplan.checkpoint import checkpoint_dir, read_config
+    from wamplan.worldmodel.decoder import KIND
+
+    read_config(checkpoint_dir(args.decoder), KIND)
     m = explain_chunk(cfg, args.decoder, args.seed, args.chunk)
     title = (f"seed {args.seed}, chunk {args.chunk}: WAM {Path(cfg.wam).name}, world model "
              f"{Path(cfg.wm_augmented).name}, planner {cfg.planner}")
