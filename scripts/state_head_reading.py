@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 
 import numpy as np
 import torch
@@ -101,7 +102,7 @@ def rms(x: np.ndarray) -> np.ndarray:
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     p.add_argument("--store", required=True, help="episodes of a WAM policy (`wamplan collect --source policy`)")
     p.add_argument("--wam", required=True, help="the WAM checkpoint whose predictions are read")
     p.add_argument("--wm", required=True, help="a world model with a state head (`wm train --state-weight`)")
@@ -127,4 +128,10 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from wamplan.errors import UserError
+
+    try:
+        main()
+    except UserError as e:  # bad input: one line, no traceback
+        print(f"state_head_reading: error: {e}", file=sys.stderr)
+        sys.exit(2)

@@ -54,18 +54,31 @@ def main(argv: list[str] | None = None) -> Path:
 
     from wamplan.data.features import feature_key
     from wamplan.data.readers import BranchGroups
+    from wamplan.errors import UserError
     from wamplan.plot import save_figure
     from wamplan.worldmodel.train import load_world_model
 
-    models = [(lab, *load_world_model(path)) for lab, _, path in (s.partition("=") for s in args.wm.split(","))]
+    pairs = [s.partition("=") for s in args.wm.split(",")]
+    if any(not lab or not path for lab, _, path in pairs):
+        raise UserError(f"--wm {args.wm!r}: give LABEL=CHECKPOINT for every model, comma separated "
+                        f"(e.g. shipped=checkpoints/mini/wm_augmented)")
+    models = [(lab, *load_world_model(path)) for lab, _, path in pairs]
     cfg = models[0][1].cfg
+    if args.camera not in models[0][1].cameras:
+        raise UserError(f"--camera {args.camera}: the models read {', '.join(models[0][1].cameras)}")
+    if args.horizon < 1:
+        raise UserError(f"--horizon {args.horizon}: give 1 or more frames into the chunk")
+    pics = BranchGroups([args.store], cfg.frameskip, cfg.context, args.horizon, split="val")
+    if not 0 <= args.group < len(pics):
+        raise UserError(f"--group {args.group}: {args.store} has {len(pics)} branch groups in its validation split "
+                        f"(collect counterfactual branches with `wamplan collect --branches`)")
+    pics = pics[args.group]
     groups = {}  # one branch group per encoder: z (G, T, V, N, D)
     for _, _, enc in models:
         key = feature_key(enc.config_dict())
         if key not in groups:
             groups[key] = BranchGroups([args.store], cfg.frameskip, cfg.context, args.horizon, split="val",
                                        features=key)[args.group]
-    pics = BranchGroups([args.store], cfg.frameskip, cfg.context, args.horizon, split="val")[args.group]
     v, hc, k = list(models[0][1].cameras).index(args.camera), cfg.context, args.horizon  # images (G, T, V, H, W, 3)
     n = min(args.siblings, pics["images"].shape[0])
     draw = [drawer(enc, args.decoder) for _, _, enc in models]
@@ -96,4 +109,12 @@ def main(argv: list[str] | None = None) -> Path:
 
 
 if __name__ == "__main__":
-    print(main())
+    import sys
+
+    from wamplan.errors import UserError
+
+    try:
+        print(main())
+    except UserError as e:  # bad input: one line, no traceback
+        print(f"wm_sibling_picture: error: {e}", file=sys.stderr)
+        sys.exit(2)
