@@ -610,6 +610,18 @@ def test_every_option_has_help_and_the_cli_has_a_version(capsys):
     assert e.value.code == 0 and capsys.readouterr().out.startswith("wamplan 0.")
 
 
+def test_training_help_shows_each_presets_default_and_a_held_out_share_outside_0_1_is_refused(expert_store, tmp_path,
+                                                                                              capsys):
+    from wamplan.cli.main import iter_commands
+
+    helps = {p.prog: {a.dest: a.help for a in p._actions} for p in iter_commands()}
+    assert helps["wamplan wm train"]["epochs"].endswith("(default: the preset's, mini 4, paper 24)")
+    assert helps["wamplan wm train-decoder"]["batch_size"].endswith("(default: the preset's, mini 32, paper 16)")
+    assert helps["wamplan wm train"]["grad_clip"].endswith("(default: 1.0)")  # the same in every preset
+    for cmd in ("train", "train-decoder"):
+        refused(capsys, ["wm", cmd, "--data", expert_store, "--out", tmp_path / cmd, "--val-fraction", "1"],
+                "--val-fraction 1.0", "must be in (0, 1)")
+
 def test_help_is_cached_and_matches_argparse(tmp_path, monkeypatch, capsys):
     """`wamplan eval --help` is built once (imports torch and the planners) and then read from the cache."""
     from wamplan.cli import build_parser

@@ -129,13 +129,16 @@ def _scalar_type(t: Any) -> Any:
     return t
 
 
-def add_field_argument(parser: Any, flag: str, dest: str, f: dataclasses.Field, t: Any, help_: str = "") -> None:
+def add_field_argument(parser: Any, flag: str, dest: str, f: dataclasses.Field, t: Any, help_: str = "",
+                       default_text: str | None = None) -> None:
     """Add ``flag`` for the dataclass field ``f`` (type hint ``t``) to ``parser`` (or an argument group):
-    its default is None, meaning "keep the config's default"."""
+    its default is None, meaning "keep the config's default". ``default_text``: what the help says the default
+    is, when it is not the field's own (e.g. a preset's)."""
     if not help_:
         help_ = f.metadata.get("help", "")
         default = f.default if f.default is not dataclasses.MISSING else None
-        help_ = f"{help_} (default: {default})" if help_ else f"(default: {default})"
+        default_text = default_text or f"default: {default}"
+        help_ = f"{help_} ({default_text})" if help_ else f"({default_text})"
     st = _scalar_type(t)
     metavar = flag.lstrip("-").replace("-", "_").upper()
     choices, listed = (c() if callable(c) else c for c in (f.metadata.get("choices"), f.metadata.get("listed")))
@@ -152,15 +155,22 @@ def add_field_argument(parser: Any, flag: str, dest: str, f: dataclasses.Field, 
                             metavar=metavar, help=help_, choices=choices)
 
 
-def add_arguments(parser: Any, cls: type, prefix: str = "") -> None:
+def add_arguments(parser: Any, cls: type, prefix: str = "", presets: dict[str, Any] | None = None) -> None:
     """Add one ``--name`` option per scalar field of ``cls`` (default None = keep the config default);
-    nested configs and fields declared with ``cli=False`` are skipped."""
+    nested configs and fields declared with ``cli=False`` are skipped. ``presets`` ({name: instance of cls}):
+    the defaults come from the chosen preset, and the help shows each preset's value."""
     hints = _hints(cls)
     for f in dataclasses.fields(cls):
         t = hints[f.name]
         if dataclasses.is_dataclass(t) or not f.metadata.get("cli", True):
             continue
-        add_field_argument(parser, "--" + (prefix + f.name).replace("_", "-"), prefix + f.name, f, t)
+        text = None
+        if presets:
+            values = {name: getattr(c, f.name) for name, c in presets.items()}
+            text = (f"default: {next(iter(values.values()))}" if len(set(map(str, values.values()))) == 1 else
+                    "default: the preset's, " + ", ".join(f"{n} {v}" for n, v in values.items()))
+        add_field_argument(parser, "--" + (prefix + f.name).replace("_", "-"), prefix + f.name, f, t,
+                           default_text=text)
 
 
 def from_args(cls: type[T], args: argparse.Namespace, base: T | None = None, prefix: str = "") -> T:

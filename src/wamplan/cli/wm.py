@@ -78,7 +78,8 @@ def _train_options(name: str):
         p.add_argument("--data", required=True, help="episode stores, comma separated")
         p.add_argument("--out", type=Path, required=True, help="run directory (checkpoint/, metrics.jsonl)")
         p.add_argument("--preset", default="mini", choices=sorted(PRESETS),
-                       help="model and training sizes (wamplan/presets.py); options below override them")
+                       help="model and training sizes (wamplan/presets.py; default: mini); options below "
+                            "override them")
         p.add_argument("--encoder", default=None, help="a registered encoder instead of the preset's, e.g. task-cnn "
                                                        "(its settings from --encoder-kwargs only)")
         p.add_argument("--encoder-kwargs", default=None, metavar="JSON", help=ENCODER_KWARGS_HELP)
@@ -92,7 +93,9 @@ def _train_options(name: str):
                            help="fine-tune: start from this predictor checkpoint's weights and feature statistics "
                                 "(same preset and encoder)")
             add_architecture_arguments(p.add_argument_group("predictor", "the preset's predictor, overridden"))
-        add_arguments(p, TrainConfig if name == "train" else DecoderTrainConfig)
+        cls, part = (TrainConfig, "train") if name == "train" else (DecoderTrainConfig, "decoder_train")
+        add_arguments(p, cls, presets={k: getattr(v.world_model, part)
+                                                for k, v in sorted(PRESETS.items())})
         p.set_defaults(func=cmd_train if name == "train" else cmd_train_decoder)
 
     return build

@@ -99,6 +99,9 @@ def _prepare(stores: Sequence[str | Path], out: str | Path, kind: str, encoder: 
     the encoded stores, and the encoder's provenance and feature key."""
     from wamplan.data.store import describe_stores
 
+    if not 0 < val_fraction < 1:
+        raise UserError(f"--val-fraction {val_fraction}: the share of episodes held out must be in (0, 1), "
+                        f"e.g. 0.1")
     data = dict(describe_stores(stores), val_fraction=val_fraction)
     resume = _resume(out, kind, data)
     enc, info = _setup(stores, encoder, encoder_kwargs, encoder_path, device, progress)
