@@ -18,7 +18,7 @@ EXPERT_PREFIX, NOISY_PREFIX = "expert_", "noisy_"  # collect's --expert-<field> 
 @register_command("data")
 def register(sub: argparse._SubParsersAction) -> None:
     add_command(sub, "collect", _collect_options, help="collect episodes into an episode store (parallel, resumable)")
-    add_group(sub, "data", _data_commands, help="inspect episode stores: info, check, alignment, view, export")
+    add_group(sub, "data", _data_commands, help="episode stores: info, check, alignment, view; import and export")
 
 
 def _collect_options(p: argparse.ArgumentParser) -> None:
