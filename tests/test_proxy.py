@@ -246,6 +246,8 @@ def test_serve_refuses_a_world_model_that_does_not_fit_in_one_line(capsys):
     err = capsys.readouterr().err.strip()
     assert code == 2 and len(err.splitlines()) == 1
     assert "does not fit the WAM 'tinywam': it returns 16-step chunks, not 50" in err
+    assert main(["serve", "--upstream", "htp://robot:8777/act", "--world-model", WM_CKPT]) == 2  # a mistyped scheme
+    assert "only http:// and https:// URLs are reached" in capsys.readouterr().err
 
 
 def test_the_proxy_plans_with_the_planner_cost_and_rules_it_is_given():

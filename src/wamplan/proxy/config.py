@@ -48,6 +48,9 @@ class ProxyConfig:
 
     def __post_init__(self) -> None:
         require(bool(self.upstream), "--upstream: name the WAM to plan for (an /act URL or a WAM checkpoint)")
+        require("://" not in self.upstream or self.upstream_is_url,
+                f"--upstream {self.upstream}: only http:// and https:// URLs are reached (e.g. "
+                f"http://HOST:8777/act); or give a local WAM checkpoint directory")
         require(bool(self.world_model), "--world-model: name a world model checkpoint (from `wamplan wm train`)")
         from wamplan.wam.cosmos_client import PROFILES
 
