@@ -18,16 +18,17 @@ import numpy as np
 import torch
 
 
-def drawer(encoder, decoder_path):
+def drawer(encoder, decoder_path, task=None):
     """(decoder, tokens -> the decoder's tokens) for a model's encoder; a concat is drawn through its first part
     the decoder was trained on, its scale undone. A decoder of none of them is refused in one line."""
     from wamplan.errors import UserError
     from wamplan.worldmodel.decoder import load_decoder
 
+    load_decoder(decoder_path, task=task)  # its kind and task, each refused as such
     parts = list(enumerate(encoder.parts)) if encoder.name == "concat" else [(None, encoder)]
     for i, part in parts:
         try:
-            dec = load_decoder(decoder_path, encoder=part)
+            dec = load_decoder(decoder_path, encoder=part, task=task)
         except UserError:
             continue
         return dec, (lambda z: z) if i is None else (lambda z, i=i: encoder.part_tokens(z, i))
@@ -81,7 +82,7 @@ def main(argv: list[str] | None = None) -> Path:
                                        features=key)[args.group]
     v, hc, k = list(models[0][1].cameras).index(args.camera), cfg.context, args.horizon  # images (G, T, V, H, W, 3)
     n = min(args.siblings, pics["images"].shape[0])
-    draw = [drawer(enc, args.decoder) for _, _, enc in models]
+    draw = [drawer(enc, args.decoder, model.task.name) for _, model, enc in models]
     rows = []
     for i in range(n):
         row = [("real", pics["images"][i, hc - 1 + k, v].numpy())]

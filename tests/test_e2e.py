@@ -124,3 +124,8 @@ def test_explain_draws_one_planned_chunk_in_the_model_and_in_the_simulator(run, 
         assert main(["explain", "--wam", str(run / "wam"), "--wm-augmented", str(run / "wm"), *bad,
                      "--out", str(out)]) == 2  # refused before the episode runs
         assert said in capsys.readouterr().err
+    from wamplan.errors import UserError
+    from wamplan.worldmodel.decoder import load_decoder
+
+    with pytest.raises(UserError, match="draws views of task 'cube-insertion', the world model is of task 'stack-cube'"):
+        load_decoder(run / "dec", task="stack-cube")  # the task it was trained on is recorded and checked

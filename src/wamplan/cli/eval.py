@@ -108,10 +108,9 @@ def cmd_explain(args: argparse.Namespace) -> int:
     if args.chunk > last:
         raise UserError(f"--chunk {args.chunk}: episodes of {spec.name} end by step {steps}, so with "
                         f"{spec.chunk_len}-step chunks the last is chunk {last}; pick --chunk 1..{last}")
-    from wamplan.checkpoint import checkpoint_dir, read_config
-    from wamplan.worldmodel.decoder import KIND
+    from wamplan.worldmodel.decoder import load_decoder
 
-    read_config(checkpoint_dir(args.decoder), KIND)
+    load_decoder(args.decoder, task=spec.name)  # its kind and task
     m = explain_chunk(cfg, args.decoder, args.seed, args.chunk)
     title = (f"seed {args.seed}, chunk {args.chunk}: WAM {Path(cfg.wam).name}, world model "
              f"{Path(cfg.wm_augmented).name}, planner {cfg.planner}")

@@ -64,7 +64,7 @@ def explain_chunk(cfg, decoder: str | Path, seed: int, chunk_index: int) -> Mech
     decision = policy.plan_chunk(obs)
     target_views = once.last.images
     target = decision.target if decision.target is not None else policy.encode(target_views)  # (V, N, D)
-    dec = load_decoder(decoder, encoder=policy.encoder)
+    dec = load_decoder(decoder, encoder=policy.encoder, task=cfg.env.spec.name)
     chunks = {"wam": decision.seed, "plan": decision.executed}  # (H, A) each
     cands = torch.as_tensor(np.stack(list(chunks.values())), device=policy.device)  # (2, H, A)
     covered = policy.dynamics.covered(policy.chunk)

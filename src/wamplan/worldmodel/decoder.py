@@ -121,13 +121,20 @@ def train_decoder(train_set: Dataset, cfg: DecoderConfig, train: DecoderTrainCon
     return model.eval(), result.metrics
 
 
-def load_decoder(path: str | Path, device: str | torch.device = "cpu", encoder: Any = None) -> Decoder:
+def load_decoder(path: str | Path, device: str | torch.device = "cpu", encoder: Any = None,
+                 task: str | None = None) -> Decoder:
     """A trained decoder (eval mode) from a checkpoint directory (or a training ``out_dir``). ``encoder``: the
-    frozen encoder whose tokens it will draw; a decoder trained on another encoder's tokens is refused."""
+    frozen encoder whose tokens it will draw; a decoder trained on another encoder's tokens is refused. ``task``:
+    the task of the model it draws; a decoder that records another task is refused (one that records none is
+    taken)."""
     from wamplan.data.features import feature_key
 
     ckpt = checkpoint_dir(path)
     config = read_config(ckpt, KIND)
+    drawn = (config.get("data") or {}).get("task")
+    if task is not None and drawn is not None and drawn != task:
+        raise UserError(f"decoder {path} draws views of task '{drawn}', the world model is of task '{task}'; pass "
+                        f"a decoder trained on that task's stores (`wamplan wm train-decoder`)")
     theirs = config.get("encoder")
     if encoder is not None and theirs and feature_key(theirs) != feature_key(encoder.config_dict()):
         mine = {k: v for k, v in encoder.config_dict().items() if k != "path"}

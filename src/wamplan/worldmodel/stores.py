@@ -168,9 +168,10 @@ def train_decoder_on_stores(stores: Sequence[str | Path], out: str | Path, decod
     from wamplan.data.readers import FeatureFrames
     from wamplan.worldmodel.decoder import KIND, train_decoder
 
-    stores_task(stores)
+    task, cameras = stores_task(stores)
     data, resume, info, key, (_, n, d) = _prepare(stores, out, KIND, encoder, encoder_kwargs, encoder_path,
                                                   val_fraction, device, progress)
+    data = {**data, "task": task.name, "cameras": list(cameras)}  # what load_decoder checks a model against
     decoder = dataclasses.replace(decoder, num_patches=n, enc_dim=d)  # the encoder's token layout
     tr = FeatureFrames(stores, key, split="train", val_fraction=val_fraction)
     va = FeatureFrames(stores, key, split="val", val_fraction=val_fraction)

@@ -38,7 +38,7 @@ def rollout_figure(ckpt: str | Path, decoder: str | Path, store_dir: str | Path,
     camera = camera or cameras[0]
     if camera not in cameras:
         raise UserError(f"--camera {camera} is not a view of {ckpt}; its cameras are {list(cameras)}")
-    dec = load_decoder(decoder, encoder=models[0][2])
+    dec = load_decoder(decoder, encoder=models[0][2], task=models[0][1].task.name)
     store = EpisodeStore(store_dir)
     if store.task_name != models[0][1].task.name:
         raise UserError(f"{store_dir} holds task '{store.task_name}' but {ckpt} was trained on task "
