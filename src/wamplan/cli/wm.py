@@ -43,7 +43,8 @@ def _wm_commands(wm: argparse.ArgumentParser) -> None:
                 help="train the decoder (pixels, for pictures only); re-running resumes")
     add_command(s, "eval", _eval_options, help="held-out latent errors per horizon against copying the last frame, "
                 "and on counterfactual branch groups the sibling statistics per task phase and the planning time per "
-                "chunk (a table; JSON with --json); the fixed benchmark store: scripts/wm_benchmark_store.py")
+                "chunk (a table of those), then every figure as JSON (also to a file with --json); the fixed benchmark "
+                "store: scripts/wm_benchmark_store.py")
     add_command(s, "viz", _viz_options, help="ground truth vs autoregressive rollout(s), decoded (paper Figure 4)")
     add_command(s, "probe", _probe_options,
                 help="ridge probe from an encoder's frozen tokens to the cube's position (held-out mm)")
