@@ -596,15 +596,17 @@ def test_argparse_errors_print_one_short_usage_line(capsys):
 def test_every_option_has_help_and_the_cli_has_a_version(capsys):
     from wamplan.cli.main import iter_commands
 
-    bare = []
+    bare, twice = [], []
     for parser in iter_commands():
         for a in parser._actions:
             if isinstance(a, (argparse._HelpAction, argparse._SubParsersAction)) or a.help == argparse.SUPPRESS:
                 continue
-            text = (a.help or "").strip()
+            text = (a.help or "").strip().replace("%(default)s", str(a.default))  # as argparse prints it
             if not text or re.fullmatch(r"\(default: .*\)", text):
                 bare.append(f"{parser.prog} {'/'.join(a.option_strings) or a.dest}")
-    assert not bare
+            if "(default: )" in text or text.count("(default") > 1:  # an empty default, or one said twice
+                twice.append(f"{parser.prog} {'/'.join(a.option_strings)}: {text}")
+    assert not bare and not twice, twice
     with pytest.raises(SystemExit) as e:
         main(["--version"])
     assert e.value.code == 0 and capsys.readouterr().out.startswith("wamplan 0.")

@@ -137,8 +137,10 @@ def add_field_argument(parser: Any, flag: str, dest: str, f: dataclasses.Field, 
     if not help_:
         help_ = f.metadata.get("help", "")
         default = f.default if f.default is not dataclasses.MISSING else None
-        default_text = default_text or f"default: {default}"
-        help_ = f"{help_} ({default_text})" if help_ else f"({default_text})"
+        if default_text is None and ("(default" in help_ or default in ("", None, ())):
+            default_text = ""  # the help says it already, or there is nothing to show
+        default_text = f"default: {default}" if default_text is None else default_text
+        help_ = f"{help_} ({default_text})" if help_ and default_text else help_ or f"({default_text})"
     st = _scalar_type(t)
     metavar = flag.lstrip("-").replace("-", "_").upper()
     choices, listed = (c() if callable(c) else c for c in (f.metadata.get("choices"), f.metadata.get("listed")))

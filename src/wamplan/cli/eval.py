@@ -74,8 +74,8 @@ def _gate_calibrate_options(p: argparse.ArgumentParser) -> None:
 def _explain_options(p: argparse.ArgumentParser) -> None:
     from wamplan.cli.eval_options import add_eval_arguments
 
-    p.add_argument("--seed", type=int, default=0, help="episode seed (condition 7 runs up to the chunk)")
-    p.add_argument("--chunk", type=int, default=4, help="chunk index to explain (>= 1; chunk k starts at step 16k)")
+    p.add_argument("--seed", type=int, default=0, help="episode seed (condition 7 runs up to the chunk) (default: 0)")
+    p.add_argument("--chunk", type=int, default=4, help="chunk index to explain (>= 1; chunk k starts at step 16k) (default: 4)")
     p.add_argument("--decoder", required=True, help="picture decoder checkpoint (`wamplan wm train-decoder`)")
     p.add_argument("--out", type=Path, default=Path("mechanism.png"), help="PNG to write (default: mechanism.png)")
     add_eval_arguments(p)

@@ -82,7 +82,7 @@ class CEMConfig(SamplingConfig):
     sigma0 = 0.10). Set ``num_optimized=15`` for frameskip 5 (the trailing action stays the WAM's)."""
 
     num_elites: int = field(8, "lowest-cost candidates mu and sigma are refit to")
-    std_ddof: int = field(0, "delta degrees of freedom of the elite std: 0 = population std (default), "
+    std_ddof: int = field(0, "delta degrees of freedom of the elite std: 0 = population std, "
                              "1 = sample std as in DINO-WM")
 
     def __post_init__(self) -> None:
