@@ -19,13 +19,14 @@ import torch
 
 
 def drawer(encoder, decoder_path, task=None):
-    """(decoder, tokens -> the decoder's tokens) for a model's encoder; a concat is drawn through its first part
-    the decoder was trained on, its scale undone. A decoder of none of them is refused in one line."""
+    """(decoder, tokens -> the decoder's tokens) for a model's encoder; a concat whose decoder was not trained on
+    its whole tokens is drawn through its first part the decoder was, its scale undone. A decoder of none of them is
+    refused in one line."""
     from wamplan.errors import UserError
     from wamplan.worldmodel.decoder import load_decoder
 
     load_decoder(decoder_path, task=task)  # its kind and task, each refused as such
-    parts = list(enumerate(encoder.parts)) if encoder.name == "concat" else [(None, encoder)]
+    parts = [(None, encoder)] + (list(enumerate(encoder.parts)) if encoder.name == "concat" else [])
     for i, part in parts:
         try:
             dec = load_decoder(decoder_path, encoder=part, task=task)
@@ -65,8 +66,11 @@ def main(argv: list[str] | None = None) -> Path:
                         f"(e.g. shipped=checkpoints/mini/wm_augmented)")
     models = [(lab, *load_world_model(path)) for lab, _, path in pairs]
     cfg = models[0][1].cfg
-    if args.camera not in models[0][1].cameras:
-        raise UserError(f"--camera {args.camera}: the models read {', '.join(models[0][1].cameras)}")
+    cameras = list(models[0][1].cameras or ())
+    if args.camera not in cameras:
+        raise UserError(f"--camera {args.camera}: the models read {', '.join(cameras) or 'views of no named camera'}")
+    if args.siblings < 1:
+        raise UserError(f"--siblings {args.siblings}: draw 1 or more")
     if args.horizon < 1:
         raise UserError(f"--horizon {args.horizon}: give 1 or more frames into the chunk")
     pics = BranchGroups([args.store], cfg.frameskip, cfg.context, args.horizon, split="val")
@@ -80,7 +84,7 @@ def main(argv: list[str] | None = None) -> Path:
         if key not in groups:
             groups[key] = BranchGroups([args.store], cfg.frameskip, cfg.context, args.horizon, split="val",
                                        features=key)[args.group]
-    v, hc, k = list(models[0][1].cameras).index(args.camera), cfg.context, args.horizon  # images (G, T, V, H, W, 3)
+    v, hc, k = cameras.index(args.camera), cfg.context, args.horizon  # images (G, T, V, H, W, 3)
     n = min(args.siblings, pics["images"].shape[0])
     draw = [drawer(enc, args.decoder, model.task.name) for _, model, enc in models]
     rows = []

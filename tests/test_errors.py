@@ -157,12 +157,15 @@ def test_number_lists_parse_ranges_and_refuse_garbage_in_one_line():
         parse_conditions("")
 
 
-def test_a_json_file_in_a_folder_that_does_not_exist_is_refused_before_any_work(tmp_path, capsys):
+def test_a_json_file_under_a_file_is_refused_before_any_work_and_a_missing_folder_is_made(tmp_path, capsys):
+    from wamplan.cli.wm import write_json
+
     base = ["wm", "fidelity", "--wam", "checkpoints/mini/tinywam", "--wm", "checkpoints/mini/wm_augmented",
             "--seeds", "500"]
-    refused(capsys, [*base, "--json", tmp_path / "nowhere" / "x.json"], "--json", "nowhere does not exist")
+    (tmp_path / "f").write_text("")
+    refused(capsys, [*base, "--json", tmp_path / "f" / "x.json"], "--json", "is a file, not a folder")
     refused(capsys, [*base, "--boundaries", "x"], "--boundaries 'x' is not a list like 2-8 or 2,5,8")
-    assert not (tmp_path / "nowhere").exists()
+    assert json.loads(write_json(tmp_path / "new" / "x.json", {"a": 1}).read_text()) == {"a": 1}
 
 def test_a_nan_gate_is_refused():
     from wamplan.config import ConfigError

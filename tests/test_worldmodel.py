@@ -474,10 +474,14 @@ def test_init_grows_onto_a_concat_encoder_whose_first_part_it_was_trained_on_and
     torch.testing.assert_close(after[..., 8:], 4 * before[..., 8:], atol=1e-5, rtol=1e-5)
     for bad, message in [((tmp_path / "base", [1, 1]), "only a concat model's parts"),
                          ((tmp_path / "grown", [1]), "one positive number per part"),
-                         ((tmp_path / "grown", [1, -1]), "one positive number per part")]:
+                         ((tmp_path / "grown", [1, -1]), "one positive number per part"),
+                         ((tmp_path / "grown", [1, float("inf")]), "one positive number per part")]:
         with pytest.raises(UserError, match=message):
             reweigh_parts(*bad, tmp_path / "x")
     assert not (tmp_path / "x").exists()
+    with pytest.raises(UserError, match="exists; give a new directory"):  # nothing is overwritten
+        reweigh_parts(tmp_path / "grown", [1, 1.0], tmp_path / "grown")
+    assert (tmp_path / "grown" / METRICS_FILE).is_file()
 
 
 def test_sibling_picture_draws_a_concat_model_through_the_part_its_decoder_knows(tmp_path, repo_script):

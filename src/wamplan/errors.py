@@ -74,15 +74,15 @@ def require_writable(path: str | Path, flag: str = "--out") -> None:
 
 def require_file(path: str | Path | None, flag: str) -> Path | None:
     """``path`` as a file to write (None: not asked for); one line, before any work, if it is a directory or its
-    folder does not exist."""
+    folder is a file (a missing folder is the writer's to create)."""
     if path is None:
         return None
     p = Path(path)
     if p.is_dir():
         raise UserError(f"{flag} {p} is a directory, not a file; pass a file name")
-    if not p.parent.is_dir():
-        raise UserError(f"{flag} {p}: the folder {p.parent} does not exist; create it first or pass a file in an "
-                        f"existing folder")
+    if any(q.is_file() for q in p.parents):
+        raise UserError(f"{flag} {p}: {next(q for q in p.parents if q.is_file())} is a file, not a folder; pass a "
+                        f"path in a folder")
     return p
 
 

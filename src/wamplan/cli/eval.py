@@ -75,7 +75,8 @@ def _explain_options(p: argparse.ArgumentParser) -> None:
     from wamplan.cli.eval_options import add_eval_arguments
 
     p.add_argument("--seed", type=int, default=0, help="episode seed (condition 7 runs up to the chunk) (default: 0)")
-    p.add_argument("--chunk", type=int, default=4, help="chunk index to explain (>= 1; chunk k starts at step 16k) (default: 4)")
+    p.add_argument("--chunk", type=int, default=4,
+                   help="chunk index to explain (>= 1; chunk k starts at step 16k) (default: 4)")
     p.add_argument("--decoder", required=True, help="picture decoder checkpoint (`wamplan wm train-decoder`)")
     p.add_argument("--out", type=Path, default=Path("mechanism.png"), help="PNG to write (default: mechanism.png)")
     add_eval_arguments(p)
@@ -88,6 +89,17 @@ def _report_options(p: argparse.ArgumentParser) -> None:
                    "(e.g. conditions run apart on the same seeds), each DIR or DIR:C[,C...] for only those "
                    "conditions; DIR may then be a new, empty directory")
     p.set_defaults(func=cmd_report)
+
+
+def _local_chunk_length(wam: str) -> int | None:
+    """The chunk length a local WAM checkpoint records (None: not a local checkpoint, or none recorded)."""
+    from wamplan.checkpoint import CheckpointError, checkpoint_dir, read_meta
+
+    try:
+        model = read_meta(checkpoint_dir(wam)).get("config", {}).get("model") if wam else None
+    except (CheckpointError, OSError):
+        return None
+    return model.get("chunk_length") if isinstance(model, dict) else None
 
 
 def cmd_explain(args: argparse.Namespace) -> int:
@@ -104,10 +116,11 @@ def cmd_explain(args: argparse.Namespace) -> int:
     require_file(args.out, "--out")
     spec = cfg.env.spec  # what can be refused before the episode runs: a chunk past the episode, a decoder's kind
     steps = cfg.env.max_episode_steps or spec.max_episode_steps
-    last = -(-steps // spec.chunk_len) - 1
+    chunk = _local_chunk_length(cfg.wam)  # None for a served WAM: then the episode tells
+    last = -(-steps // chunk) - 1 if chunk else args.chunk
     if args.chunk > last:
-        raise UserError(f"--chunk {args.chunk}: episodes of {spec.name} end by step {steps}, so with "
-                        f"{spec.chunk_len}-step chunks the last is chunk {last}; pick --chunk 1..{last}")
+        raise UserError(f"--chunk {args.chunk}: episodes of {spec.name} end by step {steps}, so with the WAM's "
+                        f"{chunk}-step chunks the last is chunk {last}; pick --chunk 1..{last}")
     from wamplan.worldmodel.decoder import load_decoder
 
     load_decoder(args.decoder, task=spec.name)  # its kind and task

@@ -12,6 +12,14 @@ from wamplan.errors import UserError, require_dir, require_file, require_paths, 
 from wamplan.cli.main import add_command, add_group, register_command
 
 
+
+def write_json(path: Path, obj) -> Path:
+    """Write ``obj`` as indented JSON to ``path``, its folder made if missing (after the work: a refused or failed
+    run leaves no folder behind)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(obj, indent=1) + "\n")
+    return path
+
 def resolve_device(name: str):
     """``--device`` checked before any work (a device this machine lacks is one line); imports torch."""
     from wamplan.device import resolve_device as resolve
@@ -93,7 +101,8 @@ def _train_options(name: str):
             p.add_argument("--init", type=Path, default=None,
                            help="fine-tune: start from this predictor checkpoint's weights and feature statistics "
                                 "(same preset and encoder)")
-            add_architecture_arguments(p.add_argument_group("predictor", "the preset's predictor, overridden"))
+            add_architecture_arguments(p.add_argument_group("predictor", "the preset's predictor, overridden"),
+                                       {k: v.world_model.predictor for k, v in sorted(PRESETS.items())})
         cls, part = (TrainConfig, "train") if name == "train" else (DecoderTrainConfig, "decoder_train")
         add_arguments(p, cls, presets={k: getattr(v.world_model, part)
                                                 for k, v in sorted(PRESETS.items())})
@@ -297,7 +306,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
                frameskip=model.cfg.frameskip, **m)
     print(json.dumps(out, indent=1))
     if args.json:
-        args.json.write_text(json.dumps(out, indent=1) + "\n")
+        write_json(args.json, out)
     return 0
 
 
@@ -380,7 +389,7 @@ def cmd_probe(args: argparse.Namespace) -> int:
     for rep in reports:
         print(format_probe(rep))
     if args.json:
-        args.json.write_text(json.dumps(reports if len(reports) > 1 else reports[0], indent=1) + "\n")
+        write_json(args.json, reports if len(reports) > 1 else reports[0])
         print(f"wrote {args.json}")
     return 0
 
@@ -506,6 +515,6 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
         from wamplan.config import to_dict
 
         out.update(wam=args.wam, wm=args.wm, seeds=seeds, config=to_dict(cfg), camera_size=args.camera_size)
-        args.json.write_text(json.dumps(out, indent=1) + "\n")
+        write_json(args.json, out)
         print(f"wrote {args.json}")
     return 0

@@ -70,7 +70,7 @@ class ProxyConfig:
 
     @property
     def upstream_is_url(self) -> bool:
-        return self.upstream.startswith(("http://", "https://"))
+        return self.upstream.lower().startswith(("http://", "https://"))
 
 
 def parse_ws_fields(spec: str) -> list[tuple[tuple[str, ...], str]]:

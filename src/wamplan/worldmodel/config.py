@@ -11,7 +11,7 @@ import typing
 from dataclasses import dataclass
 from typing import Any
 
-from wamplan.config import add_field_argument, field, require
+from wamplan.config import add_field_argument, field, preset_default_text, require
 from wamplan.train_loop import AdamWConfig
 
 ACTION_CONDITIONING = ("input", "adaln")  # PredictorConfig.action_conditioning
@@ -109,12 +109,14 @@ ARCHITECTURE_FIELDS = ("frameskip", "context", "depth", "heads", "head_dim", "ml
                        "dropout", "predict_delta", "action_conditioning", "action_tokens", "state_head")
 
 
-def add_architecture_arguments(parser: Any) -> None:
-    """One ``--<field>`` option per :data:`ARCHITECTURE_FIELDS` entry (default None: keep the preset's)."""
+def add_architecture_arguments(parser: Any, presets: dict[str, PredictorConfig] | None = None) -> None:
+    """One ``--<field>`` option per :data:`ARCHITECTURE_FIELDS` entry (default None: keep the preset's);
+    ``presets`` ({name: predictor config}): their values shown in the help."""
     hints = typing.get_type_hints(PredictorConfig)
     fields = {f.name: f for f in dataclasses.fields(PredictorConfig)}
     for name in ARCHITECTURE_FIELDS:
-        add_field_argument(parser, "--" + name.replace("_", "-"), name, fields[name], hints[name])
+        add_field_argument(parser, "--" + name.replace("_", "-"), name, fields[name], hints[name],
+                           default_text=preset_default_text(name, presets))
 
 
 def architecture_from_args(args: Any, base: PredictorConfig) -> PredictorConfig:

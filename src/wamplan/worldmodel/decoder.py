@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -101,15 +101,20 @@ def train_decoder(train_set: Dataset, cfg: DecoderConfig, train: DecoderTrainCon
                   val_set: Dataset | None = None, device: str | torch.device = "auto", resume: bool = False,
                   max_steps: int | None = None, progress: bool = True,
                   encoder_info: dict[str, Any] | None = None,
-                  data: dict[str, Any] | None = None) -> tuple[Decoder, dict[str, Any]]:
-    """Train (or resume) a decoder on (features, image) pairs; same checkpoint layout as the predictor."""
+                  data: dict[str, Any] | None = None, task: str | None = None,
+                  cameras: Sequence[str] | None = None) -> tuple[Decoder, dict[str, Any]]:
+    """Train (or resume) a decoder on (features, image) pairs; same checkpoint layout as the predictor. ``task``
+    and ``cameras``: what the images show, recorded (not part of the data a resumed run must match) so that
+    :func:`load_decoder` can refuse another task's model."""
     require(isinstance(train, DecoderTrainConfig),
             f"train_decoder takes a DecoderTrainConfig, got {type(train).__name__}; build one with the same "
             f"optimisation values")
     dev = resolve_device(device) if isinstance(device, str) else device
     torch.manual_seed(train.seed)
     model = Decoder(cfg).to(dev)
-    config = {"decoder": to_dict(cfg), "train": to_dict(train), "encoder": encoder_info}
+    trained_on = {**({"task": task} if task else {}), **({"cameras": list(cameras)} if cameras else {})}
+    config = {"decoder": to_dict(cfg), "train": to_dict(train), "encoder": encoder_info,
+              **({"data": trained_on} if trained_on else {})}
     def evaluate(m: torch.nn.Module) -> dict[str, float]:
         return evaluate_decoder(m, val_set, 2 * train.batch_size, dev)  # type: ignore[arg-type]
 

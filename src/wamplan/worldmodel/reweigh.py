@@ -12,6 +12,7 @@ a plain mean of squared differences over dims, then weighs part i (s'_i / s_i)²
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Sequence
 
@@ -25,8 +26,8 @@ from wamplan.worldmodel.train import KIND, load_world_model
 def reweigh_parts(src: str | Path, scales: Sequence[float], dst: str | Path) -> Path:
     """Write to ``dst`` the predictor of ``src`` (a run or checkpoint on a ``concat`` encoder) for the same encoder
     at ``scales`` (one positive number per part): its feature statistics scaled per part by new / old scale, its
-    encoder record given the new scales. Returns the checkpoint directory. A model on another encoder, or scales
-    that are not one positive number per part, is refused in one line."""
+    encoder record given the new scales. Returns the checkpoint directory. A model on another encoder, scales that
+    are not one positive number per part, or a ``dst`` that exists, is refused in one line."""
     ckpt = checkpoint_dir(src)
     config = read_config(ckpt, KIND)
     encoder = dict(config.get("encoder") or {})
@@ -35,13 +36,16 @@ def reweigh_parts(src: str | Path, scales: Sequence[float], dst: str | Path) -> 
                         f"weighed anew (wm train --encoder concat)")
     old = [float(s) for s in encoder["scales"]]
     new = list(scales)
-    if len(new) != len(old) or not all(isinstance(s, (int, float)) and not isinstance(s, bool) and s > 0
-                                       for s in new):
+    if len(new) != len(old) or not all(isinstance(s, (int, float)) and not isinstance(s, bool) and
+                                       math.isfinite(s) and s > 0 for s in new):
         raise UserError(f"scales must be one positive number per part ({len(old)}, now {old}), got {new}")
+    if Path(dst).exists():
+        raise UserError(f"{dst} exists; give a new directory for the reweighed model (nothing is overwritten)")
     model, enc = load_world_model(ckpt)
     factor = torch.cat([torch.full((part.dim,), s / o) for part, s, o in zip(enc.parts, new, old)])  # (D,)
-    with torch.no_grad():
-        model.set_feature_stats(model.z_mean * factor, model.z_std * factor)
+    with torch.no_grad():  # the buffers themselves: set_feature_stats' floor on the std would break exactness
+        model.z_mean.mul_(factor)
+        model.z_std.mul_(factor)
     encoder["scales"] = [float(s) for s in new]
     config = {**config, "encoder": encoder, "reweighed": {"from": str(ckpt), "scales": old}}
     return save_checkpoint(dst, model, config, kind=KIND)

@@ -171,7 +171,6 @@ def train_decoder_on_stores(stores: Sequence[str | Path], out: str | Path, decod
     task, cameras = stores_task(stores)
     data, resume, info, key, (_, n, d) = _prepare(stores, out, KIND, encoder, encoder_kwargs, encoder_path,
                                                   val_fraction, device, progress)
-    data = {**data, "task": task.name, "cameras": list(cameras)}  # what load_decoder checks a model against
     decoder = dataclasses.replace(decoder, num_patches=n, enc_dim=d)  # the encoder's token layout
     tr = FeatureFrames(stores, key, split="train", val_fraction=val_fraction)
     va = FeatureFrames(stores, key, split="val", val_fraction=val_fraction)
@@ -179,5 +178,5 @@ def train_decoder_on_stores(stores: Sequence[str | Path], out: str | Path, decod
         print(f"frames: {len(tr)} train, {len(va)} val")
     _, metrics = train_decoder(tr, decoder, train, out, val_set=va if len(va) else None, device=device,
                                resume=resume, max_steps=max_steps, progress=progress, encoder_info=info,
-                               data=data)
+                               data=data, task=task.name, cameras=cameras)
     return metrics
