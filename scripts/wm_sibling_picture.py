@@ -19,7 +19,7 @@ import torch
 
 
 def drawer(encoder, decoder_path, task=None):
-    """(decoder, tokens -> the decoder's tokens) for a model's encoder; a concat whose decoder was not trained on
+    """(decoder, tokens -> the decoder's tokens, the part drawn or '') for a model's encoder; a concat whose decoder was not trained on
     its whole tokens is drawn through its first part the decoder was, its scale undone. A decoder of none of them is
     refused in one line."""
     from wamplan.errors import UserError
@@ -32,7 +32,9 @@ def drawer(encoder, decoder_path, task=None):
             dec = load_decoder(decoder_path, encoder=part, task=task)
         except UserError:
             continue
-        return dec, (lambda z: z) if i is None else (lambda z, i=i: encoder.part_tokens(z, i))
+        if i is None:
+            return dec, (lambda z: z), ""
+        return dec, (lambda z, i=i: encoder.part_tokens(z, i)), part.name
     raise UserError(f"decoder {decoder_path} was trained on none of the encoders of {encoder.config_dict()}")
 
 
@@ -90,11 +92,12 @@ def main(argv: list[str] | None = None) -> Path:
     rows = []
     for i in range(n):
         row = [("real", pics["images"][i, hc - 1 + k, v].numpy())]
-        for (label, model, enc), (dec, tokens) in zip(models, draw):
+        for (label, model, enc), (dec, tokens, part) in zip(models, draw):
             g = groups[feature_key(enc.config_dict())]
             z, q, a = g["z"][i:i + 1].float(), g["q"][i:i + 1].float(), g["a"][i:i + 1].float()
             zp, _ = model.rollout(z[:, :hc], q[:, :hc], a[:, :hc - 1], a[:, hc - 1:hc - 1 + k])  # (1, K, V, N, D)
-            row.append((label, dec(tokens(zp[:, -1, v])).permute(0, 2, 3, 1)[0].numpy()))
+            row.append((f"{label}\n({part} dims)" if part else label,
+                        dec(tokens(zp[:, -1, v])).permute(0, 2, 3, 1)[0].numpy()))
         rows.append(row)
     fig, axes = plt.subplots(n, len(rows[0]) + 1, figsize=(2 * (len(rows[0]) + 1), 2.1 * n), squeeze=False)
     for i, row in enumerate(rows):

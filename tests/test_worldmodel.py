@@ -495,7 +495,8 @@ def test_sibling_picture_draws_a_concat_model_through_the_part_its_decoder_knows
                   progress=False, encoder_info=make_encoder(**b).config_dict())
     drawer = repo_script("scripts/wm_sibling_picture.py").drawer
     cat = make_encoder("concat", parts=[a, b], scales=[1, 0.5])
-    dec, tokens = drawer(cat, tmp_path)
+    dec, tokens, part = drawer(cat, tmp_path)
+    assert part == "patch-pixels"  # part 1's name
     z = cat.encode(np.random.default_rng(0).integers(0, 256, (2, 32, 32, 3), dtype=np.uint8))  # (2, 4, 12)
     torch.testing.assert_close(tokens(z), 2 * z[..., 8:])  # part 1's dims, its scale 0.5 undone
     assert dec(tokens(z)).shape == (2, 3, 16, 16)
