@@ -19,18 +19,19 @@ import torch
 
 
 def drawer(encoder, decoder_path, task=None):
-    """(decoder, tokens -> the decoder's tokens, the part drawn or '') for a model's encoder; a concat whose decoder was not trained on
-    its whole tokens is drawn through its first part the decoder was, its scale undone. A decoder of none of them is
-    refused in one line."""
+    """(decoder, tokens -> the decoder's tokens, the part drawn or '') for a model's encoder; a concat whose
+    decoder was not trained on its whole tokens is drawn through its first part the decoder was, its scale undone.
+    A decoder of none of them is refused in one line."""
+    from wamplan.checkpoint import checkpoint_dir, read_config
+    from wamplan.data.features import feature_key
     from wamplan.errors import UserError
-    from wamplan.worldmodel.decoder import load_decoder
+    from wamplan.worldmodel.decoder import KIND, load_decoder
 
-    load_decoder(decoder_path, task=task)  # its kind and task, each refused as such
+    dec = load_decoder(decoder_path, task=task)  # its kind and task, each refused as such
+    theirs = read_config(checkpoint_dir(decoder_path), KIND).get("encoder")
     parts = [(None, encoder)] + (list(enumerate(encoder.parts)) if encoder.name == "concat" else [])
     for i, part in parts:
-        try:
-            dec = load_decoder(decoder_path, encoder=part, task=task)
-        except UserError:
+        if theirs and feature_key(theirs) != feature_key(part.config_dict()):
             continue
         if i is None:
             return dec, (lambda z: z), ""

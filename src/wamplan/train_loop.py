@@ -187,6 +187,12 @@ def _leaf_diff(saved: Any, now: Any, name: str, skip: Sequence[str] = ()) -> lis
     return [] if saved == now else [f"different {name}: saved {_short(saved)}, now {_short(now)}"]
 
 
+def shown(task: str | None, cameras: Sequence[str] | None) -> dict[str, Any]:
+    """What a checkpoint records of what its data showed (its config's ``data`` section, kept apart from the data
+    identity a resumed run must match): ``{"task": ..., "cameras": [...]}``, each only where given."""
+    return {**({"task": task} if task else {}), **({"cameras": list(cameras)} if cameras is not None else {})}
+
+
 def check_data(run_dir: str | Path, kind: str, data: dict[str, Any]) -> None:
     """Half of the resume rule, cheap enough to run before loading anything: the same data as saved."""
     saved = json.loads(json.dumps(read_config(run_paths(run_dir)[0], kind).get("data") or {}))

@@ -12,13 +12,13 @@ from wamplan.errors import UserError, require_dir, require_file, require_paths, 
 from wamplan.cli.main import add_command, add_group, register_command
 
 
-
 def write_json(path: Path, obj) -> Path:
     """Write ``obj`` as indented JSON to ``path``, its folder made if missing (after the work: a refused or failed
     run leaves no folder behind)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(obj, indent=1) + "\n")
     return path
+
 
 def resolve_device(name: str):
     """``--device`` checked before any work (a device this machine lacks is one line); imports torch."""

@@ -24,7 +24,7 @@ from wamplan.checkpoint import checkpoint_dir, load_weights, read_config
 from wamplan.config import from_dict, require, to_dict
 from wamplan.device import resolve_device
 from wamplan.errors import UserError
-from wamplan.train_loop import DatasetBatches, fit
+from wamplan.train_loop import DatasetBatches, fit, shown
 from wamplan.worldmodel.config import DecoderConfig, DecoderTrainConfig, TrainConfig
 from wamplan.worldmodel.layers import Block, init_weights
 
@@ -112,7 +112,7 @@ def train_decoder(train_set: Dataset, cfg: DecoderConfig, train: DecoderTrainCon
     dev = resolve_device(device) if isinstance(device, str) else device
     torch.manual_seed(train.seed)
     model = Decoder(cfg).to(dev)
-    trained_on = {**({"task": task} if task else {}), **({"cameras": list(cameras)} if cameras else {})}
+    trained_on = shown(task, cameras)
     config = {"decoder": to_dict(cfg), "train": to_dict(train), "encoder": encoder_info,
               **({"data": trained_on} if trained_on else {})}
     def evaluate(m: torch.nn.Module) -> dict[str, float]:

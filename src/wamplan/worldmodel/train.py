@@ -38,7 +38,7 @@ from wamplan.data.readers import STATE_UNIT_MM
 from wamplan.device import resolve_device
 from wamplan.envs.spec import TaskSpec
 from wamplan.errors import UserError
-from wamplan.train_loop import DatasetBatches, evaluating, fit, saved_progress
+from wamplan.train_loop import DatasetBatches, evaluating, fit, saved_progress, shown
 from wamplan.envs.spec import DEFAULT_TASK as LEGACY_TASK
 from wamplan.worldmodel.config import PredictorConfig, TrainConfig
 from wamplan.worldmodel.predictor import WorldModelPredictor
@@ -378,8 +378,7 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
     dev = resolve_device(device) if isinstance(device, str) else device
     torch.manual_seed(train.seed)
     model = WorldModelPredictor(cfg, task, cameras).to(dev)
-    trained_on = {**({"task": model.task.name} if model.task is not None else {}),
-                  **({"cameras": list(cameras)} if cameras is not None else {})}
+    trained_on = shown(model.task.name if model.task is not None else None, cameras)
     config = {"predictor": to_dict(cfg), "train": to_dict(train), "encoder": encoder_info,
               **({"data": trained_on} if trained_on else {})}
     old_dim = None
