@@ -19,13 +19,15 @@ counted), each arithmetic is timed on the same model and inputs and also given a
 With several ``--tasks``, each preset is sized for each task's views, proprio and action (as ``wm train`` does for
 a task's stores) and its time is also given as a ratio to the first task's.
 
-With ``--ckpt``, each checkpoint's architecture (its predictor config and the task it was trained on) is timed after
-the presets, with fresh random weights like them, and its time also given as a ratio to the first preset's.
+With ``--ckpt``, each world-model checkpoint (a predictor, or a spliced model: ``worldmodel.splice``) is timed after
+the presets with its own weights (the time does not depend on them), and its time also given as a ratio to the first
+preset's.
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
 import platform
 import statistics
 
@@ -38,7 +40,7 @@ from wamplan.planning.dynamics import LearnedDynamics, PlanningContext
 from wamplan.planning.timing import planner_settings, timed
 from wamplan.worldmodel.config import PredictorConfig
 from wamplan.worldmodel.predictor import WorldModelPredictor
-from wamplan.worldmodel.train import load_predictor
+from wamplan.worldmodel.train import load_world_model
 from wamplan.presets import get_world_model_preset as get_preset
 from wamplan.worldmodel.stores import predictor_for_task
 
@@ -112,16 +114,15 @@ def main() -> None:
     first: dict[str, float] = {}  # preset -> the first task's KV-cached time
     runs = [(n, t, predictor_for_task(get_preset(n).predictor, get_task(t), get_task(t).cameras))
             for n in args.presets for t in args.tasks]
-    for path in args.ckpt:
-        trained = load_predictor(path)  # its config and task; the timing uses fresh weights as for the presets
-        runs.append((path, trained.task.name, trained.cfg))
+    trained = {path: load_world_model(path)[0] for path in args.ckpt}  # each with its config, task and weights
+    runs += [(path, m.task.name, m.cfg) for path, m in trained.items()]
     for name, task, cfg in runs:
         steps = CHUNK // cfg.frameskip
         reference = None  # this preset and task's first arithmetic
         for dtype_name, compiled in modes:
             torch.manual_seed(0)
             dtype = getattr(torch, dtype_name)
-            model = WorldModelPredictor(cfg).to(dev, dtype).eval()
+            model = (copy.deepcopy(trained[name]) if name in trained else WorldModelPredictor(cfg)).to(dev, dtype).eval()
             ctx, target = search_inputs(cfg, dev)
             if compiled:
                 model.compile_blocks()

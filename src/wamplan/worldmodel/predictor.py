@@ -51,7 +51,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from wamplan.envs.spec import TaskSpec, get_task
+from wamplan.config import from_dict
+from wamplan.envs.spec import DEFAULT_TASK, TaskSpec, get_task
 from wamplan.errors import UserError
 from wamplan.worldmodel.config import PredictorConfig
 from wamplan.worldmodel.layers import KV, AdaLNBlock, Block, KVRing, init_weights, rope_angles
@@ -163,6 +164,14 @@ class WorldModelPredictor(nn.Module):
                 blk.zero_init()  # adaLN-Zero: every block starts as the identity
         # The heads keep the small random init: zero-initialised delta heads (an exact copy-last start)
         # made training stall on a plateau in 3 of 4 seeds on the synthetic task.
+
+    @classmethod
+    def from_record(cls, saved: dict[str, Any]) -> "WorldModelPredictor":
+        """An untrained predictor as a checkpoint's config record describes it: its ``predictor`` config, and the
+        task and cameras of its ``data`` (a record without a task: the cube-insertion task's)."""
+        trained_on = saved.get("data") or {}
+        return cls(from_dict(PredictorConfig, saved["predictor"]), trained_on.get("task") or DEFAULT_TASK,
+                   trained_on.get("cameras"))
 
     @property
     def cameras(self) -> tuple[str, ...] | None:

@@ -32,16 +32,16 @@ from typing import Any, Sequence
 import torch
 from torch.utils.data import DataLoader, Dataset
 
-from wamplan.checkpoint import checkpoint_dir, load_weights, read_config
+from wamplan.checkpoint import checkpoint_dir, load_weights, read_config, read_meta
 from wamplan.config import from_dict, to_dict
 from wamplan.data.readers import STATE_UNIT_MM
 from wamplan.device import resolve_device
 from wamplan.envs.spec import TaskSpec
 from wamplan.errors import UserError
 from wamplan.train_loop import DatasetBatches, evaluating, fit, saved_progress, shown
-from wamplan.envs.spec import DEFAULT_TASK as LEGACY_TASK
 from wamplan.worldmodel.config import PredictorConfig, TrainConfig
 from wamplan.worldmodel.predictor import WorldModelPredictor
+from wamplan.worldmodel.splice import SPLICE_KIND, load_spliced
 
 KIND = "wm-predictor"
 NEW_ON_INIT = ("state_head.",)  # weights a fine-tune may add to (or drop from) its --init checkpoint's
@@ -504,11 +504,8 @@ def load_predictor(path: str | Path, device: str | torch.device = "cpu") -> Worl
     cameras it was trained on as ``model.task`` / ``model.cameras`` (a checkpoint that records no task:
     cube-insertion; none records no cameras: the task's)."""
     ckpt = checkpoint_dir(path)
-    saved = read_config(ckpt, KIND)
-    cfg = from_dict(PredictorConfig, saved["predictor"])
+    model = WorldModelPredictor.from_record(read_config(ckpt, KIND))
     dev = resolve_device(device) if isinstance(device, str) else device
-    trained_on = saved.get("data") or {}
-    model = WorldModelPredictor(cfg, trained_on.get("task") or LEGACY_TASK, trained_on.get("cameras"))
     load_weights(ckpt, model)
     return model.to(dev).eval()
 
@@ -519,10 +516,16 @@ def load_world_model(path: str | Path, device: str | torch.device = "cpu", dtype
     from wamplan.encoders import make_encoder
 
     ckpt = checkpoint_dir(path)
-    info = dict(read_config(ckpt, KIND).get("encoder") or {})
-    model = load_predictor(path, device).to(getattr(torch, dtype) if isinstance(dtype, str) else dtype)
-    name = info.pop("name", model.cfg.encoder)
-    enc = make_encoder(name, **info).to(next(model.parameters()).device)
+    cast = getattr(torch, dtype) if isinstance(dtype, str) else dtype
+    if read_meta(ckpt).get("kind") == SPLICE_KIND:  # a concat model with parts from other models
+        model, enc = load_spliced(ckpt, resolve_device(device) if isinstance(device, str) else device)
+        model, name = model.to(cast), "concat"
+    else:
+        info = dict(read_config(ckpt, KIND).get("encoder") or {})
+        model = load_predictor(path, device).to(cast)
+        name = info.pop("name", model.cfg.encoder)
+        enc = make_encoder(name, **info)
+    enc = enc.to(next(model.parameters()).device)
     if (enc.num_patches, enc.dim) != (model.cfg.num_patches, model.cfg.enc_dim):
         raise UserError(f"{ckpt}: encoder {name} gives {enc.num_patches} x {enc.dim} tokens, the predictor "
                         f"was trained on {model.cfg.num_patches} x {model.cfg.enc_dim}; "
