@@ -431,7 +431,7 @@ def test_a_failed_eval_start_does_not_lock_its_folder(ckpts, tmp_path, capsys):
     argv = ["eval", "--conditions", "1", "--episodes", "1", "--out", out, "--wam", wam, "--camera-size", "64",
             "--max-steps", "2"]
     refused(capsys, argv, wam)
-    assert not (out / "eval_config.json").exists()
+    assert not out.exists()  # not even an empty folder is left behind
     (wam / "model.safetensors").write_bytes(weights)  # the mistake fixed, the same command again
     assert main([str(a) for a in argv]) == 0
     assert json.loads((out / "eval_config.json").read_text())["wam"] == str(wam)

@@ -238,7 +238,6 @@ def run_evaluation(cfg: EvalConfig, conditions: list[int], seeds: list[int], out
     backend.check()
     out = require_dir(out_dir)
     require_own_dir(out, (RECORDS, CONFIG), "an evaluation directory")  # not a store or a training run
-    out.mkdir(parents=True, exist_ok=True)
     done = {record_key(r) for r in read_records(out, repair=True)}
     # Seed-major order: a run stopped early (or fanned out and cut short) has every condition on the same
     # seeds, so its partial table still compares like with like.
@@ -246,7 +245,8 @@ def run_evaluation(cfg: EvalConfig, conditions: list[int], seeds: list[int], out
     now = _settings_to_store(out, cfg, recorded=bool(done))
     if jobs:
         _check_inputs(cfg, conditions)
-    _store_settings(out, now)  # only now that the inputs loaded: a failed start leaves the directory free
+    out.mkdir(parents=True, exist_ok=True)  # only now that the inputs loaded: a failed start leaves no directory
+    _store_settings(out, now)  # and a directory that held a run stays free for it
     return _run_jobs(cfg, jobs, out, workers, backend)
 
 
