@@ -579,6 +579,8 @@ def test_report_of_a_condition_the_run_does_not_hold(tmp_path, capsys):
     run.mkdir()
     append_record(run, dict(condition=1, seed=0, variant="open-loop", success=False, outcome="failure", length=10))
     refused(capsys, ["report", run, f"{run}:5"], f"{run}:5", "no records of condition(s) [5]", "it has 1")
+    (run / "records.jsonl").write_text('{"condition": 1, "seed": 1, "success": true, "outcome": "success"}\n')
+    refused(capsys, ["report", run], "record 1 lacks length", "`wamplan eval` writes")  # hand-written: no length
 
 
 # --------------------------------------------------------------------------------------------- the parser

@@ -22,6 +22,7 @@ from wamplan.envs.spec import TaskSpec, get_task
 from wamplan.evaluation.conditions import CONDITIONS
 from wamplan.evaluation.records import RECORDS, read_records
 
+REQUIRED_FIELDS = ("condition", "seed", "success", "outcome", "length")  # what every record must hold for a report
 SETTINGS = "eval_config.json"  # an evaluation directory's settings (evaluation/runner.py writes it)
 ALIGNED = "aligned"  # the stage the insertion readings (paired table, Table 2) start from, where a task has it
 # Figure 3's colours: success, then the task's failures from the earliest stage on. Failures run red -> orange ->
@@ -373,6 +374,11 @@ def merged_records(specs: list[str | Path]) -> list[dict[str, Any]]:
     for spec in specs:
         d, conditions = run_spec(spec)
         recs = read_records(d)
+        for n, r in enumerate(recs, 1):
+            lacks = [k for k in REQUIRED_FIELDS if k not in r] if isinstance(r, dict) else list(REQUIRED_FIELDS)
+            if lacks:
+                raise UserError(f"{d / RECORDS} record {n} lacks {', '.join(lacks)}; a report reads the records "
+                                f"`wamplan eval` writes (each with {', '.join(REQUIRED_FIELDS)})")
         held = {r["condition"] for r in recs}
         missing = sorted((conditions or set()) - held)
         if missing:
