@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import socket
 import threading
 from pathlib import Path
 
@@ -156,6 +157,7 @@ def test_a_plan_over_budget_answers_the_wams_chunk(tmp_path):
 def test_an_upstream_server_behind_the_proxy_passes_its_fields_through():
     up = BackgroundServer(create_app(load_wam(WAM_CKPT, device="cpu"))).start()
     p = build_proxy(ProxyConfig(upstream=up.act_url, world_model=WM_CKPT, device="cpu"))
+    assert p.upstream.unreachable is None  # its /health answered
     try:
         with BackgroundServer(create_proxy_app(p, secret="s")) as srv:
             url = f"{srv.url}/act?token=s"
@@ -208,6 +210,17 @@ def test_an_upstream_that_reports_no_chunk_length_gets_the_world_model_tasks():
     p = build_proxy(ProxyConfig(upstream="http://127.0.0.1:1/act", world_model=WM_CKPT, device="cpu"),
                     upstream=Shaped(chunk_length=None))
     assert p.chunk == 16
+
+def test_an_upstream_nothing_answers_for_is_said_at_start_up():
+    from wamplan.proxy.upstream import HttpUpstream
+
+    with socket.socket() as s:  # a port nothing listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    up = HttpUpstream(f"http://127.0.0.1:{port}/act", timeout_s=2.0)
+    assert up.unreachable == "ConnectionError" and up.shape.chunk_length is None
+    up.close()
+
 
 def test_bad_proxy_fields_are_4xx(proxy):
     srv, _ = proxy

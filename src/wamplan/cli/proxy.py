@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
 from wamplan.cli.main import add_command, register_command
 from wamplan.cli.server_options import add_listen_options, listen_secret
@@ -56,6 +57,9 @@ def _serve(args: argparse.Namespace) -> int:
           f"({'shared secret required' if secret else 'no shared secret'}; "
           f"failures answered {errors}; {budget})", flush=True)
     print(proxy.describe(), flush=True)
+    if getattr(proxy.upstream, "unreachable", None):
+        print(f"warning: {proxy.upstream.where} did not answer ({proxy.upstream.unreachable}); requests fail "
+              f"until it does: start it, or check --upstream's host and port", file=sys.stderr, flush=True)
     try:
         run_app(create_proxy_app(proxy, secret), args.host, args.port, secret, args.log_level,
                 ws_max_bytes=cfg.max_request_bytes)

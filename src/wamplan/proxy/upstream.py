@@ -66,6 +66,7 @@ class HttpUpstream(Upstream):
         self._session.trust_env = urlparse(url).hostname not in ("127.0.0.1", "localhost", "::1")
         secret = os.environ.get(UPSTREAM_SECRET_ENV)
         self._headers = {**protocol.JSON_HEADERS, **({protocol.SECRET_HEADER: secret} if secret else {})}
+        self.unreachable: str | None = None  # why the start-up's /health got no answer at all (None: it answered)
         health = self._health()
         self.shape = UpstreamShape(
             chunk_length=chunk_length or health.get("chunk_length"), action_dim=health.get("action_dim"),
@@ -79,6 +80,9 @@ class HttpUpstream(Upstream):
         try:
             r = self._session.get(url, timeout=min(self.timeout_s, 5.0))
             body = r.json() if r.status_code == 200 else {}
+        except (requests.exceptions.ConnectionError, requests.exceptions.Timeout) as e:
+            self.unreachable = type(e).__name__  # nothing answered: not up yet, or a wrong host or port
+            return {}
         except (requests.exceptions.RequestException, ValueError):
             return {}  # Cosmos Policy's server has no health route: its sizes come from the settings
         return body if isinstance(body, dict) else {}
