@@ -253,6 +253,9 @@ def test_a_missing_checkpoint_is_named_with_its_flag_and_fix(tmp_path):
     with pytest.raises(UserError, match=r"^--wam .*nowhere does not exist; train one with `wamplan wam train`"):
         _cfg("--wam", str(tmp_path / "nowhere")).check_for([1])
     _cfg("--wam", ok, "--wm-augmented", f"{ok},{ok}").check_for([1, 7])  # all there: no error
+    assert _cfg("--wm-augmented", f"{ok}+{ok}").world_models(7) == [ok, ok]  # A+B: an ensemble, as in wm fidelity
+    with pytest.raises(UserError, match=r"^--wm-augmented \(empty\) does not exist"):
+        _cfg("--wam", ok, "--wm-augmented", f"{ok}+").check_for([7])
 
 
 def test_progress_bars_refresh_rarely_when_written_to_a_log(tmp_path):

@@ -22,7 +22,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Sequence
 
-from wamplan.config import from_dict
+from wamplan.config import ensemble_members, from_dict
 from wamplan.errors import require_paths
 from wamplan.envs.spec import TASKS, Observation, TaskSpec, get_task, register_task
 from wamplan.envs.config import EnvConfig
@@ -55,7 +55,7 @@ def planned_policy(wam: WAM | str | Path, world_model: str | Path | Sequence[str
     :class:`ChunkDecision`.
     """
     parts = [world_model] if isinstance(world_model, (str, Path)) else list(world_model)
-    paths = [p for part in parts for p in str(part).split(",") if p]
+    paths = [p for part in parts for p in ensemble_members(str(part)) if p]
     choice = {} if planner is None else {"planner": planner}
     cfg = EvalConfig(wam=str(wam) if isinstance(wam, (str, Path)) else "", wm_augmented=",".join(paths),
                      device=device, planner_config=planner_config, cost=cost or CostConfig(),

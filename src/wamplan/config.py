@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import re
 import types
 import typing
 from pathlib import Path
@@ -195,3 +196,10 @@ def from_args(cls: type[T], args: argparse.Namespace, base: T | None = None, pre
     require(not extra, f"{', '.join('--' + (prefix + k).replace('_', '-') for k in extra)} does not apply to "
                        f"{type(base).__name__}; drop it")
     return dataclasses.replace(base, **changes)
+
+
+def ensemble_members(spec: str) -> list[str]:
+    """The world-model checkpoints of ``spec``: one path, or an ensemble's members joined by ``+`` (``A+B``; commas,
+    ``A,B``, are read the same where an option takes one model). An empty entry is kept, for the caller to refuse
+    (``errors.require_paths``) or drop."""
+    return re.split(r"[+,]", spec) if spec else []

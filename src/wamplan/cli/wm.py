@@ -7,7 +7,7 @@ import json
 from collections import Counter
 from pathlib import Path
 
-from wamplan.config import add_arguments, from_args, int_list
+from wamplan.config import add_arguments, ensemble_members, from_args, int_list
 from wamplan.errors import UserError, require_dir, require_file, require_paths, require_seeds
 from wamplan.cli.main import add_command, add_group, register_command
 
@@ -429,7 +429,7 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
     specs = []
     for spec in (s for s in args.wm.split(",") if s):
         label, _, paths = spec.rpartition("=")
-        members = paths.split("+")  # A+B+C: an ensemble, its mean prediction scored (as --wm-augmented A,B,C)
+        members = ensemble_members(paths)  # A+B+C: an ensemble, its mean prediction scored (as --wm-augmented)
         specs.append((label or "+".join(Path(p).name for p in members), members))
     twin, viewed, posed = "{}+bias".format, "{}+views".format, "{}+pose".format  # labels of a model's twins
     labels = [lab for lab, _ in specs]

@@ -8,6 +8,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Sequence
 
+from wamplan.config import ensemble_members
 from wamplan.errors import UserError
 from wamplan.policies import POLICIES, Policy, make_policy
 
@@ -75,4 +76,4 @@ def load_policy(spec: str, instruction: str | None = None, plan_with: str = "", 
     wam = load_wam(spec, device=cfg.device)
     if task is not None:
         check_same_task(task.name, task_name(wam), f"WAM {spec}")
-    return plan_in_world_model(cfg, wam, plan_with.split(","))  # the world models must match the WAM's task
+    return plan_in_world_model(cfg, wam, ensemble_members(plan_with))  # the world models must match the WAM's task

@@ -7,7 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from wamplan.config import field, from_dict, require
+from wamplan.config import ensemble_members, field, from_dict, require
 from wamplan.envs.config import EnvConfig
 from wamplan.evaluation.conditions import CONDITIONS
 from wamplan.planning.configs import DEFAULT_PLANNER, PLANNER_CONFIGS
@@ -49,8 +49,8 @@ class EvalConfig:
         "episode's start and seed: what a planning proxy (`wamplan serve`) needs for a world model whose frameskip "
         "is shorter than the chunk, e.g. 4 8 12")
     wm_plain: str = field("", "plain world model checkpoint (condition 6)")
-    wm_augmented: str = field("", "augmented world model checkpoint (condition 7); several comma-separated "
-                              "checkpoints form an ensemble (see --disagreement-weight); the same for --wm-plain")
+    wm_augmented: str = field("", "augmented world model checkpoint (condition 7); several joined by + (or "
+                              "commas), A+B, form an ensemble (see --disagreement-weight); the same for --wm-plain")
     sim_encoder: str = field("", "encoder for the simulator conditions (default: the plain world model's)")
     device: str = field("auto", "torch device for the models")
     wm_dtype: str = field("float32", "arithmetic of the world models' rollouts in the search: float32, or bfloat16 "
@@ -98,7 +98,7 @@ class EvalConfig:
         or none was given."""
         attr = _WORLD_MODEL_FIELDS.get(CONDITIONS[condition].dynamics)
         paths = getattr(self, attr) if attr else ""
-        return paths.split(",") if paths else []
+        return ensemble_members(paths)
 
     def check_for(self, conditions: list[int]) -> None:
         from wamplan.errors import UserError, require_paths

@@ -24,7 +24,7 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from wamplan.config import to_dict
+from wamplan.config import ensemble_members, to_dict
 from wamplan.envs.spec import check_same_task
 from wamplan.evaluation.conditions import CONDITIONS
 from wamplan.evaluation.config import EvalConfig
@@ -73,7 +73,7 @@ class EvalWorker:
         if self.cfg.sim_encoder:
             return make_encoder(self.cfg.sim_encoder).to(resolve_device(self.cfg.device))
         if self.cfg.wm_plain or self.cfg.wm_augmented:
-            return self._world_model((self.cfg.wm_plain or self.cfg.wm_augmented).split(",")[0])[1]
+            return self._world_model(ensemble_members(self.cfg.wm_plain or self.cfg.wm_augmented)[0])[1]
         return make_encoder("patch-pixels").to(resolve_device(self.cfg.device))
 
     def policy(self, cid: int):

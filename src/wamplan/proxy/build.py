@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from wamplan.config import ensemble_members
 from wamplan.envs.spec import TaskSpec, check_same_task, get_task
 from wamplan.errors import UserError
 from wamplan.proxy.app import Proxy
@@ -65,7 +66,7 @@ def build_proxy(cfg: ProxyConfig, upstream: Upstream | None = None, planning: di
     from wamplan.wam.cosmos_client import profile_config
     from wamplan.worldmodel.train import load_world_model
 
-    paths = [p for p in cfg.world_model.split(",") if p]
+    paths = [p for p in ensemble_members(cfg.world_model) if p]
     dynamics, encoder = learned_dynamics([load_world_model(p, device=cfg.device, dtype=cfg.wm_dtype) for p in paths])
     task = get_task(task_name(dynamics) or LEGACY_TASK)
     ecfg = EvalConfig(wm_augmented=",".join(paths), device=cfg.device, wm_dtype=cfg.wm_dtype,

@@ -20,7 +20,8 @@ class ProxyConfig:
 
     upstream: str = field("", "the WAM to plan for: its /act URL (http://HOST:PORT/act) or a local WAM checkpoint "
                               "directory")
-    world_model: str = field("", "world model checkpoint directory (several, comma-separated: an ensemble)")
+    world_model: str = field("", "world model checkpoint directory (several joined by + (or commas), A+B: an "
+                            "ensemble)")
     profile: str = field("", "the upstream's fields and sizes: a client profile (cosmos-robocasa, cosmos-aloha); "
                              "unset: ALOHA's field names mapped onto the world model's cameras by position")
     errors: str = field("upstream", "how failures (the client's and the upstream's) are answered: upstream (HTTP 200 "
