@@ -40,7 +40,7 @@ from wamplan.planning.dynamics import LearnedDynamics, PlanningContext
 from wamplan.planning.timing import planner_settings, timed
 from wamplan.worldmodel.config import PredictorConfig
 from wamplan.worldmodel.predictor import WorldModelPredictor
-from wamplan.worldmodel.train import load_world_model
+from wamplan.worldmodel.train import load_predictor
 from wamplan.presets import get_world_model_preset as get_preset
 from wamplan.worldmodel.stores import predictor_for_task
 
@@ -114,7 +114,7 @@ def main() -> None:
     first: dict[str, float] = {}  # preset -> the first task's KV-cached time
     runs = [(n, t, predictor_for_task(get_preset(n).predictor, get_task(t), get_task(t).cameras))
             for n in args.presets for t in args.tasks]
-    trained = {path: load_world_model(path)[0] for path in args.ckpt}  # each with its config, task and weights
+    trained = {path: load_predictor(path) for path in args.ckpt}  # each with its config, task and weights
     runs += [(path, m.task.name, m.cfg) for path, m in trained.items()]
     for name, task, cfg in runs:
         steps = CHUNK // cfg.frameskip

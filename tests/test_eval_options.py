@@ -254,6 +254,10 @@ def test_a_missing_checkpoint_is_named_with_its_flag_and_fix(tmp_path):
         _cfg("--wam", str(tmp_path / "nowhere")).check_for([1])
     _cfg("--wam", ok, "--wm-augmented", f"{ok},{ok}").check_for([1, 7])  # all there: no error
     assert _cfg("--wm-augmented", f"{ok}+{ok}").world_models(7) == [ok, ok]  # A+B: an ensemble, as in wm fidelity
+    plus = tmp_path / "exp+v2"  # an existing path with a + in it is one checkpoint
+    plus.mkdir()
+    assert _cfg("--wm-augmented", str(plus)).world_models(7) == [str(plus)]
+    assert _cfg("--wm-augmented", f"{plus},{ok}").world_models(7) == [str(plus), ok]
     with pytest.raises(UserError, match=r"^--wm-augmented \(empty\) does not exist"):
         _cfg("--wam", ok, "--wm-augmented", f"{ok}+").check_for([7])
 

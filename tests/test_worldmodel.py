@@ -488,21 +488,22 @@ def test_a_spliced_model_predicts_each_part_exactly_as_its_own_model_and_refuses
     from wamplan.checkpoint import export_for_inference
     from wamplan.encoders import make_encoder
     from wamplan.planning.dynamics import LearnedDynamics, PlanningContext
-    from wamplan.worldmodel.reweigh import splice_parts
+    from wamplan.worldmodel.reweigh import reweigh_parts, splice_parts
     from wamplan.worldmodel.splice import SplicedPredictor
-    from wamplan.worldmodel.train import load_world_model
+    from wamplan.worldmodel.train import load_predictor, load_world_model
 
     pp = make_encoder("patch-pixels", input_size=32, patch_size=16, proj_dim=8).config_dict()  # 4 tokens x 8
     extra = dict(name="patch-pixels", input_size=32, patch_size=16, proj_dim=4, seed=1)  # 4 tokens x 4
     concat = make_encoder("concat", parts=[pp, extra], scales=[1, 0.5]).config_dict()
-    grown_cfg, small_cfg = dataclasses.replace(TINY, enc_dim=12), dataclasses.replace(TINY, enc_dim=4)
+    grown_cfg, small_cfg = dataclasses.replace(TINY, enc_dim=12, state_dim=3), dataclasses.replace(TINY, enc_dim=4)
     runs = {"grown": (grown_cfg, concat), "p0": (TINY, pp), "p1": (small_cfg, make_encoder(**extra).config_dict())}
-    for name, (cfg, info) in runs.items():  # three models of random weights trained 2 steps
+    for name, (cfg, info) in runs.items():  # three models of random weights trained 2 steps; the base has a head
         train_predictor(SyntheticWindows(8, cfg, TINY.context + TRAIN.horizon, seed=len(name)), cfg, TRAIN,
                         tmp_path / name, device="cpu", max_steps=2, progress=False, encoder_info=info)
-    out = splice_parts(tmp_path / "grown", {0: tmp_path / "p0", 1: tmp_path / "p1"}, tmp_path / "spliced")
+    out = splice_parts(tmp_path / "grown", {1: tmp_path / "p1", 0: tmp_path / "p0"}, tmp_path / "spliced")
     spliced, enc = load_world_model(out)
     assert isinstance(spliced, SplicedPredictor) and enc.config_dict() == concat
+    assert isinstance(load_predictor(out), SplicedPredictor)  # without its encoder (what benchmarks/planner.py times)
     (grown, _), (p0, _), (p1, _) = (load_world_model(tmp_path / n) for n in runs)
     z, q, a = _frames(grown_cfg, 1, 3)
     future = torch.randn(5, 2, TINY.action_block_dim)  # 5 candidates, 2 blocks
@@ -513,20 +514,33 @@ def test_a_spliced_model_predicts_each_part_exactly_as_its_own_model_and_refuses
         torch.testing.assert_close(zs[..., 8:], 0.5 * own1, atol=0, rtol=0)
         torch.testing.assert_close(qs, grown.rollout(z, q, a[:, :2], future)[1], atol=0, rtol=0)
         torch.testing.assert_close(spliced(z, q, a)[0][..., :8], p0(z[..., :8], q, a)[0], atol=0, rtol=0)
+        torch.testing.assert_close(spliced.read_state(zs), grown.read_state(zs))  # the base's head reads it all
     dyn = LearnedDynamics(spliced)  # the planner's path: the cached prefix, then all candidates in one batch
     dyn.prepare(PlanningContext(z[0], q[0], a[0, :2]))
     torch.testing.assert_close(dyn.terminal(future.reshape(5, 2 * TINY.frameskip, TINY.action_dim)), zs[:, -1])
     half, _ = load_world_model(export_for_inference(out, tmp_path / "fp16"))  # an fp16 export loads the same way
-    assert isinstance(half, SplicedPredictor) and half.cameras == spliced.cameras
-    for parts, message in [({2: tmp_path / "p0"}, "the base's encoder has parts 0-1"),
+    with torch.no_grad():
+        torch.testing.assert_close(half.rollout(z, q, a[:, :2], future)[0], zs, atol=0.05, rtol=0.05)
+    one = splice_parts(tmp_path / "grown", {1: tmp_path / "p1"}, tmp_path / "one")  # one part: the rest the base's
+    with torch.no_grad():
+        torch.testing.assert_close(load_world_model(one)[0].rollout(z, q, a[:, :2], future)[0][..., :8],
+                                   grown.rollout(z, q, a[:, :2], future)[0][..., :8], atol=0, rtol=0)
+    for parts, message in [({2: tmp_path / "p0"}, "for parts of the base's encoder, 0-1"),
+                           ({"0": tmp_path / "p0"}, "for parts of the base's encoder, 0-1"),
                            ({1: tmp_path / "p0"}, "give a model trained on that part's encoder")]:
         with pytest.raises(UserError, match=message):
             splice_parts(tmp_path / "grown", parts, tmp_path / "x")
     with pytest.raises(UserError, match="only a concat model's parts can be spliced"):
         splice_parts(tmp_path / "p0", {0: tmp_path / "p0"}, tmp_path / "x")
+    with pytest.raises(UserError, match="is a spliced model; .* use its base"):
+        reweigh_parts(out, [1, 1.0], tmp_path / "x")
     assert not (tmp_path / "x").exists()
     with pytest.raises(UserError, match="exists; give a new directory"):
         splice_parts(tmp_path / "grown", {0: tmp_path / "p0"}, tmp_path / "spliced")
+    other = WorldModelPredictor(TINY, "cube-insertion", ["side", "front"])  # the same views, in another order
+    with pytest.raises(UserError, match="splice models trained on the same cameras in the same order"):
+        SplicedPredictor(WorldModelPredictor(grown_cfg, "cube-insertion", ["front", "side"]), {0: other}, [8, 4],
+                         [1, 0.5])
 
 
 def test_sibling_picture_draws_a_concat_model_through_the_part_its_decoder_knows(tmp_path, repo_script):

@@ -44,7 +44,7 @@ def planned_policy(wam: WAM | str | Path, world_model: str | Path | Sequence[str
                    planner: str | None = None, planner_config: Any = None, cost: CostConfig | None = None,
                    device: str = "auto", **settings: Any) -> PlannedPolicy:
     """``wam`` (a :class:`WAM`, or its checkpoint directory) whose chunks are planned in ``world_model`` (a
-    checkpoint directory; several, as a list or comma-separated, form an ensemble), as ``wamplan eval`` plans
+    checkpoint directory; several, as a list or joined by + (or commas), form an ensemble), as ``wamplan eval`` plans
     condition 7.
 
     ``planner``: a registered planner name (``wamplan.planning.PLANNERS``; default: the evaluation's);
@@ -55,7 +55,7 @@ def planned_policy(wam: WAM | str | Path, world_model: str | Path | Sequence[str
     :class:`ChunkDecision`.
     """
     parts = [world_model] if isinstance(world_model, (str, Path)) else list(world_model)
-    paths = [p for part in parts for p in ensemble_members(str(part)) if p]
+    paths = [p for part in parts for p in (ensemble_members(part) if isinstance(part, str) else [str(part)]) if p]
     choice = {} if planner is None else {"planner": planner}
     cfg = EvalConfig(wam=str(wam) if isinstance(wam, (str, Path)) else "", wm_augmented=",".join(paths),
                      device=device, planner_config=planner_config, cost=cost or CostConfig(),

@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import re
 import types
 import typing
 from pathlib import Path
@@ -200,6 +199,9 @@ def from_args(cls: type[T], args: argparse.Namespace, base: T | None = None, pre
 
 def ensemble_members(spec: str) -> list[str]:
     """The world-model checkpoints of ``spec``: one path, or an ensemble's members joined by ``+`` (``A+B``; commas,
-    ``A,B``, are read the same where an option takes one model). An empty entry is kept, for the caller to refuse
+    ``A,B``, are read the same where an option takes one model). A comma-separated entry that is an existing path is
+    kept whole, ``+`` and all (``runs/exp+v2/wm``). An empty entry is kept, for the caller to refuse
     (``errors.require_paths``) or drop."""
-    return re.split(r"[+,]", spec) if spec else []
+    if not spec:
+        return []
+    return [m for part in spec.split(",") for m in ([part] if Path(part).exists() else part.split("+"))]

@@ -58,8 +58,9 @@ def _serve(args: argparse.Namespace) -> int:
           f"failures answered {errors}; {budget})", flush=True)
     print(proxy.describe(), flush=True)
     if getattr(proxy.upstream, "unreachable", None):
-        print(f"warning: {proxy.upstream.where} did not answer ({proxy.upstream.unreachable}); requests fail "
-              f"until it does: start it, or check --upstream's host and port", file=sys.stderr, flush=True)
+        print(f"warning: {proxy.upstream.where} did not answer at start-up ({proxy.upstream.unreachable}), so its "
+              f"chunk length, views and task were neither read nor checked, and requests fail until it answers: "
+              f"start it (or fix --upstream's host and port), then restart serve", file=sys.stderr, flush=True)
     try:
         run_app(create_proxy_app(proxy, secret), args.host, args.port, secret, args.log_level,
                 ws_max_bytes=cfg.max_request_bytes)

@@ -20,6 +20,7 @@ from functools import partial
 from pathlib import Path
 from typing import Any, Callable, Iterator, Sequence
 
+from wamplan.config import ensemble_members
 from wamplan.data.record import collect_one
 from wamplan.data.store import MANIFEST, EpisodeData, EpisodeStore
 from wamplan.envs.config import EnvConfig
@@ -158,9 +159,9 @@ def collect(source: str, episodes: int, out: str | Path, *, seed_start: int = 0,
             if loader is make_policy:
                 raise UserError("plan_with builds a planned WAM, which the registered policies' loader cannot: pass "
                                 "loader=wamplan.evaluation.build.load_policy")
-            require_paths(plan_with.split(","), "--plan-with",
-                          "pass a world model checkpoint (e.g. from `wamplan wm train`)")
-            tag += "+plan:" + "+".join(Path(p).resolve().name for p in plan_with.split(","))
+            members = ensemble_members(plan_with)
+            require_paths(members, "--plan-with", "pass a world model checkpoint (e.g. from `wamplan wm train`)")
+            tag += "+plan:" + "+".join(Path(p).resolve().name for p in members)
             policy_kwargs = dict(policy_kwargs or {}, plan_with=plan_with)
     elif plan_with:
         raise UserError(f"--plan-with needs --source policy (it plans a WAM's chunks), got --source {source}")

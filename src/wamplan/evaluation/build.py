@@ -50,7 +50,7 @@ def plan_in_world_model(cfg: EvalConfig, wam: WAM | str, paths: Sequence[str]) -
 def load_policy(spec: str, instruction: str | None = None, plan_with: str = "", task: TaskSpec | None = None,
                 **kwargs: Any) -> Policy:
     """A registered policy name (``kwargs`` go to its constructor), or a directory holding a WAM checkpoint:
-    run open loop, or with ``plan_with`` (world model checkpoints, comma-separated for an ensemble) planned
+    run open loop, or with ``plan_with`` (world model checkpoints, an ensemble's joined by + or commas) planned
     as condition 7 plans it, at the evaluation's default planner, cost and chunk rules. ``task``: the task the
     policy acts in; a registered policy is built for it, a WAM must have been made for it (one line otherwise)."""
     if spec in POLICIES:

@@ -176,6 +176,13 @@ def _store_settings(out: Path, now: dict[str, Any]) -> None:
     (out / CONFIG).write_text(json.dumps(now, indent=1, sort_keys=True) + "\n")
 
 
+def _same_setting(key: str, before: Any, now: Any) -> bool:
+    """One stored setting against the requested one; an ensemble spelled A,B or A+B is the same ensemble."""
+    if key in ("wm_plain", "wm_augmented") and isinstance(before, str) and isinstance(now, str):
+        return ensemble_members(before) == ensemble_members(now)
+    return _same(before, now)
+
+
 def _settings_to_store(out: Path, cfg: EvalConfig, recorded: bool = True) -> dict[str, Any]:
     """Records of one directory must come from one configuration (see :func:`settings`); a world model
     or simulator encoder not given before may be added later. ``recorded``: ``out`` holds records; settings
@@ -195,7 +202,7 @@ def _settings_to_store(out: Path, cfg: EvalConfig, recorded: bool = True) -> dic
         # a setting newer than the directory, requested at its default, is what the older version ran with
         default = settings(EvalConfig(planner=cfg.planner))
         diff = {k: (before.get(k), now.get(k)) for k in set(before) | set(now)
-                if not _same(before.get(k), now.get(k)) and not (k in addable and not (before.get(k) and now.get(k)))
+                if not _same_setting(k, before.get(k), now.get(k)) and not (k in addable and not (before.get(k) and now.get(k)))
                 and not (k not in before and k in default and _same(now[k], default[k]))}
         if diff:
             raise UserError(f"{out} holds an evaluation with other settings {diff} (stored, requested); "

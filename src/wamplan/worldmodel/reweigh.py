@@ -23,7 +23,7 @@ from typing import Sequence
 
 import torch
 
-from wamplan.checkpoint import checkpoint_dir, read_config, save_checkpoint
+from wamplan.checkpoint import checkpoint_dir, read_config, read_meta, save_checkpoint
 from wamplan.errors import UserError
 from wamplan.worldmodel.splice import SPLICE_KIND, SplicedPredictor, spliced_record
 from wamplan.worldmodel.train import KIND, load_world_model
@@ -32,6 +32,10 @@ from wamplan.worldmodel.train import KIND, load_world_model
 def _concat_record(src: str | Path, what: str) -> tuple[Path, dict]:
     """(checkpoint dir, config) of ``src``, a world model on a ``concat`` encoder; one line for any other."""
     ckpt = checkpoint_dir(src)
+    if read_meta(ckpt).get("kind") == SPLICE_KIND:
+        base = read_config(ckpt, SPLICE_KIND).get("spliced", {}).get("base", "the concat model it was made from")
+        raise UserError(f"{src} is a spliced model; only a concat model's own checkpoint can be {what}: use its base "
+                        f"({base}), then splice the result")
     config = read_config(ckpt, KIND)
     name = (config.get("encoder") or {}).get("name")
     if name != "concat":
@@ -73,10 +77,12 @@ def splice_parts(base: str | Path, parts: dict[int, str | Path], dst: str | Path
         raise UserError(f"{dst} exists; give a new directory for the spliced model (nothing is overwritten)")
     ckpt, config = _concat_record(base, "spliced")
     model, enc = load_world_model(ckpt)
+    bad = [i for i in parts if isinstance(i, bool) or not isinstance(i, int) or not 0 <= i < len(enc.parts)]
+    if bad or not parts:
+        raise UserError(f"parts {bad or '{}'} asked for; give {{part index: model}} for parts of the base's encoder, "
+                        f"0-{len(enc.parts) - 1}")
     models, records = {}, {}
     for i, path in sorted(parts.items()):
-        if isinstance(i, bool) or not isinstance(i, int) or not 0 <= i < len(enc.parts):
-            raise UserError(f"part {i!r} asked for; the base's encoder has parts 0-{len(enc.parts) - 1}")
         record = read_config(checkpoint_dir(path), KIND)
         theirs = {k: v for k, v in (record.get("encoder") or {}).items() if k != "path"}
         if theirs != config["encoder"]["parts"][i]:
@@ -89,4 +95,5 @@ def splice_parts(base: str | Path, parts: dict[int, str | Path], dst: str | Path
         records[i] = record
     spliced = SplicedPredictor(model, models, [p.dim for p in enc.parts], enc.scales)
     made = {"base": str(ckpt), "parts": {str(i): str(checkpoint_dir(p)) for i, p in sorted(parts.items())}}
-    return save_checkpoint(dst, spliced, {**spliced_record(config, records), "spliced": made}, kind=SPLICE_KIND)
+    return save_checkpoint(dst, spliced, {**spliced_record(spliced, config, records), "spliced": made},
+                           kind=SPLICE_KIND)

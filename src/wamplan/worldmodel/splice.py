@@ -65,14 +65,22 @@ class SplicedPredictor(nn.Module):
             if differ:
                 raise UserError(f"the model for part {i} differs from the base in {', '.join(differ)}; splice "
                                 f"models trained on one task's frames at one frameskip and context")
+            if m.cameras and base.cameras and tuple(m.cameras) != tuple(base.cameras):
+                raise UserError(f"the model for part {i} predicts views {list(m.cameras)}, the base "
+                                f"{list(base.cameras)}; splice models trained on the same cameras in the same order")
         self.base = base
         self.parts = nn.ModuleDict({str(i): parts[i] for i in sorted(parts)})
         self.dims, self.scales = list(dims), [float(s) for s in scales]
-        self.cfg, self.task, self.state_head = base.cfg, base.task, base.state_head
+        self.cfg, self.task = base.cfg, base.task
 
     @property
     def cameras(self) -> tuple[str, ...] | None:
         return self.base.cameras
+
+    @property
+    def state_head(self) -> nn.Module | None:
+        """The base's state head (it reads the spliced latents, all D dims), or None."""
+        return self.base.state_head
 
     def _part(self, i: int) -> tuple[int, int, float]:
         start = sum(self.dims[:i])
@@ -133,25 +141,25 @@ class SplicedPredictor(nn.Module):
         return sum(p.numel() for p in self.parameters())
 
 
-def spliced_record(base: dict[str, Any], parts: dict[int, dict[str, Any]]) -> dict[str, Any]:
-    """The ``config`` of a spliced checkpoint from the base's and the part models' own config records: the base's
-    encoder and data (what the spliced model reads and was trained on), and every model's record."""
-    return {"encoder": base.get("encoder"), "data": base.get("data"), "base": base,
-            "parts": {str(i): rec for i, rec in sorted(parts.items())}}
+def spliced_record(model: SplicedPredictor, base: dict[str, Any], parts: dict[int, dict[str, Any]]) -> dict[str, Any]:
+    """The ``config`` of the spliced checkpoint of ``model`` from the base's and the part models' own config records:
+    the base's encoder and data (what the spliced model reads and was trained on), the parts' dims and scales, and
+    every model's record."""
+    return {"encoder": base.get("encoder"), "data": base.get("data"), "dims": model.dims, "scales": model.scales,
+            "base": base, "parts": {str(i): rec for i, rec in sorted(parts.items())}}
 
 
-def load_spliced(ckpt: str | Path, device: str | torch.device = "cpu") -> tuple[SplicedPredictor, Any]:
-    """(spliced predictor in eval mode, its concat encoder) of the checkpoint directory ``ckpt`` (kind ``wm-splice``)."""
-    from wamplan.encoders import make_encoder
-
+def load_spliced(ckpt: str | Path, device: str | torch.device = "cpu") -> SplicedPredictor:
+    """The spliced predictor (eval mode) of the checkpoint directory ``ckpt`` (kind ``wm-splice``) on ``device``."""
     saved = read_config(ckpt, SPLICE_KIND)
-    info = dict(saved.get("encoder") or {})
-    if info.pop("name", None) != "concat" or not isinstance(saved.get("parts"), dict) or not saved["parts"]:
-        raise UserError(f"{ckpt}: a spliced checkpoint records a concat encoder and its part models; this one does "
-                        f"not (damaged?); splice the models again (worldmodel.reweigh.splice_parts)")
-    enc = make_encoder("concat", **info)
-    parts = {int(i): WorldModelPredictor.from_record(rec) for i, rec in saved["parts"].items()}
-    model = SplicedPredictor(WorldModelPredictor.from_record(saved["base"]), parts, [p.dim for p in enc.parts],
-                             enc.scales)
+    parts = saved.get("parts")
+    if not isinstance(saved.get("base"), dict) or not isinstance(parts, dict) or not parts or \
+            not isinstance(saved.get("dims"), list) or not isinstance(saved.get("scales"), list):
+        raise UserError(f"{ckpt}: a spliced checkpoint records its base, its part models, and the parts' dims and "
+                        f"scales; this one does not (damaged?): splice the models again "
+                        f"(worldmodel.reweigh.splice_parts)")
+    model = SplicedPredictor(WorldModelPredictor.from_record(saved["base"]),
+                             {int(i): WorldModelPredictor.from_record(rec) for i, rec in parts.items()},
+                             saved["dims"], saved["scales"])
     load_weights(ckpt, model)
-    return model.to(device).eval(), enc
+    return model.to(device).eval()

@@ -499,13 +499,21 @@ def grow_weights(weights: dict[str, torch.Tensor], model: WorldModelPredictor, o
     return out
 
 
+def _kind_of(ckpt: Path) -> str:
+    """The kind of a world-model checkpoint: a predictor's (``wm-predictor``) or a splice's (``wm-splice``)."""
+    return SPLICE_KIND if read_meta(ckpt).get("kind") == SPLICE_KIND else KIND
+
+
 def load_predictor(path: str | Path, device: str | torch.device = "cpu") -> WorldModelPredictor:
     """A trained predictor (eval mode) from a checkpoint directory (or a training ``out_dir``), with the task and
     cameras it was trained on as ``model.task`` / ``model.cameras`` (a checkpoint that records no task:
-    cube-insertion; none records no cameras: the task's)."""
+    cube-insertion; none records no cameras: the task's). A spliced checkpoint gives its
+    :class:`~wamplan.worldmodel.splice.SplicedPredictor`."""
     ckpt = checkpoint_dir(path)
-    model = WorldModelPredictor.from_record(read_config(ckpt, KIND))
     dev = resolve_device(device) if isinstance(device, str) else device
+    if _kind_of(ckpt) == SPLICE_KIND:  # a concat model whose parts other models predict
+        return load_spliced(ckpt, dev)
+    model = WorldModelPredictor.from_record(read_config(ckpt, KIND))
     load_weights(ckpt, model)
     return model.to(dev).eval()
 
@@ -516,16 +524,10 @@ def load_world_model(path: str | Path, device: str | torch.device = "cpu", dtype
     from wamplan.encoders import make_encoder
 
     ckpt = checkpoint_dir(path)
-    cast = getattr(torch, dtype) if isinstance(dtype, str) else dtype
-    if read_meta(ckpt).get("kind") == SPLICE_KIND:  # a concat model with parts from other models
-        model, enc = load_spliced(ckpt, resolve_device(device) if isinstance(device, str) else device)
-        model, name = model.to(cast), "concat"
-    else:
-        info = dict(read_config(ckpt, KIND).get("encoder") or {})
-        model = load_predictor(path, device).to(cast)
-        name = info.pop("name", model.cfg.encoder)
-        enc = make_encoder(name, **info)
-    enc = enc.to(next(model.parameters()).device)
+    info = dict(read_config(ckpt, _kind_of(ckpt)).get("encoder") or {})
+    model = load_predictor(path, device).to(getattr(torch, dtype) if isinstance(dtype, str) else dtype)
+    name = info.pop("name", model.cfg.encoder)
+    enc = make_encoder(name, **info).to(next(model.parameters()).device)
     if (enc.num_patches, enc.dim) != (model.cfg.num_patches, model.cfg.enc_dim):
         raise UserError(f"{ckpt}: encoder {name} gives {enc.num_patches} x {enc.dim} tokens, the predictor "
                         f"was trained on {model.cfg.num_patches} x {model.cfg.enc_dim}; "
