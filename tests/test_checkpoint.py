@@ -38,5 +38,13 @@ def test_round_trip_resume_and_export(tmp_path):
     load_weights(tmp_path / "small", m3)
     assert m3[0].weight.dtype == torch.float32
     torch.testing.assert_close(m3(x), m(x), rtol=1e-2, atol=1e-2)
+    export_for_inference(tmp_path / "ck", tmp_path / "small")  # an export replaces an export
+    store = tmp_path / "store"  # anything else that exists is left alone: a store, the run's own folder
+    store.mkdir()
+    (store / "store.json").write_text("{}")
+    for dst in (store, tmp_path / "ck"):
+        with pytest.raises(CheckpointError, match="is not an exported checkpoint"):
+            export_for_inference(tmp_path / "ck", dst)
+    assert (store / "store.json").is_file() and has_training_state(tmp_path / "ck")
     with pytest.raises(CheckpointError, match="not a"):
         read_config(tmp_path, "toy")

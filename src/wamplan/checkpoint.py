@@ -189,10 +189,14 @@ def load_training_state(path: str | Path, optimizer: torch.optim.Optimizer, sche
 
 def export_for_inference(src: str | Path, dst: str | Path, dtype: torch.dtype = torch.float16) -> Path:
     """Copy a checkpoint without its training state, floating-point weights cast to ``dtype`` (half the
-    size for the demo checkpoints that ship in git; loading casts back to the model's dtype)."""
+    size for the demo checkpoints that ship in git; loading casts back to the model's dtype). ``dst`` is new, or an
+    exported checkpoint to replace; any other existing path (a run, a store, a folder of your files) is refused."""
     src, final = Path(src), Path(dst)
     if not (src / MODEL_FILE).is_file():
         raise CheckpointError(f"{src} is not a checkpoint directory (no {MODEL_FILE})")
+    if final.exists() and (not final.is_dir() or {p.name for p in final.iterdir()} - {MODEL_FILE, CONFIG_FILE}):
+        raise CheckpointError(f"{final} exists and is not an exported checkpoint (it holds other files); export "
+                              f"into a new directory (nothing is overwritten)")
     weights = {k: (v.to(dtype) if v.is_floating_point() else v) for k, v in load_tensors(src / MODEL_FILE).items()}
     meta = read_meta(src)
     tmp = _atomic_dir(final)
