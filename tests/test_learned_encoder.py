@@ -50,14 +50,21 @@ def test_training_logs_the_state_readout_in_mm_and_the_export_encodes(trained):
         make_encoder("task-cnn")
 
 
-def test_a_world_model_trains_on_its_features_and_reloads_it(trained, tmp_path):
+def test_a_world_model_trains_on_its_features_and_reloads_it_from_any_folder(trained, tmp_path, monkeypatch):
     from wamplan.cli import main
     from wamplan.worldmodel.train import load_world_model
 
     store, _, export = trained
-    run = tmp_path / "wm"
-    assert main(["wm", "train", "--data", str(store), "--out", str(run), "--max-steps", "1", "--batch-size", "4",
-                 "--encoder", "task-cnn", "--encoder-kwargs", json.dumps({"ckpt": str(export)})]) == 0
-    model, enc = load_world_model(run)
+    repo = tmp_path / "repo"  # the encoder named relative to the folder the model is trained in
+    shutil.copytree(export, repo / "checkpoints" / "enc16")
+    monkeypatch.chdir(repo)
+    assert main(["wm", "train", "--data", str(store), "--out", "runs/wm", "--max-steps", "1", "--batch-size", "4",
+                 "--encoder", "task-cnn", "--encoder-kwargs", json.dumps({"ckpt": "checkpoints/enc16"})]) == 0
+    monkeypatch.chdir(tmp_path)  # elsewhere: found above the world model, recorded as it was given
+    model, enc = load_world_model(repo / "runs" / "wm")
     assert enc.name == "task-cnn" and (model.cfg.encoder, model.cfg.num_patches, model.cfg.enc_dim) == ("task-cnn", 16, 32)
-    assert enc.config_dict()["sha"] == load_world_model(run)[1].config_dict()["sha"]
+    assert enc.config_dict()["ckpt"] == "checkpoints/enc16"
+    assert enc.config_dict()["sha"] == load_world_model(repo / "runs" / "wm")[1].config_dict()["sha"]
+    shutil.move(repo / "runs", tmp_path / "moved")  # out of the tree that holds its encoder: said in one line
+    with pytest.raises(UserError, match="reads its task-cnn encoder's weights from checkpoints/enc16"):
+        load_world_model(tmp_path / "moved" / "wm")

@@ -61,15 +61,38 @@ def weights_digest(ckpt: str | Path) -> str:
     return hashlib.sha1((Path(ckpt) / MODEL_FILE).read_bytes()).hexdigest()[:12]
 
 
+def locate_weights(info: dict[str, Any], near: str | Path) -> dict[str, Any]:
+    """An encoder record (``info``: a world model's ``encoder``) with ``near`` (the world model's checkpoint) given to
+    each learned encoder in it, its own or a ``concat`` part's, to find relative weights by (see ``task-cnn``'s
+    ``near``); the record itself (``config_dict``) is unchanged."""
+    if isinstance(info.get("parts"), list):
+        return {**info, "parts": [locate_weights(p, near) for p in info["parts"]]}
+    return {**info, "near": str(near)} if info.get("ckpt") else info
+
+
+def _find(ckpt: str, near: str | None) -> Path:
+    """``ckpt`` as given (from the current folder), else under the nearest folder above ``near`` that holds it."""
+    if Path(ckpt).exists() or near is None:
+        return Path(ckpt)
+    for base in () if Path(ckpt).is_absolute() else Path(near).resolve().parents:
+        if (base / ckpt).exists():
+            return base / ckpt
+    raise UserError(f"{near} reads its task-cnn encoder's weights from {ckpt} (its config.json), found neither from "
+                    f"here ({Path.cwd()}) nor in a folder above it; run from the folder it was trained in, or put the "
+                    f"encoder's checkpoint there")
+
+
 @register_encoder("task-cnn")
 class TaskCNNEncoder(FrozenEncoder):
     """The trained ``task-cnn`` of checkpoint directory ``ckpt`` (a training run's or an export), frozen.
-    ``sha``: the digest its weights must have (a world model records it); None accepts any."""
+    ``sha``: the digest its weights must have (a world model records it); None accepts any. ``near``: a world model's
+    checkpoint that records this encoder: a relative ``ckpt`` not found from the current folder is looked for under
+    the folders above it (``config_dict`` keeps ``ckpt`` as given)."""
 
     name = "task-cnn"
 
     def __init__(self, ckpt: str | None = None, sha: str | None = None, input_size: int = 64,
-                 net: CNNTokens | None = None) -> None:
+                 net: CNNTokens | None = None, near: str | None = None) -> None:
         super().__init__(input_size)
         if input_size != 64:
             raise UserError(f"task-cnn: input_size must be 64 (its 4 x 4 token grid), got {input_size}")
@@ -77,7 +100,7 @@ class TaskCNNEncoder(FrozenEncoder):
             if not ckpt:
                 raise UserError("task-cnn needs its trained weights: --encoder-kwargs '{\"ckpt\": DIR}', a run of "
                                 "`wamplan wm train-encoder` or its export")
-            path = checkpoint_dir(ckpt)
+            path = checkpoint_dir(_find(ckpt, near))
             saved = read_config(path, KIND)
             net = CNNTokens(int(saved["net"]["width"]))
             digest = weights_digest(path)

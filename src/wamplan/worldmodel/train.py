@@ -522,12 +522,13 @@ def load_world_model(path: str | Path, device: str | torch.device = "cpu", dtype
     """(predictor, encoder) from a predictor checkpoint; the encoder is rebuilt from the stored config. ``dtype``
     (a torch dtype or its name): the predictor's arithmetic; the encoder stays float32."""
     from wamplan.encoders import make_encoder
+    from wamplan.encoders.learned import locate_weights
 
     ckpt = checkpoint_dir(path)
     info = dict(read_config(ckpt, _kind_of(ckpt)).get("encoder") or {})
     model = load_predictor(path, device).to(getattr(torch, dtype) if isinstance(dtype, str) else dtype)
     name = info.pop("name", model.cfg.encoder)
-    enc = make_encoder(name, **info).to(next(model.parameters()).device)
+    enc = make_encoder(name, **locate_weights(info, ckpt)).to(next(model.parameters()).device)
     if (enc.num_patches, enc.dim) != (model.cfg.num_patches, model.cfg.enc_dim):
         raise UserError(f"{ckpt}: encoder {name} gives {enc.num_patches} x {enc.dim} tokens, the predictor "
                         f"was trained on {model.cfg.num_patches} x {model.cfg.enc_dim}; "
