@@ -178,6 +178,18 @@ def test_an_upstream_server_behind_the_proxy_passes_its_fields_through():
         p.close()
 
 
+def test_an_upstream_that_wants_a_secret_the_proxy_lacks_is_named_so(monkeypatch):
+    monkeypatch.delenv("WAMPLAN_UPSTREAM_SECRET", raising=False)
+    with BackgroundServer(create_app(load_wam(WAM_CKPT, device="cpu"), secret="u")) as up:
+        p = build_proxy(ProxyConfig(upstream=up.act_url, world_model=WM_CKPT, device="cpu", errors="http"))
+        try:
+            with BackgroundServer(create_proxy_app(p)) as srv:
+                r = requests.post(f"{srv.url}/act", data=request(observation(1, 0)), timeout=60)
+                assert r.status_code == 502 and "start serve with $WAMPLAN_UPSTREAM_SECRET set to it" in r.text
+        finally:
+            p.close()
+
+
 class Shaped(Upstream):
     def __init__(self, **shape):
         self.where = "the test upstream"
@@ -261,6 +273,11 @@ def test_serve_refuses_a_world_model_that_does_not_fit_in_one_line(capsys):
     assert "does not fit the WAM 'tinywam': it returns 16-step chunks, not 50" in err
     assert main(["serve", "--upstream", "htp://robot:8777/act", "--world-model", WM_CKPT]) == 2  # a mistyped scheme
     assert "only http:// and https:// URLs are reached" in capsys.readouterr().err
+    for upstream, said in (("http://robot:8777", "names no route; a WAM server answers at /act: pass "
+                                                  "http://robot:8777/act"),
+                           ("robot:8777/act", "looks like an address without its scheme; pass http://robot:8777/act")):
+        assert main(["serve", "--upstream", upstream, "--world-model", WM_CKPT]) == 2
+        assert said in capsys.readouterr().err
 
 
 def test_the_proxy_plans_with_the_planner_cost_and_rules_it_is_given():

@@ -95,6 +95,9 @@ class HttpUpstream(Upstream):
             raise UpstreamError(504, f"{self.where} did not answer within {self.timeout_s:g} s") from e
         except requests.exceptions.RequestException as e:
             raise UpstreamError(502, f"{self.where} is not reachable ({type(e).__name__})") from e
+        if r.status_code in (401, 403):
+            raise UpstreamError(502, f"{self.where} refused the proxy (HTTP {r.status_code}): it wants a shared "
+                                     f"secret; start serve with ${UPSTREAM_SECRET_ENV} set to it")
         if r.status_code != 200:
             raise UpstreamError(502, f"{self.where} answered HTTP {r.status_code} ({r.text[:200]!r})")
         try:
