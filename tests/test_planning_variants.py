@@ -1,9 +1,12 @@
 """Gated planning, warm starts and the uncertainty-aware (ensemble) cost of the planned policy."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
 
+from wamplan.errors import UserError
 from wamplan.planning import CEMConfig, make_cost, make_planner
 from wamplan.planning.dynamics import Dynamics, EnsembleDynamics, LearnedDynamics, PlanningContext, learned_dynamics
 from wamplan.planning.history import PlanningError
@@ -202,6 +205,9 @@ def test_identical_members_do_not_disagree(encoder):
     assert torch.equal(spread, torch.zeros(4))
     torch.testing.assert_close(z, single.terminal(cands))
     assert ens.covered(16) == 16 and ens.needs_history and ens.frameskip == 4 and ens.context == 3
+    other = WorldModelPredictor(dataclasses.replace(model.cfg, frameskip=8)).eval()
+    with pytest.raises(UserError, match=r"ensemble members differ in frameskip \[4, 8\]"):  # one line, not a trace
+        EnsembleDynamics([LearnedDynamics(model), LearnedDynamics(other)])
 
 
 def test_disagreement_is_the_variance_across_members(encoder):

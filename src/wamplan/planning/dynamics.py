@@ -40,6 +40,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 
 from wamplan.envs.spec import check_same_task
+from wamplan.errors import UserError
 
 if TYPE_CHECKING:
     from wamplan.envs.spec import TaskSpec
@@ -242,7 +243,7 @@ class EnsembleDynamics(Dynamics):
         for attr in ("frameskip", "context"):
             vals = {getattr(m, attr, None) for m in members}
             if len(vals) > 1:
-                raise ValueError(f"ensemble members differ in {attr} {sorted(vals, key=str)}; use world models "
+                raise UserError(f"ensemble members differ in {attr} {sorted(vals, key=str)}; use world models "
                                  f"trained with the same {attr}")
         self.members = list(members)
         self.task = _shared_task(self.members, "checkpoint {i} of the ensemble")
@@ -281,6 +282,6 @@ def learned_dynamics(models: list[tuple]) -> tuple[Dynamics, object]:
     the history are encoded once, with the first member's encoder)."""
     encs = [enc.config_dict() for _, enc in models]
     if any(e != encs[0] for e in encs[1:]):
-        raise ValueError(f"ensemble members use different encoders {encs}; train them on one encoder")
+        raise UserError(f"ensemble members use different encoders {encs}; train them on one encoder")
     dyns = [LearnedDynamics(model) for model, _ in models]
     return (dyns[0] if len(dyns) == 1 else EnsembleDynamics(dyns)), models[0][1]
