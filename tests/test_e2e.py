@@ -67,6 +67,15 @@ def test_wm_eval_reports_copy_baseline(run, tmp_path):
     ds = WorldModelWindows([run / "expert"], frameskip=model.cfg.frameskip, history=h, horizon=2, split="all",
                            features=feature_key(enc.config_dict()))
     assert m["windows"] == len(ds) > 0 and m["horizon"] == 2 and m["frameskip"] == model.cfg.frameskip
+    held = tmp_path / "wm_held"  # a model trained holding out another share scores that share's episodes
+    shutil.copytree(run / "wm" / "checkpoint", held)
+    meta = json.loads((held / "config.json").read_text())
+    meta["config"]["data"]["val_fraction"] = 0.3
+    (held / "config.json").write_text(json.dumps(meta))
+    assert main(["wm", "eval", "--ckpt", str(held), "--data", str(run / "expert"), "--horizon", "1",
+                 "--json", str(out)]) == 0
+    assert json.loads(out.read_text())["val_fraction"] == 0.3
+    assert main(["wm", "eval", "--ckpt", str(run / "wm"), "--data", str(run / "expert"), "--horizon", "0"]) == 2
     z = torch.stack([ds[i]["z"].float() for i in range(len(ds))])  # (W, h + 2, V, N, D)
     for k in (1, 2):
         copy = (z[:, h - 1] - z[:, h - 1 + k]).square().flatten(1).mean(1).mean()  # over windows

@@ -142,8 +142,9 @@ def _eval_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--horizon", type=int, default=4, help="autoregressive steps to score")
     p.add_argument("--split", default="val", choices=("train", "val", "all"),
                    help="which episodes to score: the held-out ones (val, default), the training ones, or all")
-    p.add_argument("--val-fraction", type=float, default=0.1,
-                   help="the held-out fraction the model was trained with (default: 0.1)")
+    p.add_argument("--val-fraction", type=float, default=None,
+                   help="the held-out fraction (default: the one the model was trained with, as its config.json "
+                        "records; 0.1 where it records none)")
     p.add_argument("--json", type=Path, default=None, help="also write the figures to this JSON file")
     p.set_defaults(func=cmd_eval)
 
@@ -278,10 +279,14 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from wamplan.data.features import feature_key
     from wamplan.data.readers import BranchGroups, WorldModelWindows
     from wamplan.worldmodel.stores import encode_stores, stores_task
-    from wamplan.worldmodel.train import evaluate_predictor, load_world_model
+    from wamplan.worldmodel.train import evaluate_predictor, load_world_model, trained_val_fraction
 
     require_file(args.json, "--json")
+    if args.horizon < 1:
+        raise UserError(f"--horizon {args.horizon}: score at least one step ahead (e.g. --horizon 4)")
     model, enc = load_world_model(args.ckpt)
+    if args.val_fraction is None:
+        args.val_fraction = trained_val_fraction(args.ckpt)
     stores = _stores(args.data)
     task, cameras = stores_task(stores)
     if task.name != model.task.name or cameras != (model.cameras or cameras):
@@ -302,8 +307,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
         m.update({k: pooled[k] for k in (f"sib_mse_h{args.horizon}", f"sib_rel_h{args.horizon}",
                                          f"sib_gain_h{args.horizon}")}, sibling_groups=pooled["groups"])
         m.update(report)
-    out = dict(ckpt=str(args.ckpt), data=args.data, split=args.split, windows=len(ds), horizon=args.horizon,
-               frameskip=model.cfg.frameskip, **m)
+    out = dict(ckpt=str(args.ckpt), data=args.data, split=args.split, val_fraction=args.val_fraction,
+               windows=len(ds), horizon=args.horizon, frameskip=model.cfg.frameskip, **m)
     print(json.dumps(out, indent=1))
     if args.json:
         write_json(args.json, out)

@@ -140,6 +140,9 @@ def train_predictor_on_stores(stores: Sequence[str | Path], out: str | Path, pre
     tr, va = WorldModelWindows(stores, split="train", **kw), WorldModelWindows(stores, split="val", **kw)
     if progress:
         print(f"windows: {len(tr)} train, {len(va)} val ({len(tr.episodes)} / {len(va.episodes)} episodes)")
+        if not len(va):
+            print(f"note: --val-fraction {val_fraction:g} held out no episode of these {len(tr.episodes)} (each is "
+                  f"held out by a hash of its name), so nothing is scored held-out; raise it or add episodes")
     groups = val_groups = None
     if train.sibling_weight > 0:
         groups, val_groups = (BranchGroups(stores, predictor.frameskip, predictor.context, train.sibling_horizon,

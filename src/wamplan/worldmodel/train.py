@@ -499,6 +499,12 @@ def grow_weights(weights: dict[str, torch.Tensor], model: WorldModelPredictor, o
     return out
 
 
+def trained_val_fraction(path: str | Path) -> float:
+    """The share of episodes a world model's training held out, as its checkpoint records it (0.1 where none)."""
+    data = read_meta(checkpoint_dir(path)).get("config", {}).get("data") or {}
+    return float(data.get("val_fraction", 0.1))
+
+
 def _kind_of(ckpt: Path) -> str:
     """The kind of a world-model checkpoint: a predictor's (``wm-predictor``) or a splice's (``wm-splice``)."""
     return SPLICE_KIND if read_meta(ckpt).get("kind") == SPLICE_KIND else KIND
