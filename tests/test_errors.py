@@ -589,7 +589,9 @@ def test_argparse_errors_print_one_short_usage_line(capsys):
                        (["eval", "--first-chunk", "nope"], "invalid choice: 'nope'"),
                        (["eval", "--cost-name", "nope"], "invalid choice: 'nope'"),
                        (["eval", "--wam-profile", "nope"], "cosmos-robocasa"),
-                       (["collect", "--source", "expert"], "required: --episodes, --out")):
+                       (["collect", "--source", "expert"], "required: --episodes, --out"),
+                       (["wm", "train", "--data", "d", "--out", "o", "--encoder-kwargs", "{}", "--encoder-kwargs",
+                         "{}"], "--encoder-kwargs given twice; give it once")):
         with pytest.raises(SystemExit) as e:
             main(argv)
         err = capsys.readouterr().err

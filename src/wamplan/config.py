@@ -205,3 +205,13 @@ def ensemble_members(spec: str) -> list[str]:
     if not spec:
         return []
     return [m for part in spec.split(",") for m in ([part] if Path(part).exists() else part.split("+"))]
+
+
+class Once(argparse.Action):
+    """An option that may be given once: a second ``--opt`` is refused (argparse keeps the last silently), e.g. two
+    ``--encoder-kwargs`` of which only the last would be used."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        if getattr(namespace, self.dest, None) not in (None, self.default):
+            parser.error(f"{option_string} given twice; give it once (one JSON object holds every setting)")
+        setattr(namespace, self.dest, values)

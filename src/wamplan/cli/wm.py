@@ -7,7 +7,7 @@ import json
 from collections import Counter
 from pathlib import Path
 
-from wamplan.config import add_arguments, ensemble_members, from_args, int_list
+from wamplan.config import Once, add_arguments, ensemble_members, from_args, int_list
 from wamplan.errors import UserError, require_dir, require_file, require_paths, require_seeds
 from wamplan.cli.main import add_command, add_group, register_command
 
@@ -73,7 +73,7 @@ def _encode_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", default="mini", choices=sorted(PRESETS), help="which encoder (wamplan/presets.py)")
     p.add_argument("--encoder", default=None, help="a registered encoder instead of the preset's, e.g. task-cnn "
                                                    "(its settings from --encoder-kwargs only)")
-    p.add_argument("--encoder-kwargs", default=None, metavar="JSON", help=ENCODER_KWARGS_HELP)
+    p.add_argument("--encoder-kwargs", default=None, metavar="JSON", action=Once, help=ENCODER_KWARGS_HELP)
     p.add_argument("--encoder-path", default=None, help="local weights directory for DINOv2/DINOv3 encoders")
     p.add_argument("--device", default="auto", help=DEVICE_HELP)
     p.set_defaults(func=cmd_encode)
@@ -91,7 +91,7 @@ def _train_options(name: str):
                             "override them")
         p.add_argument("--encoder", default=None, help="a registered encoder instead of the preset's, e.g. task-cnn "
                                                        "(its settings from --encoder-kwargs only)")
-        p.add_argument("--encoder-kwargs", default=None, metavar="JSON", help=ENCODER_KWARGS_HELP)
+        p.add_argument("--encoder-kwargs", default=None, metavar="JSON", action=Once, help=ENCODER_KWARGS_HELP)
         p.add_argument("--encoder-path", default=None, help="local weights directory for DINOv2/DINOv3 encoders")
         p.add_argument("--val-fraction", type=float, default=0.1,
                        help="fraction of episodes held out for validation (default: 0.1)")
