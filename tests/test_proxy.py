@@ -314,7 +314,8 @@ def test_the_proxy_rolls_the_world_model_out_in_the_dtype_it_is_given():
     (["--num-elites", "4"], "--num-elites is an option of planner(s) ['cem', 'cem-gripper'], not of 'wamplan'"),
     (["--replan-every", "8"], "cannot re-plan inside one; drop --replan-every"),
     (["--cost-state-weight", "0.3"], "needs a world model with a state head"),  # what only the model can refuse
-    (["--disagreement-weight", "0.1"], "needs an ensemble of world models"),
+    (["--disagreement-weight", "0.1"], "pass several checkpoints joined by + (eval --wm-augmented A+B, serve "
+                                       "--world-model A+B)"),
 ])
 def test_serve_refuses_planning_settings_that_do_not_fit_in_one_line(capsys, flags, said):
     from wamplan.cli.main import main

@@ -139,5 +139,6 @@ def check_fits(cfg: PlannedPolicyConfig, chunk: int, planner: Planner, dynamics:
 
     if cfg.disagreement_weight > 0 and isinstance(dynamics, LearnedDynamics):
         raise PlanningError("disagreement_weight needs an ensemble of world models, got one; pass several "
-                            "comma-separated checkpoints (e.g. --wm-augmented A,B,C) or set it to 0")
+                            "checkpoints joined by + (eval --wm-augmented A+B, serve --world-model A+B) or set it "
+                            "to 0")
     return period
