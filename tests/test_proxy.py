@@ -316,6 +316,8 @@ def test_the_proxy_rolls_the_world_model_out_in_the_dtype_it_is_given():
     (["--cost-state-weight", "0.3"], "needs a world model with a state head"),  # what only the model can refuse
     (["--disagreement-weight", "0.1"], "pass several checkpoints joined by + (eval --wm-augmented A+B, serve "
                                        "--world-model A+B)"),
+    (["--planner", "drift", "--search-dims", "7"], "search_dims (7,) name entries past task 'cube-insertion''s 5-D"),
+    (["--planner", "cem-gripper", "--gripper-dim", "9"], "gripper_dim 9 is not an entry of task 'cube-insertion''s"),
 ])
 def test_serve_refuses_planning_settings_that_do_not_fit_in_one_line(capsys, flags, said):
     from wamplan.cli.main import main

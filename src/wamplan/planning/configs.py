@@ -151,6 +151,9 @@ class DriftConfig(SamplingConfig):
         """Empty ``search_dims`` filled with ``task``'s arm entries, and sigma scaled as in
         :meth:`SamplingConfig.for_task`."""
         cfg = super().for_task(task)
+        require(not cfg.search_dims or max(cfg.search_dims) < task.action_dim,
+                f"search_dims {cfg.search_dims} name entries past task '{task.name}''s {task.action_dim}-D actions; "
+                f"give indices 0-{task.action_dim - 1} (or none: the task's arm entries {task.arm})")
         return cfg if cfg.search_dims else dataclasses.replace(cfg, search_dims=task.arm)
 
 
@@ -179,6 +182,9 @@ class CEMGripperConfig(CEMConfig):
         """The gripper settings left None filled from ``task``, and sigma scaled as in
         :meth:`SamplingConfig.for_task`; one line if the task has no gripper."""
         cfg = super().for_task(task)
+        require(cfg.gripper_dim is None or 0 <= cfg.gripper_dim < task.action_dim,
+                f"gripper_dim {cfg.gripper_dim} is not an entry of task '{task.name}''s {task.action_dim}-D actions; "
+                f"give 0-{task.action_dim - 1} (or none: the task's, {task.gripper_index})")
         unset = {k: v for k, v in (("gripper_dim", task.gripper_index), ("gripper_open", task.gripper_open),
                                    ("gripper_closed", task.gripper_closed)) if getattr(cfg, k) is None}
         if not unset:
