@@ -292,6 +292,19 @@ def test_checkpoints_record_the_task_and_cameras_and_old_ones_mean_the_cube(tmp_
     assert "push-cube" in str(e.value) and "\n" not in str(e.value)
 
 
+def test_a_run_another_process_is_training_is_refused_and_left_as_it_was(tmp_path):
+    from wamplan.train_loop import run_lock
+
+    run = tmp_path / "run"
+    train_predictor(_windows(), TINY, TRAIN, run, device="cpu", max_steps=1, progress=False)
+    metrics = (run / METRICS_FILE).read_text()
+    with run_lock(run):  # as a second process training it would hold it
+        with pytest.raises(UserError, match="is being trained by another process now"):
+            train_predictor(_windows(), TINY, TRAIN, run, device="cpu", resume=True, max_steps=2, progress=False)
+    assert (run / METRICS_FILE).read_text() == metrics
+    train_predictor(_windows(), TINY, TRAIN, run, device="cpu", resume=True, max_steps=2, progress=False)  # free
+
+
 @pytest.mark.parametrize("stop", [4, 3])  # inside epoch 2; exactly at the end of epoch 1
 def test_resume_continues_exactly(tmp_path, stop):
     data = _windows()

@@ -24,9 +24,10 @@ dropout masks.)
 from __future__ import annotations
 
 import dataclasses
+import fcntl
 import json
 import time
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, Protocol, Sequence
@@ -43,6 +44,7 @@ from wamplan.optim import make_adamw, optimizer_step, warmup_cosine
 from wamplan.progress import progress_bar
 
 METRICS_FILE = "metrics.jsonl"
+LOCK_FILE = ".lock"  # a run's write lock (run_lock)
 # fields of a config's "train" section that may change when a run is resumed (everything else must match)
 RUN_ONLY_FIELDS = ("epochs", "num_workers", "device", "save_every_steps", "log_every_steps", "precision")
 
@@ -235,12 +237,34 @@ def _to_device(batch: Any, device: torch.device) -> Any:
 
 
 # ------------------------------------------------------------------------------------------------ the loop
-def fit(model: nn.Module, batches: Batches, step_fn: StepFn, cfg: LoopConfig, *, run_dir: str | Path, kind: str,
-        config: dict[str, Any], data: dict[str, Any] | None = None, device: torch.device | None = None,
-        evaluate: Callable[[nn.Module], dict[str, float]] | None = None,
-        on_fresh_start: Callable[[], None] | None = None, resume: bool = False, max_steps: int | None = None,
-        progress: bool = True, desc: str = "train",
-        log: Callable[[str], None] | None = print, retired: Sequence[str] = ()) -> FitResult:
+@contextmanager
+def run_lock(run: Path) -> Iterator[None]:
+    """Hold ``run``'s write lock (``run/.lock``, an flock) while the block runs: one line if another process holds
+    it, so two trainings never write one run (its metrics and checkpoint) at once."""
+    f = open(run / LOCK_FILE, "a")
+    try:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise UserError(f"{run} is being trained by another process now; wait for it to end (then re-run to "
+                            f"resume) or pass another --out") from None
+        yield
+    finally:
+        f.close()  # releases the lock
+
+
+def fit(*args: Any, **kwargs: Any) -> FitResult:
+    """:func:`train` under the run's write lock (:func:`run_lock`), taken before the run is first written."""
+    with ExitStack() as held:
+        return train(*args, hold=lambda run: held.enter_context(run_lock(run)), **kwargs)
+
+
+def train(model: nn.Module, batches: Batches, step_fn: StepFn, cfg: LoopConfig, *, run_dir: str | Path, kind: str,
+          config: dict[str, Any], data: dict[str, Any] | None = None, device: torch.device | None = None,
+          evaluate: Callable[[nn.Module], dict[str, float]] | None = None,
+          on_fresh_start: Callable[[], None] | None = None, resume: bool = False, max_steps: int | None = None,
+          progress: bool = True, desc: str = "train", log: Callable[[str], None] | None = print,
+          retired: Sequence[str] = (), hold: Callable[[Path], None] = lambda run: None) -> FitResult:
     """Train ``model`` (already on ``device``) into ``run_dir`` with ``step_fn(model, batch) -> (loss, logs)``.
 
     ``config`` is stored in the checkpoint (``kind`` names the model family) with ``data`` (the identity
@@ -249,7 +273,7 @@ def fit(model: nn.Module, batches: Batches, step_fn: StepFn, cfg: LoopConfig, *,
     compute normalisation statistics). ``resume`` continues the run's checkpoint (an error without it if
     one exists). ``max_steps`` stops after that many optimisation steps in all (saved; resumable).
     ``retired``: ``train`` keys that older runs of ``kind`` stored and this version no longer has (see
-    :func:`check_resume`).
+    :func:`check_resume`). ``hold(run)`` is called before the run is first written (``fit`` takes its lock there).
     """
     run = Path(run_dir)
     ckpt, metrics_path = run_paths(run)
@@ -273,6 +297,7 @@ def fit(model: nn.Module, batches: Batches, step_fn: StepFn, cfg: LoopConfig, *,
     if has_training_state(ckpt) and not resume:
         raise UserError(f"{run} already holds a training checkpoint; pass --resume to continue it or a new --out")
     if resume and has_training_state(ckpt):
+        hold(run)
         check_resume(run, kind, config, data, retired)
         load_weights(ckpt, model, device)
         saved = load_training_state(ckpt, opt, sched)
@@ -288,6 +313,9 @@ def fit(model: nn.Module, batches: Batches, step_fn: StepFn, cfg: LoopConfig, *,
         if on_fresh_start is not None:
             on_fresh_start()
         run.mkdir(parents=True, exist_ok=True)
+        hold(run)
+        if has_training_state(ckpt):  # another process began this run since the check above
+            raise UserError(f"{run} already holds a training checkpoint; pass --resume to continue it or a new --out")
         metrics_path.write_text("")
 
     def save() -> None:
