@@ -430,7 +430,8 @@ def test_init_fine_tunes_from_a_checkpoint_and_refuses_another_architecture(tmp_
     assert any(not torch.equal(a, b) for a, b in zip(tuned.parameters(), base.parameters()))
     assert torch.equal(tuned.z_mean, base.z_mean)
     wider = dataclasses.replace(TINY, mlp_dim=64)
-    with pytest.raises(UserError, match="is another predictor .*mlp_dim"):
+    with pytest.raises(UserError, match="is another predictor .*mlp_dim.*; fine-tune with its settings "
+                                        r"\(--mlp-dim 32\)"):
         train_predictor(other, wider, TRAIN, tmp_path / "bad", device="cpu", progress=False, init=tmp_path / "base")
 
 

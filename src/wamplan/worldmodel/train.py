@@ -458,12 +458,26 @@ def _check_init(init: str | Path, cfg: PredictorConfig, encoder_info: dict[str, 
         their_encoder = encoder_info or {}
     if theirs != to_dict(cfg):
         diff = {k: (theirs.get(k), v) for k, v in to_dict(cfg).items() if theirs.get(k) != v}
-        raise UserError(f"--init {init} is another predictor {diff} (its, this run's); fine-tune with the preset "
-                        f"it was trained with")
+        raise UserError(f"--init {init} is another predictor {diff} (its, this run's); {_init_fix(diff, theirs)}")
     if encoder_info is not None and their_encoder and their_encoder != encoder_info:
         raise UserError(f"--init {init} was trained on encoder {their_encoder}, this run encodes with {encoder_info}; "
                         f"use the encoder it was trained with, or a concat encoder whose first part it is (scale 1)")
     return old_dim
+
+
+def _init_fix(diff: dict[str, tuple], theirs: dict[str, Any]) -> str:
+    """What makes this run the start's architecture: its options, its task's stores, or its encoder."""
+    from wamplan.worldmodel.config import ARCHITECTURE_FIELDS
+
+    if {"num_views", "proprio_dim", "action_dim"} & diff.keys():
+        return "it was trained on another task's views or actions: fine-tune it on stores of its task"
+    if {"encoder", "enc_dim", "num_patches"} & diff.keys():
+        return ("it reads other tokens: give this run its encoder (--encoder, --encoder-kwargs), or a concat encoder "
+                "whose first part it is, at scale 1")
+    flags = [f"--{k.replace('_', '-')} {theirs[k]}" for k in diff if k in ARCHITECTURE_FIELDS]
+    rest = sorted(k for k in diff if k not in ARCHITECTURE_FIELDS)
+    return (f"fine-tune with its settings ({' '.join(flags)})" if flags and not rest else
+            f"fine-tune with the preset it was trained with (--preset), then its settings {' '.join(flags)}".rstrip())
 
 
 def grown_dims(theirs: dict[str, Any], their_encoder: dict[str, Any], cfg: PredictorConfig,
