@@ -34,6 +34,7 @@ import statistics
 import torch
 
 from wamplan.device import resolve_device
+from wamplan.errors import UserError
 from wamplan.envs.spec import get_task
 from wamplan.planning import PLANNERS, make_cost, make_planner
 from wamplan.planning.dynamics import LearnedDynamics, PlanningContext
@@ -89,7 +90,7 @@ def search_inputs(cfg: PredictorConfig, dev: torch.device) -> tuple[PlanningCont
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--presets", nargs="+", default=["mini", "paper"])
     ap.add_argument("--tasks", nargs="+", default=["cube-insertion"], help="registered tasks to size the presets for")
     ap.add_argument("--repeats", type=int, default=3)
@@ -160,4 +161,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except UserError as e:  # a bad --ckpt, task or preset: one line
+        raise SystemExit(f"planner.py: error: {e}") from None

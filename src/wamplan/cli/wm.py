@@ -57,7 +57,8 @@ def _wm_commands(wm: argparse.ArgumentParser) -> None:
     add_command(s, "probe", _probe_options,
                 help="ridge probe from an encoder's frozen tokens to the cube's position (held-out mm)")
     add_command(s, "fidelity", _fidelity_options,
-                help="rank agreement of world models with the simulator on the same candidates")
+                help="rank agreement of world models with the simulator on the same candidates; with --plan, the "
+                     "gate: each model's own plan scored in the simulator")
 
 
 ENCODER_KWARGS_HELP = ("the preset's encoder settings, overridden by this JSON object, e.g. '{\"basis\": \"dct\"}' "
@@ -100,7 +101,8 @@ def _train_options(name: str):
         if name == "train":
             p.add_argument("--init", type=Path, default=None,
                            help="fine-tune: start from this predictor checkpoint's weights and feature statistics "
-                                "(same preset and encoder)")
+                                "(same preset and encoder; or a concat encoder whose first part is its encoder at "
+                                "scale 1: it grows onto the wider tokens)")
             add_architecture_arguments(p.add_argument_group("predictor", "the preset's predictor, overridden"),
                                        {k: v.world_model.predictor for k, v in sorted(PRESETS.items())})
         cls, part = (TrainConfig, "train") if name == "train" else (DecoderTrainConfig, "decoder_train")
