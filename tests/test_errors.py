@@ -630,6 +630,10 @@ def test_training_help_shows_each_presets_default_and_a_held_out_share_outside_0
     for cmd in ("train", "train-decoder"):
         refused(capsys, ["wm", cmd, "--data", expert_store, "--out", tmp_path / cmd, "--val-fraction", "1"],
                 "--val-fraction 1.0", "must be in (0, 1)")
+    refused(capsys, ["wm", "train", "--data", expert_store, "--out", tmp_path / "ft", "--init", tmp_path / "gone"],
+            "--init", "gone does not exist")  # before the stores are encoded
+    assert not (tmp_path / "ft").exists()
+    refused(capsys, ["wm", "probe", "--data", expert_store, "--near-mm", "-5"], "--near-mm must be > 0")
 
 def test_help_is_cached_and_matches_argparse(tmp_path, monkeypatch, capsys):
     """`wamplan eval --help` is built once (imports torch and the planners) and then read from the cache."""

@@ -247,6 +247,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     from wamplan.worldmodel.stores import train_predictor_on_stores
 
     require_dir(args.out)
+    if args.init is not None:  # before the stores are encoded, which may take long
+        require_paths([str(args.init)], "--init", "pass a world-model checkpoint or run directory to fine-tune")
     resolve_device(args.device)
     p = get_world_model_preset(args.preset)
     encoder, encoder_kwargs = _encoder(args, p)

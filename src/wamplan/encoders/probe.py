@@ -62,6 +62,7 @@ class ProbeConfig:
         require(self.folds >= 2, f"folds must be >= 2, got {self.folds}")
         require(len(self.alphas) > 0 and all(a > 0 for a in self.alphas),
                 f"alphas must be positive, got {self.alphas}")
+        require(self.near_mm > 0, f"--near-mm must be > 0 (a distance in mm, e.g. 20), got {self.near_mm:g}")
 
 
 @dataclass
