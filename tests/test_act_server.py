@@ -129,6 +129,14 @@ def test_default_host_is_loopback():
     assert inspect.signature(BackgroundServer).parameters["host"].default == "127.0.0.1"
 
 
+
+def test_contradicting_error_modes_are_refused_before_the_port_is_bound(capsys):
+    from wamplan.cli import main
+
+    assert main(["wam", "serve", "--ckpt", "x", "--errors", "http", "--bare-errors"]) == 2
+    assert "--bare-errors is --errors upstream, which --errors http contradicts" in capsys.readouterr().err
+
+
 def test_concurrent_clients_get_their_own_answers(guarded, tiny_ckpt):
     direct = load_wam(tiny_ckpt)
     n_threads, per_thread = 4, 5

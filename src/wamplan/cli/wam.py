@@ -38,7 +38,7 @@ def _serve_options(serve: argparse.ArgumentParser) -> None:
     serve.add_argument("--instruction", default=None,
                        help="instruction used when a request's task_description is empty "
                             "(default: the WAM's own default instruction)")
-    serve.add_argument("--errors", choices=["http", "upstream"], default="http",
+    serve.add_argument("--errors", choices=["http", "upstream"], default=None,
                        help="how a failed /act request is answered: http (default, for wamplan's client) a 4xx/5xx "
                             "status and a JSON body saying what is wrong; upstream (use it with Cosmos Policy's own "
                             "clients) HTTP 200 and the JSON string \"error\", as its reference server answers, the "
@@ -80,6 +80,8 @@ def _serve(args: argparse.Namespace) -> int:
     secret = listen_secret(args)
     if not args.max_request_mb > 0:
         raise UserError(f"--max-request-mb must be > 0, got {args.max_request_mb}")
+    if args.bare_errors and args.errors == "http":
+        raise UserError("--bare-errors is --errors upstream, which --errors http contradicts; give one of them")
     from wamplan.device import resolve_device
     from wamplan.wam.base import load_wam
     from wamplan.wam.server import bind_socket, field_map, resolve_maps, serve
@@ -92,7 +94,7 @@ def _serve(args: argparse.Namespace) -> int:
     except BaseException:
         sock.close()
         raise
-    errors = "upstream" if args.bare_errors else args.errors
+    errors = "upstream" if args.bare_errors else args.errors or "http"
     failures = 'failures answered HTTP 200 "error" (upstream error mode)' if errors == "upstream" else \
         "failures answered 4xx/5xx with a reason"
     print(f"serving WAM '{wam.name}' from {args.ckpt} at http://{args.host}:{args.port}/act "
