@@ -188,6 +188,14 @@ def test_an_upstream_that_wants_a_secret_the_proxy_lacks_is_named_so(monkeypatch
                 assert r.status_code == 502 and "start serve with $WAMPLAN_UPSTREAM_SECRET set to it" in r.text
         finally:
             p.close()
+        monkeypatch.setenv("WAMPLAN_UPSTREAM_SECRET", "wrong")
+        p = build_proxy(ProxyConfig(upstream=up.act_url, world_model=WM_CKPT, device="cpu", errors="http"))
+        try:
+            with BackgroundServer(create_proxy_app(p)) as srv:
+                r = requests.post(f"{srv.url}/act", data=request(observation(1, 0)), timeout=60)
+                assert r.status_code == 502 and "is not its own: set it to the upstream's" in r.text
+        finally:
+            p.close()
 
 
 class Shaped(Upstream):
@@ -275,6 +283,7 @@ def test_serve_refuses_a_world_model_that_does_not_fit_in_one_line(capsys):
     assert "only http:// and https:// URLs are reached" in capsys.readouterr().err
     for upstream, said in (("http://robot:8777", "names no route; a WAM server answers at /act: pass "
                                                   "http://robot:8777/act"),
+                           ("http://robot:8777/?k=v", "pass http://robot:8777/act?k=v"),
                            ("robot:8777/act", "looks like an address without its scheme; pass http://robot:8777/act")):
         assert main(["serve", "--upstream", upstream, "--world-model", WM_CKPT]) == 2
         assert said in capsys.readouterr().err

@@ -303,6 +303,10 @@ def test_a_run_another_process_is_training_is_refused_and_left_as_it_was(tmp_pat
             train_predictor(_windows(), TINY, TRAIN, run, device="cpu", resume=True, max_steps=2, progress=False)
     assert (run / METRICS_FILE).read_text() == metrics
     train_predictor(_windows(), TINY, TRAIN, run, device="cpu", resume=True, max_steps=2, progress=False)  # free
+    again = tmp_path / "again"  # a folder emptied by `rm -rf again/*` keeps its dotted lock: still a fresh --out
+    again.mkdir()
+    (again / ".lock").touch()
+    train_predictor(_windows(), TINY, TRAIN, again, device="cpu", max_steps=1, progress=False)
 
 
 @pytest.mark.parametrize("stop", [4, 3])  # inside epoch 2; exactly at the end of epoch 1

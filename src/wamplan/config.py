@@ -209,9 +209,11 @@ def ensemble_members(spec: str) -> list[str]:
 
 class Once(argparse.Action):
     """An option that may be given once: a second ``--opt`` is refused (argparse keeps the last silently), e.g. two
-    ``--encoder-kwargs`` of which only the last would be used."""
+    ``--encoder-kwargs`` of which only the last would be used. ``hint`` (class attribute): what to do instead."""
+
+    hint = ""
 
     def __call__(self, parser, namespace, values, option_string=None):
         if getattr(namespace, self.dest, None) not in (None, self.default):
-            parser.error(f"{option_string} given twice; give it once (one JSON object holds every setting)")
+            parser.error(f"{option_string} given twice; give it once" + (self.hint and f" ({self.hint})"))
         setattr(namespace, self.dest, values)

@@ -45,9 +45,10 @@ def require_dir(path: str | Path, flag: str = "--out") -> Path:
 
 def require_own_dir(path: str | Path, marks: Iterable[str], what: str, flag: str = "--out") -> None:
     """One line if ``path`` is a non-empty directory holding none of ``marks`` (the names that mark it as
-    ``what``): writing there would mix ``what`` into something else (an episode store, a training run)."""
+    ``what``): writing there would mix ``what`` into something else (an episode store, a training run). A run's
+    write lock (``.lock``) alone does not count."""
     p, marks = Path(path), tuple(marks)
-    if p.is_dir() and any(p.iterdir()) and not any((p / m).exists() for m in marks):
+    if p.is_dir() and any(e.name != ".lock" for e in p.iterdir()) and not any((p / m).exists() for m in marks):
         raise UserError(f"{flag} {p} exists and is not {what} (no {' or '.join(marks)} inside, it would be mixed "
                         f"up); pass a new or empty directory")
 

@@ -248,6 +248,8 @@ def run_lock(run: Path) -> Iterator[None]:
         except BlockingIOError:
             raise UserError(f"{run} is being trained by another process now; wait for it to end (then re-run to "
                             f"resume) or pass another --out") from None
+        except OSError as e:  # a filesystem without flock (some NFS, Lustre, FUSE mounts): train unguarded
+            print(f"note: {run}'s filesystem takes no lock ({e.strerror or e}); do not train into it twice at once")
         yield
     finally:
         f.close()  # releases the lock

@@ -61,6 +61,10 @@ def _wm_commands(wm: argparse.ArgumentParser) -> None:
                      "gate: each model's own plan scored in the simulator")
 
 
+class OneJSON(Once):
+    hint = "one JSON object holds every setting"
+
+
 ENCODER_KWARGS_HELP = ("the preset's encoder settings, overridden by this JSON object, e.g. '{\"basis\": \"dct\"}' "
                        "(patch-pixels: input_size, patch_size, proj_dim, seed, basis; task-cnn: ckpt; concat: parts, "
                        "a list of encoder configs, and scales, one per part)")
@@ -74,7 +78,7 @@ def _encode_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", default="mini", choices=sorted(PRESETS), help="which encoder (wamplan/presets.py)")
     p.add_argument("--encoder", default=None, help="a registered encoder instead of the preset's, e.g. task-cnn "
                                                    "(its settings from --encoder-kwargs only)")
-    p.add_argument("--encoder-kwargs", default=None, metavar="JSON", action=Once, help=ENCODER_KWARGS_HELP)
+    p.add_argument("--encoder-kwargs", default=None, metavar="JSON", action=OneJSON, help=ENCODER_KWARGS_HELP)
     p.add_argument("--encoder-path", default=None, help="local weights directory for DINOv2/DINOv3 encoders")
     p.add_argument("--device", default="auto", help=DEVICE_HELP)
     p.set_defaults(func=cmd_encode)
@@ -92,7 +96,7 @@ def _train_options(name: str):
                             "override them")
         p.add_argument("--encoder", default=None, help="a registered encoder instead of the preset's, e.g. task-cnn "
                                                        "(its settings from --encoder-kwargs only)")
-        p.add_argument("--encoder-kwargs", default=None, metavar="JSON", action=Once, help=ENCODER_KWARGS_HELP)
+        p.add_argument("--encoder-kwargs", default=None, metavar="JSON", action=OneJSON, help=ENCODER_KWARGS_HELP)
         p.add_argument("--encoder-path", default=None, help="local weights directory for DINOv2/DINOv3 encoders")
         p.add_argument("--val-fraction", type=float, default=0.1,
                        help="fraction of episodes held out for validation (default: 0.1)")

@@ -61,22 +61,29 @@ def weights_digest(ckpt: str | Path) -> str:
     return hashlib.sha1((Path(ckpt) / MODEL_FILE).read_bytes()).hexdigest()[:12]
 
 
-def locate_weights(info: dict[str, Any], near: str | Path) -> dict[str, Any]:
-    """An encoder record (``info``: a world model's ``encoder``) with ``near`` (the world model's checkpoint) given to
-    each learned encoder in it, its own or a ``concat`` part's, to find relative weights by (see ``task-cnn``'s
-    ``near``); the record itself (``config_dict``) is unchanged."""
-    if isinstance(info.get("parts"), list):
-        return {**info, "parts": [locate_weights(p, near) for p in info["parts"]]}
-    return {**info, "near": str(near)} if info.get("ckpt") else info
+def locate_weights(name: str, info: dict[str, Any], near: str | Path) -> dict[str, Any]:
+    """The settings ``info`` of encoder ``name`` (from a world model's ``encoder`` record) with ``near`` (the world
+    model's checkpoint) given to each ``task-cnn`` in it, its own or a ``concat`` part's, to find relative weights by
+    (see ``task-cnn``'s ``near``); the record itself (``config_dict``) is unchanged."""
+    if name == "concat" and isinstance(info.get("parts"), list):
+        return {**info, "parts": [{"name": p.get("name"), **locate_weights(p.get("name"), p, near)}
+                                  for p in info["parts"]]}
+    return {**info, "near": str(near)} if name == "task-cnn" and info.get("ckpt") else info
 
 
-def _find(ckpt: str, near: str | None) -> Path:
-    """``ckpt`` as given (from the current folder), else under the nearest folder above ``near`` that holds it."""
-    if Path(ckpt).exists() or near is None:
-        return Path(ckpt)
-    for base in () if Path(ckpt).is_absolute() else Path(near).resolve().parents:
-        if (base / ckpt).exists():
-            return base / ckpt
+def _find(ckpt: str, near: str | None, sha: str | None) -> Path:
+    """The first of ``ckpt`` as given (from the current folder) and ``ckpt`` under each folder above ``near`` that
+    holds it with weights of digest ``sha`` (any, where None); one line naming what was read otherwise."""
+    bases = [Path()] + ([] if near is None or Path(ckpt).is_absolute() else list(Path(near).resolve().parents))
+    found = [b / ckpt for b in bases if (b / ckpt).exists()]
+    for path in found:
+        weights = checkpoint_dir(path) / MODEL_FILE
+        if sha is None or not weights.is_file() or weights_digest(weights.parent) == sha:
+            return path  # (a folder without weights: the checkpoint loader names what is missing)
+    if found:
+        return found[0]  # other weights: the digest check names them
+    if near is None:
+        return Path(ckpt)  # the checkpoint loader names what is missing
     raise UserError(f"{near} reads its task-cnn encoder's weights from {ckpt} (its config.json), found neither from "
                     f"here ({Path.cwd()}) nor in a folder above it; run from the folder it was trained in, or put the "
                     f"encoder's checkpoint there")
@@ -100,13 +107,13 @@ class TaskCNNEncoder(FrozenEncoder):
             if not ckpt:
                 raise UserError("task-cnn needs its trained weights: --encoder-kwargs '{\"ckpt\": DIR}', a run of "
                                 "`wamplan wm train-encoder` or its export")
-            path = checkpoint_dir(_find(ckpt, near))
+            path = checkpoint_dir(_find(ckpt, near, sha))
             saved = read_config(path, KIND)
             net = CNNTokens(int(saved["net"]["width"]))
             digest = weights_digest(path)
             if sha is not None and sha != digest:
-                raise UserError(f"task-cnn: the weights in {ckpt} (digest {digest}) are not the ones this model was "
-                                f"trained on ({sha}); restore that encoder there")
+                raise UserError(f"task-cnn: the weights in {path} (digest {digest}) are not the ones this model was "
+                                f"trained on ({sha}); restore that encoder at {ckpt}")
             weights = {k[len(NET_PREFIX):]: v.float() for k, v in load_tensors(path / MODEL_FILE).items()
                        if k.startswith(NET_PREFIX)}
             net.load_state_dict(weights)

@@ -182,9 +182,9 @@ class CEMGripperConfig(CEMConfig):
         """The gripper settings left None filled from ``task``, and sigma scaled as in
         :meth:`SamplingConfig.for_task`; one line if the task has no gripper."""
         cfg = super().for_task(task)
-        require(cfg.gripper_dim is None or 0 <= cfg.gripper_dim < task.action_dim,
+        require(cfg.gripper_dim is None or -task.action_dim <= cfg.gripper_dim < task.action_dim,
                 f"gripper_dim {cfg.gripper_dim} is not an entry of task '{task.name}''s {task.action_dim}-D actions; "
-                f"give 0-{task.action_dim - 1} (or none: the task's, {task.gripper_index})")
+                f"give 0-{task.action_dim - 1} (or -1 for the last; none: the task's, {task.gripper_index})")
         unset = {k: v for k, v in (("gripper_dim", task.gripper_index), ("gripper_open", task.gripper_open),
                                    ("gripper_closed", task.gripper_closed)) if getattr(cfg, k) is None}
         if not unset:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from urllib.parse import urlparse
+from urllib.parse import urlparse, urlunparse
 
 from wamplan.config import field, require
 from wamplan.errors import UserError
@@ -57,7 +57,7 @@ class ProxyConfig:
                 f"http://HOST:8777/act); or give a local WAM checkpoint directory")
         require(not self.upstream_is_url or urlparse(self.upstream).path not in ("", "/"),
                 f"--upstream {self.upstream} names no route; a WAM server answers at /act: pass "
-                f"{self.upstream.rstrip('/')}/act")
+                f"{urlunparse(urlparse(self.upstream)._replace(path='/act'))}")
         require(self.upstream_is_url or Path(self.upstream).exists() or not re.match(r"^[\w.-]+:\d+(/|$)", self.upstream),
                 f"--upstream {self.upstream} looks like an address without its scheme; pass http://{self.upstream}")
         require(bool(self.world_model), "--world-model: name a world model checkpoint (from `wamplan wm train`)")

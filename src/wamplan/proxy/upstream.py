@@ -96,8 +96,10 @@ class HttpUpstream(Upstream):
         except requests.exceptions.RequestException as e:
             raise UpstreamError(502, f"{self.where} is not reachable ({type(e).__name__})") from e
         if r.status_code in (401, 403):
-            raise UpstreamError(502, f"{self.where} refused the proxy (HTTP {r.status_code}): it wants a shared "
-                                     f"secret; start serve with ${UPSTREAM_SECRET_ENV} set to it")
+            fix = (f"the secret in ${UPSTREAM_SECRET_ENV} is not its own: set it to the upstream's"
+                   if protocol.SECRET_HEADER in self._headers else
+                   f"it wants a shared secret: start serve with ${UPSTREAM_SECRET_ENV} set to it")
+            raise UpstreamError(502, f"{self.where} refused the proxy (HTTP {r.status_code}); {fix}")
         if r.status_code != 200:
             raise UpstreamError(502, f"{self.where} answered HTTP {r.status_code} ({r.text[:200]!r})")
         try:

@@ -474,10 +474,12 @@ def _init_fix(diff: dict[str, tuple], theirs: dict[str, Any]) -> str:
     if {"encoder", "enc_dim", "num_patches"} & diff.keys():
         return ("it reads other tokens: give this run its encoder (--encoder, --encoder-kwargs), or a concat encoder "
                 "whose first part it is, at scale 1")
-    flags = [f"--{k.replace('_', '-')} {theirs[k]}" for k in diff if k in ARCHITECTURE_FIELDS]
+    flags = [f"--{'' if theirs[k] else 'no-'}{k.replace('_', '-')}" if isinstance(theirs[k], bool) else
+             f"--{k.replace('_', '-')} {theirs[k]}" for k in diff if k in ARCHITECTURE_FIELDS]
     rest = sorted(k for k in diff if k not in ARCHITECTURE_FIELDS)
-    return (f"fine-tune with its settings ({' '.join(flags)})" if flags and not rest else
-            f"fine-tune with the preset it was trained with (--preset), then its settings {' '.join(flags)}".rstrip())
+    if flags and not rest:
+        return f"fine-tune with its settings ({' '.join(flags)})"
+    return "fine-tune with the preset it was trained with (--preset)" + (f", then {' '.join(flags)}" if flags else "")
 
 
 def grown_dims(theirs: dict[str, Any], their_encoder: dict[str, Any], cfg: PredictorConfig,
@@ -516,7 +518,7 @@ def grow_weights(weights: dict[str, torch.Tensor], model: WorldModelPredictor, o
 def trained_val_fraction(path: str | Path) -> float:
     """The share of episodes a world model's training held out, as its checkpoint records it (0.1 where none)."""
     data = read_meta(checkpoint_dir(path)).get("config", {}).get("data") or {}
-    return float(data.get("val_fraction", 0.1))
+    return float(data.get("val_fraction") or 0.1)
 
 
 def _kind_of(ckpt: Path) -> str:
@@ -548,7 +550,7 @@ def load_world_model(path: str | Path, device: str | torch.device = "cpu", dtype
     info = dict(read_config(ckpt, _kind_of(ckpt)).get("encoder") or {})
     model = load_predictor(path, device).to(getattr(torch, dtype) if isinstance(dtype, str) else dtype)
     name = info.pop("name", model.cfg.encoder)
-    enc = make_encoder(name, **locate_weights(info, ckpt)).to(next(model.parameters()).device)
+    enc = make_encoder(name, **locate_weights(name, info, ckpt)).to(next(model.parameters()).device)
     if (enc.num_patches, enc.dim) != (model.cfg.num_patches, model.cfg.enc_dim):
         raise UserError(f"{ckpt}: encoder {name} gives {enc.num_patches} x {enc.dim} tokens, the predictor "
                         f"was trained on {model.cfg.num_patches} x {model.cfg.enc_dim}; "
