@@ -386,6 +386,12 @@ def test_a_directory_refuses_another_world_model_and_accepts_one_added_later(tmp
         with pytest.raises(UserError, match="other settings") as e:
             resume("--wm-plain", str(plain), "--wm-augmented", str(augmented))
         assert str(plain) in str(e.value)  # the changed setting, as requested
+    ensemble = tmp_path / "ensemble"
+    run_evaluation(_cfg("--wm-augmented", f"{a},{b}"), [7], [], ensemble)
+    append_record(ensemble, dict(condition=7, seed=0, variant="open-loop", success=False, outcome="failure", length=9))
+    run_evaluation(_cfg("--wm-augmented", f"{a}+{b}"), [7], [], ensemble)  # the same ensemble, spelled A+B
+    with pytest.raises(UserError, match="other settings"):
+        run_evaluation(_cfg("--wm-augmented", f"{a}+{a}"), [7], [], ensemble)  # another ensemble: refused
 
 
 @pytest.mark.parametrize("argv", [

@@ -179,7 +179,8 @@ def _store_settings(out: Path, now: dict[str, Any]) -> None:
 def _same_setting(key: str, before: Any, now: Any) -> bool:
     """One stored setting against the requested one; an ensemble spelled A,B or A+B is the same ensemble."""
     if key in ("wm_plain", "wm_augmented") and isinstance(before, str) and isinstance(now, str):
-        return ensemble_members(before) == ensemble_members(now)
+        a, b = ensemble_members(before), ensemble_members(now)
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
     return _same(before, now)
 
 
