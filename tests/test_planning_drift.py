@@ -107,8 +107,8 @@ def test_drift_config_errors():
         drift(DriftConfig(num_candidates=12)).plan(chunk, cost, seed=0)
     with pytest.raises(ConfigError, match="search_dims must be distinct"):
         DriftConfig(search_dims=(0, 0))
-    with pytest.raises(ConfigError, match="pass indices below 5"):
-        drift(DriftConfig(search_dims=(0, 5))).plan(chunk, cost, seed=0)
+    with pytest.raises(ConfigError, match="name entries past task 'cube-insertion''s 5-D actions; give indices 0-4"):
+        drift(DriftConfig(search_dims=(0, 5))).plan(chunk, cost, seed=0)  # refused with the task, before planning
 
 
 def test_the_searched_dimensions_come_from_the_task():
