@@ -181,21 +181,17 @@ def test_an_upstream_server_behind_the_proxy_passes_its_fields_through():
 def test_an_upstream_that_wants_a_secret_the_proxy_lacks_is_named_so(monkeypatch):
     monkeypatch.delenv("WAMPLAN_UPSTREAM_SECRET", raising=False)
     with BackgroundServer(create_app(load_wam(WAM_CKPT, device="cpu"), secret="u")) as up:
-        p = build_proxy(ProxyConfig(upstream=up.act_url, world_model=WM_CKPT, device="cpu", errors="http"))
-        try:
-            with BackgroundServer(create_proxy_app(p)) as srv:
-                r = requests.post(f"{srv.url}/act", data=request(observation(1, 0)), timeout=60)
-                assert r.status_code == 502 and "start serve with $WAMPLAN_UPSTREAM_SECRET set to it" in r.text
-        finally:
-            p.close()
-        monkeypatch.setenv("WAMPLAN_UPSTREAM_SECRET", "wrong")
-        p = build_proxy(ProxyConfig(upstream=up.act_url, world_model=WM_CKPT, device="cpu", errors="http"))
-        try:
-            with BackgroundServer(create_proxy_app(p)) as srv:
-                r = requests.post(f"{srv.url}/act", data=request(observation(1, 0)), timeout=60)
-                assert r.status_code == 502 and "is not its own: set it to the upstream's" in r.text
-        finally:
-            p.close()
+        for secret, said in ((None, "start serve with $WAMPLAN_UPSTREAM_SECRET set to it"),
+                             ("wrong", "is not its own: set it to the upstream's")):
+            if secret:
+                monkeypatch.setenv("WAMPLAN_UPSTREAM_SECRET", secret)
+            p = build_proxy(ProxyConfig(upstream=up.act_url, world_model=WM_CKPT, device="cpu", errors="http"))
+            try:
+                with BackgroundServer(create_proxy_app(p)) as srv:
+                    r = requests.post(f"{srv.url}/act", data=request(observation(1, 0)), timeout=60)
+                    assert r.status_code == 502 and said in r.text
+            finally:
+                p.close()
 
 
 class Shaped(Upstream):
