@@ -25,7 +25,7 @@ from wamplan.errors import UserError
 from wamplan.proxy.app import create_proxy_app
 from wamplan.proxy.build import build_proxy
 from wamplan.proxy.config import ProxyConfig
-from wamplan.proxy.upstream import LocalUpstream, Upstream, UpstreamShape
+from wamplan.proxy.upstream import Upstream, UpstreamShape
 from wamplan.wam import protocol
 from wamplan.wam.base import load_wam
 from wamplan.wam.server import BackgroundServer, create_app

@@ -12,6 +12,7 @@ RECORDS = "records.jsonl"
 
 
 def record_key(rec: dict[str, Any]) -> tuple[int, int, str]:
+    """(condition, seed, variant): what makes an episode's record unique in one output folder."""
     return int(rec["condition"]), int(rec["seed"]), str(rec.get("variant", "default"))
 
 
@@ -24,19 +25,25 @@ def read_records(out_dir: str | Path, repair: bool = False) -> list[dict[str, An
         return []
     raw = path.read_bytes()
     head, _, tail = raw.rpartition(b"\n")
-    good = []
-    for n, line in enumerate(head.split(b"\n") if head else [], 1):
-        if line.strip():
-            try:
-                good.append(json.loads(line))
-            except json.JSONDecodeError:
-                raise UserError(f"{path} line {n} is damaged; fix or delete that line and re-run to resume") from None
-    if tail.strip():
+    good, torn = [], False
+    lines = head.split(b"\n") if head else []
+    for n, line in enumerate(lines + [tail], 1):
+        if not line.strip():
+            continue
         try:
-            good.append(json.loads(tail))  # complete record whose newline was never written
-            fix = b"\n"
+            rec = json.loads(line)
         except json.JSONDecodeError:
-            fix = None  # torn: drop it
+            torn = n == len(lines) + 1  # the last line, cut by a kill mid-write: dropped (cut off with ``repair``)
+            if torn:
+                break
+            rec = None
+        try:
+            good.append(_checked(rec))
+        except ValueError:
+            raise UserError(f"{path} line {n} is damaged or not an episode record (a JSON object with integer "
+                            f"'condition' and 'seed'); fix or delete that line and re-run to resume") from None
+    if tail.strip():
+        fix = None if torn else b"\n"  # a complete last record lacks only its newline
         if repair:
             with open(path, "r+b") as f:
                 if fix is None:
@@ -45,6 +52,18 @@ def read_records(out_dir: str | Path, repair: bool = False) -> list[dict[str, An
                     f.seek(0, os.SEEK_END)
                     f.write(fix)
     return good
+
+
+def _checked(rec: Any) -> dict[str, Any]:
+    """``rec`` if it is a dict whose key fields ``record_key`` can read; ValueError otherwise.
+    (JSONDecodeError is a ValueError, so one ``except ValueError`` covers both.)"""
+    if not isinstance(rec, dict):
+        raise ValueError("not a JSON object")
+    try:
+        record_key(rec)
+    except (KeyError, TypeError, ValueError) as e:
+        raise ValueError(f"no integer condition and seed: {e}") from None
+    return rec
 
 
 def append_record(out_dir: str | Path, rec: dict[str, Any]) -> None:
