@@ -559,9 +559,11 @@ def test_serve_on_a_busy_port_announces_nothing(capsys):
         busy.bind(("127.0.0.1", 0))
         busy.listen()
         port = busy.getsockname()[1]
-        refused(capsys, ["wam", "serve", "--ckpt", MINI / "tinywam", "--port", port], f"127.0.0.1:{port}",
-                "pick another --port")
-    assert "serving" not in refused.out
+        for argv, banner in ((["wam", "serve", "--ckpt", MINI / "tinywam"], "serving"),
+                             (["serve", "--upstream", MINI / "tinywam", "--world-model", MINI / "wm_augmented"],
+                              "planning proxy")):  # the proxy: refused before its models load
+            refused(capsys, [*argv, "--port", port], f"127.0.0.1:{port}", "pick another --port")
+            assert banner not in refused.out
 
 
 def test_env_check_names_a_broken_vk_icd_filenames(tmp_path, monkeypatch, capsys):

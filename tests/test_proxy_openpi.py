@@ -24,7 +24,7 @@ from wamplan.proxy.app import create_proxy_app
 from wamplan.proxy.build import build_proxy
 from wamplan.proxy.config import ProxyConfig
 from wamplan.proxy.config import parse_ws_fields
-from wamplan.proxy.openpi import as_request, unpack
+from wamplan.proxy.openpi import as_request, unpack, ws_fields_warning
 from wamplan.wam.server import BackgroundServer
 
 from test_proxy import FIELDS, WAM_CKPT, WM_CKPT, H, in_process_episode, observation  # noqa: I001
@@ -157,3 +157,7 @@ def test_a_wrong_secret_refuses_the_connection_and_healthz_answers(proxy):
 def test_ws_fields_are_checked_when_the_proxy_is_configured():
     with pytest.raises(UserError, match="--ws-fields entry 'state' is not FROM=TO"):
         ProxyConfig(upstream=WAM_CKPT, world_model=WM_CKPT, ws_fields="images/cam_high=primary_image,state")
+    # a well-formed rename to a field nothing reads (a typo) is warned of at start-up, not refused (the upstream may read it)
+    assert ws_fields_warning(f"{WS_FIELDS},state+grip=proprio,prompt=task_description", tuple(ALOHA)) is None
+    line = ws_fields_warning(f"{WS_FIELDS},joints=propiro", tuple(ALOHA))
+    assert line.startswith("warning: --ws-fields maps to ['propiro'], which the proxy does not read") and "'proprio'" in line

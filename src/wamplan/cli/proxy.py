@@ -46,10 +46,17 @@ def _serve(args: argparse.Namespace) -> int:
     from wamplan.device import resolve_device
     from wamplan.proxy.app import create_proxy_app
     from wamplan.proxy.build import build_proxy
-    from wamplan.wam.server import run_app
+    from wamplan.proxy.openpi import ws_fields_warning
+    from wamplan.wam.server import bind_socket, run_app
 
     resolve_device(cfg.device)
-    proxy = build_proxy(cfg, planning=planning_from_args(args))
+    planning = planning_from_args(args)
+    sock = bind_socket(args.host, args.port)  # a busy port fails here, before loading or announcing anything
+    try:
+        proxy = build_proxy(cfg, planning=planning)
+    except BaseException:
+        sock.close()
+        raise
     errors = 'HTTP 200 "error" (upstream error mode)' if cfg.errors == "upstream" else "4xx/5xx with a reason"
     budget = f"{cfg.budget_ms:g} ms planning budget" if cfg.budget_ms else "no planning budget"
     print(f"planning proxy for {proxy.upstream.where} with world model {cfg.world_model} at "
@@ -57,12 +64,15 @@ def _serve(args: argparse.Namespace) -> int:
           f"({'shared secret required' if secret else 'no shared secret'}; "
           f"failures answered {errors}; {budget})", flush=True)
     print(proxy.describe(), flush=True)
+    odd = ws_fields_warning(cfg.ws_fields, tuple(proxy.request_map))
+    if odd:
+        print(odd, file=sys.stderr, flush=True)
     if getattr(proxy.upstream, "unreachable", None):
         print(f"warning: {proxy.upstream.where} did not answer at start-up ({proxy.upstream.unreachable}), so its "
               f"chunk length, views and task were neither read nor checked, and requests fail until it answers: "
               f"start it (or fix --upstream's host and port), then restart serve", file=sys.stderr, flush=True)
     try:
-        run_app(create_proxy_app(proxy, secret), args.host, args.port, secret, args.log_level,
+        run_app(create_proxy_app(proxy, secret), args.host, args.port, secret, args.log_level, sock=sock,
                 ws_max_bytes=cfg.max_request_bytes)
     finally:
         proxy.close()

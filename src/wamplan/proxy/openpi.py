@@ -193,6 +193,17 @@ def metadata(proxy: Any) -> dict[str, Any]:
             "image_resolution": None if size is None else [size, size]}
 
 
+def ws_fields_warning(ws_fields: str, image_fields: tuple[str, ...]) -> str | None:
+    """One line naming the ``--ws-fields`` targets that no part of the proxy reads (a typo, most often; they are
+    forwarded to the upstream as extra fields, which only a WAM that reads them wants), or None."""
+    known = {*image_fields, "proprio", "task_description", protocol.RETURN_ALL_FIELD, *PROXY_FIELDS, *ALIASES}
+    odd = [dst for _, dst in parse_ws_fields(ws_fields) if dst not in known]
+    if not odd:
+        return None
+    return (f"warning: --ws-fields maps to {odd}, which the proxy does not read and forwards to the upstream as is; "
+            f"the fields it reads: {sorted(known - set(ALIASES))}")
+
+
 def add_openpi_routes(app: FastAPI, proxy: Any, secret: str | None) -> None:
     """The WebSocket routes (``/`` and ``/s/<robot>``) and ``GET /healthz`` on ``app``, answered by ``proxy`` (a
     ``proxy.app.Proxy``: its ``respond``, ``restart``, ``sessions``)."""
