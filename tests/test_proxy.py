@@ -8,6 +8,7 @@ import dataclasses
 import json
 import socket
 import threading
+from collections import Counter
 from pathlib import Path
 
 import json_numpy
@@ -368,10 +369,27 @@ def test_an_episode_through_the_proxy_takes_the_in_process_episodes_actions(prox
 
     client = CosmosPolicyClient(url=f"{srv.url}/s/client/act", send_chunk_frames=(4, 8, 12))
     through: list[np.ndarray] = []
-    run_episode(env, WAMPolicy(client), seed, max_steps=steps, stop_on_success=False,
+    driver = WAMPolicy(client)
+    run_episode(env, driver, seed, max_steps=steps, stop_on_success=False,
                 on_obs=lambda e, o, a: through.append(a) if a is not None else None)
     client.close()
     np.testing.assert_allclose(np.stack(through), np.stack(want), atol=1e-6)
+    first = policy.info()["chunks"][0]["open_loop"]
+    assert driver.info()["proxy"] == {first: 1, "planned": 2}  # what the proxy did, read from its answers
+
+    # frames off the world model's grid (frameskip 4): the proxy plans nothing, and the driver's count and
+    # `wamplan eval`'s closing line say so
+    from wamplan.cli.eval import proxy_warning
+
+    client = CosmosPolicyClient(url=f"{srv.url}/s/offgrid/act", send_chunk_frames=(5, 10))
+    driver = WAMPolicy(client)
+    run_episode(env, driver, seed, max_steps=steps, stop_on_success=False)
+    client.close()
+    assert driver.info()["proxy"] == {first: 1, "no-history": 2}
+    assert proxy_warning(Counter(driver.info()["proxy"])) == (
+        f"warning: the planning proxy planned none of the 3 chunks it answered (no-history 2, {first} 1) "
+        f"(no-history: its world model lacked the in-chunk frames; send them with --wam-send-chunk-frames at "
+        f"multiples of its frameskip, e.g. 4 8 12, as `wamplan serve`'s banner says)")
 
 
 def test_a_boundary_retried_after_a_refusal_plans_as_if_sent_once(proxy):

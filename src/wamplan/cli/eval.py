@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from collections import Counter
 from pathlib import Path
 
@@ -164,15 +165,29 @@ def cmd_eval(args: argparse.Namespace) -> int:
     counts: dict[int, Counter] = {c: Counter() for c in conds}
     records = run_evaluation(cfg, conds, seeds, args.out, workers=args.workers, backend=backend)  # checks inputs
     bar = progress_bar(total=total, initial=have, desc="eval", unit="ep")
+    proxy: Counter = Counter()  # a planning proxy's chunks, by what it did (the WAM is one at --wam-url)
     for rec in records:
         counts[rec["condition"]][rec["outcome"]] += 1
+        proxy.update(rec.get("proxy", {}))
+        said = f" proxy planned {rec['proxy'].get('planned', 0)}/{sum(rec['proxy'].values())}" if "proxy" in rec else ""
         bar.update(1)
         bar.write(f"cond {rec['condition']} seed {rec['seed']:4d} {rec['outcome']:22s} len {rec['length']:3d} "
-                  f"{rec['wall_time_s']:.0f}s")
+                  f"{rec['wall_time_s']:.0f}s{said}")
     bar.close()
     summary = {c: dict(v) for c, v in counts.items() if v}
     print(json.dumps({"new_episodes": summary}))
+    if proxy and not proxy["planned"]:
+        print(proxy_warning(proxy), file=sys.stderr)
     return 0
+
+
+def proxy_warning(chunks: Counter) -> str:
+    """One line for an evaluation through a planning proxy that planned none of ``chunks`` (reason -> count)."""
+    why = ", ".join(f"{k} {v}" for k, v in chunks.most_common())
+    hint = (" (no-history: its world model lacked the in-chunk frames; send them with --wam-send-chunk-frames at "
+            "multiples of its frameskip, e.g. 4 8 12, as `wamplan serve`'s banner says)" if "no-history" in chunks
+            else "")
+    return f"warning: the planning proxy planned none of the {sum(chunks.values())} chunks it answered ({why}){hint}"
 
 
 def cmd_report(args: argparse.Namespace) -> int:

@@ -124,6 +124,7 @@ class EvalWorker:
                     planned_chunks=len(planned), open_loop_chunks=r.policy_info.get("open_loop_chunks", {}),
                     chunk_timing_s=timing,
                     chunks=[{k: (round(v, 4) if isinstance(v, float) else v) for k, v in ch.items()} for ch in searched],
+                    **({"proxy": r.policy_info["proxy"]} if "proxy" in r.policy_info else {}),
                     **(trace.summary() if trace else {}), **self._blend(cid), finished=time.time())
 
     def _blend(self, cid: int) -> dict[str, float]:

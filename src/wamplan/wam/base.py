@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import abc
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, ClassVar
@@ -244,6 +245,7 @@ class WAMPolicy(Policy):
         self._query_steps: list[int] = []
         self._query_s: list[float] = []
         self._refine_s: list[float] = []
+        self._proxy: Counter[str] = Counter()  # a planning proxy's reports: "planned" or why a chunk ran open loop
 
     def wants_images(self, step: int) -> bool:
         return step % self.chunk_length == 0 or step % self.chunk_length in self.wam.frame_offsets
@@ -271,6 +273,9 @@ class WAMPolicy(Policy):
         out = self.wam.validate(self.wam.predict(obs, self.instruction))
         self._query_s.append(time.perf_counter() - t0)
         self._query_steps.append(obs.step)
+        if "proxy" in out.extras:
+            proxy = out.extras["proxy"]
+            self._proxy["planned" if proxy["planned"] else str(proxy["open_loop"])] += 1
         chunk = out.actions  # (H, A)
         if self.refine is not None:
             t1 = time.perf_counter()
@@ -288,6 +293,8 @@ class WAMPolicy(Policy):
                                 "query_steps": list(self._query_steps), "wam_query_s": list(self._query_s)}
         if self.refine is not None:
             info["refine_s"] = list(self._refine_s)
+        if self._proxy:  # chunks counted by what the planning proxy did: {"planned": n, <open-loop reason>: n}
+            info["proxy"] = dict(self._proxy)
         return info
 
     def config_dict(self) -> dict[str, Any]:

@@ -440,7 +440,8 @@ class CosmosPolicyClient(WAM):
         t_post = time.perf_counter()
         resp = self._post(body)
         http_s = time.perf_counter() - t_post
-        out = self._output(self._decode(resp, sent_proprio=req.proprio.shape[0]))
+        ans = self._decode(resp, sent_proprio=req.proprio.shape[0])
+        out = self._output(ans)
         self._episode_start, self._frames = {}, {}  # delivered: the next request starts afresh
         try:
             self.validate(out)
@@ -448,4 +449,6 @@ class CosmosPolicyClient(WAM):
             raise WAMServerError(f"{self._where}: {e}") from e
         out.timing = {"query_s": time.perf_counter() - t0, "http_s": http_s}
         out.extras = {"attempts": self.attempts_made, "url": self.config.url}
+        if "planned" in ans.wamplan:  # a planning proxy's report: planned, or why the upstream's chunk ran
+            out.extras["proxy"] = {"planned": bool(ans.wamplan["planned"]), "open_loop": ans.wamplan.get("open_loop")}
         return out
