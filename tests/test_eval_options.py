@@ -85,6 +85,12 @@ def test_an_option_of_another_planner_is_refused_in_one_line(capsys):
         _cfg("--planner", "cem", "--temperature", "0.3")
     assert main(["eval", "--out", "x", "--planner", "mppi", "--num-elites", "4", "--wam", "w"]) == 2
     assert "--num-elites is an option of planner(s) ['cem', 'cem-gripper'], not of 'mppi'" in capsys.readouterr().err
+    # a bad value is named by the option that set it, not the config's field (the API's ConfigError names the field)
+    with pytest.raises(ConfigError, match=r"^--num-elites must be in \[1, --num-candidates=32\], got 99; lower "
+                                          r"--num-elites or raise --num-candidates$"):
+        _cfg("--planner", "cem", "--num-elites", "99")
+    with pytest.raises(ConfigError, match=r"^num_elites must be in"):
+        CEMConfig(num_elites=99)
     with pytest.raises(UserError, match="unknown planner 'nope'"):
         EvalConfig(planner="nope")
     with pytest.raises(ConfigError, match="needs a MPPIConfig"):

@@ -16,11 +16,12 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import re
 import typing
 from collections import defaultdict
 from typing import Any
 
-from wamplan.config import add_field_argument
+from wamplan.config import ConfigError, add_field_argument
 from wamplan.errors import UserError
 from wamplan.planning.configs import DEFAULT_PLANNER, PLANNER_CONFIGS
 
@@ -66,15 +67,25 @@ def planner_config_from_args(args: argparse.Namespace) -> tuple[str, Any]:
     name = getattr(args, "planner", None) or getattr(args, "planner_default", DEFAULT_PLANNER)
     cls = PLANNER_CONFIGS.lookup(name)
     known = {f.name for f in dataclasses.fields(cls)}
-    changes = {}
+    changes, flags = {}, {}  # field -> value given; field -> the option that sets it for this planner
     for dest, v in vars(args).items():
-        if not dest.startswith(_DEST) or v is None:
+        if not dest.startswith(_DEST):
             continue
         owner, fname = dest[len(_DEST):].split("__", 1)
         flag = "--" + (f"{owner}-{fname}" if owner else fname).replace("_", "-")
+        if owner in ("", name) and fname in known:
+            flags[fname] = flag
+        if v is None:
+            continue
         if (owner and owner != name) or fname not in known:
             takers = sorted(p for p, c in PLANNER_CONFIGS.items() if fname in {g.name for g in dataclasses.fields(c)})
             raise UserError(f"{flag} is an option of planner(s) {takers}, not of '{name}'; "
                             f"drop it or pass --planner {takers[0] if takers else '...'}")
         changes[fname] = tuple(v) if isinstance(v, list) else v
-    return name, cls(**changes)
+    try:
+        return name, cls(**changes)
+    except ConfigError as e:  # the config names its fields; here they are options
+        text = str(e)
+        for fname in sorted(flags, key=len, reverse=True):
+            text = re.sub(rf"(?<![\w-]){fname}(?!\w)", flags[fname], text)
+        raise ConfigError(text) from None
