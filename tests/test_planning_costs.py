@@ -48,7 +48,10 @@ def test_cls_cost_and_registry():
     pred, target = torch.randn(B, V, D, generator=g), torch.randn(V, D, generator=g)
     torch.testing.assert_close(cls_cost(pred, target), ((pred - target) ** 2).mean((1, 2)))
     assert make_cost("cls") is cls_cost and build_cost(CostConfig(name="cls")) is cls_cost
-    with pytest.raises(ValueError, match="use the patch cost"):
+    # patch tokens (a world model's predictions) are matched by their mean over the tokens, per view
+    tokens, aim = torch.randn(B, V, 5, D, generator=g), torch.randn(V, 5, D, generator=g)
+    torch.testing.assert_close(cls_cost(tokens, aim), cls_cost(tokens.mean(2), aim.mean(1)))
+    with pytest.raises(ValueError, match=r"got \(4, 3, 1, 8\) and \(3, 8\); give the target the predictions' shape"):
         cls_cost(pred[:, :, None], target)
     with pytest.raises(ValueError, match="drop the target's batch"):
         patch_cost(*_data()[:1], _data()[1][None])

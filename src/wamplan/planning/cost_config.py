@@ -16,7 +16,8 @@ COST_NAMES = {"patch", "cls"}  # the names of costs.COSTS, known without importi
 class CostConfig:
     """Which planning cost to use (paper: the patch cost over all three cameras)."""
 
-    name: str = field("patch", "planning cost: 'patch' (eq. 3) or 'cls' (class tokens)", choices=lambda: sorted(COST_NAMES))
+    name: str = field("patch", "planning cost: 'patch' (eq. 3) or 'cls' (one vector per view: the mean of its "
+                               "patch tokens, a global match)", choices=lambda: sorted(COST_NAMES))
     view_weights: tuple[float, ...] = field((), "per-camera weights (empty = uniform, the paper)")
     state_weight: float = field(0.0, "weight of the pose term (0: off): the squared distance (cm^2) between the "
                                      "world model's state-head reading of each candidate's predicted outcome and of "

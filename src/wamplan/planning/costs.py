@@ -3,7 +3,8 @@
 A cost maps predictions for B candidates and ONE target to B costs, lower is better:
 
     patch: pred (B, V, N, D), target (V, N, D) -> (B,)   the paper's eq. 3
-    cls:   pred (B, V, D),    target (V, D)    -> (B,)   one class token per view
+    cls:   pred (B, V, D),    target (V, D)    -> (B,)   one vector per view: a class token, or, given
+                                                         patch tokens (B, V, N, D) and (V, N, D), their mean
 
 Eq. 3 is the mean squared distance pooled over views, patches and dims, C = ||z_WM - z_WAM||^2 / |z|.
 Optional ``view_weights`` (V,) pool the per-view MSEs by a weighted average instead (normalised to
@@ -48,9 +49,10 @@ def register_cost(name: str) -> Callable[[CostFn], CostFn]:
 def _check(pred: Tensor, target: Tensor, layout: str) -> None:
     dims = len(layout.split(","))  # e.g. "V, N, D" -> 3
     if pred.dim() != dims + 1 or target.shape != pred.shape[1:]:
+        hint = "drop the target's batch dimension" if target.dim() == pred.dim() else \
+            "give the target the predictions' shape without their batch dimension"
         raise ValueError(f"expected predictions (B, {layout}) and a target ({layout}), got "
-                         f"{tuple(pred.shape)} and {tuple(target.shape)}; drop the target's batch "
-                         f"dimension, or use the {'cls' if dims == 3 else 'patch'} cost for the other layout")
+                         f"{tuple(pred.shape)} and {tuple(target.shape)}; {hint}")
 
 
 def _pool_views(per_view: Tensor, view_weights: Tensor | None) -> Tensor:
@@ -75,7 +77,10 @@ def patch_cost(pred: Tensor, target: Tensor, view_weights: Tensor | None = None)
 
 @register_cost("cls")
 def cls_cost(pred: Tensor, target: Tensor, view_weights: Tensor | None = None) -> Tensor:
-    """Class-token MSE over views and dims. pred (B, V, D), target (V, D) -> (B,)."""
+    """MSE of one vector per view, over views and dims. pred (B, V, D), target (V, D) -> (B,); patch tokens
+    (B, V, N, D) and (V, N, D) are pooled to their mean over the N tokens first (a global, not a spatial, match)."""
+    if pred.dim() == 4 and target.dim() == 3:
+        pred, target = pred.float().mean(dim=2), target.float().mean(dim=1)  # (B, V, D), (V, D)
     _check(pred, target, "V, D")
     diff = pred.float() - target.float().unsqueeze(0)  # (B, V, D)
     return _pool_views(diff.square().mean(dim=2), view_weights)  # (B, V) -> (B,)
