@@ -32,7 +32,7 @@ from torch import nn
 from torch.utils.data import Dataset, TensorDataset
 
 from wamplan.checkpoint import MODEL_FILE, checkpoint_dir, load_tensors, read_config
-from wamplan.config import field, require, to_dict
+from wamplan.config import field, require, to_dict, with_default
 from wamplan.encoders.base import FrozenEncoder, register_encoder
 from wamplan.errors import UserError
 from wamplan.train_loop import AdamWConfig
@@ -138,8 +138,13 @@ class TaskCNNEncoder(FrozenEncoder):
 
 @dataclass(frozen=True)
 class EncoderTrainConfig(AdamWConfig):
-    """Training of the ``task-cnn`` encoder: the loop's fields, the token width and the two objectives' weights."""
+    """Training of the ``task-cnn`` encoder: the loop's fields (defaults: the recipe of the shipped
+    ``enc_taskcnn``, 10 epochs at lr 1e-3 in batches of 64, not the world model's), the token width and the two
+    objectives' weights."""
 
+    epochs: int = with_default(AdamWConfig, "epochs", 10)
+    batch_size: int = with_default(AdamWConfig, "batch_size", 64)
+    lr: float = with_default(AdamWConfig, "lr", 1e-3)
     width: int = field(128, "D, the feature size of a token")
     recon_weight: float = field(0.1, "weight of redrawing each view at 16 x 16 px from its tokens, against the "
                                      "state read-out's (cm^2); 0 drops it")
