@@ -552,6 +552,28 @@ def test_the_client_prints_the_servers_reason(act_server):
         client.predict(obs, "fold")
 
 
+def test_a_directory_of_another_kind_is_named_with_what_it_holds(tmp_path, capsys):
+    wam = MINI / "tinywam"
+    refused(capsys, ["report", wam], "is not an evaluation directory (it holds a 'tinywam' checkpoint)",
+            "made by `wamplan eval`")  # not "run `wamplan eval --out CHECKPOINT`", which eval refuses
+    refused(capsys, ["data", "info", wam], "is not a wamplan episode store (it holds a 'tinywam' checkpoint)",
+            "`wamplan collect` or `wamplan data import`")
+    refused(capsys, ["gate-calibrate", tmp_path / "none"], "does not exist; pass an evaluation directory")
+    refused(capsys, ["gate-calibrate", tmp_path, "--quantiles", "0.5", "1.5"], "--quantiles 1.5", "[0, 1]")
+    refused(capsys, ["env", "check", "--steps", "0"], "--steps must be >= 1")
+
+
+def test_reproduce_checks_its_inputs_before_hours_of_work(tmp_path, capsys):
+    out = tmp_path / "r"
+    refused(capsys, ["reproduce", "--out", out, "--wam", tmp_path / "none"], "is not a wamplan checkpoint")
+    refused(capsys, ["reproduce", "--out", out, "--wam", MINI / "wm_plain"], "'wm-predictor' checkpoint",
+            "not a WAM")
+    refused(capsys, ["reproduce", "--out", out, "--wam", "checkpoints/stack-cube/tinywam"],
+            "made for task 'stack-cube'", "--task stack-cube")
+    refused(capsys, ["reproduce", "--out", MINI / "tinywam"], "is not a reproduce directory")
+    assert not out.exists() and not (MINI / "tinywam" / "data").exists()  # nothing started, nothing written
+
+
 def test_serve_on_a_busy_port_announces_nothing(capsys):
     import socket
 

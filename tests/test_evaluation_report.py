@@ -155,7 +155,8 @@ def test_eval_needs_its_checkpoints(tmp_path, capsys):
     assert main(["eval", "--conditions", "6", "--episodes", "1", "--out", str(tmp_path), "--wam", str(tmp_path)]) == 2
     assert "condition 6 needs --wm-plain" in capsys.readouterr().err
     assert main(["report", str(tmp_path / "nothing")]) == 2
-    assert "no evaluation records" in capsys.readouterr().err
+    assert f"{tmp_path / 'nothing'} does not exist; pass an evaluation directory (made by `wamplan eval`)" in \
+        capsys.readouterr().err
 
 
 def test_reproduce_stages_wire_the_pipeline(tmp_path):

@@ -136,9 +136,22 @@ def test_fidelity_cli_refuses_labels_that_collide_before_loading_anything(capsys
     assert "--cost-view-weights has 2 weights for the task's 3 cameras" in capsys.readouterr().err
 
 
-def test_each_models_own_plan_is_scored_and_one_model_can_drive_the_episode(env):
+@pytest.fixture(scope="module")
+def short_env():
+    """The cube task cut at 96 steps: an executed closed loop ends there whatever its outcome (a failing one would
+    otherwise plan every chunk to step 300)."""
+    from wamplan.envs.config import EnvConfig
+    from wamplan.envs.core import TaskEnv
+
+    e = TaskEnv(EnvConfig(max_episode_steps=96))
+    yield e
+    e.close()
+
+
+def test_each_models_own_plan_is_scored_and_one_model_can_drive_the_episode(short_env):
     """plan=True runs each model's search at the scored boundaries without changing the states (the WAM's chunks
     still run); execute=LABEL runs that model's plans to the episode's end, so later boundaries are other states."""
+    env = short_env
     wam = load_wam("checkpoints/mini/tinywam", device="cpu")
     model, enc = load_world_model("checkpoints/mini/wm_augmented")
     models = [Scored("augmented", LearnedDynamics(model), enc)]

@@ -22,6 +22,29 @@ def require_paths(paths: Iterable[str], flag: str, fix: str) -> None:
             raise UserError(f"{flag} {path or '(empty)'} does not exist; {fix}")
 
 
+def not_a(path: str | Path, marker: str, what: str, make: str, also: tuple[str, ...] = ()) -> str:
+    """The one line for ``path`` that should be ``what`` (a directory holding ``marker``) and is not: it does not
+    exist, is a file, holds something else (``config.json``'s kind named where it is a checkpoint), or is an empty
+    directory, where ``make`` (a command that fills it) is the fix; ``also``: other commands that make one."""
+    p = Path(path)
+    use = f"pass {what} (made by {' or '.join(f'`{c}`' for c in (make.split(' --out')[0], *also))})"
+    if not p.exists():
+        return f"{p} does not exist; {use}"
+    if not p.is_dir():
+        return f"{p} is a file, not {what}; {use}"
+    if not any(p.iterdir()):
+        return f"{p} is empty; run `{make}` first"
+    kind = ""
+    try:
+        import json
+
+        kind = json.loads((p / "config.json").read_text()).get("kind", "")
+    except (OSError, ValueError, AttributeError):
+        pass
+    holds = f"a '{kind}' checkpoint" if kind else f"no {marker}"
+    return f"{p} is not {what} (it holds {holds}); {use}"
+
+
 SEED_LIMIT = 2**32  # episode seeds seed NumPy and ManiSkill, which take 32-bit unsigned seeds
 
 

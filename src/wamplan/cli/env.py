@@ -99,6 +99,8 @@ def cmd_check(args: argparse.Namespace) -> int:
     from wamplan.envs.config import EnvConfig
     from wamplan.envs.diagnose import diagnose_renderer, driver_file_problem, mesa_version
 
+    if args.steps < 1:
+        raise UserError(f"--steps must be >= 1 (physics steps to time), got {args.steps}")
     bad = driver_file_problem()
     if bad:  # before any renderer starts: its own error would not name the variable
         raise UserError(bad)

@@ -58,7 +58,7 @@ import h5py
 import numpy as np
 
 from wamplan.envs.spec import TaskSpec, check_same_task, get_task
-from wamplan.errors import UserError, reason
+from wamplan.errors import UserError, not_a, reason
 
 SCHEMA_VERSION = 1
 MANIFEST = "store.json"
@@ -244,8 +244,8 @@ class EpisodeStore:
             tmp.write_text(json.dumps(self.manifest, indent=2) + "\n")
             os.replace(tmp, man)
         else:
-            raise StoreError(f"{self.root} is not a wamplan episode store (no {MANIFEST}); collect one with "
-                             f"`wamplan collect --out {self.root}` or check the path")
+            raise StoreError(not_a(self.root, MANIFEST, "a wamplan episode store",
+                                   f"wamplan collect --out {self.root}", also=("wamplan data import",)))
         (self.root / EPISODES).mkdir(exist_ok=True)
 
     @staticmethod

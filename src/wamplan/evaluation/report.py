@@ -400,7 +400,7 @@ def write_report(out_dir: str | Path, more: list[str | Path] = ()) -> dict[str, 
     """Table 1, Figure 3, timings and the paired comparison, written into ``out_dir``; with ``more``, the
     records of those evaluation directories (``DIR`` or ``DIR:C[,C...]``) are merged with ``out_dir``'s (which
     may then be empty)."""
-    from wamplan.errors import UserError
+    from wamplan.errors import UserError, not_a
 
     out = Path(out_dir)
     dirs = [out, *(run_spec(m)[0] for m in more)]
@@ -409,7 +409,7 @@ def write_report(out_dir: str | Path, more: list[str | Path] = ()) -> dict[str, 
             raise UserError(f"{d} has no evaluation records ({RECORDS}); name directories `wamplan eval` wrote")
     records = merged_records([out, *more])
     if not records:
-        raise UserError(f"{out} has no evaluation records; run `wamplan eval --out {out}` first")
+        raise UserError(not_a(out, RECORDS, "an evaluation directory", f"wamplan eval --out {out}"))
     task = run_task(dirs)
     out.mkdir(parents=True, exist_ok=True)
     rows = table1(records)

@@ -222,6 +222,28 @@ def stages(p: Preset, out: Path, wam: str | None, workers: int, sim_episodes: in
             for s in plan(p, out, wam, workers, sim_episodes, task, camera_size)]
 
 
+def check_inputs(p: Preset, out: Path, wam: str | None, task: str) -> None:
+    """One line, before the first stage of a run of hours, for what would fail later: ``out`` another kind of
+    directory (a checkpoint, a store) or not writable, ``wam`` missing, not a WAM or made for another task, and
+    the preset's encoder unbuildable (a pretrained one's weights absent)."""
+    from wamplan.errors import require_own_dir, require_writable
+    from wamplan.worldmodel.stores import frozen_encoder
+
+    require_own_dir(out, (TIMES_FILE, "data"), "a reproduce directory")  # data/: its first stage under way
+    require_writable(out)
+    if wam is not None:
+        from wamplan.envs.spec import check_same_task
+        from wamplan.planning.dynamics import task_name
+        from wamplan.wam import load_wam
+
+        model = load_wam(wam, device="cpu")
+        try:
+            check_same_task(task, task_name(model), f"--wam {wam}")
+        finally:
+            model.close()
+    frozen_encoder(p.world_model.encoder, p.world_model.encoder_kwargs, device="cpu")
+
+
 def reproduce(preset: str, out: Path, wam: str | None = None, workers: int = 1,
               sim_episodes: int | None = None, task: str = EnvConfig.task,
               camera_size: int = EnvConfig.camera_size) -> dict[str, float]:
@@ -230,6 +252,7 @@ def reproduce(preset: str, out: Path, wam: str | None = None, workers: int = 1,
     p = get_preset(preset)
     # a task or a size that cannot run fails here, before any work
     stage_list = plan(p, out, wam, workers, sim_episodes, task, camera_size)
+    check_inputs(p, out, wam, task)
     out.mkdir(parents=True, exist_ok=True)
     times_path = out / TIMES_FILE
     times: dict[str, float] = json.loads(times_path.read_text()) if times_path.is_file() else {}
