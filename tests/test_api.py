@@ -54,6 +54,14 @@ def test_the_api_builds_the_evaluations_policy(tmp_path):
     assert type(pol.dynamics).__name__ == "EnsembleDynamics"
     pred, target = torch.rand(2, 3, 4, 8), torch.rand(3, 4, 8)  # (B, V, N, D), (V, N, D)
     torch.testing.assert_close(pol.cost(pred, target), (pred[:, 2] - target[2]).square().mean(dim=(1, 2)))
+    # the cost also as its name or a dict of its fields, as planner_config takes a dict
+    by_dict = wamplan.planned_policy(WAM, WM, device="cpu", cost={"view_weights": [0, 0, 1]})
+    torch.testing.assert_close(by_dict.cost(pred, target), pol.cost(pred, target))
+    by_name = wamplan.planned_policy(WAM, WM, device="cpu", cost="cls")
+    torch.testing.assert_close(by_name.cost(pred, target), (pred.mean(2) - target.mean(1)).square().mean(dim=(1, 2)))
+    with pytest.raises(TypeError, match="cost is a int; pass a CostConfig, a cost name"):
+        wamplan.planned_policy(WAM, WM, cost=5)
+    assert wamplan.CostConfig is CostConfig
 
 
 def test_plan_one_chunk_of_the_shipped_wam(env):

@@ -6,7 +6,7 @@ imported on first use, so ``import wamplan`` (and the command line) stays cheap.
 
 __version__ = "0.1.0"
 
-__all__ = ["ChunkDecision", "EpisodeResult", "Observation", "PlannedPolicy", "PlannedPolicyConfig", "TaskSpec", "WAM",
+__all__ = ["ChunkDecision", "CostConfig", "EpisodeResult", "Observation", "PlannedPolicy", "PlannedPolicyConfig", "TaskSpec", "WAM",
            "WAMOutput", "get_task", "load_wam", "make_env", "planned_policy", "register_task", "run_episode", "tasks"]
 
 

@@ -36,19 +36,21 @@ from wamplan.planning.policy_config import PlannedPolicyConfig
 from wamplan.policies.rollout import EpisodeResult, run_episode
 from wamplan.wam.base import WAM, WAMOutput, load_wam
 
-__all__ = ["ChunkDecision", "EpisodeResult", "Observation", "PlannedPolicy", "PlannedPolicyConfig", "TaskSpec", "WAM",
+__all__ = ["ChunkDecision", "CostConfig", "EpisodeResult", "Observation", "PlannedPolicy", "PlannedPolicyConfig", "TaskSpec", "WAM",
            "WAMOutput", "get_task", "load_wam", "make_env", "planned_policy", "register_task", "run_episode", "tasks"]
 
 
 def planned_policy(wam: WAM | str | Path, world_model: str | Path | Sequence[str | Path], *,
-                   planner: str | None = None, planner_config: Any = None, cost: CostConfig | None = None,
+                   planner: str | None = None, planner_config: Any = None,
+                   cost: CostConfig | str | dict[str, Any] | None = None,
                    device: str = "auto", **settings: Any) -> PlannedPolicy:
     """``wam`` (a :class:`WAM`, or its checkpoint directory) whose chunks are planned in ``world_model`` (a
     checkpoint directory; several, as a list or joined by + (or commas), form an ensemble), as ``wamplan eval`` plans
     condition 7.
 
     ``planner``: a registered planner name (``wamplan.planning.PLANNERS``; default: the evaluation's);
-    ``planner_config``: its config, or a dict of overrides of its fields; ``cost``: a ``CostConfig``;
+    ``planner_config``: its config, or a dict of overrides of its fields; ``cost``: a :class:`CostConfig`, a cost
+    name (``"patch"``, ``"cls"``) or a dict of its fields (e.g. ``{"view_weights": (0, 0, 1)}``);
     ``settings``: fields of :class:`PlannedPolicyConfig` (e.g. ``first_chunk="rest-history"``). The models go
     to ``device`` ("auto", "cpu", "cuda", ...). The policy acts on :class:`Observation` s with (H, W, 3) uint8
     views and returns (A,) actions of the WAM's task; ``policy.plan_chunk(obs)`` decides one chunk ->
@@ -57,6 +59,13 @@ def planned_policy(wam: WAM | str | Path, world_model: str | Path | Sequence[str
     parts = [world_model] if isinstance(world_model, (str, Path)) else list(world_model)
     paths = [p for part in parts for p in (ensemble_members(part) if isinstance(part, str) else [str(part)]) if p]
     choice = {} if planner is None else {"planner": planner}
+    if isinstance(cost, str):
+        cost = CostConfig(name=cost)
+    elif isinstance(cost, dict):
+        cost = from_dict(CostConfig, cost)
+    elif cost is not None and not isinstance(cost, CostConfig):
+        raise TypeError(f"cost is a {type(cost).__name__}; pass a CostConfig, a cost name ('patch', 'cls') or a "
+                        f"dict of CostConfig's fields")
     cfg = EvalConfig(wam=str(wam) if isinstance(wam, (str, Path)) else "", wm_augmented=",".join(paths),
                      device=device, planner_config=planner_config, cost=cost or CostConfig(),
                      policy=from_dict(PlannedPolicyConfig, settings), **choice)
