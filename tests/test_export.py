@@ -102,6 +102,12 @@ def test_an_existing_export_is_not_overwritten(dense_store, tmp_path, capsys):
     capsys.readouterr()
     assert main(["data", "export", "--format", "cosmos-policy", str(dense_store), str(out)]) == 2
     assert "holds an export already" in capsys.readouterr().err
+    ckpt = tmp_path / "ckpt"  # another kind of directory: nothing is added to it
+    ckpt.mkdir()
+    (ckpt / "config.json").write_text("{}")
+    assert main(["data", "export", "--format", "cosmos-policy", str(dense_store), str(ckpt)]) == 2
+    assert f"{ckpt} exists and is not empty (config.json); choose a new or empty OUT" in capsys.readouterr().err
+    assert sorted(e.name for e in ckpt.iterdir()) == ["config.json"]
 
 
 def test_export_defaults_match_the_client():
