@@ -561,6 +561,11 @@ def test_a_directory_of_another_kind_is_named_with_what_it_holds(tmp_path, capsy
     refused(capsys, ["gate-calibrate", tmp_path / "none"], "does not exist; pass an evaluation directory")
     refused(capsys, ["gate-calibrate", tmp_path, "--quantiles", "0.5", "1.5"], "--quantiles 1.5", "[0, 1]")
     refused(capsys, ["env", "check", "--steps", "0"], "--steps must be >= 1")
+    refused(capsys, ["data", "import", "--format", "maniskill", tmp_path / "no.h5", tmp_path / "o"],
+            "no.h5 does not exist; pass a ManiSkill trajectory file")
+    refused(capsys, ["collect", "--source", "expert", "--task", "push-cube", "--episodes", "1", "--out",
+                     tmp_path / "o"], "no scripted expert", "--source pink", "`wamplan data import`")
+    assert not (tmp_path / "o").exists()
 
 
 def test_reproduce_checks_its_inputs_before_hours_of_work(tmp_path, capsys):

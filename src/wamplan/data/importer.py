@@ -37,6 +37,9 @@ REPORT = "import.json"
 
 def read_trajectory_info(path: Path) -> dict[str, Any]:
     """The env id and controller a ManiSkill trajectory file was recorded with."""
+    if not path.exists():
+        raise UserError(f"{path} does not exist; pass a ManiSkill trajectory file (.h5, its .json beside it), e.g. "
+                        f"from scripts/maniskill_demos.sh")
     if path.suffix != ".h5" or not path.is_file():
         raise UserError(f"{path} is not a ManiSkill trajectory file; pass the .h5 (its .json lies beside it)")
     meta = path.with_suffix(".json")

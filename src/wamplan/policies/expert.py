@@ -88,7 +88,7 @@ def scripted_task(task: TaskSpec | None) -> TaskSpec:
     if spec.expert != ExpertPolicy.name:
         has = f"'{spec.expert}' as its expert" if spec.expert else "no scripted expert"
         raise UserError(f"the scripted expert acts in the tasks whose spec names it (cube-insertion); task "
-                        f"'{spec.name}' has {has}; use another --source (pink, or imported demonstrations)")
+                        f"'{spec.name}' has {has}; use --source pink, or import its demonstrations with `wamplan data import`")
     return spec
 
 
