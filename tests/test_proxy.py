@@ -333,6 +333,15 @@ def test_serve_refuses_planning_settings_that_do_not_fit_in_one_line(capsys, fla
     assert code == 2 and len(err.splitlines()) == 1 and said in err, err
 
 
+def test_serve_help_leaves_out_what_serve_refuses(capsys):
+    from wamplan.cli.main import main
+
+    with pytest.raises(SystemExit):
+        main(["serve", "--help"])
+    shown = capsys.readouterr().out
+    assert "--replan-every" not in shown and "--gate-threshold" in shown
+
+
 def test_an_episode_through_the_proxy_takes_the_in_process_episodes_actions(proxy, small_env):
     """A CubeInsertion-v1 episode (seed 1, three chunks) driven over HTTP, sending the frames seen during each chunk,
     takes the actions the same planned episode takes in process (same WAM, world model, planner, seed; no budget)."""
