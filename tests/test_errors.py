@@ -568,6 +568,16 @@ def test_a_directory_of_another_kind_is_named_with_what_it_holds(tmp_path, capsy
     assert not (tmp_path / "o").exists()
 
 
+def test_a_bad_value_is_named_by_its_option(tmp_path, capsys):
+    # config errors name fields (TrainConfig.epochs, warmup_epochs, frameskip); the command line names its options
+    wm = ["wm", "train", "--data", tmp_path, "--out", tmp_path / "run"]
+    assert refused(capsys, [*wm, "--epochs", "0"], "error: --epochs must be a positive int").count("Config") == 0
+    refused(capsys, [*wm, "--warmup-epochs", "99"], "error: --warmup-epochs must be in [0, epochs=")
+    refused(capsys, [*wm, "--frameskip", "0"], "error: --frameskip must be a positive int")
+    refused(capsys, ["eval", "--conditions", "7", "--out", tmp_path / "e", "--wam", MINI / "tinywam", "--wm-augmented",
+                     MINI / "wm_augmented", "--replan-every", "0"], "error: --replan-every must be >= 1")
+
+
 def test_reproduce_checks_its_inputs_before_hours_of_work(tmp_path, capsys):
     out = tmp_path / "r"
     refused(capsys, ["reproduce", "--out", out, "--wam", tmp_path / "none"], "is not a wamplan checkpoint")

@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import re
 import types
 import typing
 from pathlib import Path
@@ -197,7 +198,22 @@ def from_args(cls: type[T], args: argparse.Namespace, base: T | None = None, pre
     extra = sorted(set(changes) - {f.name for f in dataclasses.fields(base)})
     require(not extra, f"{', '.join('--' + (prefix + k).replace('_', '-') for k in extra)} does not apply to "
                        f"{type(base).__name__}; drop it")
-    return dataclasses.replace(base, **changes)
+    try:
+        return dataclasses.replace(base, **changes)
+    except ConfigError as e:  # the config names its fields; on the command line they are options
+        flags = {f.name: "--" + (prefix + f.name).replace("_", "-") for f in dataclasses.fields(cls)
+                 if f.metadata.get("cli", True)}
+        raise ConfigError(as_options(str(e), type(base).__name__, flags)) from None
+
+
+def as_options(text: str, cls_name: str, flags: dict[str, str]) -> str:
+    """``text``, a config's error, with its field names written as the options that set them (``flags``: field ->
+    option): ``Cls.field``, a snake_case field anywhere, and a field that opens the message (its subject)."""
+    for name in sorted(flags, key=len, reverse=True):
+        text = text.replace(f"{cls_name}.{name}", flags[name])
+        pattern = rf"(?<![\w.-]){name}(?![\w-])" if "_" in name else rf"^{name}(?![\w-])"
+        text = re.sub(pattern, flags[name], text)
+    return text
 
 
 def ensemble_members(spec: str) -> list[str]:

@@ -16,12 +16,11 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import re
 import typing
 from collections import defaultdict
 from typing import Any
 
-from wamplan.config import ConfigError, add_field_argument
+from wamplan.config import ConfigError, add_field_argument, as_options
 from wamplan.errors import UserError
 from wamplan.planning.configs import DEFAULT_PLANNER, PLANNER_CONFIGS
 
@@ -85,7 +84,4 @@ def planner_config_from_args(args: argparse.Namespace) -> tuple[str, Any]:
     try:
         return name, cls(**changes)
     except ConfigError as e:  # the config names its fields; here they are options
-        text = str(e)
-        for fname in sorted(flags, key=len, reverse=True):
-            text = re.sub(rf"(?<![\w-]){fname}(?!\w)", flags[fname], text)
-        raise ConfigError(text) from None
+        raise ConfigError(as_options(str(e), cls.__name__, flags)) from None

@@ -11,7 +11,7 @@ import typing
 from dataclasses import dataclass
 from typing import Any
 
-from wamplan.config import add_field_argument, field, preset_default_text, require
+from wamplan.config import ConfigError, add_field_argument, as_options, field, preset_default_text, require
 from wamplan.train_loop import AdamWConfig
 
 ACTION_CONDITIONING = ("input", "adaln")  # PredictorConfig.action_conditioning
@@ -122,7 +122,11 @@ def add_architecture_arguments(parser: Any, presets: dict[str, PredictorConfig] 
 def architecture_from_args(args: Any, base: PredictorConfig) -> PredictorConfig:
     """``base`` with the architecture options the user passed (those not None)."""
     changes = {k: getattr(args, k) for k in ARCHITECTURE_FIELDS if getattr(args, k, None) is not None}
-    return dataclasses.replace(base, **changes)
+    try:
+        return dataclasses.replace(base, **changes)
+    except ConfigError as e:  # named by the options, as from_args names them
+        raise ConfigError(as_options(str(e), type(base).__name__,
+                                     {k: "--" + k.replace("_", "-") for k in ARCHITECTURE_FIELDS})) from None
 
 
 @dataclass(frozen=True)
