@@ -155,8 +155,13 @@ def check_run_dir(run_dir: str | Path, what: str = "a training run") -> None:
     if run.exists() and not run.is_dir():
         raise UserError(f"--out {run} is a file; pass a directory for the training run")
     if (run / CONFIG_FILE).is_file():
-        raise UserError(f"--out {run} is a checkpoint directory itself (the layout before run directories); it "
-                        f"still loads for inference, but train into a new --out")
+        try:
+            kind = json.loads((run / CONFIG_FILE).read_text()).get("kind", "")
+        except (OSError, ValueError, AttributeError):
+            kind = ""
+        holds = f"a '{kind}' checkpoint" if kind else "a checkpoint"
+        raise UserError(f"--out {run} holds {holds} (a checkpoint directory, not a run directory); it loads for "
+                        f"inference as it is: train into a new --out")
     require_own_dir(run, (f"{CKPT_DIR}/", METRICS_FILE), what)
 
 

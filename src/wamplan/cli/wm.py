@@ -250,9 +250,18 @@ def cmd_train(args: argparse.Namespace) -> int:
     from wamplan.worldmodel.config import TrainConfig, architecture_from_args
     from wamplan.worldmodel.stores import train_predictor_on_stores
 
+    from wamplan.checkpoint import CheckpointError, checkpoint_dir, read_config
+    from wamplan.train_loop import check_run_dir
+    from wamplan.worldmodel.train import KIND
+
     require_dir(args.out)
-    if args.init is not None:  # before the stores are encoded, which may take long
+    check_run_dir(args.out, "a world-model training run")  # before the stores are encoded, which may take long
+    if args.init is not None:
         require_paths([str(args.init)], "--init", "pass a world-model checkpoint or run directory to fine-tune")
+        try:
+            read_config(checkpoint_dir(args.init), KIND)
+        except CheckpointError as e:
+            raise UserError(f"--init: {e}") from None
     resolve_device(args.device)
     p = get_world_model_preset(args.preset)
     encoder, encoder_kwargs = _encoder(args, p)
