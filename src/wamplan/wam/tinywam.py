@@ -270,8 +270,9 @@ class TinyWAM(WAM):
         if self.trained_camera_size and size != self.trained_camera_size and not self._warned_size:
             self._warned_size = True
             warnings.warn(f"TinyWAM was trained on {self.trained_camera_size}-px renders but gets {size}-px images; a "
-                          f"resized render is not a native one (mean |diff| ~8/255 at 64 px): evaluate with "
-                          f"--camera-size {self.trained_camera_size}", stacklevel=2)
+                          f"resized render is not a native one (mean |diff| ~8/255 at 64 px): render at "
+                          f"{self.trained_camera_size} px (--camera-size {self.trained_camera_size} in eval, collect "
+                          f"and env; a store collected at {size} px must be collected again)", stacklevel=2)
         frames = to_model_frames(views, self.config.image_size)  # (V, 3, S, S) uint8
         with torch.inference_mode():
             x = frames[None].to(self.device).float() / 255.0  # (1, V, 3, S, S)
