@@ -228,7 +228,7 @@ def _fidelity_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--execute", default="", metavar="LABEL",
                    help="run the episodes with this --wm model's plans (condition 7's closed loop, to the episode's "
                         "end) instead of the WAM's chunks, so every model is scored at the states that model reaches")
-    p.add_argument("--device", default="cpu", help=DEVICE_HELP)
+    p.add_argument("--device", default="auto", help=DEVICE_HELP)
     p.add_argument("--json", type=Path, default=None, help="also write every boundary's scores to this JSON file")
     p.set_defaults(func=cmd_fidelity)
 
