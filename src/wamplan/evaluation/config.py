@@ -26,8 +26,9 @@ def _env_default() -> EnvConfig:
 WM_DTYPES = ("float32", "bfloat16")  # --wm-dtype's values
 
 
-def _profiles() -> tuple[str, ...]:
-    """``--wam-profile``'s values: the named profiles (left out: the client's defaults)."""
+def profile_names() -> tuple[str, ...]:
+    """``--wam-profile``'s (and ``serve --profile``'s) values: the named client profiles (left out: the client's
+    defaults)."""
     from wamplan.wam.cosmos_client import PROFILES
 
     return tuple(PROFILES)
@@ -43,7 +44,7 @@ class EvalConfig:
                          "e.g. http://127.0.0.1:8777/act")
     wam_profile: str = field("", "with --wam-url: the server's field mapping and sizes by name "
                              "(cosmos-robocasa, cosmos-aloha); left out: ALOHA's field names with the task's "
-                             "cameras by position and the task's action size", choices=_profiles)
+                             "cameras by position and the task's action size", choices=profile_names)
     wam_send_chunk_frames: tuple[int, ...] = field(
         (), "with --wam-url: in-chunk step offsets whose frames go to the server with the next request, with the "
         "episode's start and seed: what a planning proxy (`wamplan serve`) needs for a world model whose frameskip "

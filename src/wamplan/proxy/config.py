@@ -9,7 +9,7 @@ from urllib.parse import urlparse, urlunparse
 
 from wamplan.config import field, require
 from wamplan.errors import UserError
-from wamplan.evaluation.config import WM_DTYPES
+from wamplan.evaluation.config import WM_DTYPES, profile_names
 from wamplan.wam import protocol
 
 DEFAULT_ROBOT = "default"  # the session of plain /act (and of a WebSocket on /)
@@ -26,7 +26,8 @@ class ProxyConfig:
     world_model: str = field("", "world model checkpoint directory (several joined by + (or commas), A+B: an "
                             "ensemble)")
     profile: str = field("", "the upstream's fields and sizes: a client profile (cosmos-robocasa, cosmos-aloha); "
-                             "unset: ALOHA's field names mapped onto the world model's cameras by position")
+                             "unset: ALOHA's field names mapped onto the world model's cameras by position",
+                    choices=profile_names)
     errors: str = field("upstream", "how failures (the client's and the upstream's) are answered: upstream (HTTP 200 "
                                     "and \"error\", as Cosmos Policy's server; use it with upstream clients) or http "
                                     "(4xx/5xx with a one-line reason)", choices=ERROR_MODES)
