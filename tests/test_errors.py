@@ -578,6 +578,12 @@ def test_a_bad_value_is_named_by_its_option(tmp_path, capsys):
                      MINI / "wm_augmented", "--replan-every", "0"], "error: --replan-every must be >= 1")
 
 
+def test_a_mistyped_option_gets_the_nearest_one(tmp_path, capsys):
+    refused(capsys, ["eval", "--out", tmp_path, "--wm-augmneted", "x"],
+            "unrecognized arguments: --wm-augmneted x; did you mean --wm-augmented?")
+    assert "did you mean" not in refused(capsys, ["eval", "--out", tmp_path, "--zzzz"], "--zzzz")
+
+
 def test_reproduce_checks_its_inputs_before_hours_of_work(tmp_path, capsys):
     out = tmp_path / "r"
     refused(capsys, ["reproduce", "--out", out, "--wam", tmp_path / "none"], "is not a wamplan checkpoint")

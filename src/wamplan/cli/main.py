@@ -97,7 +97,21 @@ class _LazySubParsers(argparse._SubParsersAction):
         for key, value in vars(subnamespace).items():
             setattr(namespace, key, value)
         if extras:  # argparse would pass them up to ``wamplan``'s usage; they belong to this command
-            sub.error(f"unrecognized arguments: {' '.join(extras)}")
+            sub.error(f"unrecognized arguments: {' '.join(extras)}{_did_you_mean(extras, sub)}")
+
+
+def _did_you_mean(extras: list[str], parser: argparse.ArgumentParser) -> str:
+    """'; did you mean --x?' for the first unknown option close to one of ``parser``'s (read from its help)."""
+    import difflib
+    import re
+
+    known = sorted(set(re.findall(r"(?<![\w-])--[a-z][\w-]*", parser.format_help())))
+    for arg in extras:
+        if arg.startswith("--"):
+            close = difflib.get_close_matches(arg.split("=")[0], known, n=1, cutoff=0.75)
+            if close:
+                return f"; did you mean {close[0]}?"
+    return ""
 
 
 def add_command(sub: argparse._SubParsersAction, name: str, build: Callable[[argparse.ArgumentParser], None],
