@@ -584,7 +584,7 @@ def test_a_mistyped_option_gets_the_nearest_one(tmp_path, capsys):
     assert "did you mean" not in refused(capsys, ["eval", "--out", tmp_path, "--zzzz"], "--zzzz")
 
 
-def test_reproduce_checks_its_inputs_before_hours_of_work(tmp_path, capsys):
+def test_reproduce_checks_its_inputs_before_hours_of_work(tmp_path, capsys, monkeypatch):
     out = tmp_path / "r"
     refused(capsys, ["reproduce", "--out", out, "--wam", tmp_path / "none"], "is not a wamplan checkpoint")
     refused(capsys, ["reproduce", "--out", out, "--wam", MINI / "wm_plain"], "'wm-predictor' checkpoint",
@@ -592,6 +592,10 @@ def test_reproduce_checks_its_inputs_before_hours_of_work(tmp_path, capsys):
     refused(capsys, ["reproduce", "--out", out, "--wam", "checkpoints/stack-cube/tinywam"],
             "made for task 'stack-cube'", "--task stack-cube")
     refused(capsys, ["reproduce", "--out", MINI / "tinywam"], "is not a reproduce directory")
+    monkeypatch.setenv("WAMPLAN_DINOV3_PATH", str(tmp_path / "no_weights"))  # the paper preset's, not shipped
+    line = refused(capsys, ["reproduce", "--preset", "paper", "--out", out], "--preset paper: dinov3",
+                   "no_weights", "set WAMPLAN_DINOV3_PATH=DIR")
+    assert "--encoder-path" not in line  # an option reproduce does not have
     assert not out.exists() and not (MINI / "tinywam" / "data").exists()  # nothing started, nothing written
 
 

@@ -241,7 +241,10 @@ def check_inputs(p: Preset, out: Path, wam: str | None, task: str) -> None:
             check_same_task(task, task_name(model), f"--wam {wam}")
         finally:
             model.close()
-    frozen_encoder(p.world_model.encoder, p.world_model.encoder_kwargs, device="cpu")
+    try:
+        frozen_encoder(p.world_model.encoder, p.world_model.encoder_kwargs, device="cpu")
+    except UserError as e:  # reproduce has no --encoder-path: the weights come through the environment variable
+        raise UserError(f"--preset {p.name}: {str(e).replace('pass --encoder-path DIR or set', 'set')}") from None
 
 
 def reproduce(preset: str, out: Path, wam: str | None = None, workers: int = 1,
