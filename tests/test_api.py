@@ -59,7 +59,7 @@ def test_the_api_builds_the_evaluations_policy(tmp_path):
     torch.testing.assert_close(by_dict.cost(pred, target), pol.cost(pred, target))
     by_name = wamplan.planned_policy(WAM, WM, device="cpu", cost="cls")
     torch.testing.assert_close(by_name.cost(pred, target), (pred.mean(2) - target.mean(1)).square().mean(dim=(1, 2)))
-    with pytest.raises(TypeError, match="cost is a int; pass a CostConfig, a cost name"):
+    with pytest.raises(TypeError, match="cost is of type int; pass a CostConfig, a cost name"):
         wamplan.planned_policy(WAM, WM, cost=5)
     assert wamplan.CostConfig is CostConfig
 

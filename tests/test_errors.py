@@ -559,6 +559,12 @@ def test_a_directory_of_another_kind_is_named_with_what_it_holds(tmp_path, capsy
     refused(capsys, ["data", "info", wam], "is not a wamplan episode store (it holds a 'tinywam' checkpoint)",
             "`wamplan collect` or `wamplan data import`")
     refused(capsys, ["gate-calibrate", tmp_path / "none"], "does not exist; pass an evaluation directory")
+    started = tmp_path / "started"  # an evaluation whose first episode has not finished: not "another kind"
+    started.mkdir()
+    (started / "eval_config.json").write_text("{}")
+    for argv in (["report", started], ["gate-calibrate", started]):
+        refused(capsys, argv, "holds an evaluation whose first episode has not finished; run or resume `wamplan "
+                              f"eval --out {started}`")
     refused(capsys, ["gate-calibrate", tmp_path, "--quantiles", "0.5", "1.5"], "--quantiles 1.5", "[0, 1]")
     refused(capsys, ["env", "check", "--steps", "0"], "--steps must be >= 1")
     refused(capsys, ["data", "import", "--format", "maniskill", tmp_path / "no.h5", tmp_path / "o"],
@@ -582,6 +588,11 @@ def test_a_mistyped_option_gets_the_nearest_one(tmp_path, capsys):
     refused(capsys, ["eval", "--out", tmp_path, "--wm-augmneted", "x"],
             "unrecognized arguments: --wm-augmneted x; did you mean --wm-augmented?")
     assert "did you mean" not in refused(capsys, ["eval", "--out", tmp_path, "--zzzz"], "--zzzz")
+    # only options the command takes, never the refused one itself, never a flag its help merely mentions
+    assert "did you mean" not in refused(capsys, ["data", "info", tmp_path, "--out", "x"], "--out x")
+    fidelity = ["wm", "fidelity", "--wam", "w", "--wm", "x=y", "--seeds", "1"]  # its help mentions --state-weight
+    assert refused(capsys, [*fidelity, "--state-weigth", "1"], "--state-weigth").endswith(
+        "did you mean --plan-state-weight?")  # an option it has, not the one its help text names
 
 
 def test_reproduce_checks_its_inputs_before_hours_of_work(tmp_path, capsys, monkeypatch):

@@ -60,21 +60,23 @@ def test_records_survive_a_torn_last_line(tmp_path):
     assert [r["seed"] for r in read_records(tmp_path)] == [0, 1, 2, 3, 4]
 
 
-@pytest.mark.parametrize("line", ['[1, 2]', '{"seed": 3}', '{"condition": "seven", "seed": 3}'])
+@pytest.mark.parametrize("line", ['[1, 2]', '{"seed": 3}', '{"condition": "7", "seed": 3}', '{"condition": true, '
+                                  '"seed": 3}', '\udcff'])
 def test_a_line_that_is_not_an_episode_record_is_named(tmp_path, line):
     from wamplan.errors import UserError
 
     append_record(tmp_path, _rec(1, 0, "success"))
-    with open(tmp_path / RECORDS, "a") as f:
-        f.write(line + "\n")  # a hand-written or foreign line, complete, not the last
+    with open(tmp_path / RECORDS, "a", errors="surrogateescape") as f:
+        f.write(line + "\n")  # a hand-written or foreign line (or bytes that are not UTF-8), complete, not the last
     append_record(tmp_path, _rec(1, 1, "success"))
     with pytest.raises(UserError, match=r"line 2 is damaged or not an episode record .*'condition' and 'seed'"):
         read_records(tmp_path)
     # as the file's last line, without its newline, it is complete, not torn: named too, and left as it was
-    (tmp_path / RECORDS).write_text(json.dumps(_rec(1, 0, "success")) + "\n" + line)
-    with pytest.raises(UserError, match="line 2 is damaged or not an episode record"):
-        read_records(tmp_path, repair=True)
-    assert (tmp_path / RECORDS).read_text().endswith("\n" + line)
+    if line.isascii():
+        (tmp_path / RECORDS).write_text(json.dumps(_rec(1, 0, "success")) + "\n" + line)
+        with pytest.raises(UserError, match="line 2 is damaged or not an episode record"):
+            read_records(tmp_path, repair=True)
+        assert (tmp_path / RECORDS).read_text().endswith("\n" + line)
 
 
 def test_sign_test_exact_values():

@@ -50,6 +50,19 @@ def test_training_logs_the_state_readout_in_mm_and_the_export_encodes(trained):
         make_encoder("task-cnn")
 
 
+def test_a_finished_run_trains_longer_with_its_own_settings(trained, tmp_path, capsys):
+    from wamplan.cli import main
+
+    store, run, _ = trained
+    longer = tmp_path / "enc"
+    shutil.copytree(run, longer)
+    # only --epochs given: the run's batch size (8) and width (32) are kept, not the defaults (64, 128)
+    assert main(["wm", "train-encoder", "--data", str(store), "--out", str(longer), "--epochs", "3"]) == 0, \
+        capsys.readouterr().err
+    logged = [json.loads(line) for line in (longer / "metrics.jsonl").read_text().splitlines()]
+    assert len([m for m in logged if "val/state_mm" in m]) == 3
+
+
 def test_a_world_model_trains_on_its_features_and_reloads_it_from_any_folder(trained, tmp_path, monkeypatch):
     from wamplan.cli import main
     from wamplan.worldmodel.train import load_world_model

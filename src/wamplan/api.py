@@ -64,7 +64,7 @@ def planned_policy(wam: WAM | str | Path, world_model: str | Path | Sequence[str
     elif isinstance(cost, dict):
         cost = from_dict(CostConfig, cost)
     elif cost is not None and not isinstance(cost, CostConfig):
-        raise TypeError(f"cost is a {type(cost).__name__}; pass a CostConfig, a cost name ('patch', 'cls') or a "
+        raise TypeError(f"cost is of type {type(cost).__name__}; pass a CostConfig, a cost name ('patch', 'cls') or a "
                         f"dict of CostConfig's fields")
     cfg = EvalConfig(wam=str(wam) if isinstance(wam, (str, Path)) else "", wm_augmented=",".join(paths),
                      device=device, planner_config=planner_config, cost=cost or CostConfig(),

@@ -200,15 +200,15 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def cmd_gate_calibrate(args: argparse.Namespace) -> int:
-    from wamplan.errors import UserError, not_a
+    from wamplan.errors import UserError
     from wamplan.evaluation.gate import gate_table
-    from wamplan.evaluation.records import RECORDS
+    from wamplan.evaluation.records import RECORDS, no_records
 
     odd = [q for q in args.quantiles if not 0 <= q <= 1]
     if odd:
         raise UserError(f"--quantiles {odd[0]:g}: quantiles lie in [0, 1], e.g. 0.25 for the lower quartile")
     if not (args.dir / RECORDS).is_file():
-        raise UserError(not_a(args.dir, RECORDS, "an evaluation directory", f"wamplan eval --out {args.dir}"))
+        raise UserError(no_records(args.dir))
     table = gate_table(args.dir, tuple(args.quantiles))
     if not table:
         raise UserError(f"{args.dir} holds no planned chunks with a seed_cost; run `wamplan eval` there first")

@@ -101,14 +101,16 @@ class _LazySubParsers(argparse._SubParsersAction):
 
 
 def _did_you_mean(extras: list[str], parser: argparse.ArgumentParser) -> str:
-    """'; did you mean --x?' for the first unknown option close to one of ``parser``'s (read from its help)."""
+    """'; did you mean --x?' for the first unknown option close to one of ``parser``'s (read from its usage line,
+    which lists each option it takes once and no prose)."""
     import difflib
     import re
 
-    known = sorted(set(re.findall(r"(?<![\w-])--[a-z][\w-]*", parser.format_help())))
+    known = sorted(set(re.findall(r"(?<![\w-])--[a-z][\w-]*[a-z0-9]", parser.format_usage())))
     for arg in extras:
-        if arg.startswith("--"):
-            close = difflib.get_close_matches(arg.split("=")[0], known, n=1, cutoff=0.75)
+        flag = arg.split("=")[0]
+        if flag.startswith("--"):
+            close = [c for c in difflib.get_close_matches(flag, known, n=2, cutoff=0.75) if c != flag]
             if close:
                 return f"; did you mean {close[0]}?"
     return ""

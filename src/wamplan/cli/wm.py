@@ -130,14 +130,19 @@ def _train_encoder_options(p: argparse.ArgumentParser) -> None:
 
 
 def cmd_train_encoder(args: argparse.Namespace) -> int:
-    from wamplan.checkpoint import CKPT_DIR, has_training_state
+    from wamplan.checkpoint import CKPT_DIR, has_training_state, read_config
+    from wamplan.config import from_dict
+    from wamplan.encoders.learned import KIND as ENCODER_KIND
     from wamplan.encoders.learned import EncoderTrainConfig, train_task_cnn
 
     require_dir(args.out)
     resolve_device(args.device)
-    metrics = train_task_cnn(_stores(args.data), args.out, from_args(EncoderTrainConfig, args),
+    resume = has_training_state(args.out / CKPT_DIR)
+    # a resumed run keeps its saved settings where no option overrides them (the defaults may have changed since)
+    saved = from_dict(EncoderTrainConfig, read_config(args.out / CKPT_DIR, ENCODER_KIND)["train"]) if resume else None
+    metrics = train_task_cnn(_stores(args.data), args.out, from_args(EncoderTrainConfig, args, base=saved),
                              val_fraction=args.val_fraction, device=args.device, max_steps=args.max_steps,
-                             resume=has_training_state(args.out / CKPT_DIR))
+                             resume=resume)
     print(json.dumps(metrics))
     return 0
 

@@ -138,9 +138,9 @@ class TaskCNNEncoder(FrozenEncoder):
 
 @dataclass(frozen=True)
 class EncoderTrainConfig(AdamWConfig):
-    """Training of the ``task-cnn`` encoder: the loop's fields (defaults: the recipe of the shipped
-    ``enc_taskcnn``, 10 epochs at lr 1e-3 in batches of 64, not the world model's), the token width and the two
-    objectives' weights."""
+    """Training of the ``task-cnn`` encoder: the loop's fields (defaults: the recipe the candidate encoders were
+    trained with, 10 epochs at lr 1e-3 in batches of 64 (docs/results.md), not the world model's), the token width
+    and the two objectives' weights."""
 
     epochs: int = with_default(AdamWConfig, "epochs", 10)
     batch_size: int = with_default(AdamWConfig, "batch_size", 64)

@@ -9,6 +9,18 @@ from pathlib import Path
 from typing import Any
 
 RECORDS = "records.jsonl"
+CONFIG = "eval_config.json"  # the settings every record of a directory shares (runner: settings), written at start
+
+
+def no_records(out_dir: str | Path) -> str:
+    """The one line for an evaluation directory ``out_dir`` without a finished episode: one started (its settings
+    stored) whose first episode has not finished, or not an evaluation directory at all (errors.not_a)."""
+    from wamplan.errors import not_a
+
+    out = Path(out_dir)
+    if (out / CONFIG).is_file():
+        return f"{out} holds an evaluation whose first episode has not finished; run or resume `wamplan eval --out {out}`"
+    return not_a(out, RECORDS, "an evaluation directory", f"wamplan eval --out {out}")
 
 
 def record_key(rec: dict[str, Any]) -> tuple[int, int, str]:
@@ -32,7 +44,7 @@ def read_records(out_dir: str | Path, repair: bool = False) -> list[dict[str, An
             continue
         try:
             rec = json.loads(line)
-        except json.JSONDecodeError:
+        except ValueError:  # not JSON, or not UTF-8
             torn = n == len(lines) + 1  # the last line, cut by a kill mid-write: dropped (cut off with ``repair``)
             if torn:
                 break
@@ -59,10 +71,8 @@ def _checked(rec: Any) -> dict[str, Any]:
     (JSONDecodeError is a ValueError, so one ``except ValueError`` covers both.)"""
     if not isinstance(rec, dict):
         raise ValueError("not a JSON object")
-    try:
-        record_key(rec)
-    except (KeyError, TypeError, ValueError) as e:
-        raise ValueError(f"no integer condition and seed: {e}") from None
+    if not all(isinstance(rec.get(k), int) and not isinstance(rec.get(k), bool) for k in ("condition", "seed")):
+        raise ValueError("no integer condition and seed")
     return rec
 
 

@@ -20,7 +20,7 @@ import numpy as np
 from wamplan.envs.config import EnvConfig
 from wamplan.envs.spec import TaskSpec, get_task
 from wamplan.evaluation.conditions import CONDITIONS
-from wamplan.evaluation.records import RECORDS, read_records
+from wamplan.evaluation.records import RECORDS, no_records, read_records
 
 REQUIRED_FIELDS = ("condition", "seed", "success", "outcome", "length")  # what every record must hold for a report
 SETTINGS = "eval_config.json"  # an evaluation directory's settings (evaluation/runner.py writes it)
@@ -400,7 +400,7 @@ def write_report(out_dir: str | Path, more: list[str | Path] = ()) -> dict[str, 
     """Table 1, Figure 3, timings and the paired comparison, written into ``out_dir``; with ``more``, the
     records of those evaluation directories (``DIR`` or ``DIR:C[,C...]``) are merged with ``out_dir``'s (which
     may then be empty)."""
-    from wamplan.errors import UserError, not_a
+    from wamplan.errors import UserError
 
     out = Path(out_dir)
     dirs = [out, *(run_spec(m)[0] for m in more)]
@@ -409,7 +409,7 @@ def write_report(out_dir: str | Path, more: list[str | Path] = ()) -> dict[str, 
             raise UserError(f"{d} has no evaluation records ({RECORDS}); name directories `wamplan eval` wrote")
     records = merged_records([out, *more])
     if not records:
-        raise UserError(not_a(out, RECORDS, "an evaluation directory", f"wamplan eval --out {out}"))
+        raise UserError(no_records(out))
     task = run_task(dirs)
     out.mkdir(parents=True, exist_ok=True)
     rows = table1(records)

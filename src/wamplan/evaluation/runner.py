@@ -28,13 +28,12 @@ from wamplan.config import ensemble_members, to_dict
 from wamplan.envs.spec import check_same_task
 from wamplan.evaluation.conditions import CONDITIONS
 from wamplan.evaluation.config import EvalConfig
-from wamplan.evaluation.records import RECORDS, append_record, read_records, record_key
+from wamplan.evaluation.records import CONFIG, RECORDS, append_record, read_records, record_key
 from wamplan.parallel import Backend, imap_workers
 from wamplan.planning.dynamics import task_name
 from wamplan.planning.gates import DISCARDED
 from wamplan.planning.defaults import DEFAULT_PLANNER
 
-CONFIG = "eval_config.json"  # the settings every record of a directory shares (see settings)
 TRACE_EVERY = 4  # steps between the cube's privileged samples in a record's "trace" (evaluation/trace.py)
 
 

@@ -275,7 +275,7 @@ class WAMPolicy(Policy):
         self._query_steps.append(obs.step)
         if "proxy" in out.extras:
             proxy = out.extras["proxy"]
-            self._proxy["planned" if proxy["planned"] else str(proxy["open_loop"])] += 1
+            self._proxy["planned" if proxy["planned"] else str(proxy.get("open_loop") or "unknown")] += 1
         chunk = out.actions  # (H, A)
         if self.refine is not None:
             t1 = time.perf_counter()
