@@ -270,7 +270,7 @@ def test_disagreement_weight_needs_an_ensemble(encoder):
 
 
 def test_gate_calibration_reads_seed_costs(tmp_path):
-    from wamplan.evaluation.gate import gate_table, planned_fraction
+    from wamplan.evaluation.gate import gate_table
     from wamplan.evaluation.records import append_record
 
     for seed, costs in enumerate([[1.0, 2.0], [3.0, 4.0]]):
