@@ -582,6 +582,9 @@ def test_a_bad_value_is_named_by_its_option(tmp_path, capsys):
     refused(capsys, [*wm, "--frameskip", "0"], "error: --frameskip must be a positive int")
     refused(capsys, ["eval", "--conditions", "7", "--out", tmp_path / "e", "--wam", MINI / "tinywam", "--wm-augmented",
                      MINI / "wm_augmented", "--replan-every", "0"], "error: --replan-every must be >= 1")
+    refused(capsys, ["eval", "--conditions", "7", "--out", tmp_path / "e", "--wam", MINI / "tinywam", "--wm-augmented",
+                     MINI / "wm_augmented", "--cost-pool", "3"], "--cost-pool 3", "pass a divisor of 4")
+    assert not (tmp_path / "e").exists()
 
 
 def test_a_mistyped_option_gets_the_nearest_one(tmp_path, capsys):

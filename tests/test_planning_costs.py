@@ -43,6 +43,26 @@ def test_view_weights():
         make_cost("patch", (1, -1, 1))
 
 
+def test_pooled_cost_matches_the_mean_of_each_block():
+    from wamplan.planning.costs import pool_tokens
+
+    g = torch.Generator().manual_seed(3)
+    pred, target = torch.randn(B, V, 16, D, generator=g), torch.randn(V, 16, D, generator=g)  # 4 x 4 grids
+    grid = pred.reshape(B, V, 4, 4, D)
+    top_left = grid[:, :, :2, :2].mean(dim=(2, 3))  # (B, V, D): the first 2 x 2 block, by hand
+    torch.testing.assert_close(pool_tokens(pred, 2)[:, :, 0], top_left)
+    bottom_right = grid[:, :, 2:, 2:].mean(dim=(2, 3))
+    torch.testing.assert_close(pool_tokens(pred, 2)[:, :, 3], bottom_right)
+    cost = build_cost(CostConfig(pool=2, view_weights=(0, 0, 1)))
+    want = (pool_tokens(pred, 2)[:, 2] - pool_tokens(target, 2)[2]).square().mean(dim=(1, 2))
+    torch.testing.assert_close(cost(pred, target), want)
+    torch.testing.assert_close(build_cost(CostConfig(pool=4))(pred, target), cls_cost(pred, target))  # 1 x 1: cls
+    with pytest.raises(ValueError, match="lower --cost-pool"):
+        build_cost(CostConfig(pool=3))(pred, target)
+    with pytest.raises(ConfigError, match="pool must be an int >= 1"):
+        CostConfig(pool=0)
+
+
 def test_cls_cost_and_registry():
     g = torch.Generator().manual_seed(2)
     pred, target = torch.randn(B, V, D, generator=g), torch.randn(V, D, generator=g)

@@ -21,6 +21,7 @@ where the WAM's predicted images show it.
 from __future__ import annotations
 
 import functools
+import math
 from typing import Callable, Sequence
 
 import torch
@@ -108,10 +109,33 @@ def with_state_term(cost: CostFn, read_state: StateReader, weight: float) -> Cos
     return fn
 
 
+def pool_tokens(z: Tensor, k: int) -> Tensor:
+    """(..., N, D) tokens of a square g x g grid (row-major) -> (..., (g/k)^2, D): the mean of each k x k block;
+    a ValueError when N is not a square whose side k divides."""
+    *lead, n, d = z.shape
+    g = math.isqrt(n)
+    if g * g != n or g % k:
+        raise ValueError(f"pooling {k} x {k} needs a square token grid whose side {k} divides; got {n} tokens "
+                         f"per view: lower --cost-pool")
+    blocks = z.float().reshape(*lead, g // k, k, g // k, k, d)  # (..., g/k, k, g/k, k, D)
+    return blocks.mean(dim=(-4, -2)).reshape(*lead, (g // k) ** 2, d)  # (..., (g/k)^2, D)
+
+
+def with_pooling(cost: CostFn, k: int) -> CostFn:
+    """``cost`` on tokens pooled k x k per view (:func:`pool_tokens`). pred (B, V, N, D), target (V, N, D) -> (B,)."""
+    def fn(pred: Tensor, target: Tensor) -> Tensor:
+        return cost(pool_tokens(pred, k), pool_tokens(target, k))
+
+    return fn
+
+
 def build_cost(cfg: CostConfig, read_state: StateReader | None = None) -> CostFn:
-    """The cost ``cfg`` names, with its view weights; with ``state_weight`` > 0, plus the pose term read by
-    ``read_state`` (a world model's state head: ``LearnedDynamics.read_state``)."""
+    """The cost ``cfg`` names, with its view weights and token pooling; with ``state_weight`` > 0, plus the pose
+    term read by ``read_state`` (a world model's state head: ``LearnedDynamics.read_state``) from the unpooled
+    tokens."""
     cost = make_cost(cfg.name, cfg.view_weights or None)
+    if cfg.pool > 1:
+        cost = with_pooling(cost, cfg.pool)
     if not cfg.state_weight:
         return cost
     require(read_state is not None, f"a pose term (state_weight {cfg.state_weight:g}) needs a world model with "
