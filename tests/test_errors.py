@@ -578,10 +578,10 @@ def test_a_bad_value_is_named_by_its_option(tmp_path, capsys):
     # config errors name fields (TrainConfig.epochs, warmup_epochs, frameskip); the command line names its options
     wm = ["wm", "train", "--data", tmp_path, "--out", tmp_path / "run"]
     assert refused(capsys, [*wm, "--epochs", "0"], "error: --epochs must be a positive int").count("Config") == 0
-    refused(capsys, [*wm, "--warmup-epochs", "99"], "error: --warmup-epochs must be in [0, epochs=")
+    refused(capsys, [*wm, "--warmup-epochs", "99"], "error: --warmup-epochs must be in [0, --epochs=")
     refused(capsys, [*wm, "--frameskip", "0"], "error: --frameskip must be a positive int")
     refused(capsys, ["eval", "--conditions", "7", "--out", tmp_path / "e", "--wam", MINI / "tinywam", "--wm-augmented",
-                     MINI / "wm_augmented", "--replan-every", "0"], "error: --replan-every must be >= 1")
+                     MINI / "wm_augmented", "--replan-every", "0"], "error: --replan-every must be >= 1 or unset")
     refused(capsys, ["eval", "--conditions", "7", "--out", tmp_path / "e", "--wam", MINI / "tinywam", "--wm-augmented",
                      MINI / "wm_augmented", "--cost-pool", "3"], "--cost-pool 3", "pass a divisor of 4")
     assert not (tmp_path / "e").exists()

@@ -208,12 +208,13 @@ def from_args(cls: type[T], args: argparse.Namespace, base: T | None = None, pre
 
 def as_options(text: str, cls_name: str, flags: dict[str, str]) -> str:
     """``text``, a config's error, with its field names written as the options that set them (``flags``: field ->
-    option): ``Cls.field``, a snake_case field anywhere, and a field that opens the message (its subject)."""
+    option): ``Cls.field``, a snake_case field anywhere, a field that opens the message (its subject) or is quoted
+    with its value (``epochs=10``); "or None" (a field's unset value) reads "or unset"."""
     for name in sorted(flags, key=len, reverse=True):
         text = text.replace(f"{cls_name}.{name}", flags[name])
-        pattern = rf"(?<![\w.-]){name}(?![\w-])" if "_" in name else rf"^{name}(?![\w-])"
+        pattern = rf"(?<![\w.-]){name}(?![\w-])" if "_" in name else rf"^{name}(?![\w-])|(?<![\w.-]){name}(?==)"
         text = re.sub(pattern, flags[name], text)
-    return text
+    return text.replace(" or None", " or unset")
 
 
 def ensemble_members(spec: str) -> list[str]:
