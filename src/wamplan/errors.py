@@ -22,6 +22,18 @@ def require_paths(paths: Iterable[str], flag: str, fix: str) -> None:
             raise UserError(f"{flag} {path or '(empty)'} does not exist; {fix}")
 
 
+def checkpoint_kind(path: str | Path) -> str:
+    """The ``kind`` a checkpoint directory's ``config.json`` (``checkpoint.CONFIG_FILE``) names, or "" where there is
+    none or it cannot be read (for messages only: loading checks a checkpoint properly)."""
+    import json
+
+    try:
+        kind = json.loads((Path(path) / "config.json").read_text()).get("kind", "")
+    except (OSError, ValueError, AttributeError):
+        return ""
+    return kind if isinstance(kind, str) else ""
+
+
 def not_a(path: str | Path, marker: str, what: str, make: str, also: tuple[str, ...] = ()) -> str:
     """The one line for ``path`` that should be ``what`` (a directory holding ``marker``) and is not: it does not
     exist, is a file, holds something else (``config.json``'s kind named where it is a checkpoint), or is an empty
@@ -34,13 +46,7 @@ def not_a(path: str | Path, marker: str, what: str, make: str, also: tuple[str, 
         return f"{p} is a file, not {what}; {use}"
     if not any(p.iterdir()):
         return f"{p} is empty; run `{make}` first"
-    kind = ""
-    try:
-        import json
-
-        kind = json.loads((p / "config.json").read_text()).get("kind", "")
-    except (OSError, ValueError, AttributeError):
-        pass
+    kind = checkpoint_kind(p)
     holds = f"a '{kind}' checkpoint" if kind else f"no {marker}"
     return f"{p} is not {what} (it holds {holds}); {use}"
 

@@ -39,7 +39,7 @@ from torch.utils.data import DataLoader, Dataset
 from wamplan.checkpoint import (CKPT_DIR, CONFIG_FILE, STATE_DIR, has_training_state, load_training_state,
                                 load_weights, read_config, save_checkpoint)
 from wamplan.config import field, require
-from wamplan.errors import SEED_LIMIT, UserError, require_own_dir
+from wamplan.errors import SEED_LIMIT, UserError, checkpoint_kind, require_own_dir
 from wamplan.optim import make_adamw, optimizer_step, warmup_cosine
 from wamplan.progress import progress_bar
 
@@ -155,10 +155,7 @@ def check_run_dir(run_dir: str | Path, what: str = "a training run") -> None:
     if run.exists() and not run.is_dir():
         raise UserError(f"--out {run} is a file; pass a directory for the training run")
     if (run / CONFIG_FILE).is_file():
-        try:
-            kind = json.loads((run / CONFIG_FILE).read_text()).get("kind", "")
-        except (OSError, ValueError, AttributeError):
-            kind = ""
+        kind = checkpoint_kind(run)
         holds = f"a '{kind}' checkpoint" if kind else "a checkpoint"
         raise UserError(f"--out {run} holds {holds} (a checkpoint directory, not a run directory); it loads for "
                         f"inference as it is: train into a new --out")

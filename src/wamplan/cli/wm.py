@@ -253,10 +253,9 @@ def cmd_encode(args: argparse.Namespace) -> int:
 def cmd_train(args: argparse.Namespace) -> int:
     from wamplan.presets import get_world_model_preset
     from wamplan.worldmodel.config import TrainConfig, architecture_from_args
-    from wamplan.worldmodel.stores import train_predictor_on_stores
-
     from wamplan.checkpoint import CheckpointError, checkpoint_dir, read_config
     from wamplan.train_loop import check_run_dir
+    from wamplan.worldmodel.stores import train_predictor_on_stores
     from wamplan.worldmodel.train import KIND
 
     require_dir(args.out)

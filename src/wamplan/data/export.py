@@ -148,9 +148,10 @@ def export_cosmos_policy(store_dir: str | Path, out_dir: str | Path, cfg: Cosmos
     demos_path = out / DEMOS_FILE
     if demos_path.exists() or (out / ROLLOUTS_DIR).exists():
         raise UserError(f"{out} holds an export already; choose a new OUT directory or delete it")
-    if out.is_dir() and any(out.iterdir()):  # a checkpoint, a store, anything: an export is not mixed into it
-        raise UserError(f"{out} exists and is not empty ({', '.join(sorted(e.name for e in out.iterdir())[:3])}"
-                        f"{', ...' if len(list(out.iterdir())) > 3 else ''}); choose a new or empty OUT directory")
+    there = sorted(e.name for e in out.iterdir()) if out.is_dir() else []
+    if there:  # a checkpoint, a store, anything: an export is not mixed into it
+        raise UserError(f"{out} exists and is not empty ({', '.join(there[:3])}{', ...' if len(there) > 3 else ''}); "
+                        f"choose a new or empty OUT directory")
     (out / ROLLOUTS_DIR).mkdir(parents=True)
     demos_path.parent.mkdir(parents=True, exist_ok=True)
     summary: dict[str, Any] = dict(out=str(out), demos=0, demo_steps=0, rollouts=0, rollout_steps=0,

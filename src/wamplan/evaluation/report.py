@@ -20,10 +20,9 @@ import numpy as np
 from wamplan.envs.config import EnvConfig
 from wamplan.envs.spec import TaskSpec, get_task
 from wamplan.evaluation.conditions import CONDITIONS
-from wamplan.evaluation.records import RECORDS, no_records, read_records
+from wamplan.evaluation.records import CONFIG, RECORDS, no_records, read_records
 
 REQUIRED_FIELDS = ("condition", "seed", "success", "outcome", "length")  # what every record must hold for a report
-SETTINGS = "eval_config.json"  # an evaluation directory's settings (evaluation/runner.py writes it)
 ALIGNED = "aligned"  # the stage the insertion readings (paired table, Table 2) start from, where a task has it
 # Figure 3's colours: success, then the task's failures from the earliest stage on. Failures run red -> orange ->
 # yellow -> light blue as they get closer to success (the cube task's four), so no failure shade can be mistaken
@@ -50,8 +49,8 @@ def run_task(dirs: list[Path]) -> TaskSpec:
 
     found: dict[str, Path] = {}
     for d in dirs:
-        if (d / SETTINGS).is_file():
-            found.setdefault(json.loads((d / SETTINGS).read_text()).get("env.task", EnvConfig.task), d)
+        if (d / CONFIG).is_file():
+            found.setdefault(json.loads((d / CONFIG).read_text()).get("env.task", EnvConfig.task), d)
     if len(found) > 1:
         raise UserError("the runs evaluated different tasks (" + ", ".join(f"{t} in {d}" for t, d in found.items())
                         + "); report each task's runs apart")
@@ -329,7 +328,7 @@ def _settings_line(out: Path, task: TaskSpec, named: bool = False) -> list[str]:
     from wamplan.config import to_dict
     from wamplan.planning import PLANNERS
 
-    path = out / SETTINGS
+    path = out / CONFIG
     if not path.is_file():
         return []
     s = json.loads(path.read_text())

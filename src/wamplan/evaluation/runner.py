@@ -218,6 +218,7 @@ def _check_inputs(cfg: EvalConfig, conditions: list[int]) -> None:
     checkpoint stops the run (in one line) before it stores its settings, so a failed start never locks its
     output directory. The workers load their own copies."""
     from wamplan.errors import UserError
+    from wamplan.planning.costs import pool_fits
     from wamplan.planning.policy_config import check_frameskip, check_replan_every
     from wamplan.worldmodel.train import load_world_model
 
@@ -234,10 +235,10 @@ def _check_inputs(cfg: EvalConfig, conditions: list[int]) -> None:
             predictor, _ = load_world_model(path, device="cpu")  # the predictor and its encoder
             check_world_model_task(cfg, path, predictor)
             check_frameskip(predictor.cfg.frameskip, cfg.env.spec.chunk_len)
-            side, k = math.isqrt(predictor.cfg.num_patches), cfg.cost.pool
-            if k > 1 and (side * side != predictor.cfg.num_patches or side % k):
+            n, k = predictor.cfg.num_patches, cfg.cost.pool
+            if k > 1 and not pool_fits(n, k):
                 raise UserError(f"--cost-pool {k} needs a square token grid whose side {k} divides, but {path} "
-                                f"predicts {predictor.cfg.num_patches} tokens a view; pass a divisor of {side}")
+                                f"predicts {n} tokens a view; pass a divisor of {math.isqrt(n)}")
             if cfg.policy.replan_every is not None:  # the re-plans' rollouts must end at the target's step
                 check_replan_every(cfg.policy.replan_every, cfg.env.spec.chunk_len, predictor.cfg.frameskip)
 

@@ -109,12 +109,18 @@ def with_state_term(cost: CostFn, read_state: StateReader, weight: float) -> Cos
     return fn
 
 
+def pool_fits(num_tokens: int, k: int) -> bool:
+    """Whether ``num_tokens`` form a square grid whose side ``k`` divides (what :func:`pool_tokens` needs)."""
+    side = math.isqrt(num_tokens)
+    return side * side == num_tokens and side % k == 0
+
+
 def pool_tokens(z: Tensor, k: int) -> Tensor:
     """(..., N, D) tokens of a square g x g grid (row-major) -> (..., (g/k)^2, D): the mean of each k x k block;
     a ValueError when N is not a square whose side k divides."""
     *lead, n, d = z.shape
     g = math.isqrt(n)
-    if g * g != n or g % k:
+    if not pool_fits(n, k):
         raise ValueError(f"pooling {k} x {k} needs a square token grid whose side {k} divides; got {n} tokens "
                          f"per view: lower --cost-pool")
     blocks = z.float().reshape(*lead, g // k, k, g // k, k, d)  # (..., g/k, k, g/k, k, D)
