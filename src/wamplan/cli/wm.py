@@ -1,4 +1,4 @@
-"""``wamplan wm encode|train|train-decoder|eval|viz|probe|fidelity``."""
+"""``wamplan wm encode|train|train-decoder|eval|viz|probe|foreground|fidelity``."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ from pathlib import Path
 
 from wamplan.config import Once, add_arguments, ensemble_members, from_args, int_list
 from wamplan.errors import UserError, require_dir, require_file, require_paths, require_seeds
+from wamplan.cli.foreground import foreground_options
 from wamplan.cli.main import add_command, add_group, register_command
 
 
@@ -56,6 +57,9 @@ def _wm_commands(wm: argparse.ArgumentParser) -> None:
     add_command(s, "viz", _viz_options, help="ground truth vs autoregressive rollout(s), decoded (paper Figure 4)")
     add_command(s, "probe", _probe_options,
                 help="ridge probe from an encoder's frozen tokens to the cube's position (held-out mm)")
+    add_command(s, "foreground", foreground_options,
+                help="fit a foreground readout (robot and objects against the table, per patch token) on a world "
+                     "model's encoder: the object-centric cost's weights (eval --cost-foreground DIR)")
     add_command(s, "fidelity", _fidelity_options,
                 help="rank agreement of world models with the simulator on the same candidates; with --plan, the "
                      "gate: each model's own plan scored in the simulator")

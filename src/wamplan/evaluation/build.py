@@ -29,7 +29,12 @@ def planned_policy(cfg: EvalConfig, wam: WAM, dynamics: Dynamics, encoder: Any, 
     from wamplan.planning.costs import build_cost
     from wamplan.planning.policy import PlannedPolicy
 
-    cost = build_cost(cfg.cost, getattr(dynamics, "read_state", None))  # the pose term reads the model's state head
+    weigh = None
+    if cfg.cost.foreground:  # the readout reads the target's tokens: it must be fit on this encoder
+        from wamplan.encoders.foreground import foreground_weigher
+
+        weigh = foreground_weigher(cfg.cost.foreground, encoder, cfg.cost.background_weight)
+    cost = build_cost(cfg.cost, getattr(dynamics, "read_state", None), weigh)  # the pose term reads the state head
     return PlannedPolicy(wam, make_planner(cfg.planner, cfg.planner_config), dynamics, encoder, cost,
                          target_wam=target_wam, config=cfg.policy,
                          world_models=tuple(str(Path(p).resolve()) for p in world_models))

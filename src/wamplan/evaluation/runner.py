@@ -217,6 +217,7 @@ def _check_inputs(cfg: EvalConfig, conditions: list[int]) -> None:
     """Load the WAM and the world models the conditions need once, here, on the CPU: a damaged or foreign
     checkpoint stops the run (in one line) before it stores its settings, so a failed start never locks its
     output directory. The workers load their own copies."""
+    from wamplan.encoders.foreground import load_foreground
     from wamplan.errors import UserError
     from wamplan.planning.costs import pool_fits
     from wamplan.planning.policy_config import check_frameskip, check_replan_every
@@ -232,13 +233,15 @@ def _check_inputs(cfg: EvalConfig, conditions: list[int]) -> None:
             wam.close()
     for c in sorted(set(conditions)):
         for path in cfg.world_models(c):
-            predictor, _ = load_world_model(path, device="cpu")  # the predictor and its encoder
+            predictor, encoder = load_world_model(path, device="cpu")
             check_world_model_task(cfg, path, predictor)
             check_frameskip(predictor.cfg.frameskip, cfg.env.spec.chunk_len)
             n, k = predictor.cfg.num_patches, cfg.cost.pool
             if k > 1 and not pool_fits(n, k):
                 raise UserError(f"--cost-pool {k} needs a square token grid whose side {k} divides, but {path} "
                                 f"predicts {n} tokens a view; pass a divisor of {math.isqrt(n)}")
+            if cfg.cost.foreground:  # a readout of another encoder or task: refused here, not in the workers
+                load_foreground(cfg.cost.foreground, encoder)
             if cfg.policy.replan_every is not None:  # the re-plans' rollouts must end at the target's step
                 check_replan_every(cfg.policy.replan_every, cfg.env.spec.chunk_len, predictor.cfg.frameskip)
 

@@ -33,6 +33,7 @@ from wamplan.registry import Registry
 
 CostFn = Callable[[Tensor, Tensor], Tensor]  # (pred (B, V, ...), target (V, ...)) -> (B,)
 StateReader = Callable[[Tensor], Tensor]  # a world model's state head: z (..., V, N, D) -> (..., S)
+TokenWeigher = Callable[[Tensor], Tensor]  # target (V, N, D) -> each token's weight (V, N), all > 0
 COSTS = Registry("cost")
 
 
@@ -87,6 +88,21 @@ def cls_cost(pred: Tensor, target: Tensor, view_weights: Tensor | None = None) -
     return _pool_views(diff.square().mean(dim=2), view_weights)  # (B, V) -> (B,)
 
 
+def with_token_weights(weigh: TokenWeigher, view_weights: Sequence[float] | None = None) -> CostFn:
+    """The patch cost with each token's squared error weighted, within its view, by ``weigh(target)``: per view
+    sum_t w_t |z_t - z*_t|^2 / sum_t w_t (over dims: the mean), the views then pooled as eq. 3 or by
+    ``view_weights``. Equal weights give eq. 3 exactly. pred (B, V, N, D), target (V, N, D) -> (B,)."""
+    vw = torch.tensor(tuple(view_weights), dtype=torch.float32) if view_weights else None  # (V,)
+
+    def fn(pred: Tensor, target: Tensor) -> Tensor:
+        _check(pred, target, "V, N, D")
+        w = weigh(target).float().to(pred.device)  # (V, N)
+        per_token = (pred.float() - target.float().unsqueeze(0)).square().mean(dim=3)  # (B, V, N)
+        return _pool_views((per_token * w).sum(dim=2) / w.sum(dim=1), vw)  # (B, V) -> (B,)
+
+    return fn
+
+
 def make_cost(name: str = "patch", view_weights: Sequence[float] | None = None) -> CostFn:
     """The cost ``name`` as ``fn(pred, target) -> (B,)``, with optional per-view weights (V,)."""
     fn = COSTS.lookup(name)
@@ -135,11 +151,16 @@ def with_pooling(cost: CostFn, k: int) -> CostFn:
     return fn
 
 
-def build_cost(cfg: CostConfig, read_state: StateReader | None = None) -> CostFn:
-    """The cost ``cfg`` names, with its view weights and token pooling; with ``state_weight`` > 0, plus the pose
-    term read by ``read_state`` (a world model's state head: ``LearnedDynamics.read_state``) from the unpooled
-    tokens."""
-    cost = make_cost(cfg.name, cfg.view_weights or None)
+def build_cost(cfg: CostConfig, read_state: StateReader | None = None,
+               weigh_tokens: TokenWeigher | None = None) -> CostFn:
+    """The cost ``cfg`` names, with its view weights and token pooling; with a ``foreground`` readout, the patch
+    cost weighted token by token by ``weigh_tokens`` (its weigher: ``encoders.foreground.foreground_weigher``);
+    with ``state_weight`` > 0, plus the pose term read by ``read_state`` (a world model's state head:
+    ``LearnedDynamics.read_state``) from the unpooled tokens."""
+    if cfg.foreground:
+        require(weigh_tokens is not None, f"the foreground cost ({cfg.foreground}) needs its readout's weigher")
+    cost = with_token_weights(weigh_tokens, cfg.view_weights or None) if cfg.foreground else \
+        make_cost(cfg.name, cfg.view_weights or None)
     if cfg.pool > 1:
         cost = with_pooling(cost, cfg.pool)
     if not cfg.state_weight:
