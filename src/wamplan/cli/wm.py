@@ -216,6 +216,11 @@ def _fidelity_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cost-view-weights", type=float, nargs="+", default=None,
                    help="per-view weights of the planning cost (front side wrist), as `eval --cost-view-weights`; "
                         "both the model's and the simulator's costs use them")
+    p.add_argument("--cost-foreground", default="", metavar="DIR",
+                   help="a foreground readout (`wm foreground`): the run's cost weighs each token by its foreground, "
+                        "as `eval --cost-foreground`; both the model's and the simulator's costs use it")
+    p.add_argument("--cost-background-weight", type=float, default=0.1,
+                   help="with --cost-foreground: a pure-background token's weight (default: %(default)s)")
     p.add_argument("--bias-correction", type=float, default=None, metavar="A",
                    help="also score every model with `eval --bias-correction A` (its error on the chunk just run "
                         "added to its predictions), as LABEL+bias; the same candidates, dynamics and references")
@@ -437,6 +442,24 @@ def _view_cost(flag: str, weights: list[float] | None):
                         f"one per camera (e.g. 1 1 0.5)") from None
 
 
+def _foreground_cost(args: argparse.Namespace, models: list):
+    """The patch cost weighed by ``--cost-foreground``'s readout, which every model's encoder must match."""
+    from wamplan.config import ConfigError
+    from wamplan.encoders.foreground import foreground_weigher, load_foreground
+    from wamplan.planning.costs import CostConfig, build_cost
+
+    require_paths([args.cost_foreground], "--cost-foreground", "pass a readout made by `wamplan wm foreground`")
+    try:
+        cfg = CostConfig(view_weights=tuple(args.cost_view_weights or ()), foreground=args.cost_foreground,
+                         background_weight=args.cost_background_weight)
+    except ConfigError as e:
+        raise UserError(str(e).replace("background_weight", "--cost-background-weight")) from None
+    for m in models[1:]:
+        load_foreground(args.cost_foreground, m.encoder)
+    return build_cost(cfg, weigh_tokens=foreground_weigher(args.cost_foreground, models[0].encoder,
+                                                           cfg.background_weight))
+
+
 def cmd_fidelity(args: argparse.Namespace) -> int:
     from wamplan.envs.config import EnvConfig
     from wamplan.envs.core import TaskEnv
@@ -519,6 +542,8 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
         if task != wam.task.name:
             raise UserError(f"--wm {path} was trained on task '{task}' but --wam {args.wam} acts in task "
                             f"'{wam.task.name}'; score world models of the WAM's task")
+    if args.cost_foreground:  # the run's cost, the yardstick included, weighed by the target's foreground
+        cost = _foreground_cost(args, models)
     env = TaskEnv(EnvConfig(task=wam.task.name, camera_size=args.camera_size))
     if blend:  # the first model's dynamics shared, its prediction moved toward the simulator's with its encoder
         from wamplan.planning.dynamics import BlendedDynamics, SimulatorDynamics

@@ -181,4 +181,4 @@ def draw_foreground(frames: ForegroundFrames, readout: ForegroundReadout, encode
                 ax.set_title(title, fontsize=8)
                 ax.axis("off")
     fig.suptitle(f"foreground per patch token, held-out episode (seed {seed})", fontsize=10)
-    return save_figure(fig, out)
+    return save_figure(fig, out, dpi=70)

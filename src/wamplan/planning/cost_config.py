@@ -38,8 +38,8 @@ class CostConfig:
         require(0 < self.background_weight <= 1,
                 f"background_weight must be in (0, 1] (1: every token alike), got {self.background_weight}")
         require(not self.foreground or (self.name == "patch" and self.pool == 1),
-                f"a foreground readout weighs patch tokens one by one: use it with the patch cost unpooled "
-                f"(got cost '{self.name}', pool {self.pool})")
+                f"foreground weighs patch tokens one by one: use it with the patch cost unpooled, name=patch and "
+                f"pool=1 (got name={self.name}, pool={self.pool})")
         require(self.state_weight >= 0, f"state_weight must be a number >= 0 (0: off), got {self.state_weight}")
 
     def check_cameras(self, task: str, cameras: Sequence[str]) -> None:
