@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from wamplan.config import int_list
-from wamplan.encoders.foreground import load_foreground, token_fractions
+from wamplan.encoders.foreground import cost_weights, load_foreground, token_fractions
 from wamplan.envs.config import EnvConfig
 from wamplan.envs.core import TaskEnv
 from wamplan.policies.rollout import run_episode
@@ -35,8 +35,8 @@ def readings(wam_path: str, wm_path: str, readout_path: str, seeds: list[int], c
     ``truth`` (the segmentation's share), and the pictures (V, h, w, 3) ``wam_pictures`` and ``real_pictures``."""
     wam = load_wam(wam_path, device="cpu")
     predictor, encoder = load_world_model(wm_path)
-    readout = load_foreground(readout_path, encoder)
-    cams, grid = wam.task.cameras, int(round(encoder.num_patches ** 0.5))
+    readout = load_foreground(readout_path, encoder, wam.task.name, predictor.cameras or wam.task.cameras)
+    cams, grid = predictor.cameras or wam.task.cameras, int(round(encoder.num_patches ** 0.5))
     env = TaskEnv(EnvConfig(task=wam.task.name, camera_size=camera_size))
     policy = WAMPolicy(wam)
     H = policy.chunk_length
@@ -66,7 +66,7 @@ def readings(wam_path: str, wm_path: str, readout_path: str, seeds: list[int], c
 
 
 def summary(r: dict, cams, background_weight: float) -> dict:
-    w = background_weight + (1 - background_weight) * r["wam"]  # (B, V, N) the cost's weights
+    w = cost_weights(r["wam"], background_weight)  # (B, V, N) the cost's weights
     fg = r["truth"] > 0.5  # (B, V, N) tokens mostly foreground
     return {c: {"mae_wam": float(np.abs(r["wam"][:, i] - r["truth"][:, i]).mean()),
                 "mae_real": float(np.abs(r["real"][:, i] - r["truth"][:, i]).mean()),

@@ -51,6 +51,8 @@ def test_the_foreground_settings_are_checked():
         CostConfig(foreground="x", pool=2)
     with pytest.raises(ConfigError, match="needs its readout's weigher"):
         build_cost(CostConfig(foreground="x"))
+    with pytest.raises(ConfigError, match="weighs nothing without a foreground readout"):
+        CostConfig(background_weight=0.5)
 
 
 def test_token_fractions_are_each_patch_share():
@@ -82,15 +84,21 @@ def test_a_readout_reads_the_foreground_of_held_out_frames_and_refuses_another_e
     readout, report = fit_foreground(enc, frames, steps=400)
     assert report["held_out_seeds"] == [8, 9] and report["frames"] == 120
     assert report["mae"] < 0.5 * report["mae_position_prior"]  # it reads the picture, not only where tokens sit
-    save_foreground(tmp_path / "fg", readout, enc, report, task="cube-insertion")
-    again = load_foreground(tmp_path / "fg", enc)
+    save_foreground(tmp_path / "fg", readout, enc, report, "cube-insertion", ("a", "b"))
+    again = load_foreground(tmp_path / "fg", enc, "cube-insertion", ("a", "b"))
     z = torch.randn(4, 2, 16, 32)
     torch.testing.assert_close(again(z), readout(z).detach())
-    with pytest.raises(UserError, match="fit a readout on it"):
+    with pytest.raises(UserError, match="fit one for it"):
         load_foreground(tmp_path / "fg", make_encoder("patch-pixels", input_size=64, patch_size=16, proj_dim=32,
                                                       seed=1))
+    with pytest.raises(UserError, match="was fit on task 'cube-insertion', but the planning acts in 'stack-cube'"):
+        load_foreground(tmp_path / "fg", enc, "stack-cube")
+    with pytest.raises(UserError, match=r"reads the cameras \['a', 'b'\], but the world model's views are \['b', 'a'\]"):
+        load_foreground(tmp_path / "fg", enc, cameras=("b", "a"))
     weigh = foreground_weigher(tmp_path / "fg", enc, background_weight=0.1)
-    w = weigh(enc.encode(frames.images[-1]))  # (2, 16): the last held-out frame
+    target = enc.encode(frames.images[-1])  # (2, 16, 32): the last held-out frame
+    w = weigh(target)  # (2, 16)
+    assert weigh(target) is w and weigh(target.clone()) is not w  # kept while the same target comes back
     share = torch.from_numpy(token_fractions(frames.masks[-1:], 4)[0])
     assert w.min() >= 0.1 - 1e-6 and w.max() <= 1 + 1e-6
     assert (w - (0.1 + 0.9 * share)).abs().mean() < 0.1  # background 0.1, foreground 1, linear between
@@ -128,8 +136,11 @@ def test_wm_foreground_fits_a_readout_that_eval_plans_with(tmp_path, capsys):
     policy = api.planned_policy(MINI / "tinywam", MINI / "wm_augmented", cost={"foreground": str(out)})
     target = torch.randn(3, 16, 128)
     pred = target.expand(2, -1, -1, -1).clone()
-    pred[1, 2] += 1.0  # the wrist wrong everywhere: the weights average to 1 there
-    assert policy.cost(pred, target)[0] == 0 and policy.cost(pred, target)[1] == pytest.approx(1 / 3, rel=1e-4)
+    pred[1, 2, 0] += 1.0  # one wrist token wrong: the cost is its weight's share of the view's, over 3 views
+    w = foreground_weigher(out, policy.encoder, 0.1)(target)  # (3, 16)
+    want = float(pred[1, 2, 0].sub(target[2, 0]).square().mean() * w[2, 0] / w[2].sum() / 3)
+    assert policy.cost(pred, target)[0] == 0 and float(policy.cost(pred, target)[1]) == pytest.approx(want, rel=1e-4)
+    assert want != pytest.approx(float(patch_cost(pred, target)[1]), rel=1e-2)  # not eq. 3: the weights count
 
 
 def test_foreground_inputs_are_refused_in_one_line(tmp_path, capsys):
@@ -142,13 +153,24 @@ def test_foreground_inputs_are_refused_in_one_line(tmp_path, capsys):
              "holds a 'predictor' checkpoint, not a foreground readout")
     enc = make_encoder("patch-pixels", input_size=64, patch_size=16, proj_dim=32)
     readout, report = fit_foreground(enc, _squares(2, frames=2), steps=1)
-    save_foreground(tmp_path / "other", readout, enc, report, task="cube-insertion")
+    save_foreground(tmp_path / "other", readout, enc, report, "cube-insertion", ("front", "side", "wrist"))
+    save_foreground(tmp_path / "cube", readout_for(MINI / "wm_augmented"), load_encoder(MINI / "wm_augmented"),
+                    report, "cube-insertion", ("front", "side", "wrist"))
     ev = ["eval", "--conditions", "7", "--out", tmp_path / "e", "--wam", MINI / "tinywam", "--wm-augmented",
           MINI / "wm_augmented"]
     _refused(capsys, [*ev, "--cost-foreground", tmp_path / "other"], "reads tokens of encoder", "wm foreground")
     _refused(capsys, [*ev, "--cost-foreground", tmp_path / "other", "--cost-name", "cls"], "--cost-foreground weighs patch tokens",
              "--cost-name=patch and --cost-pool=1 (got --cost-name=cls")
-    _refused(capsys, [*ev, "--cost-foreground", tmp_path / "nowhere"], "nowhere")
+    _refused(capsys, [*ev, "--cost-foreground", tmp_path / "nowhere"], "--cost-foreground", "nowhere does not exist",
+             "wamplan wm foreground")
+    _refused(capsys, [*ev, "--cost-background-weight", "0.5"], "--cost-background-weight 0.5 weighs nothing",
+             "give --cost-foreground=DIR too")
+    sim = ["eval", "--conditions", "5", "--out", tmp_path / "e", "--wam", MINI / "tinywam"]  # patch-pixels, 128 dims
+    _refused(capsys, [*sim, "--cost-foreground", tmp_path / "other"], "reads tokens of encoder")
+    stack = ["eval", "--task", "stack-cube", "--conditions", "7", "--out", tmp_path / "e", "--wam",
+             MINI.parent / "stack-cube" / "tinywam", "--wm-augmented", MINI.parent / "stack-cube" / "wm_augmented"]
+    _refused(capsys, [*stack, "--cost-foreground", tmp_path / "cube"], "fit on task 'cube-insertion'",
+             "acts in 'stack-cube'")
     assert not (tmp_path / "e").exists()
 
 
@@ -157,16 +179,19 @@ def test_wm_fidelity_ranks_in_the_foreground_cost(tmp_path, capsys):
            "--boundaries", "1", "--candidates", "4", "--top-k", "2", "--camera-size", "64"]
     enc = make_encoder("patch-pixels", input_size=64, patch_size=16, proj_dim=32)
     readout, report = fit_foreground(enc, _squares(2, frames=2), steps=1)
-    save_foreground(tmp_path / "other", readout, enc, report, task="cube-insertion")
+    save_foreground(tmp_path / "other", readout, enc, report, "cube-insertion", ("front", "side", "wrist"))
     _refused(capsys, [*fid, "--cost-foreground", tmp_path / "other"], "reads tokens of encoder")
     _refused(capsys, [*fid, "--cost-foreground", tmp_path / "other", "--cost-background-weight", "0"],
              "--cost-background-weight must be in (0, 1]")
+    _refused(capsys, [*fid, "--cost-background-weight", "0.5"], "weighs nothing without --cost-foreground")
     real = tmp_path / "fg"
     save_foreground(real, readout_for(MINI / "wm_augmented"), load_encoder(MINI / "wm_augmented"), report,
-                    task="cube-insertion")
-    assert main([str(a) for a in [*fid, "--cost-foreground", real, "--json", tmp_path / "f.json"]]) == 0
-    out = json.loads((tmp_path / "f.json").read_text())
-    assert out["summary"] and "shipped" in capsys.readouterr().out
+                    "cube-insertion", ("front", "side", "wrist"))
+    for name, more in (("plain", []), ("fg", ["--cost-foreground", real, "--cost-background-weight", "0.01"])):
+        assert main([str(a) for a in [*fid, *more, "--json", tmp_path / f"{name}.json"]]) == 0
+    plain, fg = (json.loads((tmp_path / f"{n}.json").read_text()) for n in ("plain", "fg"))
+    assert fg["cost_foreground"] == str(real) and fg["cost_background_weight"] == 0.01
+    assert plain["records"][0] != fg["records"][0]  # the same candidates, costed another way
 
 
 def load_encoder(wm: Path):

@@ -320,6 +320,8 @@ def test_the_proxy_rolls_the_world_model_out_in_the_dtype_it_is_given():
     (["--num-elites", "4"], "--num-elites is an option of planner(s) ['cem', 'cem-gripper'], not of 'wamplan'"),
     (["--replan-every", "8"], "cannot re-plan inside one; drop --replan-every"),
     (["--cost-state-weight", "0.3"], "needs a world model with a state head"),  # what only the model can refuse
+    (["--cost-foreground", str(Path(__file__).resolve().parents[1] / "checkpoints" / "candidates" / "fg_stack")],
+     "was fit on task 'stack-cube', but the planning acts in 'cube-insertion'"),  # a readout of another task
     (["--disagreement-weight", "0.1"], "pass several checkpoints joined by + (eval --wm-augmented A+B, serve "
                                        "--world-model A+B)"),
     (["--planner", "drift", "--search-dims", "7"], "search_dims (7,) name entries past task 'cube-insertion''s 5-D"),

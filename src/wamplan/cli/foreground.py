@@ -4,6 +4,7 @@ weights, ``eval --cost-foreground DIR``)."""
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 from wamplan.errors import UserError, checkpoint_kind, require_dir, require_own_dir, require_paths, require_seeds
@@ -44,15 +45,21 @@ def cmd_foreground(args: argparse.Namespace) -> int:
         raise UserError(f"--out {out} holds a '{kind}' checkpoint, not a foreground readout; pass a new or empty "
                         f"directory")
     predictor, encoder = load_world_model(args.wm)
-    task = predictor.task
+    task, grid = predictor.task, math.isqrt(encoder.num_patches)
+    if args.camera_size % grid:
+        raise UserError(f"--camera-size {args.camera_size} does not split into the encoder's {grid} x {grid} "
+                        f"patches; pass a multiple of {grid} (e.g. {grid * (args.camera_size // grid)})")
+    cameras = predictor.cameras or task.cameras  # the world model's views, in its order
     env = TaskEnv(EnvConfig(task=task.name, camera_size=args.camera_size))
-    policy = load_policy(args.policy, task=task)
-    seeds = list(range(args.seed_start, args.seed_start + args.episodes))
-    frames = collect_foreground(env, policy, seeds, every=args.every,
-                                progress=lambda i, n: print(f"episode {i}/{n}", flush=True))
-    env.close()
+    try:
+        policy = load_policy(args.policy, task=task)
+        seeds = list(range(args.seed_start, args.seed_start + args.episodes))
+        frames = collect_foreground(env, policy, seeds, every=args.every, cameras=cameras,
+                                    progress=lambda i, n: print(f"episode {i}/{n}", flush=True))
+    finally:
+        env.close()
     readout, report = fit_foreground(encoder, frames, steps=args.steps)
-    save_foreground(out, readout, encoder, report, task.name)
+    save_foreground(out, readout, encoder, report, task.name, cameras)
     print(format_report(report))
     picture = draw_foreground(frames, readout, encoder, Path(out) / "foreground.png")
     print(f"wrote {out} (plan with it: wamplan eval --cost-foreground {out}); picture {picture}")

@@ -219,8 +219,8 @@ def _fidelity_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cost-foreground", default="", metavar="DIR",
                    help="a foreground readout (`wm foreground`): the run's cost weighs each token by its foreground, "
                         "as `eval --cost-foreground`; both the model's and the simulator's costs use it")
-    p.add_argument("--cost-background-weight", type=float, default=0.1,
-                   help="with --cost-foreground: a pure-background token's weight (default: %(default)s)")
+    p.add_argument("--cost-background-weight", type=float, default=None,
+                   help="with --cost-foreground: a pure-background token's weight (default: 0.1)")
     p.add_argument("--bias-correction", type=float, default=None, metavar="A",
                    help="also score every model with `eval --bias-correction A` (its error on the chunk just run "
                         "added to its predictions), as LABEL+bias; the same candidates, dynamics and references")
@@ -451,13 +451,15 @@ def _foreground_cost(args: argparse.Namespace, models: list):
     require_paths([args.cost_foreground], "--cost-foreground", "pass a readout made by `wamplan wm foreground`")
     try:
         cfg = CostConfig(view_weights=tuple(args.cost_view_weights or ()), foreground=args.cost_foreground,
-                         background_weight=args.cost_background_weight)
+                         **({} if args.cost_background_weight is None else
+                            {"background_weight": args.cost_background_weight}))
     except ConfigError as e:
         raise UserError(str(e).replace("background_weight", "--cost-background-weight")) from None
+    first, task = models[0], models[0].dynamics.task
     for m in models[1:]:
-        load_foreground(args.cost_foreground, m.encoder)
-    return build_cost(cfg, weigh_tokens=foreground_weigher(args.cost_foreground, models[0].encoder,
-                                                           cfg.background_weight))
+        load_foreground(args.cost_foreground, m.encoder, task.name, m.dynamics.cameras or task.cameras)
+    return build_cost(cfg, weigh_tokens=foreground_weigher(args.cost_foreground, first.encoder, cfg.background_weight,
+                                                           task.name, first.dynamics.cameras or task.cameras))
 
 
 def cmd_fidelity(args: argparse.Namespace) -> int:
@@ -544,6 +546,8 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
                             f"'{wam.task.name}'; score world models of the WAM's task")
     if args.cost_foreground:  # the run's cost, the yardstick included, weighed by the target's foreground
         cost = _foreground_cost(args, models)
+    elif args.cost_background_weight is not None:
+        raise UserError("--cost-background-weight weighs nothing without --cost-foreground DIR; give both")
     env = TaskEnv(EnvConfig(task=wam.task.name, camera_size=args.camera_size))
     if blend:  # the first model's dynamics shared, its prediction moved toward the simulator's with its encoder
         from wamplan.planning.dynamics import BlendedDynamics, SimulatorDynamics
@@ -569,7 +573,9 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
     if args.json:
         from wamplan.config import to_dict
 
-        out.update(wam=args.wam, wm=args.wm, seeds=seeds, config=to_dict(cfg), camera_size=args.camera_size)
+        out.update(wam=args.wam, wm=args.wm, seeds=seeds, config=to_dict(cfg), camera_size=args.camera_size,
+                   cost_foreground=args.cost_foreground or None,
+                   cost_background_weight=args.cost_background_weight)
         write_json(args.json, out)
         print(f"wrote {args.json}")
     return 0

@@ -6,12 +6,13 @@ task's cameras and, per picture, which pixels show the robot or an object rather
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 from typing import Callable, Sequence
 
 import numpy as np
 
 from wamplan.envs.core import TaskEnv
-from wamplan.errors import UserError
+from wamplan.config import require
 from wamplan.policies.base import Policy
 from wamplan.policies.rollout import run_episode
 
@@ -28,15 +29,16 @@ class ForegroundFrames:
 
 
 def collect_foreground(env: TaskEnv, policy: Policy, seeds: Sequence[int], every: int = 4,
+                       cameras: Sequence[str] | None = None,
                        progress: Callable[[int, int], None] | None = None) -> ForegroundFrames:
     """Run ``policy`` from each of ``seeds`` (to success or the step limit) and keep the pictures and foreground masks
-    of steps 0, ``every``, 2 ``every``, ... ``progress(done, total)`` is called after each episode."""
-    if every < 1:
-        raise UserError(f"--every must be >= 1 (a frame every N steps), got {every}")
-    cams = env.task.cameras
+    of ``cameras`` (default: the task's, in its order) at steps 0, ``every``, 2 ``every``, ...
+    ``progress(done, total)`` is called after each episode."""
+    require(every >= 1, f"every must be >= 1 (a frame every N steps), got {every}")
+    cams = tuple(cameras or env.task.cameras)
     images, masks, episode = [], [], []
 
-    def keep(env: TaskEnv, obs, action) -> None:
+    def keep(seed: int, env: TaskEnv, obs, action) -> None:
         if obs.step % every == 0:
             pics, fg = env.render_foreground(cams)
             images.append(np.stack([pics[c] for c in cams]))  # (V, H, W, 3)
@@ -44,7 +46,7 @@ def collect_foreground(env: TaskEnv, policy: Policy, seeds: Sequence[int], every
             episode.append(seed)
 
     for i, seed in enumerate(seeds):
-        run_episode(env, policy, seed, on_obs=keep)
+        run_episode(env, policy, seed, on_obs=partial(keep, seed))
         if progress is not None:
             progress(i + 1, len(seeds))
     return ForegroundFrames(np.stack(images), np.stack(masks), np.array(episode), tuple(cams))

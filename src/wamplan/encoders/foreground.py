@@ -9,15 +9,14 @@ counts for ``background_weight`` of what the cube, the hole and the gripper coun
 
     frames = collect_foreground(env, policy, seeds)                 # (F, V, H, W, 3) pictures, (F, V, H, W) masks
     readout, report = fit_foreground(encoder, frames)               # held-out episodes scored
-    save_foreground(DIR, readout, encoder, report)
+    save_foreground(DIR, readout, encoder, report, task, cameras)
     weigh = foreground_weigher(DIR, encoder, background_weight=0.1)   # target (V, N, D) -> weights (V, N)
 """
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch
@@ -25,6 +24,7 @@ from torch import nn
 
 from wamplan.checkpoint import load_weights, read_config, save_checkpoint
 from wamplan.config import require
+from wamplan.data.features import feature_key
 from wamplan.data.foreground import ForegroundFrames
 from wamplan.errors import UserError
 
@@ -116,40 +116,55 @@ def format_report(report: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def _identity(encoder: Any) -> dict[str, Any]:
-    """The encoder's settings as they read back from JSON (tuples as lists)."""
-    return json.loads(json.dumps(encoder.config_dict()))
-
-
 def save_foreground(path: str | Path, readout: ForegroundReadout, encoder: Any, report: dict[str, Any],
-                    task: str) -> Path:
-    """Write the readout as a checkpoint of kind ``foreground`` with the encoder it reads and its fit report."""
+                    task: str, cameras: Sequence[str]) -> Path:
+    """Write the readout as a checkpoint of kind ``foreground`` with what it reads (the encoder, by its settings and
+    their ``feature_key``; the task; its V cameras in order) and its fit report."""
     cfg = {"views": readout.views, "num_patches": readout.num_patches, "dim": readout.dim, "task": task,
-           "encoder": _identity(encoder), "report": report}
+           "cameras": list(cameras), "encoder": encoder.config_dict(),
+           "encoder_key": feature_key(encoder.config_dict()), "report": report}
     return save_checkpoint(path, readout, cfg, kind=KIND)
 
 
-def load_foreground(path: str | Path, encoder: Any | None = None) -> ForegroundReadout:
-    """The readout saved at ``path``; with ``encoder``, refused in one line unless it was fit on that encoder."""
+def load_foreground(path: str | Path, encoder: Any | None = None, task: str | None = None,
+                    cameras: Sequence[str] | None = None) -> ForegroundReadout:
+    """The readout saved at ``path``; refused in one line unless it was fit on ``encoder`` (its settings, a local
+    weights path aside), ``task`` and ``cameras`` (in order), each where given."""
     cfg = read_config(path, KIND)
-    if encoder is not None and cfg["encoder"] != _identity(encoder):
-        raise UserError(f"{path} reads tokens of encoder {cfg['encoder']}, but the world model's encoder is "
-                        f"{encoder.config_dict()}; fit a readout on it (`wamplan wm foreground --wm WORLD_MODEL`)")
+    fix = "fit one for it (`wamplan wm foreground --wm WORLD_MODEL`)"
+    if encoder is not None and cfg.get("encoder_key") != feature_key(encoder.config_dict()):
+        raise UserError(f"{path} reads tokens of encoder {cfg.get('encoder')}, but the world model's encoder is "
+                        f"{encoder.config_dict()}; {fix}")
+    if task is not None and cfg.get("task") != task:
+        raise UserError(f"{path} was fit on task '{cfg.get('task')}', but the planning acts in '{task}'; {fix}")
+    if cameras is not None and cfg.get("cameras") != list(cameras):
+        raise UserError(f"{path} reads the cameras {cfg.get('cameras')}, but the world model's views are "
+                        f"{list(cameras)}; {fix}")
     readout = ForegroundReadout(cfg["views"], cfg["num_patches"], cfg["dim"])
     load_weights(path, readout)
     return readout.eval()
 
 
-def foreground_weigher(path: str | Path, encoder: Any, background_weight: float
-                       ) -> Callable[[torch.Tensor], torch.Tensor]:
-    """target tokens (V, N, D) -> each token's weight in the cost (V, N): ``background_weight`` for pure
-    background, 1 for pure foreground, linear between (the readout's fraction)."""
-    readout = load_foreground(path, encoder)
+def cost_weights(foreground: torch.Tensor, background_weight: float) -> torch.Tensor:
+    """Foreground shares (...) in [0, 1] -> the cost's token weights (...): ``background_weight`` for pure
+    background, 1 for pure foreground, linear between."""
+    return background_weight + (1.0 - background_weight) * foreground
+
+
+def foreground_weigher(path: str | Path, encoder: Any, background_weight: float, task: str | None = None,
+                       cameras: Sequence[str] | None = None) -> Callable[[torch.Tensor], torch.Tensor]:
+    """target tokens (V, N, D) -> each token's weight in the cost (V, N) (:func:`cost_weights` of the readout's
+    shares), on the target's device. A planner scores many candidate batches against one target: the weights of
+    the last target are kept while the same tensor comes back."""
+    readout = load_foreground(path, encoder, task, cameras)
+    last: list = [None, None]  # [target, its weights]
 
     def weigh(target: torch.Tensor) -> torch.Tensor:
-        with torch.no_grad():
-            fg = readout(target.float().cpu())  # (V, N)
-        return background_weight + (1.0 - background_weight) * fg
+        if last[0] is not target:
+            with torch.no_grad():
+                fg = readout.to(target.device)(target.float())  # (V, N)
+            last[:] = [target, cost_weights(fg, background_weight)]
+        return last[1]
 
     return weigh
 

@@ -33,7 +33,8 @@ def planned_policy(cfg: EvalConfig, wam: WAM, dynamics: Dynamics, encoder: Any, 
     if cfg.cost.foreground:  # the readout reads the target's tokens: it must be fit on this encoder
         from wamplan.encoders.foreground import foreground_weigher
 
-        weigh = foreground_weigher(cfg.cost.foreground, encoder, cfg.cost.background_weight)
+        weigh = foreground_weigher(cfg.cost.foreground, encoder, cfg.cost.background_weight, wam.task.name,
+                                   dynamics.cameras or wam.task.cameras)
     cost = build_cost(cfg.cost, getattr(dynamics, "read_state", None), weigh)  # the pose term reads the state head
     return PlannedPolicy(wam, make_planner(cfg.planner, cfg.planner_config), dynamics, encoder, cost,
                          target_wam=target_wam, config=cfg.policy,

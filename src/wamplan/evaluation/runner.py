@@ -21,7 +21,7 @@ import os
 import time
 from functools import partial
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
@@ -67,14 +67,7 @@ class EvalWorker:
         return self._models[path]  # (predictor, encoder)
 
     def _sim_encoder(self):
-        from wamplan.device import resolve_device
-        from wamplan.encoders import make_encoder
-
-        if self.cfg.sim_encoder:
-            return make_encoder(self.cfg.sim_encoder).to(resolve_device(self.cfg.device))
-        if self.cfg.wm_plain or self.cfg.wm_augmented:
-            return self._world_model(ensemble_members(self.cfg.wm_plain or self.cfg.wm_augmented)[0])[1]
-        return make_encoder("patch-pixels").to(resolve_device(self.cfg.device))
+        return sim_encoder(self.cfg, lambda path: self._world_model(path)[1])
 
     def policy(self, cid: int):
         if cid in self._policies:
@@ -213,12 +206,25 @@ def _settings_to_store(out: Path, cfg: EvalConfig, recorded: bool = True) -> dic
     return now
 
 
+def sim_encoder(cfg: EvalConfig, model_encoder: Callable[[str], Any]):
+    """The encoder the simulator conditions (2-5) encode with: ``--sim-encoder``, else the first world model's
+    (``model_encoder(path)``: one embedding space with conditions 6 and 7), else patch-pixels."""
+    from wamplan.device import resolve_device
+    from wamplan.encoders import make_encoder
+
+    if cfg.sim_encoder:
+        return make_encoder(cfg.sim_encoder).to(resolve_device(cfg.device))
+    if cfg.wm_plain or cfg.wm_augmented:
+        return model_encoder(ensemble_members(cfg.wm_plain or cfg.wm_augmented)[0])
+    return make_encoder("patch-pixels").to(resolve_device(cfg.device))
+
+
 def _check_inputs(cfg: EvalConfig, conditions: list[int]) -> None:
     """Load the WAM and the world models the conditions need once, here, on the CPU: a damaged or foreign
     checkpoint stops the run (in one line) before it stores its settings, so a failed start never locks its
     output directory. The workers load their own copies."""
     from wamplan.encoders.foreground import load_foreground
-    from wamplan.errors import UserError
+    from wamplan.errors import UserError, require_paths
     from wamplan.planning.costs import pool_fits
     from wamplan.planning.policy_config import check_frameskip, check_replan_every
     from wamplan.worldmodel.train import load_world_model
@@ -231,6 +237,12 @@ def _check_inputs(cfg: EvalConfig, conditions: list[int]) -> None:
             check_wam_task(cfg, wam)
         finally:
             wam.close()
+    spec = cfg.env.spec
+    if cfg.cost.foreground:
+        require_paths([cfg.cost.foreground], "--cost-foreground", "pass a readout made by `wamplan wm foreground`")
+        if any(CONDITIONS[c].dynamics == "simulator" for c in conditions):  # they encode with the sim encoder
+            enc = sim_encoder(cfg, lambda path: load_world_model(path, device="cpu")[1])
+            load_foreground(cfg.cost.foreground, enc.cpu(), spec.name, spec.cameras)
     for c in sorted(set(conditions)):
         for path in cfg.world_models(c):
             predictor, encoder = load_world_model(path, device="cpu")
@@ -240,8 +252,8 @@ def _check_inputs(cfg: EvalConfig, conditions: list[int]) -> None:
             if k > 1 and not pool_fits(n, k):
                 raise UserError(f"--cost-pool {k} needs a square token grid whose side {k} divides, but {path} "
                                 f"predicts {n} tokens a view; pass a divisor of {math.isqrt(n)}")
-            if cfg.cost.foreground:  # a readout of another encoder or task: refused here, not in the workers
-                load_foreground(cfg.cost.foreground, encoder)
+            if cfg.cost.foreground:  # a readout of another encoder, task or views: refused here, not in the workers
+                load_foreground(cfg.cost.foreground, encoder, spec.name, predictor.cameras or spec.cameras)
             if cfg.policy.replan_every is not None:  # the re-plans' rollouts must end at the target's step
                 check_replan_every(cfg.policy.replan_every, cfg.env.spec.chunk_len, predictor.cfg.frameskip)
 

@@ -37,6 +37,9 @@ class CostConfig:
         require(isinstance(self.pool, int) and self.pool >= 1, f"pool must be an int >= 1 (1: off), got {self.pool}")
         require(0 < self.background_weight <= 1,
                 f"background_weight must be in (0, 1] (1: every token alike), got {self.background_weight}")
+        require(self.foreground or self.background_weight == 0.1,
+                f"background_weight {self.background_weight} weighs nothing without a foreground readout; give "
+                f"foreground=DIR too, or leave background_weight out")
         require(not self.foreground or (self.name == "patch" and self.pool == 1),
                 f"foreground weighs patch tokens one by one: use it with the patch cost unpooled, name=patch and "
                 f"pool=1 (got name={self.name}, pool={self.pool})")
