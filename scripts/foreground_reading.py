@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 
 import numpy as np
 import torch
@@ -121,10 +120,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    from wamplan.errors import UserError
+    from wamplan.errors import run_script
 
-    try:
-        main()
-    except UserError as e:  # bad input: one line, no traceback
-        print(f"foreground_reading: error: {e}", file=sys.stderr)
-        sys.exit(2)
+    run_script(main, "foreground_reading")

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 
 import numpy as np
 import torch
@@ -128,10 +127,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    from wamplan.errors import UserError
+    from wamplan.errors import run_script
 
-    try:
-        main()
-    except UserError as e:  # bad input: one line, no traceback
-        print(f"state_head_reading: error: {e}", file=sys.stderr)
-        sys.exit(2)
+    run_script(main, "state_head_reading")

@@ -118,12 +118,6 @@ def main(argv: list[str] | None = None) -> Path:
 
 
 if __name__ == "__main__":
-    import sys
+    from wamplan.errors import run_script
 
-    from wamplan.errors import UserError
-
-    try:
-        print(main())
-    except UserError as e:  # bad input: one line, no traceback
-        print(f"wm_sibling_picture: error: {e}", file=sys.stderr)
-        sys.exit(2)
+    run_script(lambda: print(main()), "wm_sibling_picture")

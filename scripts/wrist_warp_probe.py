@@ -26,7 +26,6 @@ warp's costs against the truth.
 from __future__ import annotations
 
 import argparse
-import sys
 
 import numpy as np
 import torch
@@ -199,10 +198,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    from wamplan.errors import UserError
+    from wamplan.errors import run_script
 
-    try:
-        main()
-    except UserError as e:
-        print(f"wrist_warp_probe: error: {e}", file=sys.stderr)
-        sys.exit(2)
+    run_script(main, "wrist_warp_probe")

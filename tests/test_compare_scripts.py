@@ -50,3 +50,15 @@ def test_fidelity_pair_pairs_boundaries(tmp_path, repo_script):
     assert r["same_pick"] == pytest.approx(2 / 3) and r["true_alike"] == pytest.approx(1.0)
     with pytest.raises(SystemExit, match="scores no boundary of model 'other'"):
         fp.boundaries(str(tmp_path / "a.json"), "other")
+
+
+def test_a_scripts_bad_input_is_one_line_and_status_2(tmp_path, capsys):
+    from wamplan.errors import UserError, run_script
+
+    def main():
+        raise UserError("--seeds 0-: give a range like 500-503")
+
+    with pytest.raises(SystemExit) as stop:
+        run_script(main, "probe")
+    assert stop.value.code == 2 and capsys.readouterr().err == "probe: error: --seeds 0-: give a range like 500-503\n"
+    run_script(lambda: None, "probe")  # a good run returns

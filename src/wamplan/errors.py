@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import tempfile
 from pathlib import Path
-from typing import Iterable
+from typing import Any, Callable, Iterable
 
 
 class UserError(Exception):
@@ -120,3 +120,15 @@ def reason(e: BaseException) -> str:
     """``TypeName: the first line of its message``: a library's exception, quoted inside one line for people."""
     text = str(e).strip()
     return f"{type(e).__name__}: {text.splitlines()[0]}" if text else type(e).__name__
+
+
+def run_script(main: Callable[[], Any], name: str) -> None:
+    """Run a repository script's ``main()``; bad input (a :class:`UserError`) is one line on stderr, ``NAME: error:
+    ...``, with exit status 2 and no traceback."""
+    import sys
+
+    try:
+        main()
+    except UserError as e:
+        print(f"{name}: error: {e}", file=sys.stderr)
+        sys.exit(2)
