@@ -50,8 +50,9 @@ def main() -> None:
     print(f"{r['boundaries']} boundaries, B - A (mean ± SE):")
     for name in ("spearman", "top_overlap", "pick_gain"):
         print(f"  {name:12s} {r[name][0]:+.3f} ± {r[name][1]:.3f}")
-    print(f"the two yardsticks rank the candidates alike: simulator {r['true_alike']:.2f}, model {r['model_alike']:.2f} "
-          f"(median Spearman); the model picks the same candidate at {r['same_pick']:.0%} of the boundaries")
+    print(f"the two yardsticks rank the candidates alike: simulator {r['true_alike']:.2f}, model "
+          f"{r['model_alike']:.2f} (median Spearman); the model picks the same candidate at {r['same_pick']:.0%} of "
+          f"the boundaries")
 
 
 if __name__ == "__main__":

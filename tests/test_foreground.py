@@ -192,6 +192,13 @@ def test_wm_fidelity_ranks_in_the_foreground_cost(tmp_path, capsys):
     plain, fg = (json.loads((tmp_path / f"{n}.json").read_text()) for n in ("plain", "fg"))
     assert fg["cost_foreground"] == str(real) and fg["cost_background_weight"] == 0.01
     assert plain["records"][0] != fg["records"][0]  # the same candidates, costed another way
+    # a twin that ranks in the weighted cost, scored in the plain yardstick
+    assert main([str(a) for a in [*fid, "--plan-foreground", real, "--cost-background-weight", "0.01", "--json",
+                                  tmp_path / "twin.json"]]) == 0
+    twin = json.loads((tmp_path / "twin.json").read_text())["records"][0]["models"]
+    assert twin["shipped+fg"]["true_costs"] == twin["shipped"]["true_costs"] == plain["records"][0]["models"][
+        "shipped"]["true_costs"]
+    assert twin["shipped+fg"]["model_costs"] != twin["shipped"]["model_costs"]
 
 
 def load_encoder(wm: Path):

@@ -220,7 +220,11 @@ def _fidelity_options(p: argparse.ArgumentParser) -> None:
                    help="a foreground readout (`wm foreground`): the run's cost weighs each token by its foreground, "
                         "as `eval --cost-foreground`; both the model's and the simulator's costs use it")
     p.add_argument("--cost-background-weight", type=float, default=None,
-                   help="with --cost-foreground: a pure-background token's weight (default: 0.1)")
+                   help="with --cost-foreground or --plan-foreground: a pure-background token's weight (default: 0.1)")
+    p.add_argument("--plan-foreground", default="", metavar="DIR",
+                   help="also score every model ranking (and, with --plan, searching) in the cost weighed by this "
+                        "foreground readout (as `eval --cost-foreground`), as LABEL+fg; the simulator's yardstick "
+                        "keeps the run's cost")
     p.add_argument("--bias-correction", type=float, default=None, metavar="A",
                    help="also score every model with `eval --bias-correction A` (its error on the chunk just run "
                         "added to its predictions), as LABEL+bias; the same candidates, dynamics and references")
@@ -442,24 +446,23 @@ def _view_cost(flag: str, weights: list[float] | None):
                         f"one per camera (e.g. 1 1 0.5)") from None
 
 
-def _foreground_cost(args: argparse.Namespace, models: list):
-    """The patch cost weighed by ``--cost-foreground``'s readout, which every model's encoder must match."""
+def _foreground_cost(args: argparse.Namespace, path: str, flag: str, model):
+    """The patch cost (at ``--cost-view-weights``) weighed by the readout ``path`` (given as ``flag``), read with
+    ``model``'s encoder, which must be the one the readout was fit on (one line otherwise)."""
     from wamplan.config import ConfigError
-    from wamplan.encoders.foreground import foreground_weigher, load_foreground
+    from wamplan.encoders.foreground import foreground_weigher
     from wamplan.planning.costs import CostConfig, build_cost
 
-    require_paths([args.cost_foreground], "--cost-foreground", "pass a readout made by `wamplan wm foreground`")
+    require_paths([path], flag, "pass a readout made by `wamplan wm foreground`")
     try:
-        cfg = CostConfig(view_weights=tuple(args.cost_view_weights or ()), foreground=args.cost_foreground,
+        cfg = CostConfig(view_weights=tuple(args.cost_view_weights or ()), foreground=path,
                          **({} if args.cost_background_weight is None else
                             {"background_weight": args.cost_background_weight}))
     except ConfigError as e:
         raise UserError(str(e).replace("background_weight", "--cost-background-weight")) from None
-    first, task = models[0], models[0].dynamics.task
-    for m in models[1:]:
-        load_foreground(args.cost_foreground, m.encoder, task.name, m.dynamics.cameras or task.cameras)
-    return build_cost(cfg, weigh_tokens=foreground_weigher(args.cost_foreground, first.encoder, cfg.background_weight,
-                                                           task.name, first.dynamics.cameras or task.cameras))
+    task = model.dynamics.task
+    return build_cost(cfg, weigh_tokens=foreground_weigher(path, model.encoder, cfg.background_weight, task.name,
+                                                           model.dynamics.cameras or task.cameras))
 
 
 def cmd_fidelity(args: argparse.Namespace) -> int:
@@ -486,12 +489,14 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
         label, _, paths = spec.rpartition("=")
         members = ensemble_members(paths)  # A+B+C: an ensemble, its mean prediction scored (as --wm-augmented)
         specs.append((label or "+".join(Path(p).name for p in members), members))
-    twin, viewed, posed = "{}+bias".format, "{}+views".format, "{}+pose".format  # labels of a model's twins
+    twin, viewed, posed, weighed = "{}+bias".format, "{}+views".format, "{}+pose".format, "{}+fg".format  # twins
     labels = [lab for lab, _ in specs]
     if args.bias_correction is not None:
         labels += [twin(lab) for lab, _ in specs]
     if args.plan_view_weights is not None:
         labels += [viewed(lab) for lab, _ in specs]
+    if args.plan_foreground:
+        labels += [weighed(lab) for lab, _ in specs]
     if args.plan_state_weight is not None and not args.plan_state_weight > 0:
         raise UserError(f"--plan-state-weight {args.plan_state_weight:g} must be above 0 (e.g. 0.05)")
     cost, plan_cost = (_view_cost(flag, weights) for flag, weights in (
@@ -507,7 +512,8 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
                         f"(name a model with LABEL=PATH)")
     dup = sorted(lab for lab, n in Counter(labels).items() if n > 1)
     if dup:
-        raise UserError(f"--wm labels must differ (twins are LABEL+bias, LABEL+views, LABEL@W): {', '.join(dup)} "
+        raise UserError(f"--wm labels must differ (twins are LABEL+bias, LABEL+views, LABEL+fg, LABEL@W): "
+                        f"{', '.join(dup)} "
                         f"appears twice; name each model, e.g. --wm shipped=DIR,new=DIR")
     models, tasks = [], {}  # world-model path -> the task it was trained on
     for label, members in specs:
@@ -533,6 +539,10 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
         models += [Scored(posed(m.label), m.dynamics, m.encoder, cost=build_cost(pose, m.dynamics.read_state))
                    for m in headed]
         labels += [posed(m.label) for m in headed]
+    if args.plan_foreground:  # each model's twin, ranking and searching in the foreground-weighted cost
+        plain = [m for m in models if m.label in dict(specs)]
+        models += [Scored(weighed(m.label), m.dynamics, m.encoder,
+                          cost=_foreground_cost(args, args.plan_foreground, "--plan-foreground", m)) for m in plain]
     wam = load_wam(args.wam, device=args.device)
     cams = list(wam.task.cameras)
     for flag, weights in (("--cost-view-weights", args.cost_view_weights), ("--plan-view-weights",
@@ -545,9 +555,12 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
             raise UserError(f"--wm {path} was trained on task '{task}' but --wam {args.wam} acts in task "
                             f"'{wam.task.name}'; score world models of the WAM's task")
     if args.cost_foreground:  # the run's cost, the yardstick included, weighed by the target's foreground
-        cost = _foreground_cost(args, models)
-    elif args.cost_background_weight is not None:
-        raise UserError("--cost-background-weight weighs nothing without --cost-foreground DIR; give both")
+        for m in models[1:]:  # one yardstick: every model's encoder must be the readout's
+            _foreground_cost(args, args.cost_foreground, "--cost-foreground", m)
+        cost = _foreground_cost(args, args.cost_foreground, "--cost-foreground", models[0])
+    elif args.cost_background_weight is not None and not args.plan_foreground:
+        raise UserError("--cost-background-weight weighs nothing without --cost-foreground or --plan-foreground DIR; "
+                        "give one of them")
     env = TaskEnv(EnvConfig(task=wam.task.name, camera_size=args.camera_size))
     if blend:  # the first model's dynamics shared, its prediction moved toward the simulator's with its encoder
         from wamplan.planning.dynamics import BlendedDynamics, SimulatorDynamics
@@ -574,7 +587,7 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
         from wamplan.config import to_dict
 
         out.update(wam=args.wam, wm=args.wm, seeds=seeds, config=to_dict(cfg), camera_size=args.camera_size,
-                   cost_foreground=args.cost_foreground or None,
+                   cost_foreground=args.cost_foreground or None, plan_foreground=args.plan_foreground or None,
                    cost_background_weight=args.cost_background_weight)
         write_json(args.json, out)
         print(f"wrote {args.json}")
