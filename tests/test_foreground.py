@@ -126,7 +126,7 @@ def _refused(capsys, argv, *parts) -> str:
 def test_wm_foreground_fits_a_readout_that_eval_plans_with(tmp_path, capsys):
     out = tmp_path / "fg"
     assert main(["wm", "foreground", "--wm", str(MINI / "wm_augmented"), "--policy", "expert", "--episodes", "2",
-                 "--every", "40", "--camera-size", "64", "--steps", "50", "--out", str(out)]) == 0
+                 "--every", "40", "--camera-size", "64", "--steps", "50", "--device", "cpu", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "held out: seeds 3001" in printed and "wrist:" in printed and (out / "foreground.png").is_file()
     cfg = json.loads((out / "config.json").read_text())
@@ -147,6 +147,7 @@ def test_foreground_inputs_are_refused_in_one_line(tmp_path, capsys):
     wm = ["wm", "foreground", "--wm", MINI / "wm_augmented", "--out", tmp_path / "fg"]
     _refused(capsys, [*wm, "--episodes", "1"], "--episodes 1", "at least 2 episodes")
     _refused(capsys, [*wm, "--every", "0"], "--every must be >= 1")
+    _refused(capsys, [*wm, "--device", "nonsense"], "nonsense")
     (tmp_path / "run").mkdir()
     (tmp_path / "run" / "config.json").write_text('{"kind": "predictor", "config": {}}')
     _refused(capsys, ["wm", "foreground", "--wm", MINI / "wm_augmented", "--out", tmp_path / "run"],

@@ -20,6 +20,8 @@ def foreground_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--every", type=int, default=4, help="keep every N-th step's pictures (default: %(default)s)")
     p.add_argument("--camera-size", type=int, default=224, help="rendered side in px (default: %(default)s)")
     p.add_argument("--steps", type=int, default=2000, help="optimisation steps (default: %(default)s)")
+    p.add_argument("--device", default="auto", help="torch device of the encoder (auto, cpu, cuda, ...; default: "
+                                                    "%(default)s); the readout itself fits on the CPU")
     p.set_defaults(func=cmd_foreground)
 
 
@@ -44,7 +46,10 @@ def cmd_foreground(args: argparse.Namespace) -> int:
     if (out / "config.json").exists() and kind != "foreground":
         raise UserError(f"--out {out} holds a '{kind}' checkpoint, not a foreground readout; pass a new or empty "
                         f"directory")
-    predictor, encoder = load_world_model(args.wm)
+    from wamplan.device import resolve_device
+
+    device = resolve_device(args.device)  # a device this machine lacks: one line, before any work
+    predictor, encoder = load_world_model(args.wm, device=device)
     task, grid = predictor.task, math.isqrt(encoder.num_patches)
     if args.camera_size % grid:
         raise UserError(f"--camera-size {args.camera_size} does not split into the encoder's {grid} x {grid} "
