@@ -555,9 +555,12 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
             raise UserError(f"--wm {path} was trained on task '{task}' but --wam {args.wam} acts in task "
                             f"'{wam.task.name}'; score world models of the WAM's task")
     if args.cost_foreground:  # the run's cost, the yardstick included, weighed by the target's foreground
-        for m in models[1:]:  # one yardstick: every model's encoder must be the readout's
-            _foreground_cost(args, args.cost_foreground, "--cost-foreground", m)
+        from wamplan.encoders.foreground import load_foreground
+
         cost = _foreground_cost(args, args.cost_foreground, "--cost-foreground", models[0])
+        for m in models[1:]:  # one yardstick for all: every model's encoder and views must be the readout's
+            load_foreground(args.cost_foreground, m.encoder, m.dynamics.task.name,
+                            m.dynamics.cameras or m.dynamics.task.cameras)
     elif args.cost_background_weight is not None and not args.plan_foreground:
         raise UserError("--cost-background-weight weighs nothing without --cost-foreground or --plan-foreground DIR; "
                         "give one of them")

@@ -15,6 +15,7 @@ its settings are stored.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import os
@@ -238,14 +239,15 @@ def _check_inputs(cfg: EvalConfig, conditions: list[int]) -> None:
         finally:
             wam.close()
     spec = cfg.env.spec
+    load = functools.cache(lambda path: load_world_model(path, device="cpu"))  # (predictor, encoder), each once
     if cfg.cost.foreground:
         require_paths([cfg.cost.foreground], "--cost-foreground", "pass a readout made by `wamplan wm foreground`")
         if any(CONDITIONS[c].dynamics == "simulator" for c in conditions):  # they encode with the sim encoder
-            enc = sim_encoder(cfg, lambda path: load_world_model(path, device="cpu")[1])
+            enc = sim_encoder(cfg, lambda path: load(path)[1])
             load_foreground(cfg.cost.foreground, enc.cpu(), spec.name, spec.cameras)
     for c in sorted(set(conditions)):
         for path in cfg.world_models(c):
-            predictor, encoder = load_world_model(path, device="cpu")
+            predictor, encoder = load(path)
             check_world_model_task(cfg, path, predictor)
             check_frameskip(predictor.cfg.frameskip, cfg.env.spec.chunk_len)
             n, k = predictor.cfg.num_patches, cfg.cost.pool

@@ -70,11 +70,16 @@ def _pool_views(per_view: Tensor, view_weights: Tensor | None) -> Tensor:
 
 
 @register_cost("patch")
-def patch_cost(pred: Tensor, target: Tensor, view_weights: Tensor | None = None) -> Tensor:
-    """Eq. 3: MSE over views, patches and dims. pred (B, V, N, D), target (V, N, D) -> (B,)."""
+def patch_cost(pred: Tensor, target: Tensor, view_weights: Tensor | None = None,
+               token_weights: Tensor | None = None) -> Tensor:
+    """Eq. 3: MSE over views, patches and dims. pred (B, V, N, D), target (V, N, D) -> (B,). With
+    ``token_weights`` (V, N), all > 0, each view's patches are averaged with those weights instead of alike."""
     _check(pred, target, "V, N, D")
-    diff = pred.float() - target.float().unsqueeze(0)  # (B, V, N, D)
-    return _pool_views(diff.square().mean(dim=(2, 3)), view_weights)  # (B, V) -> (B,)
+    sq = (pred.float() - target.float().unsqueeze(0)).square()  # (B, V, N, D)
+    if token_weights is None:
+        return _pool_views(sq.mean(dim=(2, 3)), view_weights)  # (B, V) -> (B,)
+    w = token_weights.float().to(sq.device)  # (V, N)
+    return _pool_views((sq.mean(dim=3) * w).sum(dim=2) / w.sum(dim=1), view_weights)  # (B, V) -> (B,)
 
 
 @register_cost("cls")
@@ -89,16 +94,13 @@ def cls_cost(pred: Tensor, target: Tensor, view_weights: Tensor | None = None) -
 
 
 def with_token_weights(weigh: TokenWeigher, view_weights: Sequence[float] | None = None) -> CostFn:
-    """The patch cost with each token's squared error weighted, within its view, by ``weigh(target)``: per view
-    sum_t w_t |z_t - z*_t|^2 / sum_t w_t (over dims: the mean), the views then pooled as eq. 3 or by
-    ``view_weights``. Equal weights give eq. 3 exactly. pred (B, V, N, D), target (V, N, D) -> (B,)."""
+    """The patch cost with each token's squared error weighted, within its view, by ``weigh(target)`` (V, N)
+    (:func:`patch_cost`'s ``token_weights``), the views pooled as eq. 3 or by ``view_weights``. Equal weights give
+    eq. 3. pred (B, V, N, D), target (V, N, D) -> (B,)."""
     vw = torch.tensor(tuple(view_weights), dtype=torch.float32) if view_weights else None  # (V,)
 
     def fn(pred: Tensor, target: Tensor) -> Tensor:
-        _check(pred, target, "V, N, D")
-        w = weigh(target).float().to(pred.device)  # (V, N)
-        per_token = (pred.float() - target.float().unsqueeze(0)).square().mean(dim=3)  # (B, V, N)
-        return _pool_views((per_token * w).sum(dim=2) / w.sum(dim=1), vw)  # (B, V) -> (B,)
+        return patch_cost(pred, target, vw, weigh(target))
 
     return fn
 
