@@ -20,32 +20,11 @@ import json
 import sys
 from pathlib import Path
 
-import h5py
-import numpy as np
-import torch
-
-from wamplan.data.readers import BranchGroups
-from wamplan.encoders.base import FrozenEncoder
-from wamplan.envs.spec import Observation
 from wamplan.errors import UserError
 from wamplan.wam.base import WAM, load_wam
+from wamplan.wam.targets import check_target_wam, group_targets
 from wamplan.worldmodel.benchmark import ALL, PHASES, benchmark_parser, in_phase, load_benchmark
 from wamplan.worldmodel.train import RANKING, sibling_ranking
-
-
-def wam_targets(wam: WAM, groups: BranchGroups, encoder: FrozenEncoder, cameras) -> torch.Tensor:
-    """(G_total, V, N, D): the WAM's predicted views of each group's boundary, encoded (the planner's target)."""
-    out = []
-    for members in groups.items:
-        e = groups.episodes[members[0][0]]
-        boundary, start = e.branch_at  # type: ignore[misc]  # the parent's boundary, and its step at the branch's 0
-        k = list(e.image_steps).index(boundary - start)  # the stored frame at the boundary
-        with h5py.File(e.path, "r") as f:
-            obs = Observation(step=boundary, proprio=f["proprio"][boundary - start],
-                              images={c: f["images"][c][k] for c in cameras})
-        pred = wam.predict(obs, wam.default_instruction)
-        out.append(encoder.encode(np.stack([pred.images[c] for c in cameras])))  # (V, N, D)
-    return torch.stack(out)
 
 
 def ranking_table(ckpt: str, data: list[Path], horizon: int, wam: WAM | None = None) -> dict[str, dict[str, float]]:
@@ -53,15 +32,8 @@ def ranking_table(ckpt: str, data: list[Path], horizon: int, wam: WAM | None = N
     model, encoder, groups, labels, cameras = load_benchmark(ckpt, data, horizon)
     targets = None
     if wam is not None:
-        steps = horizon * model.cfg.frameskip
-        if steps != wam.chunk_length:
-            raise UserError(f"the siblings are scored {steps} steps on (--horizon {horizon} x frameskip "
-                            f"{model.cfg.frameskip}) but the WAM predicts {wam.chunk_length} steps on; give --horizon "
-                            f"{wam.chunk_length // model.cfg.frameskip}")
-        missing = [c for c in cameras if c not in wam.cameras]
-        if missing:
-            raise UserError(f"the WAM predicts no view for the stores' cameras {missing}; use a WAM of this task")
-        targets = wam_targets(wam, groups, encoder, cameras)
+        check_target_wam(wam, cameras, horizon * model.cfg.frameskip)
+        targets = group_targets(wam, groups, encoder)
     r = sibling_ranking(model, groups, horizon, targets=targets)
     out = {}
     for phase in (*PHASES, ALL):

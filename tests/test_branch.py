@@ -93,15 +93,25 @@ def test_branch_steps_restrict_the_boundaries(small_env, tmp_path, capsys):
     assert not (tmp_path / "x").exists()
 
 
-def test_branch_groups_stack_the_siblings_of_each_boundary(tmp_path, capsys):
-    """BranchGroups: one item per boundary, its siblings' windows stacked; they share the context (frames up to
-    the boundary and the actions before it) and differ in the chunk and the future."""
-    from wamplan.data.readers import BranchGroups
-
-    out = tmp_path / "br"
+@pytest.fixture(scope="module")
+def three_siblings(tmp_path_factory) -> Path:
+    """A store of one expert parent (56 steps) with 3 branches at boundaries 16 and 32, at 64 px."""
+    out = tmp_path_factory.mktemp("branches") / "br"
     spec = BranchSpec(branches=3, chunk=16, context_steps=8, sigmas=(0.1, 0.2, 0.3))
     collect("policy", 1, out, seed_start=4, policy="expert", max_steps=56, progress=False, branch=spec,
             env=EnvConfig(camera_size=64))
+    return out
+
+
+def test_branch_groups_stack_the_siblings_of_each_boundary(three_siblings, tmp_path, capsys):
+    """BranchGroups: one item per boundary, its siblings' windows stacked; they share the context (frames up to
+    the boundary and the actions before it) and differ in the chunk and the future."""
+    import shutil
+
+    from wamplan.data.readers import BranchGroups
+
+    out = tmp_path / "br"
+    shutil.copytree(three_siblings, out)  # this test deletes the branches at its end
     groups = BranchGroups([out], frameskip=4, history=3, horizon=4, split="all")
     assert groups.group == 3 and len(groups) == 2  # boundaries 16 and 32 (48 + 16 > 56)
     for i in range(len(groups)):
@@ -140,6 +150,69 @@ def test_branch_groups_stack_the_siblings_of_each_boundary(tmp_path, capsys):
     assert main(["wm", "train", "--data", str(out), "--out", str(tmp_path / "wm2"), "--max-steps", "1",
                  "--sibling-weight", "1"]) == 2
     assert "groups of counterfactual branches" in capsys.readouterr().err
+
+
+@pytest.mark.filterwarnings("ignore:TinyWAM was trained on 224-px renders")  # a 64-px store keeps the test short
+def test_the_ranking_loss_trains_on_the_groups_against_the_wams_predicted_views(three_siblings, tmp_path, capsys):
+    """`wm train --rank-weight --rank-wam`: each group's target is the WAM's predicted views at its boundary,
+    encoded; the run logs the ranking loss and scores the held-out groups' ranking against their targets; a WAM
+    that cannot give those targets, or a weight without a WAM, is one line before any training."""
+    from wamplan.cli import main
+    from wamplan.data.readers import BranchGroups
+    from wamplan.encoders import make_encoder
+    from wamplan.wam.base import load_wam
+    from wamplan.wam.targets import group_targets
+
+    wam = load_wam("checkpoints/mini/tinywam", device="cpu")
+    groups = BranchGroups([three_siblings], frameskip=4, history=3, horizon=4, split="all")
+    targets = group_targets(wam, groups, make_encoder("patch-pixels", input_size=64))
+    assert targets.shape == (2, 3, 16, 128) and not torch.equal(targets[0], targets[1])  # one per boundary
+    item = groups.with_targets(targets)[1]
+    assert torch.equal(item["target"], targets[1]) and item["a"].shape == (3, 7, 20)
+
+    run = tmp_path / "wm"
+    base = ["wm", "train", "--data", str(three_siblings), "--batch-size", "4", "--sibling-groups", "2",
+            "--val-fraction", "0.5"]
+    assert main([*base, "--out", str(run), "--max-steps", "2", "--log-every-steps", "1", "--rank-weight", "1",
+                 "--rank-wam", "checkpoints/mini/tinywam"]) == 0
+    logged = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert any(m.get("train/rank_kl", -1) >= 0 and "train/rank_top1" in m for m in logged)
+    capsys.readouterr()
+    assert main([*base, "--out", str(tmp_path / "w2"), "--rank-weight", "1"]) == 2
+    assert "rank_weight 1.0 and rank_wam '' go together" in capsys.readouterr().err.replace("--rank-", "rank_")
+    assert main([*base, "--out", str(tmp_path / "w3"), "--rank-weight", "1", "--rank-wam",
+                 "checkpoints/stack-cube/tinywam"]) == 2
+    err = capsys.readouterr().err
+    assert "--rank-wam" in err and "stack-cube" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "w3").exists() or not any((tmp_path / "w3").iterdir())
+
+
+def test_the_ranking_loss_is_the_kl_of_the_planners_weights():
+    """rank_loss: KL(true || predicted) of MPPI's own weights of the siblings' costs to the target; 0 when the
+    predictions are the truth, unchanged when every predicted distance is scaled (MPPI normalises by the range),
+    positive and differentiable when the predicted order is wrong."""
+    from wamplan.planning.configs import MPPIConfig
+    from wamplan.planning.mppi import MPPIPlanner
+    from wamplan.worldmodel.train import mppi_log_weights, rank_loss
+
+    gen = torch.Generator().manual_seed(0)
+    costs = torch.rand(5, generator=gen)
+    planner = MPPIPlanner(MPPIConfig(temperature=0.1))
+    assert torch.allclose(mppi_log_weights(costs, 0.1).exp(), planner.weights(costs), atol=1e-6)
+
+    target = torch.randn(2, 3, 4, 8, generator=gen)  # (B, V, N, D)
+    true = target[:, None, None] + torch.randn(2, 5, 1, 3, 4, 8, generator=gen)  # (B, G, K, V, N, D)
+    batch = {"target": target}
+    zero, logs = rank_loss(None, batch, 1, 0.1, (true, true))
+    assert float(zero) == pytest.approx(0, abs=1e-6) and logs["rank_top1"] == 1
+    scaled = target[:, None, None] + 2 * (true - target[:, None, None])
+    assert float(rank_loss(None, batch, 1, 0.1, (scaled, true))[0]) == pytest.approx(0, abs=1e-5)
+    order = (true - target[:, None, None]).pow(2).flatten(2).mean(-1)  # (B, G) true costs
+    flipped = target[:, None, None] + (true - target[:, None, None]) / order[..., None, None, None, None]
+    pred = flipped.clone().requires_grad_(True)  # predicted cost 1 / true cost: the best sibling predicted worst
+    loss, logs = rank_loss(None, batch, 1, 0.1, (pred, true))
+    loss.backward()
+    assert float(loss.detach()) > 1 and logs["rank_top1"] == 0 and pred.grad.abs().sum() > 0
 
 
 def test_planned_collection_follows_the_planners_chunks_and_branches_them(tmp_path):

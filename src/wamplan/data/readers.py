@@ -326,7 +326,8 @@ class BranchGroups(WorldModelWindows):
     where. Siblings are the branches of one parent episode (store, source, seed) at one boundary; branches
     collected with too little ``--branch-context`` for H_ctx frames, or too short for the horizon, are left out.
     ``group`` (default: the most common group size, i.e. the collection's ``--branches``): groups with fewer
-    siblings are left out, larger ones keep their first ``group``."""
+    siblings are left out, larger ones keep their first ``group``. :meth:`with_targets` adds each group's planning
+    target (``target`` (V, N, D), e.g. the WAM's predicted views at the boundary, encoded) to its item."""
 
     def __init__(self, stores: Sequence[str | Path], frameskip: int = 4, history: int = 3, horizon: int = 4,
                  group: int | None = None, split: str = "train", val_fraction: float = 0.1,
@@ -347,10 +348,22 @@ class BranchGroups(WorldModelWindows):
         sizes = Counter(len(m) for m in groups.values())
         self.group = group or (sizes.most_common(1)[0][0] if sizes else 0)  # default: the collection's --branches
         self.items = [tuple(m[:self.group]) for _, m in sorted(groups.items()) if len(m) >= self.group]
+        self.targets: torch.Tensor | None = None  # (len(items), V, N, D) once :meth:`with_targets` set them
+
+    def with_targets(self, targets: torch.Tensor) -> "BranchGroups":
+        """Give group i the planning target ``targets[i]`` (``targets`` (len(self), V, N, D)): its items then hold
+        ``target`` (V, N, D) too. Returns self."""
+        if len(targets) != len(self.items):
+            raise ValueError(f"{len(targets)} targets for {len(self.items)} branch groups")
+        self.targets = targets
+        return self
 
     def _read(self, idx: int) -> dict[str, torch.Tensor]:
         members = [self._window(self.episodes[i], self._h5.get(self.episodes[i].path), k) for i, k in self.items[idx]]
-        return {k: torch.stack([m[k] for m in members]) for k in members[0]}  # each (G, T, ...)
+        out = {k: torch.stack([m[k] for m in members]) for k in members[0]}  # each (G, T, ...)
+        if self.targets is not None:
+            out["target"] = self.targets[idx]  # (V, N, D)
+        return out
 
     def _files(self, idx: int) -> list[str]:
         return [f for i, _ in self.items[idx] for f in [self.episodes[i].path, self.episodes[i].features] if f]

@@ -170,7 +170,7 @@ class DecoderTrainConfig(AdamWConfig):
 @dataclass(frozen=True)
 class TrainConfig(AdamWConfig):
     """Optimisation of the predictor: the loop's fields and AdamW's betas (:class:`~wamplan.train_loop.AdamWConfig`),
-    eq. 2's K-step discounted loss, where an episode's windows end, and the optional sibling loss on
+    eq. 2's K-step discounted loss, where an episode's windows end, and the optional sibling and ranking losses on
     counterfactual branch groups."""
 
     horizon: int = field(2, "K, autoregressive prediction steps per window (windows hold H_ctx + K frames)")
@@ -184,6 +184,14 @@ class TrainConfig(AdamWConfig):
     sibling_horizon: int = field(4, "frames the sibling windows predict into the branch's chunk (chunk / Δ: the "
                                     "frames the planner's cost looks at)")
     sibling_groups: int = field(8, "branch groups (of --branches siblings each) per optimisation step")
+    rank_weight: float = field(0.0, "weight of the ranking loss on counterfactual branch groups (0: off): the "
+                                    "siblings' MPPI weights from their predicted costs to the group's target (the "
+                                    "WAM's predicted views, --rank-wam) must match those from their true costs (a KL "
+                                    "divergence): the planner's decision, not the latents, is what is fitted")
+    rank_wam: str = field("", "the WAM checkpoint whose predicted views at each group's boundary are the ranking "
+                              "loss's targets (the WAM the planner will refine); needed by --rank-weight")
+    rank_temperature: float = field(0.1, "temperature of the ranking loss's MPPI weights, a share of the group's cost "
+                                         "range (the planner's own temperature by default)")
     change_weight: float = field(0.0, "weigh each token's latent error by how much that token changes: weight "
                                       "1 + W * (its squared change from the current frame) / (the mean of that "
                                       "over the window's tokens), divided by 1 + W so the loss keeps its scale "
@@ -204,6 +212,12 @@ class TrainConfig(AdamWConfig):
         require(self.sibling_weight >= 0, f"TrainConfig.sibling_weight must be >= 0, got {self.sibling_weight}")
         require(self.sibling_horizon >= 1, f"TrainConfig.sibling_horizon must be >= 1, got {self.sibling_horizon}")
         require(self.sibling_groups >= 1, f"TrainConfig.sibling_groups must be >= 1, got {self.sibling_groups}")
+        require(self.rank_weight >= 0 and self.rank_weight == self.rank_weight,
+                f"TrainConfig.rank_weight must be a number >= 0 (0: off), got {self.rank_weight}")
+        require((self.rank_weight > 0) == bool(self.rank_wam),
+                f"TrainConfig.rank_weight {self.rank_weight} and rank_wam {self.rank_wam!r} go together: the ranking "
+                f"loss needs the WAM that gives its targets, and that WAM is used by the ranking loss only")
+        require(self.rank_temperature > 0, f"TrainConfig.rank_temperature must be > 0, got {self.rank_temperature}")
         require(self.state_weight >= 0 and self.state_weight == self.state_weight,
                 f"TrainConfig.state_weight must be a number >= 0 (0: off), got {self.state_weight}")
         require(self.change_weight >= 0, f"TrainConfig.change_weight must be >= 0 (0: off), got {self.change_weight}")

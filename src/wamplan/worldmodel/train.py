@@ -218,15 +218,16 @@ def sibling_ranking(model: WorldModelPredictor, groups: Dataset, horizon: int, b
 
 
 def _sibling_errors(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int,
-                    per: str = "group") -> dict[str, torch.Tensor]:
+                    per: str = "group", futures: tuple[torch.Tensor, ...] | None = None) -> dict[str, torch.Tensor]:
     """Per group of a batch of branch groups (z (B, G, T, V, N, D), ...), each (B, K), a mean over the siblings
     and elements (``per="view"``: each (B, K, V), a mean over the siblings and each view's elements;
     ``per="token"``: each (B, K, V, N), over the siblings and each token's features; ``per="feature"``: each
     (B, K, V, D), over the siblings and a view's tokens, feature by feature): ``err`` the squared error of
     the sibling-relative prediction, ``spread`` that of predicting no difference, ``cross`` the product of the
     predicted and true sibling differences (the gain: cross / spread), ``z_mse`` the siblings' plain latent error
-    and ``copy_z_mse`` that of copying the current frame."""
-    zp, zt, copy = _sibling_futures(model, batch, horizon)  # (B, G, K, V, N, D) each
+    and ``copy_z_mse`` that of copying the current frame. ``futures`` (:func:`_sibling_futures`'s three) reuses a
+    rollout already made."""
+    zp, zt, copy = futures if futures is not None else _sibling_futures(model, batch, horizon)  # (B, G, K, V, N, D)
     dp, dt = zp - zp.mean(dim=1, keepdim=True), zt - zt.mean(dim=1, keepdim=True)  # relative to the group mean
 
     return {"err": _pool_elements((dp - dt).pow(2), per), "spread": _pool_elements(dt.pow(2), per),
@@ -235,18 +236,60 @@ def _sibling_errors(model: WorldModelPredictor, batch: dict[str, torch.Tensor], 
 
 
 def sibling_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int,
-                 gamma: float) -> tuple[torch.Tensor, dict[str, float]]:
+                 gamma: float, futures: tuple[torch.Tensor, ...] | None = None) -> tuple[torch.Tensor, dict[str, float]]:
     """The sibling loss of a batch of branch groups (``data.readers.BranchGroups``): the G windows of a group share
     their context, so each one's predicted future minus the group's mean prediction must equal its true future
     minus the group's mean. The shared part of the error cancels: what is left is exactly how the prediction
     moves with the chunk, which is all that ranking CEM's candidates uses. Visual features only, like the
     planner's cost. Logs at step K: ``sib_mse`` and ``sib_rel`` (that error over the error of predicting no
-    difference: 0 exact, 1 no better than predicting none; in training, a mean of per-step ratios)."""
-    s = _sibling_errors(model, batch, horizon)
+    difference: 0 exact, 1 no better than predicting none; in training, a mean of per-step ratios). ``futures``
+    (:func:`_sibling_futures`'s three) reuses a rollout already made."""
+    s = _sibling_errors(model, batch, horizon, futures=futures)
     err, spread = s["err"].mean(dim=0), s["spread"].mean(dim=0)  # (K,)
     w = gamma ** torch.arange(horizon, device=err.device, dtype=err.dtype)  # (K,)
     return (w * err).sum(), {f"sib_mse_h{horizon}": float(err[-1].detach()),
                              f"sib_rel_h{horizon}": float((err[-1] / spread[-1].clamp_min(1e-12)).detach())}
+
+
+def mppi_log_weights(costs: torch.Tensor, temperature: float) -> torch.Tensor:
+    """Costs (..., G) of G candidates -> the log of MPPI's weights over them (..., G): softmax(-(c - min c) /
+    (temperature * (max c - min c))), the planner's own range-normalised weighting (``planning.mppi``)."""
+    span = (costs.max(dim=-1, keepdim=True).values - costs.min(dim=-1, keepdim=True).values).clamp_min(1e-12)
+    return torch.log_softmax(-costs / (temperature * span), dim=-1)  # the shift by min c cancels in the softmax
+
+
+def rank_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int, temperature: float,
+              futures: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+    """The ranking loss of a batch of branch groups carrying their ``target`` (B, V, N, D)
+    (``BranchGroups.with_targets``): each sibling's cost is the squared distance of its outcome ``horizon`` frames
+    on to the target (the planner's patch cost, up to a constant); the loss is KL(true || predicted) between MPPI's
+    weights of the siblings from their true and from their predicted costs (:func:`mppi_log_weights`), a mean over
+    the groups: 0 when the model would weigh the siblings as the simulator does. ``futures`` (predicted, true
+    outcomes, each (B, G, K, V, N, D)) reuses a rollout already made. Logs ``rank_kl`` and ``rank_top1`` (the model's
+    lowest-cost sibling is the true one's)."""
+    zp, zt = futures if futures is not None else _sibling_futures(model, batch, horizon)[:2]
+    t = batch["target"].to(zp.dtype)[:, None]  # (B, 1, V, N, D)
+    pred = (zp[:, :, -1] - t).pow(2).flatten(2).mean(-1)  # (B, G)
+    true = (zt[:, :, -1] - t).pow(2).flatten(2).mean(-1).detach()  # (B, G)
+    log_w, log_p = mppi_log_weights(true, temperature), mppi_log_weights(pred, temperature)  # (B, G) each
+    kl = (log_w.exp() * (log_w - log_p)).sum(-1).mean()
+    top1 = (pred.argmin(-1) == true.argmin(-1)).float().mean()
+    return kl, {"rank_kl": float(kl.detach()), "rank_top1": float(top1)}
+
+
+def group_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], train: TrainConfig
+               ) -> tuple[torch.Tensor, dict[str, float]]:
+    """``train.sibling_weight`` times :func:`sibling_loss` plus ``train.rank_weight`` times :func:`rank_loss` of a
+    batch of branch groups, from one rollout of the siblings."""
+    zp, zt, copy = _sibling_futures(model, batch, train.sibling_horizon)
+    loss, logs = zp.new_zeros(()), {}
+    if train.sibling_weight > 0:
+        sib, sib_logs = sibling_loss(model, batch, train.sibling_horizon, train.gamma, (zp, zt, copy))
+        loss, logs = loss + train.sibling_weight * sib, {**logs, **sib_logs}
+    if train.rank_weight > 0:
+        rk, rk_logs = rank_loss(model, batch, train.sibling_horizon, train.rank_temperature, (zp, zt))
+        loss, logs = loss + train.rank_weight * rk, {**logs, **rk_logs}
+    return loss, logs
 
 
 @torch.no_grad()
@@ -369,9 +412,10 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
     ``init`` (a predictor checkpoint with the same config and encoder) fine-tunes: a fresh run starts from its
     weights and feature statistics instead of a random initialisation and new statistics; with a ``concat``
     encoder whose first part is the checkpoint's encoder it starts grown (:func:`grow_weights`).
-    ``group_set`` (``data.readers.BranchGroups``) adds ``train.sibling_weight`` times :func:`sibling_loss` on
-    ``train.sibling_groups`` groups to every step's loss; ``val_groups`` adds the held-out sibling error to the
-    validation metrics (:func:`evaluate_siblings`). ``task`` and ``cameras`` (one per view) say what the windows
+    ``group_set`` (``data.readers.BranchGroups``) adds :func:`group_loss` (the sibling and ranking losses, the
+    latter on groups with targets) on ``train.sibling_groups`` groups to every step's loss; ``val_groups`` adds the
+    held-out sibling error to the validation metrics (:func:`evaluate_siblings`), and with targets their ranking
+    against them (:func:`sibling_ranking`). ``task`` and ``cameras`` (one per view) say what the windows
     show; the checkpoint records them, where given, in its ``data`` section (loading one that records no task
     means cube-insertion).
     Returns the trained model (eval mode) and the last metrics (with ``val/...`` entries if ``val_set``)."""
@@ -406,10 +450,16 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
                                  2 * train.batch_size, dev)
         if val_groups is not None and len(val_groups):  # type: ignore[arg-type]
             out.update(evaluate_siblings(m, val_groups, train.sibling_horizon, train.sibling_groups, dev))
+            targets = getattr(val_groups, "targets", None)
+            if targets is not None:  # how the held-out siblings rank against their targets (the ranking loss's aim)
+                r = sibling_ranking(m, val_groups, train.sibling_horizon, train.sibling_groups, dev, targets)
+                out.update({k: float(r[k].mean()) for k in RANKING})
         return out
 
     groups = None
-    if group_set is not None and train.sibling_weight > 0:
+    if group_set is not None and (train.sibling_weight > 0 or train.rank_weight > 0):
+        if train.rank_weight > 0 and getattr(group_set, "targets", None) is None:
+            raise ValueError("rank_weight > 0 needs branch groups with targets (BranchGroups.with_targets)")
         done = (saved_progress(out_dir) or {}).get("global_step", 0) if resume else 0
         groups = _group_batches(group_set, train, start=done)
 
@@ -419,8 +469,8 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
         if groups is not None:
             with torch.autocast(dev.type, enabled=False):  # --precision bfloat16: read and stack as stored
                 g = {k: v.to(dev) for k, v in next(groups).items()}
-            sib, sib_logs = sibling_loss(m, g, train.sibling_horizon, train.gamma)
-            loss, logs = loss + train.sibling_weight * sib, {**logs, **sib_logs}
+            grp, grp_logs = group_loss(m, g, train)
+            loss, logs = loss + grp, {**logs, **grp_logs}
         return loss, logs
 
     result = fit(model, DatasetBatches(train_set, train.num_workers, dev.type != "cpu"),
