@@ -251,10 +251,16 @@ def sibling_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], hor
                              f"sib_rel_h{horizon}": float((err[-1] / spread[-1].clamp_min(1e-12)).detach())}
 
 
-def mppi_log_weights(costs: torch.Tensor, temperature: float) -> torch.Tensor:
+def cost_span(costs: torch.Tensor) -> torch.Tensor:
+    """Costs (..., G) -> their range max - min (..., 1), floored at 1e-12."""
+    return (costs.max(dim=-1, keepdim=True).values - costs.min(dim=-1, keepdim=True).values).clamp_min(1e-12)
+
+
+def mppi_log_weights(costs: torch.Tensor, temperature: float, span: torch.Tensor | None = None) -> torch.Tensor:
     """Costs (..., G) of G candidates -> the log of MPPI's weights over them (..., G): softmax(-(c - min c) /
-    (temperature * (max c - min c))), the planner's own range-normalised weighting (``planning.mppi``)."""
-    span = (costs.max(dim=-1, keepdim=True).values - costs.min(dim=-1, keepdim=True).values).clamp_min(1e-12)
+    (temperature * span)), with span (..., 1) the costs' own range by default: the planner's range-normalised
+    weighting (``planning.mppi``)."""
+    span = cost_span(costs) if span is None else span
     return torch.log_softmax(-costs / (temperature * span), dim=-1)  # the shift by min c cancels in the softmax
 
 
@@ -264,14 +270,18 @@ def rank_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizo
     (``BranchGroups.with_targets``): each sibling's cost is the squared distance of its outcome ``horizon`` frames
     on to the target (the planner's patch cost, up to a constant); the loss is KL(true || predicted) between MPPI's
     weights of the siblings from their true and from their predicted costs (:func:`mppi_log_weights`), a mean over
-    the groups: 0 when the model would weigh the siblings as the simulator does. ``futures`` (predicted, true
+    the groups: 0 when the model would weigh the siblings as the simulator does. Both are normalised by the TRUE
+    costs' range: a model whose predictions hardly move with the chunk has a near-zero range of its own, and
+    dividing by it made the gradients explode; in the true range the predicted costs must also differ as much as
+    the true ones do. ``futures`` (predicted, true
     outcomes, each (B, G, K, V, N, D)) reuses a rollout already made. Logs ``rank_kl`` and ``rank_top1`` (the model's
     lowest-cost sibling is the true one's)."""
     zp, zt = futures if futures is not None else _sibling_futures(model, batch, horizon)[:2]
     t = batch["target"].to(zp.dtype)[:, None]  # (B, 1, V, N, D)
     pred = (zp[:, :, -1] - t).pow(2).flatten(2).mean(-1)  # (B, G)
     true = (zt[:, :, -1] - t).pow(2).flatten(2).mean(-1).detach()  # (B, G)
-    log_w, log_p = mppi_log_weights(true, temperature), mppi_log_weights(pred, temperature)  # (B, G) each
+    span = cost_span(true)  # (B, 1)
+    log_w, log_p = mppi_log_weights(true, temperature, span), mppi_log_weights(pred, temperature, span)  # (B, G)
     kl = (log_w.exp() * (log_w - log_p)).sum(-1).mean()
     top1 = (pred.argmin(-1) == true.argmin(-1)).float().mean()
     return kl, {"rank_kl": float(kl.detach()), "rank_top1": float(top1)}
