@@ -187,6 +187,18 @@ def test_the_ranking_loss_trains_on_the_groups_against_the_wams_predicted_views(
     assert not (tmp_path / "w3").exists() or not any((tmp_path / "w3").iterdir())
 
 
+def test_the_api_refuses_a_ranking_loss_without_targets(three_siblings, tmp_path):
+    """train_predictor_on_stores with rank_weight > 0 and no group_targets: one UserError before any encoding."""
+    from wamplan.worldmodel.config import PredictorConfig, TrainConfig
+    from wamplan.worldmodel.stores import train_predictor_on_stores
+
+    with pytest.raises(UserError, match=r"needs each branch group's target: pass group_targets"):
+        train_predictor_on_stores([three_siblings], tmp_path / "wm", PredictorConfig(),
+                                  TrainConfig(rank_weight=0.1, rank_wam="checkpoints/mini/tinywam"),
+                                  encoder="patch-pixels", encoder_kwargs={"input_size": 64}, progress=False)
+    assert not (tmp_path / "wm").exists()
+
+
 def test_the_ranking_loss_is_the_kl_of_the_planners_weights():
     """rank_loss: KL(true || predicted) of MPPI's weights of the siblings' costs to the target, both in the true
     costs' range; 0 when the predictions are the truth, positive when the predicted costs differ less than the
