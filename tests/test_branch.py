@@ -276,3 +276,33 @@ def test_a_store_refuses_a_source_whose_file_names_another_source_wrote(expert_s
         store.check_source("policy:a+b")
     with pytest.raises(UserError, match="holds episodes of source 'expert'"):
         store.check_source("policy:a_b")
+
+
+def test_the_action_response_script_scores_sibling_and_drastic_changes(three_siblings, repo_script, capsys):
+    """scripts/wm_action_response.py: per model, the predicted and true spread of the siblings' outcomes and the
+    prediction's change under a zeroed or negated chunk; a model given without a label is one line."""
+    import sys
+
+    from wamplan.data.readers import BranchGroups
+    from wamplan.worldmodel.train import load_world_model
+
+    mod = repo_script("scripts/wm_action_response.py")
+    model, enc = load_world_model("checkpoints/mini/wm_augmented")
+    from wamplan.data.features import feature_key
+    from wamplan.worldmodel.stores import encode_stores
+
+    encode_stores([three_siblings], enc, progress=False)
+    groups = BranchGroups([three_siblings], 4, 3, 4, split="all", features=feature_key(enc.config_dict()))
+    r = mod.action_response(model.eval(), groups, 4)
+    assert r["groups"] == 2 and r["true_spread"] > 0 and r["pred_spread"] > 0
+    assert r["zeroed"] > 0 and r["negated"] > 0 and r["chunk_abs"] > r["sibling_abs"] > 0
+    sys.argv = ["wm_action_response.py", str(three_siblings), "checkpoints/mini/wm_augmented", "--split", "all"]
+    with pytest.raises(SystemExit) as e:
+        mod.main.__globals__["run_script"](mod.main, "wm_action_response")
+    assert e.value.code == 2
+    assert capsys.readouterr().err.strip() == ("wm_action_response: error: 'checkpoints/mini/wm_augmented': give each "
+                                               "model as LABEL=CHECKPOINT, e.g. shipped=checkpoints/mini/wm_augmented")
+    sys.argv = ["wm_action_response.py", str(three_siblings), "shipped=checkpoints/mini/wm_augmented", "--split", "all"]
+    mod.main()
+    out = capsys.readouterr().out
+    assert out.startswith("shipped: 2 groups; pred_spread ") and "predicted share of the siblings' spread" in out
