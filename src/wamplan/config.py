@@ -175,13 +175,14 @@ def add_arguments(parser: Any, cls: type, prefix: str = "", presets: dict[str, A
 
 
 def preset_default_text(name: str, presets: dict[str, Any] | None) -> str | None:
-    """'default: the preset's, mini 4, paper 24' (or 'default: 1.0' when all agree) for field ``name`` of the
-    configs in ``presets``; None without presets."""
+    """'default: the preset's, mini 4, paper 24' (or 'default: 1.0' when all agree; '' when all agree on nothing, an
+    empty string, None or ()) for field ``name`` of the configs in ``presets``; None without presets."""
     if not presets:
         return None
     values = {label: getattr(c, name) for label, c in presets.items()}
     if len(set(map(str, values.values()))) == 1:
-        return f"default: {next(iter(values.values()))}"
+        value = next(iter(values.values()))
+        return "" if value in ("", None, ()) else f"default: {value}"
     return "default: the preset's, " + ", ".join(f"{label} {v}" for label, v in values.items())
 
 
