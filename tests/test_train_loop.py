@@ -145,7 +145,8 @@ def test_trainer_configs_share_one_base_and_read_the_shipped_checkpoints():
         assert {k: v for k, v in to_dict(cfg).items() if k in saved} == saved, name
         if name in ("tinywam", "wm_augmented"):  # saved by the current code: the same keys, no more (but fields
             newer = {"precision": "float32"}  # added since, whose defaults change nothing the checkpoint did)
-            newer |= {"change_weight": 0, "state_weight": 0} if name == "wm_augmented" else {}
+            newer |= {"change_weight": 0, "state_weight": 0, "rank_weight": 0, "rank_wam": "",
+                      "rank_temperature": 0.1} if name == "wm_augmented" else {}
             assert set(to_dict(cls())) - set(newer) == set(saved), name
             assert all(getattr(cls(), k) == v for k, v in newer.items()), name
     parser = argparse.ArgumentParser()
