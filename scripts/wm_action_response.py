@@ -30,20 +30,28 @@ FIGURES = ("pred_spread", "true_spread", "zeroed", "negated", "chunk_abs", "sibl
 def action_response(model, groups, horizon: int) -> dict[str, float]:
     """The figures of the module docstring for ``model`` over ``groups`` (a ``BranchGroups`` in its encoder's
     features), each a mean over the groups; ``groups`` = their number."""
-    from wamplan.worldmodel.train import _split
+    from wamplan.worldmodel.train import sibling_futures
 
+    h = model.cfg.context
     sums = dict.fromkeys(FIGURES, 0.0)
     for i in range(len(groups)):
-        item = groups[i]  # each (G, T, ...)
-        (zc, qc, ac), chunk, (zt, _) = _split(model, {k: item[k] for k in ("z", "q", "a")}, horizon)
-        end = lambda a: model.rollout(zc, qc, ac, a)[0][:, -1].float()  # noqa: E731  (G, V, N, D)
-        pred, true = end(chunk), zt[:, -1].float()
+        batch = {k: groups[i][k][None] for k in ("z", "q", "a")}  # one group: each (1, G, T, ...)
+        chunk = batch["a"][..., h - 1:h - 1 + horizon, :].float()  # (1, G, K, Δ·A): the siblings' chunks
+
+        def end(actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            """The predicted and the true last frames (G, V, N, D) with the chunks replaced by ``actions``."""
+            a = batch["a"].float().clone()
+            a[..., h - 1:h - 1 + horizon, :] = actions
+            zp, zt, _ = sibling_futures(model, {**batch, "a": a}, horizon)  # (1, G, K, V, N, D) each
+            return zp[0, :, -1].float(), zt[0, :, -1].float()
+
+        pred, true = end(chunk)
         sums["pred_spread"] += float((pred - pred.mean(0)).pow(2).mean())
         sums["true_spread"] += float((true - true.mean(0)).pow(2).mean())
-        sums["zeroed"] += float((end(torch.zeros_like(chunk)) - pred).pow(2).mean())
-        sums["negated"] += float((end(-chunk) - pred).pow(2).mean())
+        sums["zeroed"] += float((end(torch.zeros_like(chunk))[0] - pred).pow(2).mean())
+        sums["negated"] += float((end(-chunk)[0] - pred).pow(2).mean())
         sums["chunk_abs"] += float(chunk.abs().mean())
-        sums["sibling_abs"] += float((chunk - chunk.mean(0)).abs().mean())
+        sums["sibling_abs"] += float((chunk - chunk.mean(1, keepdim=True)).abs().mean())
     n = len(groups)
     return {"groups": n, **{k: v / max(n, 1) for k, v in sums.items()}}
 

@@ -135,7 +135,7 @@ def test_rank_siblings_scores_a_planner_s_pick():
 
 
 def test_sibling_ranking_per_group_with_and_without_the_shared_error():
-    from wamplan.worldmodel.train import RANKING, _rank_siblings, _sibling_futures, sibling_ranking
+    from wamplan.worldmodel.train import RANKING, _rank_siblings, sibling_futures, sibling_ranking
 
     torch.manual_seed(0)
     cfg = PredictorConfig(num_patches=4, enc_dim=8, frameskip=4, context=3, depth=1, heads=2, head_dim=8,
@@ -156,7 +156,7 @@ def test_sibling_ranking_per_group_with_and_without_the_shared_error():
     # group 2 by hand: its siblings ranked against its own target
     model.eval()
     with torch.no_grad():
-        zp, zt, _ = _sibling_futures(model, {n: x[None] for n, x in groups[2].items()}, k)
+        zp, zt, _ = sibling_futures(model, {n: x[None] for n, x in groups[2].items()}, k)
     by_hand = _rank_siblings(zp[:, :, -1].flatten(2), zt[:, :, -1].flatten(2), targets[2].flatten()[None])[0]
     torch.testing.assert_close(torch.stack([own[n][2] for n in RANKING]), by_hand)
     with pytest.raises(ValueError, match="2 targets for 3 groups"):

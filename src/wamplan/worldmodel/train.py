@@ -132,7 +132,7 @@ def _pool_elements(x: torch.Tensor, per: str) -> torch.Tensor:
     return x.flatten({"group": 3, "view": 4, "token": 5}[per]).mean(dim=-1).mean(dim=1)
 
 
-def _sibling_futures(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int
+def sibling_futures(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int
                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """A batch of branch groups (z (B, G, T, V, N, D), ...) -> the predicted, the true and the copied (current
     frame) futures, each (B, G, K, V, N, D)."""
@@ -206,7 +206,7 @@ def sibling_ranking(model: WorldModelPredictor, groups: Dataset, horizon: int, b
             g = batch["z"].shape[1]
             if g < (2 if targets is not None else 3):
                 raise ValueError(f"groups of {g} siblings rank too few candidates; collect with --branches 3 or more")
-            zp, zt, _ = _sibling_futures(model, {k: v.to(device) for k, v in batch.items()}, horizon)
+            zp, zt, _ = sibling_futures(model, {k: v.to(device) for k, v in batch.items()}, horizon)
             zp, zt = zp[:, :, -1].flatten(2), zt[:, :, -1].flatten(2)  # (B, G, V N D) at step K
             t = None if targets is None else targets[done:done + len(zp)].flatten(1).to(zp.device)  # (B, V N D)
             done += len(zp)
@@ -225,9 +225,9 @@ def _sibling_errors(model: WorldModelPredictor, batch: dict[str, torch.Tensor], 
     (B, K, V, D), over the siblings and a view's tokens, feature by feature): ``err`` the squared error of
     the sibling-relative prediction, ``spread`` that of predicting no difference, ``cross`` the product of the
     predicted and true sibling differences (the gain: cross / spread), ``z_mse`` the siblings' plain latent error
-    and ``copy_z_mse`` that of copying the current frame. ``futures`` (:func:`_sibling_futures`'s three) reuses a
+    and ``copy_z_mse`` that of copying the current frame. ``futures`` (:func:`sibling_futures`'s three) reuses a
     rollout already made."""
-    zp, zt, copy = futures if futures is not None else _sibling_futures(model, batch, horizon)  # (B, G, K, V, N, D)
+    zp, zt, copy = futures if futures is not None else sibling_futures(model, batch, horizon)  # (B, G, K, V, N, D)
     dp, dt = zp - zp.mean(dim=1, keepdim=True), zt - zt.mean(dim=1, keepdim=True)  # relative to the group mean
 
     return {"err": _pool_elements((dp - dt).pow(2), per), "spread": _pool_elements(dt.pow(2), per),
@@ -243,7 +243,7 @@ def sibling_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], hor
     moves with the chunk, which is all that ranking CEM's candidates uses. Visual features only, like the
     planner's cost. Logs at step K: ``sib_mse`` and ``sib_rel`` (that error over the error of predicting no
     difference: 0 exact, 1 no better than predicting none; in training, a mean of per-step ratios). ``futures``
-    (:func:`_sibling_futures`'s three) reuses a rollout already made."""
+    (:func:`sibling_futures`'s three) reuses a rollout already made."""
     s = _sibling_errors(model, batch, horizon, futures=futures)
     err, spread = s["err"].mean(dim=0), s["spread"].mean(dim=0)  # (K,)
     w = gamma ** torch.arange(horizon, device=err.device, dtype=err.dtype)  # (K,)
@@ -276,7 +276,7 @@ def rank_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizo
     the true ones do. ``futures`` (predicted, true
     outcomes, each (B, G, K, V, N, D)) reuses a rollout already made. Logs ``rank_kl`` and ``rank_top1`` (the model's
     lowest-cost sibling is the true one's)."""
-    zp, zt = futures if futures is not None else _sibling_futures(model, batch, horizon)[:2]
+    zp, zt = futures if futures is not None else sibling_futures(model, batch, horizon)[:2]
     t = batch["target"].to(zp.dtype)[:, None]  # (B, 1, V, N, D)
     pred = (zp[:, :, -1] - t).pow(2).flatten(2).mean(-1)  # (B, G)
     true = (zt[:, :, -1] - t).pow(2).flatten(2).mean(-1).detach()  # (B, G)
@@ -291,7 +291,7 @@ def group_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], train
                ) -> tuple[torch.Tensor, dict[str, float]]:
     """``train.sibling_weight`` times :func:`sibling_loss` plus ``train.rank_weight`` times :func:`rank_loss` of a
     batch of branch groups, from one rollout of the siblings."""
-    zp, zt, copy = _sibling_futures(model, batch, train.sibling_horizon)
+    zp, zt, copy = sibling_futures(model, batch, train.sibling_horizon)
     loss, logs = zp.new_zeros(()), {}
     if train.sibling_weight > 0:
         sib, sib_logs = sibling_loss(model, batch, train.sibling_horizon, train.gamma, (zp, zt, copy))
