@@ -271,9 +271,8 @@ def rank_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizo
     on to the target (the planner's patch cost, up to a constant); the loss is KL(true || predicted) between MPPI's
     weights of the siblings from their true and from their predicted costs (:func:`mppi_log_weights`), a mean over
     the groups: 0 when the model would weigh the siblings as the simulator does. Both are normalised by the TRUE
-    costs' range: a model whose predictions hardly move with the chunk has a near-zero range of its own, and
-    dividing by it made the gradients explode; in the true range the predicted costs must also differ as much as
-    the true ones do. ``futures`` (predicted, true
+    costs' range (a predicted range near zero would scale the gradients without bound), so the predicted costs must
+    also differ as much as the true ones do. ``futures`` (predicted, true
     outcomes, each (B, G, K, V, N, D)) reuses a rollout already made. Logs ``rank_kl`` and ``rank_top1`` (the model's
     lowest-cost sibling is the true one's)."""
     zp, zt = futures if futures is not None else sibling_futures(model, batch, horizon)[:2]
