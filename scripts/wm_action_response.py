@@ -63,23 +63,16 @@ def main() -> None:
     p.add_argument("--split", default="val", choices=("train", "val", "all"), help="the groups scored (default: val)")
     p.add_argument("--horizon", type=int, default=4, help="frames into the chunk (chunk / frameskip; default: 4)")
     args = p.parse_args()
-    from wamplan.data.features import feature_key
     from wamplan.data.readers import BranchGroups
-    from wamplan.worldmodel.stores import encode_stores
-    from wamplan.worldmodel.train import load_world_model
+    from wamplan.worldmodel.stores import labelled_models
 
-    for spec in args.models:
-        label, sep, ckpt = spec.partition("=")
-        if not sep or not label or not ckpt:
-            raise UserError(f"{spec!r}: give each model as LABEL=CHECKPOINT, e.g. shipped=checkpoints/mini/wm_augmented")
-        model, enc = load_world_model(ckpt)
-        encode_stores([args.store], enc, progress=False)
+    for label, model, features in labelled_models(args.models, [args.store]):
         groups = BranchGroups([args.store], model.cfg.frameskip, model.cfg.context, args.horizon, split=args.split,
-                              features=feature_key(enc.config_dict()))
+                              features=features)
         if not len(groups):
             raise UserError(f"{args.store} holds no branch groups in its {args.split} split: collect with "
                             f"`wamplan collect --branches N` or pass --split all")
-        r = action_response(model.eval(), groups, args.horizon)
+        r = action_response(model, groups, args.horizon)
         print(f"{label}: {r['groups']} groups; " + ", ".join(f"{k} {r[k]:.4f}" for k in FIGURES)
               + f"; predicted share of the siblings' spread {r['pred_spread'] / max(r['true_spread'], 1e-12):.0%}")
 

@@ -5,7 +5,7 @@ import torch
 
 from wamplan.worldmodel.config import PredictorConfig
 from wamplan.worldmodel.predictor import WorldModelPredictor
-from wamplan.worldmodel.train import _split, per_horizon_mse, window_loss
+from wamplan.worldmodel.train import per_horizon_mse, split_windows, window_loss
 
 
 def test_sum_form_weights_proprio_by_its_share_of_the_elements():
@@ -16,7 +16,7 @@ def test_sum_form_weights_proprio_by_its_share_of_the_elements():
     batch = dict(z=torch.randn(2, 5, 3, 4, 8), q=torch.randn(2, 5, 10), a=torch.rand(2, 5, 20) * 2 - 1)
     mean, _ = window_loss(model, batch, horizon=2, gamma=0.5, loss_form="mean")
     paper, _ = window_loss(model, batch, horizon=2, gamma=0.5, loss_form="sum")
-    (zc, qc, ac), af, (zt, qt) = _split(model, batch, 2)
+    (zc, qc, ac), af, (zt, qt) = split_windows(model, batch, 2)
     zp, qp = model.rollout(zc, qc, ac, af)
     ez, eq = per_horizon_mse(zp, zt).mean(0), per_horizon_mse(qp, qt).mean(0)  # (K,)
     w = torch.tensor([1.0, 0.5])
@@ -41,7 +41,7 @@ def test_sibling_loss_sees_only_how_the_prediction_moves_with_the_chunk():
     a = torch.rand(b, g, 3 + k, 20) * 2 - 1
     batch = dict(z=z, q=q, a=a)
     with torch.no_grad():
-        (zc, qc, ac), af, _ = _split(model, {n: v.flatten(0, 1) for n, v in batch.items()}, k)
+        (zc, qc, ac), af, _ = split_windows(model, {n: v.flatten(0, 1) for n, v in batch.items()}, k)
         zp, _ = model.rollout(zc, qc, ac, af)  # (B G, K, V, N, D)
     truth = zp.unflatten(0, (b, g)) + torch.randn(b, 1, k, 3, 4, 8)  # the model's futures + one shift per group
     batch["z"] = torch.cat([z[:, :, :3], truth], 2)

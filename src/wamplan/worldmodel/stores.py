@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 from wamplan.checkpoint import CKPT_DIR, has_training_state
 from wamplan.data.features import feature_key
@@ -80,6 +80,21 @@ def encode_stores(stores: Sequence[str | Path], enc, progress: bool = True) -> N
         for _ in progress_bar(encode_store(root, enc), desc=f"encode {Path(root).name} ({enc.name})", total=n,
                               leave=False, disable=not progress):
             pass
+
+
+def labelled_models(specs: Sequence[str], stores: Sequence[str | Path]) -> Iterator[tuple[str, Any, str]]:
+    """For each ``LABEL=CHECKPOINT`` of ``specs``, in order: its label, the world model (in eval mode) and its
+    encoder's feature key, once ``stores`` are encoded in that encoder's features; a spec without a label or a
+    checkpoint is refused in one line (before its model loads)."""
+    from wamplan.worldmodel.train import load_world_model
+
+    for spec in specs:
+        label, sep, ckpt = spec.partition("=")
+        if not sep or not label or not ckpt:
+            raise UserError(f"{spec!r}: give each model as LABEL=CHECKPOINT, e.g. shipped=checkpoints/mini/wm_augmented")
+        model, enc = load_world_model(ckpt)
+        encode_stores(stores, enc, progress=False)
+        yield label, model.eval(), feature_key(enc.config_dict())
 
 
 def _setup(stores: Sequence[str | Path], encoder: str, encoder_kwargs: dict[str, Any], encoder_path: str | None,

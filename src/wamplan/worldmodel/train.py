@@ -47,7 +47,7 @@ KIND = "wm-predictor"
 NEW_ON_INIT = ("state_head.",)  # weights a fine-tune may add to (or drop from) its --init checkpoint's
 
 
-def _split(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int):
+def split_windows(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int):
     """Context, actions and targets of a batch of windows."""
     z, q, a = batch["z"].float(), batch["q"].float(), batch["a"].float()  # (B, T, V, N, D), (B, T, P), (B, T, DA)
     h = model.cfg.context
@@ -103,7 +103,7 @@ def window_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], hori
     """Eq. 2: the discounted K-step autoregressive loss of a batch of windows. ``change_weight`` W > 0 weighs
     each token's squared error by :func:`change_weights` (the tokens that change count more); 0 is eq. 2.
     ``state_weight`` > 0 adds that times :func:`state_loss` (the batch must carry ``s``)."""
-    (zc, qc, ac), a_future, (zt, qt) = _split(model, batch, horizon)
+    (zc, qc, ac), a_future, (zt, qt) = split_windows(model, batch, horizon)
     zp, qp = model.rollout(zc, qc, ac, a_future)  # (B, K, V, N, D), (B, K, P)
     ez = per_horizon_mse(zp, zt).mean(dim=0)  # (K,)
     eq = per_horizon_mse(qp, qt).mean(dim=0)  # (K,)
@@ -138,7 +138,7 @@ def sibling_futures(model: WorldModelPredictor, batch: dict[str, torch.Tensor], 
     frame) futures, each (B, G, K, V, N, D)."""
     b, g = batch["z"].shape[:2]
     flat = {k: batch[k].flatten(0, 1) for k in ("z", "q", "a")}  # (B G, T, ...)
-    (zc, qc, ac), a_future, (zt, _) = _split(model, flat, horizon)
+    (zc, qc, ac), a_future, (zt, _) = split_windows(model, flat, horizon)
     zp, _ = model.rollout(zc, qc, ac, a_future)  # (B G, K, V, N, D)
     copy = zc[:, -1:].expand_as(zt)  # (B G, K, V, N, D)
     return tuple(x.unflatten(0, (b, g)) for x in (zp, zt, copy))  # type: ignore[return-value]
@@ -353,7 +353,7 @@ def evaluate_predictor(model: WorldModelPredictor, dataset: Dataset, horizon: in
     with evaluating(model):
         for batch in DataLoader(dataset, batch_size=batch_size, shuffle=False):
             batch = {k: v.to(device) for k, v in batch.items()}
-            (zc, qc, ac), a_future, (zt, qt) = _split(model, batch, horizon)
+            (zc, qc, ac), a_future, (zt, qt) = split_windows(model, batch, horizon)
             zp, qp = model.rollout(zc, qc, ac, a_future)  # (B, K, V, N, D), (B, K, P)
             parts = {"z_mse": per_horizon_mse(zp, zt), "q_mse": per_horizon_mse(qp, qt),
                      "copy_z_mse": per_horizon_mse(zc[:, -1:].expand_as(zt), zt),
