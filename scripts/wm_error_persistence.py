@@ -51,20 +51,18 @@ def error_persistence(model, windows, horizon: int, batch_size: int = 32) -> dic
         return (zt[:, -1] - zp[:, -1]).flatten(1).float(), (zt[:, -1] - zc[:, -1]).flatten(1).float()
 
     pairs = chunk_pairs(windows, horizon)
-    left, later, change, cosines = dict.fromkeys(LAMBDAS, 0.0), 0.0, 0.0, []
-    for s in range(0, len(pairs), batch_size):
-        part = pairs[s:s + batch_size]
-        before, _ = last_frame([i for i, _ in part])
-        after, true_change = last_frame([j for _, j in part])
-        later, change = later + float(after.pow(2).sum()), change + float(true_change.pow(2).sum())
-        for lam in LAMBDAS:
-            left[lam] += float((after - lam * before).pow(2).sum())
-        cosines.append(torch.nn.functional.cosine_similarity(before, after, dim=1))
     if not pairs:
         return {"pairs": 0}
-    return {"pairs": len(pairs), **{f"left_{lam:g}": v / max(later, 1e-12) for lam, v in left.items()},
-            "cosine": float(torch.cat(cosines).median()), "error_share": later / max(change, 1e-12)}
-
+    used = sorted({i for pair in pairs for i in pair})  # a window inside a run of chunks is in two pairs: rolled once
+    parts = [last_frame(used[s:s + batch_size]) for s in range(0, len(used), batch_size)]
+    row = {w: r for r, w in enumerate(used)}
+    error, change = (torch.cat(x) for x in zip(*parts))  # (W, V·N·D) each, in the order of ``used``
+    before, after = error[[row[i] for i, _ in pairs]], error[[row[j] for _, j in pairs]]  # (P, V·N·D) each
+    later = float(after.pow(2).sum())
+    left = {lam: float((after - lam * before).pow(2).sum()) / max(later, 1e-12) for lam in LAMBDAS}
+    return {"pairs": len(pairs), **{f"left_{lam:g}": v for lam, v in left.items()},
+            "cosine": float(torch.nn.functional.cosine_similarity(before, after, dim=1).median()),
+            "error_share": later / max(float(change[[row[j] for _, j in pairs]].pow(2).sum()), 1e-12)}
 
 def main() -> None:
     p = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
