@@ -75,7 +75,7 @@ def _squares(episodes: int, frames: int = 12, size: int = 64) -> ForegroundFrame
             y, x = rng.integers(0, size - 20, 2)
             masks[i, v, y:y + 20, x:x + 20] = True
     images[masks] = (220, 30, 20)
-    return ForegroundFrames(images, masks, np.repeat(np.arange(episodes), frames), ("a", "b"))
+    return ForegroundFrames(images, masks.astype(np.uint8), np.repeat(np.arange(episodes), frames), ("a", "b"))
 
 
 def test_a_readout_reads_the_foreground_of_held_out_frames_and_refuses_another_encoder(tmp_path):

@@ -1,52 +1,82 @@
-"""Pictures with the simulator's foreground masks, the training-only supervision of a foreground readout
-(:mod:`wamplan.encoders.foreground`): a policy's episodes from given seeds, every ``every``-th step's pictures of the
-task's cameras and, per picture, which pixels show the robot or an object rather than the table scene
-(:meth:`TaskEnv.render_foreground`). Re-created from the command and seeds alone; nothing is written here."""
+"""Pictures with the simulator's segmentation, the training-only supervision of a foreground readout
+(:mod:`wamplan.encoders.foreground`) and of the ``object-masks`` encoder: a policy's episodes from given seeds, every
+``every``-th step's pictures of the task's cameras and, per pixel, which class it shows (the table scene, the robot,
+each task object; :meth:`TaskEnv.render_segmentation`). Re-created from the command and seeds alone;
+:func:`save_frames` and :func:`load_frames` keep one collection for several fits."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import partial
+from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
 
 from wamplan.envs.core import TaskEnv
 from wamplan.config import require
+from wamplan.errors import UserError
 from wamplan.policies.base import Policy
 from wamplan.policies.rollout import run_episode
 
 
 @dataclass
 class ForegroundFrames:
-    """F frames of V cameras: ``images`` (F, V, H, W, 3) uint8, ``masks`` (F, V, H, W) bool, ``episode`` (F,) the
-    seed each frame came from, ``cameras`` (V,) in the task's order."""
+    """F frames of V cameras: ``images`` (F, V, H, W, 3) uint8, ``labels`` (F, V, H, W) uint8 the class of each
+    pixel (an index into ``classes``, 0 the background), ``episode`` (F,) the seed each frame came from, ``cameras``
+    (V,) in the task's order."""
 
     images: np.ndarray
-    masks: np.ndarray
+    labels: np.ndarray
     episode: np.ndarray
     cameras: tuple[str, ...]
+    classes: tuple[str, ...] = ("background", "foreground")
+
+    @property
+    def masks(self) -> np.ndarray:
+        """(F, V, H, W) bool: the pixels that show the robot or an object."""
+        return self.labels > 0
 
 
 def collect_foreground(env: TaskEnv, policy: Policy, seeds: Sequence[int], every: int = 4,
                        cameras: Sequence[str] | None = None,
                        progress: Callable[[int, int], None] | None = None) -> ForegroundFrames:
-    """Run ``policy`` from each of ``seeds`` (to success or the step limit) and keep the pictures and foreground masks
+    """Run ``policy`` from each of ``seeds`` (to success or the step limit) and keep the pictures and segmentation
     of ``cameras`` (default: the task's, in its order) at steps 0, ``every``, 2 ``every``, ...
     ``progress(done, total)`` is called after each episode."""
     require(every >= 1, f"every must be >= 1 (a frame every N steps), got {every}")
     cams = tuple(cameras or env.task.cameras)
-    images, masks, episode = [], [], []
+    images, labels, episode, classes = [], [], [], [()]
 
     def keep(seed: int, env: TaskEnv, obs, action) -> None:
         if obs.step % every == 0:
-            pics, fg = env.render_foreground(cams)
+            pics, lab, classes[0] = env.render_segmentation(cams)
             images.append(np.stack([pics[c] for c in cams]))  # (V, H, W, 3)
-            masks.append(np.stack([fg[c] for c in cams]))  # (V, H, W)
+            labels.append(np.stack([lab[c] for c in cams]))  # (V, H, W)
             episode.append(seed)
 
     for i, seed in enumerate(seeds):
         run_episode(env, policy, seed, on_obs=partial(keep, seed))
         if progress is not None:
             progress(i + 1, len(seeds))
-    return ForegroundFrames(np.stack(images), np.stack(masks), np.array(episode), tuple(cams))
+    return ForegroundFrames(np.stack(images), np.stack(labels), np.array(episode), tuple(cams), tuple(classes[0]))
+
+
+def save_frames(frames: ForegroundFrames, path: str | Path) -> Path:
+    """Write ``frames`` to one ``.npz`` file (uncompressed: pictures are read back whole)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(path, images=frames.images, labels=frames.labels, episode=frames.episode,
+             cameras=np.array(frames.cameras), classes=np.array(frames.classes))
+    return path
+
+
+def load_frames(path: str | Path) -> ForegroundFrames:
+    """The frames :func:`save_frames` wrote to ``path``; one line if it is not such a file."""
+    try:
+        with np.load(path) as z:
+            return ForegroundFrames(z["images"], z["labels"], z["episode"], tuple(str(c) for c in z["cameras"]),
+                                    tuple(str(c) for c in z["classes"]))
+    except (OSError, KeyError, ValueError) as e:
+        raise UserError(f"{path} is not a frames file written by `wamplan wm train-masks --frames` ({e}); pass "
+                        f"another path or remove it to collect again") from None

@@ -183,11 +183,26 @@ class TaskEnv:
         """The pictures of :meth:`render` and, per camera, where the foreground is: camera -> (H, W) bool, true on
         every pixel of the robot and the task's objects, false on the scene's background (ManiSkill's table scene:
         its ``BACKGROUND`` actors) and on empty space. Training-only supervision (the simulator's segmentation)."""
+        pictures, labels, _ = self.render_segmentation(cameras)
+        return pictures, {name: lab > 0 for name, lab in labels.items()}
+
+    def render_segmentation(self, cameras: tuple[str, ...] | None = None
+                            ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], tuple[str, ...]]:
+        """The pictures of :meth:`render`, per camera a class index per pixel (camera -> (H, W) uint8), and the class
+        names: 0 ``background`` (the scene's ``BACKGROUND`` actors and empty space), 1 ``robot`` (every link of an
+        articulation), then the task's other actors by name, sorted. Training-only supervision."""
         shots = self._capture(cameras, None, segmentation=True)
         ids = self.base.segmentation_id_map  # per-scene id -> the Actor or Link drawn with it
-        fg = np.array([i for i, obj in ids.items() if obj.name not in BACKGROUND], dtype=np.int64)  # (K,)
+        robot = [i for i, obj in ids.items() if obj.name not in BACKGROUND and hasattr(obj, "articulation")]
+        actors = {i: obj.name for i, obj in ids.items() if obj.name not in BACKGROUND and i not in robot}
+        classes = ("background", "robot", *sorted(set(actors.values())))
+        lut = np.zeros(max(ids) + 2, dtype=np.uint8)  # per-scene id -> class (0 where unlisted)
+        lut[robot] = 1
+        for i, name in actors.items():
+            lut[i] = classes.index(name)
         return ({name: rgb for name, (rgb, _) in shots.items()},
-                {name: np.isin(seg, fg) for name, (_, seg) in shots.items()})
+                {name: lut[np.clip(seg.astype(np.int64), 0, len(lut) - 1)] for name, (_, seg) in shots.items()},
+                classes)
 
     def _capture(self, cameras: tuple[str, ...] | None, cull: bool | None, segmentation: bool
                  ) -> dict[str, tuple[np.ndarray, np.ndarray | None]]:
