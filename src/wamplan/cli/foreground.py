@@ -1,5 +1,6 @@
 """``wamplan wm foreground``: fit a foreground readout on a world model's encoder (the object-centric cost's
-weights, ``eval --cost-foreground DIR``)."""
+weights, ``eval --cost-foreground DIR``); ``wamplan wm train-masks``: train the ``object-masks`` encoder on the
+simulator's segmentation."""
 
 from __future__ import annotations
 
@@ -68,4 +69,79 @@ def cmd_foreground(args: argparse.Namespace) -> int:
     print(format_report(report))
     picture = draw_foreground(frames, readout, encoder, Path(out) / "foreground.png")
     print(f"wrote {out} (plan with it: wamplan eval --cost-foreground {out}); picture {picture}")
+    return 0
+
+
+def masks_options(p: argparse.ArgumentParser) -> None:
+    from wamplan.config import add_arguments, choices_metavar
+    from wamplan.encoders.object_masks import MaskTrainConfig
+    from wamplan.envs.spec import TASKS
+
+    p.add_argument("--out", type=Path, required=True, help="run directory (checkpoint/, metrics.jsonl, masks.png)")
+    p.add_argument("--frames", type=Path, required=True,
+                   help="the pictures and segmentation as one .npz file: read if it exists, else collected and "
+                        "written there")
+    p.add_argument("--task", default="cube-insertion", metavar=choices_metavar(sorted(TASKS)),
+                   help="the task whose episodes are collected (default: %(default)s)")
+    p.add_argument("--policy", default="noisy-expert",
+                   help="who drives the episodes: a registered policy or a WAM checkpoint (default: %(default)s)")
+    p.add_argument("--episodes", type=int, default=40, help="episodes (the last fifth held out; default: %(default)s)")
+    p.add_argument("--seed-start", type=int, default=3200, help="first seed (default: %(default)s)")
+    p.add_argument("--every", type=int, default=4, help="keep every N-th step's pictures (default: %(default)s)")
+    p.add_argument("--camera-size", type=int, default=224,
+                   help="rendered side in px, the stores' (default: %(default)s); a multiple of 16")
+    p.add_argument("--max-steps", type=int, default=None, help="stop after this many steps (resumable)")
+    p.add_argument("--device", default="auto", help="torch device (default: %(default)s)")
+    add_arguments(p, MaskTrainConfig)
+    p.set_defaults(func=cmd_masks)
+
+
+def cmd_masks(args: argparse.Namespace) -> int:
+    from wamplan.checkpoint import CKPT_DIR, has_training_state
+    from wamplan.config import from_args
+    from wamplan.data.foreground import collect_foreground, load_frames, save_frames
+    from wamplan.encoders.object_masks import (MaskTrainConfig, ObjectMaskEncoder, draw_masks, held_out,
+                                               train_object_masks)
+    from wamplan.envs.config import EnvConfig
+    from wamplan.envs.core import TaskEnv
+    from wamplan.evaluation.build import load_policy
+    from wamplan.device import resolve_device
+
+    resolve_device(args.device)  # a device this machine lacks: one line, before any work
+    out = require_dir(args.out)
+    cfg = from_args(MaskTrainConfig, args)
+    if args.frames.exists():
+        frames = load_frames(args.frames)
+        if frames.task and frames.task != args.task:
+            raise UserError(f"{args.frames} holds frames of task '{frames.task}', not '{args.task}'; pass --task "
+                            f"{frames.task} or another --frames file")
+        print(f"read {len(frames.episode)} frames of {len(set(frames.episode.tolist()))} episodes from {args.frames}")
+    else:
+        if args.episodes < 2:
+            raise UserError(f"--episodes {args.episodes}: training needs at least 2 episodes (the last fifth held out)")
+        if args.every < 1:
+            raise UserError(f"--every must be >= 1, got {args.every}")
+        if args.camera_size % 16:
+            raise UserError(f"--camera-size {args.camera_size} does not split into 16 x 16 cells; pass a multiple "
+                            f"of 16 (e.g. {16 * max(1, args.camera_size // 16)})")
+        require_seeds(args.seed_start, args.episodes)
+        env = TaskEnv(EnvConfig(task=args.task, camera_size=args.camera_size))
+        try:
+            policy = load_policy(args.policy, task=env.task)
+            seeds = list(range(args.seed_start, args.seed_start + args.episodes))
+            frames = collect_foreground(env, policy, seeds, every=args.every,
+                                        progress=lambda i, n: print(f"episode {i}/{n}", flush=True))
+        finally:
+            env.close()
+        save_frames(frames, args.frames)
+        print(f"wrote {args.frames}")
+    metrics = train_object_masks(frames, out, cfg, task=args.task, device=args.device, max_steps=args.max_steps,
+                                 resume=has_training_state(out / CKPT_DIR))
+    print("held out: " + ", ".join(f"{k.split('/')[-1]} {v:.3f}" for k, v in metrics.items() if k.startswith("val/")))
+    encoder = ObjectMaskEncoder(ckpt=str(out))
+    seed = int(frames.episode[held_out(frames, 0.2)][-1])
+    picture = draw_masks(frames, encoder, out / "masks.png", seed=seed)
+    print(f"wrote {out} (use it: --encoder-kwargs '{{\"parts\": [{{\"name\": \"patch-pixels\"}}, "
+          f"{{\"name\": \"object-masks\", \"ckpt\": \"{out}\"}}], \"scales\": [1, S]}}' with --encoder concat); "
+          f"picture {picture}")
     return 0

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from wamplan.config import Once, add_arguments, ensemble_members, from_args, int_list
 from wamplan.errors import UserError, require_dir, require_file, require_paths, require_seeds
-from wamplan.cli.foreground import foreground_options
+from wamplan.cli.foreground import foreground_options, masks_options
 from wamplan.cli.main import add_command, add_group, register_command
 
 
@@ -60,6 +60,9 @@ def _wm_commands(wm: argparse.ArgumentParser) -> None:
     add_command(s, "foreground", foreground_options,
                 help="fit a foreground readout (robot and objects against the table, per patch token) on a world "
                      "model's encoder: the object-centric cost's weights (eval --cost-foreground DIR)")
+    add_command(s, "train-masks", masks_options,
+                help="train the object-masks encoder (per patch token, where the robot and each object are) on the "
+                     "simulator's segmentation of a policy's episodes; re-running resumes")
     add_command(s, "fidelity", _fidelity_options,
                 help="rank agreement of world models with the simulator on the same candidates; with --plan, the "
                      "gate: each model's own plan scored in the simulator")

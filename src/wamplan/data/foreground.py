@@ -24,13 +24,14 @@ from wamplan.policies.rollout import run_episode
 class ForegroundFrames:
     """F frames of V cameras: ``images`` (F, V, H, W, 3) uint8, ``labels`` (F, V, H, W) uint8 the class of each
     pixel (an index into ``classes``, 0 the background), ``episode`` (F,) the seed each frame came from, ``cameras``
-    (V,) in the task's order."""
+    (V,) in the task's order, ``classes`` (C,) the class names, ``task`` the task's name ("" where unrecorded)."""
 
     images: np.ndarray
     labels: np.ndarray
     episode: np.ndarray
     cameras: tuple[str, ...]
     classes: tuple[str, ...] = ("background", "foreground")
+    task: str = ""
 
     @property
     def masks(self) -> np.ndarray:
@@ -59,7 +60,8 @@ def collect_foreground(env: TaskEnv, policy: Policy, seeds: Sequence[int], every
         run_episode(env, policy, seed, on_obs=partial(keep, seed))
         if progress is not None:
             progress(i + 1, len(seeds))
-    return ForegroundFrames(np.stack(images), np.stack(labels), np.array(episode), tuple(cams), tuple(classes[0]))
+    return ForegroundFrames(np.stack(images), np.stack(labels), np.array(episode), tuple(cams), tuple(classes[0]),
+                            env.task.name)
 
 
 def save_frames(frames: ForegroundFrames, path: str | Path) -> Path:
@@ -67,7 +69,7 @@ def save_frames(frames: ForegroundFrames, path: str | Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savez(path, images=frames.images, labels=frames.labels, episode=frames.episode,
-             cameras=np.array(frames.cameras), classes=np.array(frames.classes))
+             cameras=np.array(frames.cameras), classes=np.array(frames.classes), task=np.array(frames.task))
     return path
 
 
@@ -76,7 +78,7 @@ def load_frames(path: str | Path) -> ForegroundFrames:
     try:
         with np.load(path) as z:
             return ForegroundFrames(z["images"], z["labels"], z["episode"], tuple(str(c) for c in z["cameras"]),
-                                    tuple(str(c) for c in z["classes"]))
+                                    tuple(str(c) for c in z["classes"]), str(z["task"]) if "task" in z else "")
     except (OSError, KeyError, ValueError) as e:
         raise UserError(f"{path} is not a frames file written by `wamplan wm train-masks --frames` ({e}); pass "
                         f"another path or remove it to collect again") from None

@@ -122,7 +122,8 @@ class FrozenEncoder(nn.Module):
 
 
 ENCODERS = Registry("encoder", modules=("wamplan.encoders.hf", "wamplan.encoders.patch_pixels",
-                                        "wamplan.encoders.learned", "wamplan.encoders.concat"))
+                                        "wamplan.encoders.learned", "wamplan.encoders.concat",
+                                        "wamplan.encoders.object_masks"))
 register_encoder = ENCODERS.register  # a FrozenEncoder subclass or a factory function, by name
 
 

@@ -24,7 +24,7 @@ from __future__ import annotations
 import hashlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -61,17 +61,37 @@ def weights_digest(ckpt: str | Path) -> str:
     return hashlib.sha1((Path(ckpt) / MODEL_FILE).read_bytes()).hexdigest()[:12]
 
 
+TRAINED = ("task-cnn", "object-masks")  # the encoders whose weights a checkpoint directory holds
+
+
 def locate_weights(name: str, info: dict[str, Any], near: str | Path) -> dict[str, Any]:
     """The settings ``info`` of encoder ``name`` (from a world model's ``encoder`` record) with ``near`` (the world
-    model's checkpoint) given to each ``task-cnn`` in it, its own or a ``concat`` part's, to find relative weights by
-    (see ``task-cnn``'s ``near``); the record itself (``config_dict``) is unchanged."""
+    model's checkpoint) given to each trained encoder in it (``TRAINED``), its own or a ``concat`` part's, to find
+    relative weights by (see ``task-cnn``'s ``near``); the record itself (``config_dict``) is unchanged."""
     if name == "concat" and isinstance(info.get("parts"), list):
         return {**info, "parts": [{"name": p.get("name"), **locate_weights(p.get("name"), p, near)}
                                   for p in info["parts"]]}
-    return {**info, "near": str(near)} if name == "task-cnn" and info.get("ckpt") else info
+    return {**info, "near": str(near)} if name in TRAINED and info.get("ckpt") else info
 
 
-def _find(ckpt: str, near: str | None, sha: str | None) -> Path:
+def load_trained(name: str, kind: str, ckpt: str, near: str | None, sha: str | None,
+                 build: Callable[[dict[str, Any]], nn.Module]) -> tuple[nn.Module, str, dict[str, Any]]:
+    """A trained encoder ``name``'s network from checkpoint directory ``ckpt`` (of ``kind``; found as :func:`_find`
+    says): ``build(saved config)`` makes it, its ``net.`` weights are loaded. Returns (network, weights digest,
+    saved config); one line where the digest is not ``sha`` (unless None)."""
+    path = checkpoint_dir(_find(ckpt, near, sha, name))
+    saved = read_config(path, kind)
+    net = build(saved)
+    digest = weights_digest(path)
+    if sha is not None and sha != digest:
+        raise UserError(f"{name}: the weights in {path} (digest {digest}) are not the ones this model was "
+                        f"trained on ({sha}); restore that encoder at {ckpt}")
+    net.load_state_dict({k[len(NET_PREFIX):]: v.float() for k, v in load_tensors(path / MODEL_FILE).items()
+                         if k.startswith(NET_PREFIX)})
+    return net, digest, saved
+
+
+def _find(ckpt: str, near: str | None, sha: str | None, name: str = "task-cnn") -> Path:
     """The first of ``ckpt`` as given (from the current folder) and ``ckpt`` under each folder above ``near`` that
     holds it with weights of digest ``sha`` (any, where None); one line naming what was read otherwise."""
     bases = [Path()] + ([] if near is None or Path(ckpt).is_absolute() else list(Path(near).resolve().parents))
@@ -84,7 +104,7 @@ def _find(ckpt: str, near: str | None, sha: str | None) -> Path:
         return found[0]  # other weights: the digest check names them
     if near is None:
         return Path(ckpt)  # the checkpoint loader names what is missing
-    raise UserError(f"{near} reads its task-cnn encoder's weights from {ckpt} (its config.json), found neither from "
+    raise UserError(f"{near} reads its {name} encoder's weights from {ckpt} (its config.json), found neither from "
                     f"here ({Path.cwd()}) nor in a folder above it; run from the folder it was trained in, or put the "
                     f"encoder's checkpoint there")
 
@@ -107,17 +127,8 @@ class TaskCNNEncoder(FrozenEncoder):
             if not ckpt:
                 raise UserError("task-cnn needs its trained weights: --encoder-kwargs '{\"ckpt\": DIR}', a run of "
                                 "`wamplan wm train-encoder` or its export")
-            path = checkpoint_dir(_find(ckpt, near, sha))
-            saved = read_config(path, KIND)
-            net = CNNTokens(int(saved["net"]["width"]))
-            digest = weights_digest(path)
-            if sha is not None and sha != digest:
-                raise UserError(f"task-cnn: the weights in {path} (digest {digest}) are not the ones this model was "
-                                f"trained on ({sha}); restore that encoder at {ckpt}")
-            weights = {k[len(NET_PREFIX):]: v.float() for k, v in load_tensors(path / MODEL_FILE).items()
-                       if k.startswith(NET_PREFIX)}
-            net.load_state_dict(weights)
-            sha = digest
+            net, sha, _ = load_trained(self.name, KIND, ckpt, near, sha,
+                                       lambda saved: CNNTokens(int(saved["net"]["width"])))
         self.net, self.ckpt, self.sha = net, ckpt, sha
 
     @property
