@@ -124,3 +124,20 @@ def test_frames_round_trip(tmp_path):
     np.testing.assert_array_equal(back.labels, frames.labels)
     assert (back.cameras, back.classes, back.task) == (frames.cameras, frames.classes, frames.task)
     assert back.masks.dtype == bool and back.masks.sum() == (frames.labels > 0).sum()
+
+
+def test_concat_scale_equalises_the_parts_per_dim_variance(repo_script, expert_store, capsys):
+    """scripts/concat_scale.py: the factor that gives a part the base's per-dim variance; by construction a part
+    that is the base times 3 needs 1/3, and a part equal to the base needs 1."""
+    mod = repo_script("scripts/concat_scale.py")
+    moments = mod.DimMoments()
+    z = torch.randn(50, 16, 4) * torch.tensor([1.0, 2.0, 3.0, 4.0]) + 7.0  # per-dim variances 1, 4, 9, 16
+    moments.add(z[:20])
+    moments.add(z[20:])  # in two batches, as frames come
+    assert moments.variance() == pytest.approx(float(z.reshape(-1, 4).double().var(0, unbiased=False).mean()), rel=1e-9)
+    base = '{"name": "patch-pixels", "input_size": 64, "patch_size": 16, "proj_dim": 32}'
+    mod.main([str(expert_store), base, "--base", base])
+    same = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert same["scale"] == pytest.approx(1.0) and same["frames"] > 10
+    with pytest.raises(UserError, match="an encoder config is not JSON"):
+        mod.main([str(expert_store), "{name: x}"])
