@@ -87,3 +87,19 @@ def expert_store(tmp_path_factory) -> Path:
     assert main(["collect", "--source", "expert", "--episodes", "2", "--out", str(root), "--camera-size", "64"]) == 0
     return root
 
+
+
+@pytest.fixture
+def refused(capsys):
+    """``refused(argv, *parts)``: run ``wamplan ARGV`` expecting a refusal (exit status 2) whose last line on stderr
+    holds every one of ``parts``; returns that line."""
+    from wamplan.cli import main
+
+    def check(argv, *parts) -> str:
+        assert main([str(a) for a in argv]) == 2
+        err = capsys.readouterr().err.strip().splitlines()[-1]
+        for part in parts:
+            assert part in err, err
+        return err
+
+    return check

@@ -115,14 +115,6 @@ def test_the_simulators_foreground_is_the_robot_and_the_objects(small_env):
     assert masks["wrist"][-8:].mean() > masks["wrist"][:8].mean()  # the gripper's fingers, at the bottom
 
 
-def _refused(capsys, argv, *parts) -> str:
-    assert main([str(a) for a in argv]) == 2
-    err = capsys.readouterr().err.strip().splitlines()[-1]
-    for part in parts:
-        assert part in err, err
-    return err
-
-
 def test_wm_foreground_fits_a_readout_that_eval_plans_with(tmp_path, capsys):
     out = tmp_path / "fg"
     assert main(["wm", "foreground", "--wm", str(MINI / "wm_augmented"), "--policy", "expert", "--episodes", "2",
@@ -143,14 +135,14 @@ def test_wm_foreground_fits_a_readout_that_eval_plans_with(tmp_path, capsys):
     assert want != pytest.approx(float(patch_cost(pred, target)[1]), rel=1e-2)  # not eq. 3: the weights count
 
 
-def test_foreground_inputs_are_refused_in_one_line(tmp_path, capsys):
+def test_foreground_inputs_are_refused_in_one_line(tmp_path, capsys, refused):
     wm = ["wm", "foreground", "--wm", MINI / "wm_augmented", "--out", tmp_path / "fg"]
-    _refused(capsys, [*wm, "--episodes", "1"], "--episodes 1", "at least 2 episodes")
-    _refused(capsys, [*wm, "--every", "0"], "--every must be >= 1")
-    _refused(capsys, [*wm, "--device", "nonsense"], "nonsense")
+    refused([*wm, "--episodes", "1"], "--episodes 1", "at least 2 episodes")
+    refused([*wm, "--every", "0"], "--every must be >= 1")
+    refused([*wm, "--device", "nonsense"], "nonsense")
     (tmp_path / "run").mkdir()
     (tmp_path / "run" / "config.json").write_text('{"kind": "predictor", "config": {}}')
-    _refused(capsys, ["wm", "foreground", "--wm", MINI / "wm_augmented", "--out", tmp_path / "run"],
+    refused(["wm", "foreground", "--wm", MINI / "wm_augmented", "--out", tmp_path / "run"],
              "holds a 'predictor' checkpoint, not a foreground readout")
     enc = make_encoder("patch-pixels", input_size=64, patch_size=16, proj_dim=32)
     readout, report = fit_foreground(enc, _squares(2, frames=2), steps=1)
@@ -159,32 +151,32 @@ def test_foreground_inputs_are_refused_in_one_line(tmp_path, capsys):
                     report, "cube-insertion", ("front", "side", "wrist"))
     ev = ["eval", "--conditions", "7", "--out", tmp_path / "e", "--wam", MINI / "tinywam", "--wm-augmented",
           MINI / "wm_augmented"]
-    _refused(capsys, [*ev, "--cost-foreground", tmp_path / "other"], "reads tokens of encoder", "wm foreground")
-    _refused(capsys, [*ev, "--cost-foreground", tmp_path / "other", "--cost-name", "cls"], "--cost-foreground weighs patch tokens",
+    refused([*ev, "--cost-foreground", tmp_path / "other"], "reads tokens of encoder", "wm foreground")
+    refused([*ev, "--cost-foreground", tmp_path / "other", "--cost-name", "cls"], "--cost-foreground weighs patch tokens",
              "--cost-name=patch and --cost-pool=1 (got --cost-name=cls")
-    _refused(capsys, [*ev, "--cost-foreground", tmp_path / "nowhere"], "--cost-foreground", "nowhere does not exist",
+    refused([*ev, "--cost-foreground", tmp_path / "nowhere"], "--cost-foreground", "nowhere does not exist",
              "wamplan wm foreground")
-    _refused(capsys, [*ev, "--cost-background-weight", "0.5"], "--cost-background-weight 0.5 weighs nothing",
+    refused([*ev, "--cost-background-weight", "0.5"], "--cost-background-weight 0.5 weighs nothing",
              "give --cost-foreground=DIR too")
     sim = ["eval", "--conditions", "5", "--out", tmp_path / "e", "--wam", MINI / "tinywam"]  # patch-pixels, 128 dims
-    _refused(capsys, [*sim, "--cost-foreground", tmp_path / "other"], "reads tokens of encoder")
+    refused([*sim, "--cost-foreground", tmp_path / "other"], "reads tokens of encoder")
     stack = ["eval", "--task", "stack-cube", "--conditions", "7", "--out", tmp_path / "e", "--wam",
              MINI.parent / "stack-cube" / "tinywam", "--wm-augmented", MINI.parent / "stack-cube" / "wm_augmented"]
-    _refused(capsys, [*stack, "--cost-foreground", tmp_path / "cube"], "fit on task 'cube-insertion'",
+    refused([*stack, "--cost-foreground", tmp_path / "cube"], "fit on task 'cube-insertion'",
              "acts in 'stack-cube'")
     assert not (tmp_path / "e").exists()
 
 
-def test_wm_fidelity_ranks_in_the_foreground_cost(tmp_path, capsys):
+def test_wm_fidelity_ranks_in_the_foreground_cost(tmp_path, capsys, refused):
     fid = ["wm", "fidelity", "--wam", MINI / "tinywam", "--wm", f"shipped={MINI / 'wm_augmented'}", "--seeds", "500",
            "--boundaries", "1", "--candidates", "4", "--top-k", "2", "--camera-size", "64"]
     enc = make_encoder("patch-pixels", input_size=64, patch_size=16, proj_dim=32)
     readout, report = fit_foreground(enc, _squares(2, frames=2), steps=1)
     save_foreground(tmp_path / "other", readout, enc, report, "cube-insertion", ("front", "side", "wrist"))
-    _refused(capsys, [*fid, "--cost-foreground", tmp_path / "other"], "reads tokens of encoder")
-    _refused(capsys, [*fid, "--cost-foreground", tmp_path / "other", "--cost-background-weight", "0"],
+    refused([*fid, "--cost-foreground", tmp_path / "other"], "reads tokens of encoder")
+    refused([*fid, "--cost-foreground", tmp_path / "other", "--cost-background-weight", "0"],
              "--cost-background-weight must be in (0, 1]")
-    _refused(capsys, [*fid, "--cost-background-weight", "0.5"], "weighs nothing without --cost-foreground")
+    refused([*fid, "--cost-background-weight", "0.5"], "weighs nothing without --cost-foreground")
     real = tmp_path / "fg"
     save_foreground(real, readout_for(MINI / "wm_augmented"), load_encoder(MINI / "wm_augmented"), report,
                     "cube-insertion", ("front", "side", "wrist"))

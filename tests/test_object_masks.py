@@ -4,7 +4,6 @@ pictures it then reads, loading (by digest, beside patch-pixels in a concat), an
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -88,15 +87,7 @@ def test_the_simulators_classes_are_the_robot_and_each_object(small_env):
     assert (labels["wrist"] == 1).any() and (labels["front"] == 3).any()  # the fingers in the wrist, the mount in front
 
 
-def _refused(capsys, argv, *parts) -> str:
-    assert main([str(a) for a in argv]) == 2
-    err = capsys.readouterr().err.strip().splitlines()[-1]
-    for part in parts:
-        assert part in err, err
-    return err
-
-
-def test_wm_train_masks_collects_once_trains_and_draws(tmp_path, capsys):
+def test_wm_train_masks_collects_once_trains_and_draws(tmp_path, capsys, refused):
     frames = tmp_path / "frames.npz"
     base = ["wm", "train-masks", "--policy", "expert", "--episodes", "2", "--every", "50", "--camera-size", "64",
             "--epochs", "1", "--batch-size", "4", "--width", "8", "--device", "cpu", "--frames", frames]
@@ -110,11 +101,11 @@ def test_wm_train_masks_collects_once_trains_and_draws(tmp_path, capsys):
     # a second run reads the frames file instead of collecting
     assert main([str(a) for a in base + ["--out", tmp_path / "m2"]]) == 0
     assert "read " in capsys.readouterr().out
-    _refused(capsys, base + ["--out", tmp_path / "m3", "--task", "stack-cube"],
+    refused(base + ["--out", tmp_path / "m3", "--task", "stack-cube"],
              "holds frames of task 'cube-insertion', not 'stack-cube'")
     (tmp_path / "bad.npz").write_bytes(b"not a frames file")
-    _refused(capsys, base[:-1] + [tmp_path / "bad.npz", "--out", tmp_path / "m4"], "is not a frames file")
-    _refused(capsys, base[:-2] + ["--frames", tmp_path / "new.npz", "--camera-size", "40", "--out", tmp_path / "m5"],
+    refused(base[:-1] + [tmp_path / "bad.npz", "--out", tmp_path / "m4"], "is not a frames file")
+    refused(base[:-2] + ["--frames", tmp_path / "new.npz", "--camera-size", "40", "--out", tmp_path / "m5"],
              "--camera-size 40 does not split into 16 x 16 cells")
 
 
