@@ -45,10 +45,14 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("part", help="the part's encoder config as JSON, with its name")
     p.add_argument("--base", default=None, help="the first part's encoder config as JSON (default: the mini preset's)")
     args = p.parse_args(argv)
+    example = '\'{"name": "object-masks", "ckpt": DIR}\''
     try:
         part, base = json.loads(args.part), json.loads(args.base) if args.base else None
     except json.JSONDecodeError as e:
-        raise UserError(f"an encoder config is not JSON ({e}); e.g. '{{\"name\": \"object-masks\", \"ckpt\": DIR}}'")
+        raise UserError(f"an encoder config is not JSON ({e}); e.g. {example}") from None
+    for config in (part, base):
+        if config is not None and not (isinstance(config, dict) and config.get("name")):
+            raise UserError(f"an encoder config is a JSON object with its \"name\", got {config!r}; e.g. {example}")
     if base is None:
         preset = get_world_model_preset("mini")
         base = {"name": preset.encoder, **preset.encoder_kwargs}
@@ -60,6 +64,9 @@ def main(argv: list[str] | None = None) -> None:
         for enc, m in zip(encoders, moments):
             m.add(enc.encode(images))  # (V, N, D)
     vb, vp = (m.variance() for m in moments)
+    if not vp > 0:
+        raise UserError(f"the part's tokens do not vary over the {len(frames)} frames (variance {vp}); no scale "
+                        f"equalises a constant part")
     print(json.dumps({"frames": len(frames), "base_variance": vb, "part_variance": vp, "scale": (vb / vp) ** 0.5}))
 
 

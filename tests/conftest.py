@@ -88,7 +88,6 @@ def expert_store(tmp_path_factory) -> Path:
     return root
 
 
-
 @pytest.fixture
 def refused(capsys):
     """``refused(argv, *parts)``: run ``wamplan ARGV`` expecting a refusal (exit status 2) whose last line on stderr

@@ -143,7 +143,7 @@ def test_foreground_inputs_are_refused_in_one_line(tmp_path, capsys, refused):
     (tmp_path / "run").mkdir()
     (tmp_path / "run" / "config.json").write_text('{"kind": "predictor", "config": {}}')
     refused(["wm", "foreground", "--wm", MINI / "wm_augmented", "--out", tmp_path / "run"],
-             "holds a 'predictor' checkpoint, not a foreground readout")
+            "holds a 'predictor' checkpoint, not a foreground readout")
     enc = make_encoder("patch-pixels", input_size=64, patch_size=16, proj_dim=32)
     readout, report = fit_foreground(enc, _squares(2, frames=2), steps=1)
     save_foreground(tmp_path / "other", readout, enc, report, "cube-insertion", ("front", "side", "wrist"))
@@ -153,17 +153,17 @@ def test_foreground_inputs_are_refused_in_one_line(tmp_path, capsys, refused):
           MINI / "wm_augmented"]
     refused([*ev, "--cost-foreground", tmp_path / "other"], "reads tokens of encoder", "wm foreground")
     refused([*ev, "--cost-foreground", tmp_path / "other", "--cost-name", "cls"], "--cost-foreground weighs patch tokens",
-             "--cost-name=patch and --cost-pool=1 (got --cost-name=cls")
+            "--cost-name=patch and --cost-pool=1 (got --cost-name=cls")
     refused([*ev, "--cost-foreground", tmp_path / "nowhere"], "--cost-foreground", "nowhere does not exist",
-             "wamplan wm foreground")
+            "wamplan wm foreground")
     refused([*ev, "--cost-background-weight", "0.5"], "--cost-background-weight 0.5 weighs nothing",
-             "give --cost-foreground=DIR too")
+            "give --cost-foreground=DIR too")
     sim = ["eval", "--conditions", "5", "--out", tmp_path / "e", "--wam", MINI / "tinywam"]  # patch-pixels, 128 dims
     refused([*sim, "--cost-foreground", tmp_path / "other"], "reads tokens of encoder")
     stack = ["eval", "--task", "stack-cube", "--conditions", "7", "--out", tmp_path / "e", "--wam",
              MINI.parent / "stack-cube" / "tinywam", "--wm-augmented", MINI.parent / "stack-cube" / "wm_augmented"]
     refused([*stack, "--cost-foreground", tmp_path / "cube"], "fit on task 'cube-insertion'",
-             "acts in 'stack-cube'")
+            "acts in 'stack-cube'")
     assert not (tmp_path / "e").exists()
 
 
@@ -175,7 +175,7 @@ def test_wm_fidelity_ranks_in_the_foreground_cost(tmp_path, capsys, refused):
     save_foreground(tmp_path / "other", readout, enc, report, "cube-insertion", ("front", "side", "wrist"))
     refused([*fid, "--cost-foreground", tmp_path / "other"], "reads tokens of encoder")
     refused([*fid, "--cost-foreground", tmp_path / "other", "--cost-background-weight", "0"],
-             "--cost-background-weight must be in (0, 1]")
+            "--cost-background-weight must be in (0, 1]")
     refused([*fid, "--cost-background-weight", "0.5"], "weighs nothing without --cost-foreground")
     real = tmp_path / "fg"
     save_foreground(real, readout_for(MINI / "wm_augmented"), load_encoder(MINI / "wm_augmented"), report,

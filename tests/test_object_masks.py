@@ -4,6 +4,7 @@ pictures it then reads, loading (by digest, beside patch-pixels in a concat), an
 from __future__ import annotations
 
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -20,21 +21,26 @@ from wamplan.errors import UserError
 
 
 def test_cell_shares_and_the_token_layout():
-    labels = np.zeros((1, 64, 64), np.uint8)
-    labels[0, :4, :4] = 2  # class 2 fills cell (0, 0)
-    labels[0, 60:, 62:] = 1  # class 1 half of cell (15, 15)
+    labels = np.zeros((1, 64, 128), np.uint8)  # 64 rows, 128 columns: 16 x 16 cells of 4 x 8 px
+    labels[0, :4, 24:32] = 2  # class 2 fills cell (row 0, column 3)
+    labels[0, 60:, 124:] = 1  # class 1 half of cell (15, 15)
     shares = cell_shares(labels, 3)  # (1, 3, 16, 16)
     assert shares.shape == (1, 3, 16, 16)
-    assert shares[0, 2, 0, 0] == 1 and shares[0, 1, 15, 15] == 0.5 and shares[0, 0, 15, 15] == 0.5
+    assert shares[0, 2, 0, 3] == 1 and shares[0, 1, 15, 15] == 0.5 and shares[0, 0, 15, 15] == 0.5
+    assert shares[0, 2, 3, 0] == 0  # rows and columns not swapped
     torch.testing.assert_close(shares.sum(1), torch.ones(1, 16, 16))
     with pytest.raises(ConfigError, match="do not split into 16 x 16 cells"):
         cell_shares(np.zeros((1, 40, 40), np.uint8), 3)
     logits = torch.log(shares.clamp(min=1e-6))  # softmax gives the shares back
     z = mask_tokens(logits)  # (1, 16, 2 classes x 16 cells)
     assert z.shape == (1, 16, 32)
-    assert z[0, 0, 16] == pytest.approx(1, abs=1e-4)  # token 0, class 2 (second block), its cell (0, 0)
+    assert z[0, 0, 16 + 3] == pytest.approx(1, abs=1e-4)  # token 0 (row 0, column 0), class 2, its cell (0, 3)
     assert z[0, 15, 15] == pytest.approx(0.5, abs=1e-4)  # token 15, class 1, its last cell (3, 3)
     assert z[0, 1:15].abs().max() < 1e-4  # nothing elsewhere
+    labels = np.zeros((1, 64, 64), np.uint8)
+    labels[0, 4:8, 16:20] = 1  # cell (1, 4): token 1 (row 0, column 1), its cell (1, 0)
+    z = mask_tokens(torch.log(cell_shares(labels, 2).clamp(min=1e-6)))  # (1, 16, 16)
+    assert z[0, 1, 4] == pytest.approx(1, abs=1e-4) and z[0, 4].abs().max() < 1e-4  # not token 4 (row 1, column 0)
 
 
 def _squares(episodes: int, frames: int = 10, size: int = 64) -> ForegroundFrames:
@@ -89,24 +95,37 @@ def test_the_simulators_classes_are_the_robot_and_each_object(small_env):
 
 def test_wm_train_masks_collects_once_trains_and_draws(tmp_path, capsys, refused):
     frames = tmp_path / "frames.npz"
-    base = ["wm", "train-masks", "--policy", "expert", "--episodes", "2", "--every", "50", "--camera-size", "64",
-            "--epochs", "1", "--batch-size", "4", "--width", "8", "--device", "cpu", "--frames", frames]
-    assert main([str(a) for a in base + ["--out", tmp_path / "m"]]) == 0
+    train = ["wm", "train-masks", "--epochs", "1", "--batch-size", "4", "--width", "8", "--device", "cpu",
+             "--frames", frames]
+    collect = ["--policy", "expert", "--episodes", "2", "--every", "50", "--camera-size", "64"]
+    assert main([str(a) for a in train + collect + ["--out", tmp_path / "m"]]) == 0
     printed = capsys.readouterr().out
     assert "episode 2/2" in printed and "held out: ce" in printed and (tmp_path / "m" / "masks.png").is_file()
     saved = load_frames(frames)
     assert saved.task == "cube-insertion" and saved.classes == ("background", "robot", "cube", "mount")
     cfg = json.loads((tmp_path / "m" / "checkpoint" / "config.json").read_text())
     assert cfg["config"]["net"]["classes"] == ["background", "robot", "cube", "mount"]
-    # a second run reads the frames file instead of collecting
-    assert main([str(a) for a in base + ["--out", tmp_path / "m2"]]) == 0
+    # a second run reads the frames file instead of collecting; re-running a finished run keeps it
+    assert main([str(a) for a in train + ["--out", tmp_path / "m2"]]) == 0
     assert "read " in capsys.readouterr().out
-    refused(base + ["--out", tmp_path / "m3", "--task", "stack-cube"],
-             "holds frames of task 'cube-insertion', not 'stack-cube'")
+    weights = (tmp_path / "m" / "checkpoint" / "model.safetensors").read_bytes()
+    assert main([str(a) for a in train[:2] + ["--device", "cpu", "--frames", frames, "--out", tmp_path / "m"]]) == 0
+    assert (tmp_path / "m" / "checkpoint" / "model.safetensors").read_bytes() == weights
+    capsys.readouterr()
+    refused(train + ["--out", tmp_path / "m3", "--episodes", "80"], "--episodes", "exists and fixes the episodes")
+    refused(train + ["--out", tmp_path / "m3", "--task", "stack-cube"],
+            "holds frames of task 'cube-insertion', not 'stack-cube'")
     (tmp_path / "bad.npz").write_bytes(b"not a frames file")
-    refused(base[:-1] + [tmp_path / "bad.npz", "--out", tmp_path / "m4"], "is not a frames file")
-    refused(base[:-2] + ["--frames", tmp_path / "new.npz", "--camera-size", "40", "--out", tmp_path / "m5"],
-             "--camera-size 40 does not split into 16 x 16 cells")
+    refused(train[:-1] + [tmp_path / "bad.npz", "--out", tmp_path / "m4"], "is not a frames file")
+    fresh = train[:-1] + [tmp_path / "new.npz", "--out", tmp_path / "m5"]
+    refused(fresh + ["--camera-size", "40"], "--camera-size 40 does not split into 16 x 16 cells")
+    refused(train[:-1] + [tmp_path / "frames", "--out", tmp_path / "m5"], "a frames file is named *.npz")
+    refused(fresh + ["--max-steps", "0"], "--max-steps must be > 0")
+    shutil.copytree(tmp_path / "m", tmp_path / "wm")  # another kind's run in --out, refused before collecting
+    cfg["kind"] = "wm-predictor"
+    (tmp_path / "wm" / "checkpoint" / "config.json").write_text(json.dumps(cfg))
+    refused(fresh[:-2] + ["--out", tmp_path / "wm"], "holds a 'wm-predictor' run, not an object-masks run")
+    assert not (tmp_path / "new.npz").exists()  # nothing was collected for the refused runs
 
 
 def test_frames_round_trip(tmp_path):
@@ -127,8 +146,12 @@ def test_concat_scale_equalises_the_parts_per_dim_variance(repo_script, expert_s
     moments.add(z[20:])  # in two batches, as frames come
     assert moments.variance() == pytest.approx(float(z.reshape(-1, 4).double().var(0, unbiased=False).mean()), rel=1e-9)
     base = '{"name": "patch-pixels", "input_size": 64, "patch_size": 16, "proj_dim": 32}'
-    mod.main([str(expert_store), base, "--base", base])
-    same = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    assert same["scale"] == pytest.approx(1.0) and same["frames"] > 10
+    tripled = '{"name": "concat", "parts": [%s], "scales": [3]}' % base
+    mod.main([str(expert_store), tripled, "--base", base])
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert out["scale"] == pytest.approx(1 / 3) and out["frames"] > 10
+    assert out["part_variance"] == pytest.approx(9 * out["base_variance"])
     with pytest.raises(UserError, match="an encoder config is not JSON"):
         mod.main([str(expert_store), "{name: x}"])
+    with pytest.raises(UserError, match="a JSON object with its \"name\""):
+        mod.main([str(expert_store), '{"ckpt": "x"}'])

@@ -6,6 +6,9 @@ each task object; :meth:`TaskEnv.render_segmentation`). Re-created from the comm
 
 from __future__ import annotations
 
+import os
+import zipfile
+
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -51,7 +54,11 @@ def collect_foreground(env: TaskEnv, policy: Policy, seeds: Sequence[int], every
 
     def keep(seed: int, env: TaskEnv, obs, action) -> None:
         if obs.step % every == 0:
-            pics, lab, classes[0] = env.render_segmentation(cams)
+            pics, lab, names = env.render_segmentation(cams)
+            if classes[0] and names != classes[0]:
+                raise UserError(f"seed {seed} shows the classes {names}, earlier seeds {classes[0]}: a task whose "
+                                f"objects change between episodes has no fixed classes to learn")
+            classes[0] = names
             images.append(np.stack([pics[c] for c in cams]))  # (V, H, W, 3)
             labels.append(np.stack([lab[c] for c in cams]))  # (V, H, W)
             episode.append(seed)
@@ -65,11 +72,17 @@ def collect_foreground(env: TaskEnv, policy: Policy, seeds: Sequence[int], every
 
 
 def save_frames(frames: ForegroundFrames, path: str | Path) -> Path:
-    """Write ``frames`` to one ``.npz`` file (uncompressed: pictures are read back whole)."""
+    """Write ``frames`` to one ``.npz`` file ``path`` (uncompressed: pictures are read back whole), whole or not at
+    all (a temporary file renamed)."""
     path = Path(path)
+    require(path.suffix == ".npz", f"{path}: a frames file is named *.npz (numpy adds the suffix otherwise, and the "
+                                   f"next run would not find it); pass e.g. {path.with_suffix('.npz')}")
     path.parent.mkdir(parents=True, exist_ok=True)
-    np.savez(path, images=frames.images, labels=frames.labels, episode=frames.episode,
-             cameras=np.array(frames.cameras), classes=np.array(frames.classes), task=np.array(frames.task))
+    tmp = path.with_name(path.name + ".partial")
+    with open(tmp, "wb") as f:
+        np.savez(f, images=frames.images, labels=frames.labels, episode=frames.episode,
+                 cameras=np.array(frames.cameras), classes=np.array(frames.classes), task=np.array(frames.task))
+    os.replace(tmp, path)
     return path
 
 
@@ -79,6 +92,6 @@ def load_frames(path: str | Path) -> ForegroundFrames:
         with np.load(path) as z:
             return ForegroundFrames(z["images"], z["labels"], z["episode"], tuple(str(c) for c in z["cameras"]),
                                     tuple(str(c) for c in z["classes"]), str(z["task"]) if "task" in z else "")
-    except (OSError, KeyError, ValueError) as e:
+    except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile) as e:
         raise UserError(f"{path} is not a frames file written by `wamplan wm train-masks --frames` ({e}); pass "
                         f"another path or remove it to collect again") from None

@@ -33,7 +33,7 @@ from torch.utils.data import Dataset, TensorDataset
 
 from wamplan.checkpoint import MODEL_FILE, checkpoint_dir, load_tensors, read_config
 from wamplan.config import field, require, to_dict, with_default
-from wamplan.encoders.base import FrozenEncoder, register_encoder
+from wamplan.encoders.base import ENCODERS, FrozenEncoder, encoder_settings, register_encoder
 from wamplan.errors import UserError
 from wamplan.train_loop import AdamWConfig
 
@@ -61,17 +61,16 @@ def weights_digest(ckpt: str | Path) -> str:
     return hashlib.sha1((Path(ckpt) / MODEL_FILE).read_bytes()).hexdigest()[:12]
 
 
-TRAINED = ("task-cnn", "object-masks")  # the encoders whose weights a checkpoint directory holds
-
-
 def locate_weights(name: str, info: dict[str, Any], near: str | Path) -> dict[str, Any]:
     """The settings ``info`` of encoder ``name`` (from a world model's ``encoder`` record) with ``near`` (the world
-    model's checkpoint) given to each trained encoder in it (``TRAINED``), its own or a ``concat`` part's, to find
-    relative weights by (see ``task-cnn``'s ``near``); the record itself (``config_dict``) is unchanged."""
+    model's checkpoint) given to each trained encoder in it (one that takes ``near``), its own or a ``concat``
+    part's, to find relative weights by (see ``task-cnn``'s ``near``); the record itself (``config_dict``) is
+    unchanged."""
     if name == "concat" and isinstance(info.get("parts"), list):
         return {**info, "parts": [{"name": p.get("name"), **locate_weights(p.get("name"), p, near)}
                                   for p in info["parts"]]}
-    return {**info, "near": str(near)} if name in TRAINED and info.get("ckpt") else info
+    takes_near = name in ENCODERS and "near" in (encoder_settings(name) or [])
+    return {**info, "near": str(near)} if takes_near and info.get("ckpt") else info
 
 
 def load_trained(name: str, kind: str, ckpt: str, near: str | None, sha: str | None,

@@ -128,9 +128,8 @@ def cell_shares(labels: np.ndarray, classes: int) -> torch.Tensor:
     b, h, w = labels.shape
     require(h % CELLS == 0 and w % CELLS == 0, f"pictures of {h} x {w} px do not split into {CELLS} x {CELLS} cells; "
                                                f"render at a multiple of {CELLS} px (--camera-size)")
-    one_hot = F.one_hot(torch.from_numpy(labels.astype(np.int64)), classes)  # (B, H, W, C)
-    cells = one_hot.reshape(b, CELLS, h // CELLS, CELLS, w // CELLS, classes).float().mean((2, 4))  # (B, 16, 16, C)
-    return cells.permute(0, 3, 1, 2).contiguous()
+    lab = torch.from_numpy(np.ascontiguousarray(labels)).reshape(b, CELLS, h // CELLS, CELLS, w // CELLS)
+    return torch.stack([(lab == c).float().mean((2, 4)) for c in range(classes)], 1)  # (B, C, 16, 16)
 
 
 class MaskTrainer(nn.Module):
@@ -140,37 +139,50 @@ class MaskTrainer(nn.Module):
         super().__init__()
         self.net = MaskNet(classes, width)
 
-    def losses(self, pixels: torch.Tensor, shares: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """pixels (B, 3, 64, 64), shares (B, C, 16, 16) -> (cross-entropy against the cells' shares, per-class
-        intersection and union of the cells' most likely classes (2, C))."""
+    def loss(self, pixels: torch.Tensor, shares: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """pixels (B, 3, 64, 64), shares (B, C, 16, 16) -> (cross-entropy against the cells' shares, the logits
+        (B, C, 16, 16))."""
         logits = self.net(pixels)  # (B, C, 16, 16)
-        ce = -(shares * logits.log_softmax(1)).sum(1).mean()
-        c = logits.shape[1]
-        pred = F.one_hot(logits.argmax(1), c).bool()  # (B, 16, 16, C)
-        true = F.one_hot(shares.argmax(1), c).bool()
-        inter_union = torch.stack([(pred & true).sum((0, 1, 2)), (pred | true).sum((0, 1, 2))]).float()  # (2, C)
-        return ce, inter_union
+        return -(shares * logits.log_softmax(1)).sum(1).mean(), logits
 
 
-def picture_data(frames: ForegroundFrames, encoder: FrozenEncoder, idx: np.ndarray
+def intersection_union(logits: torch.Tensor, shares: torch.Tensor) -> torch.Tensor:
+    """Per class, the cells where the most likely class is it and where the true majority class is it: their
+    intersection and union, counted (2, C)."""
+    c = logits.shape[1]
+    pred = F.one_hot(logits.argmax(1), c).bool()  # (B, 16, 16, C)
+    true = F.one_hot(shares.argmax(1), c).bool()
+    return torch.stack([(pred & true).sum((0, 1, 2)), (pred | true).sum((0, 1, 2))]).float()  # (2, C)
+
+
+def picture_data(frames: ForegroundFrames, encoder: FrozenEncoder, idx: np.ndarray, chunk: int = 64
                  ) -> tuple[torch.Tensor, torch.Tensor]:
     """Frames ``idx`` as single pictures: (pixels (n V, 3, 64, 64) as the encoder sees them, shares
-    (n V, C, 16, 16))."""
-    pictures = frames.images[idx].reshape(-1, *frames.images.shape[2:])  # (n V, H, W, 3)
-    pixels = torch.cat([encoder.preprocess(pictures[i:i + 256]).cpu() for i in range(0, len(pictures), 256)])
-    shares = cell_shares(frames.labels[idx].reshape(-1, *frames.labels.shape[2:]), len(frames.classes))
-    return pixels, shares
+    (n V, C, 16, 16)), made ``chunk`` frames at a time (full-size pictures are never all in memory at once)."""
+    pixels, shares = [], []
+    for i in range(0, len(idx), chunk):
+        part = idx[i:i + chunk]
+        pixels.append(encoder.preprocess(frames.images[part].reshape(-1, *frames.images.shape[2:])).cpu())
+        shares.append(cell_shares(frames.labels[part].reshape(-1, *frames.labels.shape[2:]), len(frames.classes)))
+    if not pixels:
+        return torch.empty(0, 3, 64, 64), torch.empty(0, len(frames.classes), CELLS, CELLS)
+    return torch.cat(pixels), torch.cat(shares)
 
 
-def held_out(frames: ForegroundFrames, val_fraction: float) -> np.ndarray:
-    """(F,) bool: the frames of the last ``val_fraction`` of the episodes (by seed), at least one episode."""
-    eps = np.unique(frames.episode)
+VAL_FRACTION = 0.2  # the share of episodes (the last, by seed) a run holds out
+
+
+def held_out(frames: ForegroundFrames, val_fraction: float = VAL_FRACTION) -> np.ndarray:
+    """(F,) bool: the frames of the last ``val_fraction`` of the episodes (by seed), at least one episode and at
+    most all but one."""
+    eps = np.unique(frames.episode)  # sorted
     require(len(eps) >= 2, f"training needs frames of at least 2 episodes (one held out), got {len(eps)}")
-    return np.isin(frames.episode, eps[-max(1, int(round(val_fraction * len(eps)))):])
+    count = min(len(eps) - 1, max(1, int(round(val_fraction * len(eps)))))
+    return np.isin(frames.episode, eps[-count:])
 
 
 def train_object_masks(frames: ForegroundFrames, out: str | Path, cfg: MaskTrainConfig, *, task: str,
-                       val_fraction: float = 0.2, device: str = "cpu", resume: bool = False,
+                       val_fraction: float = VAL_FRACTION, device: str = "cpu", resume: bool = False,
                        max_steps: int | None = None, progress: bool = True) -> dict[str, float]:
     """Train (or resume) the ``object-masks`` network on ``frames`` into the run directory ``out``; the last
     ``val_fraction`` of the episodes are held out. Returns the last metrics: ``val/ce`` and ``val/iou_<class>`` (the
@@ -191,15 +203,16 @@ def train_object_masks(frames: ForegroundFrames, out: str | Path, cfg: MaskTrain
     model = MaskTrainer(len(frames.classes), cfg.width).to(dev)
 
     def step(m: MaskTrainer, batch: list[torch.Tensor]) -> tuple[torch.Tensor, dict[str, float]]:
-        ce, _ = m.losses(batch[0].to(dev), batch[1].to(dev))
+        ce, _ = m.loss(batch[0].to(dev), batch[1].to(dev))
         return ce, {"ce": float(ce.detach())}
 
     def evaluate(m: MaskTrainer) -> dict[str, float]:
         ce_sum, iu, n = 0.0, torch.zeros(2, len(frames.classes)), 0
         with evaluating(m):
             for pixels, shares in DataLoader(va, batch_size=256):
-                ce, inter_union = m.losses(pixels.to(dev), shares.to(dev))
-                ce_sum, iu, n = ce_sum + float(ce) * len(pixels), iu + inter_union.cpu(), n + len(pixels)
+                ce, logits = m.loss(pixels.to(dev), shares.to(dev))
+                iu += intersection_union(logits, shares.to(dev)).cpu()
+                ce_sum, n = ce_sum + float(ce) * len(pixels), n + len(pixels)
         iou = iu[0] / iu[1].clamp(min=1)
         return {"ce": ce_sum / max(n, 1), **{f"iou_{c}": float(v) for c, v in zip(frames.classes, iou)}}
 
@@ -215,13 +228,13 @@ def train_object_masks(frames: ForegroundFrames, out: str | Path, cfg: MaskTrain
 
 def draw_masks(frames: ForegroundFrames, encoder: ObjectMaskEncoder, out: str | Path, seed: int | None = None,
                count: int = 4) -> Path:
-    """A PNG of ``count`` frames of episode ``seed`` (default: the last, held out), spread over it: per camera the
-    picture, the true class of each cell (majority) and the encoder's most likely one."""
+    """A PNG of ``count`` frames of episode ``seed`` (default: the highest seed, held out), spread over it: per camera
+    the picture, the true class of each cell (majority) and the encoder's most likely one."""
     import matplotlib.pyplot as plt
 
     from wamplan.plot import save_figure
 
-    seed = int(frames.episode[-1]) if seed is None else seed
+    seed = int(frames.episode.max()) if seed is None else seed
     idx = np.flatnonzero(frames.episode == seed)
     idx = idx[np.linspace(0, len(idx) - 1, min(count, len(idx))).round().astype(int)]  # (count,)
     v, c = len(frames.cameras), len(frames.classes)

@@ -189,14 +189,17 @@ class TaskEnv:
     def render_segmentation(self, cameras: tuple[str, ...] | None = None
                             ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], tuple[str, ...]]:
         """The pictures of :meth:`render`, per camera a class index per pixel (camera -> (H, W) uint8), and the class
-        names: 0 ``background`` (the scene's ``BACKGROUND`` actors and empty space), 1 ``robot`` (every link of an
-        articulation), then the task's other actors by name, sorted. Training-only supervision."""
+        names: 0 ``background`` (the scene's ``BACKGROUND`` actors and empty space), 1 ``robot`` (every articulation
+        link: the robot's, and a task's articulated object's if it had one), then the task's other actors by name,
+        sorted. Training-only supervision."""
+        from mani_skill.utils.structs import Link
+
         shots = self._capture(cameras, None, segmentation=True)
         ids = self.base.segmentation_id_map  # per-scene id -> the Actor or Link drawn with it
-        robot = [i for i, obj in ids.items() if obj.name not in BACKGROUND and hasattr(obj, "articulation")]
+        robot = [i for i, obj in ids.items() if obj.name not in BACKGROUND and isinstance(obj, Link)]
         actors = {i: obj.name for i, obj in ids.items() if obj.name not in BACKGROUND and i not in robot}
         classes = ("background", "robot", *sorted(set(actors.values())))
-        lut = np.zeros(max(ids) + 2, dtype=np.uint8)  # per-scene id -> class (0 where unlisted)
+        lut = np.zeros(max(ids, default=0) + 2, dtype=np.uint8)  # per-scene id -> class (0 where unlisted)
         lut[robot] = 1
         for i, name in actors.items():
             lut[i] = classes.index(name)
