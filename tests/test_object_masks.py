@@ -16,7 +16,7 @@ from wamplan.data.foreground import ForegroundFrames, load_frames, save_frames
 from wamplan.encoders import make_encoder
 from wamplan.encoders.learned import locate_weights
 from wamplan.encoders.object_masks import (MaskTrainConfig, ObjectMaskEncoder, cell_shares, mask_tokens,
-                                           train_object_masks)
+                                           token_maps, train_object_masks)
 from wamplan.errors import UserError
 
 
@@ -41,6 +41,7 @@ def test_cell_shares_and_the_token_layout():
     labels[0, 4:8, 16:20] = 1  # cell (1, 4): token 1 (row 0, column 1), its cell (1, 0)
     z = mask_tokens(torch.log(cell_shares(labels, 2).clamp(min=1e-6)))  # (1, 16, 16)
     assert z[0, 1, 4] == pytest.approx(1, abs=1e-4) and z[0, 4].abs().max() < 1e-4  # not token 4 (row 1, column 0)
+    torch.testing.assert_close(token_maps(z), cell_shares(labels, 2), atol=1e-4, rtol=0)  # the maps back, exactly
 
 
 def _squares(episodes: int, frames: int = 10, size: int = 64) -> ForegroundFrames:
@@ -58,7 +59,7 @@ def _squares(episodes: int, frames: int = 10, size: int = 64) -> ForegroundFrame
                             ("background", "red", "blue"), "cube-insertion")
 
 
-def test_it_learns_to_read_the_objects_and_loads_by_digest_beside_patch_pixels(tmp_path):
+def test_it_learns_to_read_the_objects_and_loads_by_digest_beside_patch_pixels(tmp_path, repo_script):
     frames = _squares(10)
     cfg = MaskTrainConfig(epochs=12, batch_size=16, lr=3e-3, width=16, warmup_epochs=0.5, log_every_steps=1000)
     metrics = train_object_masks(frames, tmp_path / "run", cfg, task="cube-insertion", progress=False)
@@ -77,6 +78,11 @@ def test_it_learns_to_read_the_objects_and_loads_by_digest_beside_patch_pixels(t
     cat = make_encoder("concat", parts=[{"name": "patch-pixels"}, enc.config_dict()], scales=[1, 2])
     assert cat.dim == 128 + 32 and cat.parts[1].sha == enc.sha
     torch.testing.assert_close(cat.part_tokens(cat.encode(frames.images[0, 0]), 1), enc.encode(frames.images[0, 0]))
+    # the sibling picture draws the mask tokens of a concat as the class map they hold, the real frame's here
+    read = repo_script("scripts/wm_sibling_picture.py").mask_reader(cat)
+    true = cell_shares(frames.labels[-1:, 0], 3).argmax(1)[0].numpy()  # (16, 16)
+    assert (read(cat.encode(frames.images[-1, 0])[0]) == true).mean() > 0.8
+    assert repo_script("scripts/wm_sibling_picture.py").mask_reader(make_encoder("patch-pixels")) is None
     # a world model's record finds a relative encoder under the folders above its checkpoint
     info = locate_weights("concat", cat.config_dict(), tmp_path / "wm" / "checkpoint")
     assert info["parts"][1]["near"] == str(tmp_path / "wm" / "checkpoint") and "near" not in info["parts"][0]

@@ -65,6 +65,15 @@ def mask_tokens(logits: torch.Tensor) -> torch.Tensor:
     return p.reshape(b, GRID * GRID, k * SUB * SUB)
 
 
+def token_maps(tokens: torch.Tensor) -> torch.Tensor:
+    """tokens (B, 16, (C - 1) * 16) of :func:`mask_tokens` (true or predicted) -> class maps (B, C, 16, 16): the
+    probabilities back on the 16 x 16 cells, the background's as what the other classes leave (clipped at 0)."""
+    b, n, d = tokens.shape
+    k = d // (SUB * SUB)
+    p = tokens.reshape(b, GRID, GRID, k, SUB, SUB).permute(0, 3, 1, 4, 2, 5).reshape(b, k, CELLS, CELLS)
+    return torch.cat([(1 - p.sum(1, keepdim=True)).clamp_min(0), p], 1)  # (B, C, 16, 16)
+
+
 @register_encoder("object-masks")
 class ObjectMaskEncoder(FrozenEncoder):
     """The trained ``object-masks`` network of checkpoint directory ``ckpt`` (a run of ``wm train-masks`` or its
