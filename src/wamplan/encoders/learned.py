@@ -244,7 +244,8 @@ def train_task_cnn(stores: Sequence[str | Path], out: str | Path, cfg: EncoderTr
         return {"state_mm": float(tot[0].sqrt()) * STATE_UNIT_MM, "recon_mse": float(tot[1])}
 
     config = {"net": {"width": cfg.width}, "train": to_dict(cfg), "data": {"cameras": list(cameras)}}
-    result = fit(model, DatasetBatches(tr), step, cfg, run_dir=out, kind=KIND, config=config,
+    batches = DatasetBatches(tr, cfg.num_workers, dev.type != "cpu")
+    result = fit(model, batches, step, cfg, run_dir=out, kind=KIND, config=config,
                  data=dict(describe_stores(stores), val_fraction=val_fraction), device=dev,
                  evaluate=evaluate if len(va) else None, resume=resume, max_steps=max_steps, progress=progress,
                  desc="task-cnn", log=print if progress else None)

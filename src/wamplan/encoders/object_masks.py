@@ -229,7 +229,8 @@ def train_object_masks(frames: ForegroundFrames, out: str | Path, cfg: MaskTrain
               "data": {"task": task, "cameras": list(frames.cameras)}}
     data = {"episodes": sorted(int(s) for s in np.unique(frames.episode)), "frames": int(len(frames.episode)),
             "val_fraction": val_fraction}
-    result = fit(model, DatasetBatches(tr), step, cfg, run_dir=out, kind=KIND, config=config, data=data, device=dev,
+    batches = DatasetBatches(tr, cfg.num_workers, dev.type != "cpu")
+    result = fit(model, batches, step, cfg, run_dir=out, kind=KIND, config=config, data=data, device=dev,
                  evaluate=evaluate if len(va) else None, resume=resume, max_steps=max_steps, progress=progress,
                  desc="object-masks", log=print if progress else None)
     return result.metrics
