@@ -46,12 +46,11 @@ def mask_reader(encoder):
     encoder neither is nor holds ``object-masks``."""
     from wamplan.encoders.object_masks import token_maps
 
-    if encoder.name == "object-masks":
-        return lambda z: token_maps(z[None].float())[0].argmax(0).numpy()
-    if encoder.name == "concat":
-        for i, part in enumerate(encoder.parts):
-            if part.name == "object-masks":
-                return lambda z, i=i: token_maps(encoder.part_tokens(z, i)[None].float())[0].argmax(0).numpy()
+    parts = list(enumerate(encoder.parts)) if encoder.name == "concat" else [(None, encoder)]
+    for i, part in parts:
+        if part.name == "object-masks":
+            own = (lambda z: z) if i is None else (lambda z, i=i: encoder.part_tokens(z, i))  # (N, D_part)
+            return lambda z: token_maps(own(z)[None].float())[0].argmax(0).numpy()
     return None
 
 

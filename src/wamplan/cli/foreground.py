@@ -122,7 +122,7 @@ def _mask_run(out: Path):
 def _mask_frames(args: argparse.Namespace):
     """The frames of ``--frames``: read where the file exists (collection options refused: the file fixes them),
     else collected with the options (their defaults where not given) and written there."""
-    from wamplan.data.foreground import collect_foreground, load_frames, save_frames
+    from wamplan.data.foreground import collect_foreground, load_frames, require_frames_path, save_frames
     from wamplan.envs.config import EnvConfig
     from wamplan.envs.core import TaskEnv
     from wamplan.evaluation.build import load_policy
@@ -140,9 +140,7 @@ def _mask_frames(args: argparse.Namespace):
         print(f"read {len(frames.episode)} frames of {len(set(frames.episode.tolist()))} episodes from {args.frames}")
         return frames
     opt = {k: COLLECT_DEFAULTS[k] if getattr(args, k) is None else getattr(args, k) for k in COLLECT_DEFAULTS}
-    if args.frames.suffix != ".npz":
-        raise UserError(f"--frames {args.frames}: a frames file is named *.npz; pass e.g. "
-                        f"{args.frames.with_suffix('.npz')}")
+    require_frames_path(args.frames)
     require_writable(args.frames.parent, "--frames")
     if opt["episodes"] < 2:
         raise UserError(f"--episodes {opt['episodes']}: training needs at least 2 episodes (the last fifth held out)")

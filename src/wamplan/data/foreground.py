@@ -71,12 +71,19 @@ def collect_foreground(env: TaskEnv, policy: Policy, seeds: Sequence[int], every
                             env.task.name)
 
 
-def save_frames(frames: ForegroundFrames, path: str | Path) -> Path:
-    """Write ``frames`` to one ``.npz`` file ``path`` (uncompressed: pictures are read back whole), whole or not at
-    all (a temporary file renamed)."""
+def require_frames_path(path: str | Path) -> Path:
+    """``path`` as a Path; one line unless it names a ``.npz`` file (numpy adds the suffix otherwise, and the next
+    run would not find the file)."""
     path = Path(path)
     require(path.suffix == ".npz", f"{path}: a frames file is named *.npz (numpy adds the suffix otherwise, and the "
                                    f"next run would not find it); pass e.g. {path.with_suffix('.npz')}")
+    return path
+
+
+def save_frames(frames: ForegroundFrames, path: str | Path) -> Path:
+    """Write ``frames`` to one ``.npz`` file ``path`` (uncompressed: pictures are read back whole), whole or not at
+    all (a temporary file renamed)."""
+    path = require_frames_path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".partial")
     with open(tmp, "wb") as f:

@@ -169,31 +169,46 @@ def foreground_weigher(path: str | Path, encoder: Any, background_weight: float,
     return weigh
 
 
-def draw_foreground(frames: ForegroundFrames, readout: ForegroundReadout, encoder: Any, out: str | Path,
-                    seed: int | None = None, count: int = 4) -> Path:
-    """A PNG of ``count`` frames of episode ``seed`` (default: the last), spread over the episode: per camera the
-    picture, the true foreground share of each patch, and the readout's."""
+def episode_frames(frames: ForegroundFrames, seed: int, count: int) -> np.ndarray:
+    """Indices (count,) of up to ``count`` frames of episode ``seed``, spread evenly over it."""
+    idx = np.flatnonzero(frames.episode == seed)
+    return idx[np.linspace(0, len(idx) - 1, min(count, len(idx))).round().astype(int)]
+
+
+def draw_frame_maps(frames: ForegroundFrames, idx: np.ndarray, maps: Sequence[tuple[str, np.ndarray]], title: str,
+                    out: str | Path, **imshow: Any) -> Path:
+    """A PNG with a row per frame of ``idx``: per camera its picture, then each of ``maps`` (label, (len(idx), V,
+    g, g) maps of the frames) drawn with ``imshow``'s settings."""
     import matplotlib.pyplot as plt
 
     from wamplan.plot import save_figure
 
+    cams, per = frames.cameras, 1 + len(maps)
+    fig, axes = plt.subplots(len(idx), per * len(cams), figsize=(2.0 * per * len(cams), 2.1 * len(idx)),
+                             squeeze=False)
+    for r, i in enumerate(idx):
+        for c, cam in enumerate(cams):
+            panels = [(frames.images[i, c], f"{cam}, frame {r + 1}")] + [(m[r, c], label) for label, m in maps]
+            for k, (img, name) in enumerate(panels):
+                ax = axes[r, per * c + k]
+                ax.imshow(img, **imshow) if img.ndim == 2 else ax.imshow(img)
+                ax.set_title(name, fontsize=8)
+                ax.axis("off")
+    fig.suptitle(title, fontsize=10)
+    return save_figure(fig, out, dpi=70)
+
+
+def draw_foreground(frames: ForegroundFrames, readout: ForegroundReadout, encoder: Any, out: str | Path,
+                    seed: int | None = None, count: int = 4) -> Path:
+    """A PNG of ``count`` frames of episode ``seed`` (default: the last), spread over the episode: per camera the
+    picture, the true foreground share of each patch, and the readout's."""
     seed = int(frames.episode[-1]) if seed is None else seed
-    idx = np.flatnonzero(frames.episode == seed)
-    idx = idx[np.linspace(0, len(idx) - 1, min(count, len(idx))).round().astype(int)]  # (count,)
+    idx = episode_frames(frames, seed, count)  # (count,)
     grid = int(round(readout.num_patches ** 0.5))
     true = token_fractions(frames.masks[idx], grid)  # (count, V, N)
     with torch.no_grad():
         read = readout(_encode(encoder, frames.images[idx])).numpy()  # (count, V, N)
-    cams = frames.cameras
-    fig, axes = plt.subplots(len(idx), 3 * len(cams), figsize=(2.0 * 3 * len(cams), 2.1 * len(idx)), squeeze=False)
-    for r, i in enumerate(idx):
-        for c, cam in enumerate(cams):
-            panels = [(frames.images[i, c], f"{cam}, frame {r + 1}"), (true[r, c].reshape(grid, grid), "true share"),
-                      (read[r, c].reshape(grid, grid), "readout")]
-            for k, (img, title) in enumerate(panels):
-                ax = axes[r, 3 * c + k]
-                ax.imshow(img, vmin=0, vmax=1, cmap="magma") if img.ndim == 2 else ax.imshow(img)
-                ax.set_title(title, fontsize=8)
-                ax.axis("off")
-    fig.suptitle(f"foreground per patch token, held-out episode (seed {seed})", fontsize=10)
-    return save_figure(fig, out, dpi=70)
+    maps = [("true share", true.reshape(*true.shape[:2], grid, grid)),
+            ("readout", read.reshape(*read.shape[:2], grid, grid))]
+    return draw_frame_maps(frames, idx, maps, f"foreground per patch token, held-out episode (seed {seed})", out,
+                           vmin=0, vmax=1, cmap="magma")

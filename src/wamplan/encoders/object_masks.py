@@ -29,6 +29,7 @@ from torch import nn
 from wamplan.config import field, require, to_dict, with_default
 from wamplan.data.foreground import ForegroundFrames
 from wamplan.encoders.base import FrozenEncoder, register_encoder
+from wamplan.encoders.foreground import draw_frame_maps, episode_frames
 from wamplan.encoders.learned import load_trained
 from wamplan.errors import UserError
 from wamplan.train_loop import AdamWConfig
@@ -240,28 +241,13 @@ def draw_masks(frames: ForegroundFrames, encoder: ObjectMaskEncoder, out: str | 
                count: int = 4) -> Path:
     """A PNG of ``count`` frames of episode ``seed`` (default: the highest seed, held out), spread over it: per camera
     the picture, the true class of each cell (majority) and the encoder's most likely one."""
-    import matplotlib.pyplot as plt
-
-    from wamplan.plot import save_figure
-
     seed = int(frames.episode.max()) if seed is None else seed
-    idx = np.flatnonzero(frames.episode == seed)
-    idx = idx[np.linspace(0, len(idx) - 1, min(count, len(idx))).round().astype(int)]  # (count,)
+    idx = episode_frames(frames, seed, count)  # (count,)
     v, c = len(frames.cameras), len(frames.classes)
     labels = frames.labels[idx].reshape(-1, *frames.labels.shape[2:])  # (count V, H, W)
-    true = cell_shares(labels, c).argmax(1).numpy()  # (count V, 16, 16)
+    true = cell_shares(labels, c).argmax(1).numpy().reshape(len(idx), v, CELLS, CELLS)
     read = encoder.class_maps(frames.images[idx].reshape(-1, *frames.images.shape[2:])).argmax(1).cpu().numpy()
-    fig, axes = plt.subplots(len(idx), 3 * v, figsize=(2.0 * 3 * v, 2.1 * len(idx)), squeeze=False)
-    for r in range(len(idx)):
-        for j, cam in enumerate(frames.cameras):
-            panels = [(frames.images[idx[r], j], f"{cam}, frame {r + 1}"), (true[r * v + j], "true class"),
-                      (read[r * v + j], "read")]
-            for k, (img, title) in enumerate(panels):
-                ax = axes[r, 3 * j + k]
-                ax.imshow(img, vmin=0, vmax=c - 1, cmap="tab10", interpolation="nearest") if img.ndim == 2 \
-                    else ax.imshow(img)
-                ax.set_title(title, fontsize=8)
-                ax.axis("off")
-    fig.suptitle(f"object masks, episode {seed}: {', '.join(f'{i} {n}' for i, n in enumerate(frames.classes))}",
-                 fontsize=10)
-    return save_figure(fig, out, dpi=70)
+    maps = [("true class", true), ("read", read.reshape(len(idx), v, CELLS, CELLS))]
+    names = ", ".join(f"{i} {n}" for i, n in enumerate(frames.classes))
+    return draw_frame_maps(frames, idx, maps, f"object masks, episode {seed}: {names}", out,
+                           vmin=0, vmax=c - 1, cmap="tab10", interpolation="nearest")
