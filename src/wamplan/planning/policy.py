@@ -275,7 +275,7 @@ class PlannedPolicy(Policy):
     def objective(self, target: torch.Tensor, bias: torch.Tensor | None = None):
         """candidates (B, H_opt, A) -> costs (B,): the cost of the dynamics' prediction (plus ``bias_correction``
         times ``bias`` (V, N, D), when given) against ``target`` (V, N, D), plus ``disagreement_weight`` times
-        the ensemble's disagreement."""
+        the prediction's spread (an ensemble's disagreement, a spread head's variance)."""
         w = self.config.disagreement_weight
         shift = None if bias is None else self.config.bias_correction * bias  # (V, N, D)
 

@@ -36,7 +36,7 @@ class PlannedPolicyConfig:
     boundary's target (a chunk's ``search_s`` includes them; its costs and correction are the boundary search's);
     ``bias_correction`` needs a learned model whose frameskip divides the chunk and whole chunks (no
     ``replan_every``), is measured only from real histories, and the gates then compare corrected costs;
-    ``disagreement_weight`` needs an ensemble of world models.
+    ``disagreement_weight`` needs an ensemble of world models or one with a spread head.
     """
 
     first_chunk: str = field("open-loop", "chunk 1: open-loop (the paper) or rest-history (planned from a "
@@ -49,8 +49,10 @@ class PlannedPolicyConfig:
     warm_start: str = field("none", "the search's initial mean: none (the WAM's chunk) or residual (plus "
                             "warm_weight x the previous planned chunk's correction, arm only)", choices=WARM_STARTS)
     warm_weight: float = field(0.5, "with warm_start=residual: the share of the previous correction carried over")
-    disagreement_weight: float = field(0.0, "add this times the ensemble's disagreement to the cost (needs several "
-                                       "world models); 0 = off")
+    disagreement_weight: float = field(0.0, "add this times the prediction's spread to the cost: an ensemble's "
+                                       "disagreement plus its members' predicted variances, or one model's "
+                                       "predicted variance (a spread head: at 1 the cost is the expected one); "
+                                       "0 = off")
     accept_margin: float | None = field(None, "run the plan only if its cost is at least this fraction below the "
                                         "WAM chunk's, else the WAM's chunk; None = always the plan")
     rank_gate: float | None = field(None, "run the plan only if at least this share of the search's first random "
@@ -137,8 +139,8 @@ def check_fits(cfg: PlannedPolicyConfig, chunk: int, planner: Planner, dynamics:
                                 "--bias-correction")
     from wamplan.planning.dynamics import LearnedDynamics
 
-    if cfg.disagreement_weight > 0 and isinstance(dynamics, LearnedDynamics):
-        raise PlanningError("disagreement_weight needs an ensemble of world models, got one; pass several "
-                            "checkpoints joined by + (eval --wm-augmented A+B, serve --world-model A+B) or set it "
-                            "to 0")
+    if cfg.disagreement_weight > 0 and isinstance(dynamics, LearnedDynamics) and not dynamics.spreads:
+        raise PlanningError("disagreement_weight needs an ensemble of world models or one with a spread head, got one "
+                            "without; pass several checkpoints joined by + (eval --wm-augmented A+B, serve "
+                            "--world-model A+B), a model trained with `wm train --spread-weight`, or set it to 0")
     return period

@@ -62,6 +62,10 @@ class PredictorConfig:
     state_head: str = field("mlp", "the state head: 'mlp' (each token squeezed to 16 features, then an MLP; trained "
                                    "from its random start) or 'ridge' (one linear read-out of the frame's tokens, "
                                    "started from a ridge fit on the training set's true latents before training)")
+    spread_head: bool = field(False, "also predict, from the same hidden state, each token dim's log-variance of the "
+                                     "prediction's error (a heteroscedastic Gaussian around the mean prediction); set "
+                                     "by `wm train --spread-weight`; the planner adds the predicted variance to its "
+                                     "cost with --disagreement-weight (the expected cost at weight 1)")
 
     def __post_init__(self) -> None:
         for name in ("num_views", "num_patches", "enc_dim", "proprio_dim", "action_dim", "frameskip",
@@ -202,8 +206,19 @@ class TrainConfig(AdamWConfig):
                                      "read as the true frames do through that head (held fixed), so it must get "
                                      "right what says where the object is; needs stores with privileged poses")
 
+    spread_weight: float = field(0.0, "weight of the spread head's loss (0: off, no head): the Gaussian negative "
+                                      "log-likelihood of each predicted token's error under the head's predicted "
+                                      "variance, the mean prediction held fixed in it (the mean readout learns from "
+                                      "eq. 2 alone; the shared blocks from both, unless --spread-only)")
+    spread_only: bool = field(False, "train the spread head alone (every other weight frozen, from --init): the "
+                                     "model's mean predictions stay the --init checkpoint's, bit for bit")
+
     def __post_init__(self) -> None:
         super().__post_init__()
+        require(self.spread_weight >= 0 and self.spread_weight == self.spread_weight,
+                f"TrainConfig.spread_weight must be a number >= 0 (0: off), got {self.spread_weight}")
+        require(not self.spread_only or self.spread_weight > 0,
+                "TrainConfig.spread_only trains the spread head alone, so it needs spread_weight > 0")
         require(self.horizon >= 1, f"TrainConfig.horizon (K) must be >= 1, got {self.horizon}")
         require(0.0 < self.gamma <= 1.0, f"TrainConfig.gamma must be in (0, 1], got {self.gamma}")
         require(self.loss_form in ("mean", "sum"), f"TrainConfig.loss_form must be mean or sum, got {self.loss_form!r}")

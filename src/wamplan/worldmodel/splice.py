@@ -45,7 +45,9 @@ class SplicedPredictor(nn.Module):
     predictions taken from ``parts[i]`` (a predictor over part i's own tokens, D_i dims). The predictor API of
     :class:`WorldModelPredictor` that planning and evaluation use: ``forward``, ``encode_prefix``,
     ``rollout_from_prefix``, ``rollout``, ``read_state`` (the base's head), ``cfg``/``task``/``cameras`` (the
-    base's)."""
+    base's). It predicts no spread (``spread_head`` is None)."""
+
+    spread_head = None
 
     def __init__(self, base: WorldModelPredictor, parts: dict[int, WorldModelPredictor],
                  dims: list[int], scales: list[float]) -> None:

@@ -149,7 +149,8 @@ def train_predictor_on_stores(stores: Sequence[str | Path], out: str | Path, pre
     task, cameras = stores_task(stores)
     check_image_stride(stores, predictor.frameskip)  # before encoding, which may take long
     predictor = predictor_for_task(predictor, task, cameras)
-    predictor = dataclasses.replace(predictor, state_dim=len(STATE_QUANTITIES) if train.state_weight > 0 else 0)
+    predictor = dataclasses.replace(predictor, state_dim=len(STATE_QUANTITIES) if train.state_weight > 0 else 0,
+                                    spread_head=train.spread_weight > 0)
     if train.rank_weight > 0 and group_targets is None:
         raise UserError(f"--rank-weight {train.rank_weight} needs each branch group's target: pass group_targets "
                         f"(wam.targets.group_targets with the WAM of --rank-wam)")

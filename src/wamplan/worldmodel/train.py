@@ -44,7 +44,7 @@ from wamplan.worldmodel.predictor import WorldModelPredictor
 from wamplan.worldmodel.splice import SPLICE_KIND, load_spliced
 
 KIND = "wm-predictor"
-NEW_ON_INIT = ("state_head.",)  # weights a fine-tune may add to (or drop from) its --init checkpoint's
+NEW_ON_INIT = ("state_head.", "spread_head.")  # weights a fine-tune may add to (or drop from) its --init checkpoint's
 
 
 def split_windows(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int):
@@ -97,14 +97,29 @@ def state_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], zp: t
                                     "state_mm_h1": float(e_pred[0].detach().sqrt()) * mm}
 
 
+def spread_terms(model: WorldModelPredictor, zp: torch.Tensor, zt: torch.Tensor, log_var: torch.Tensor
+                 ) -> dict[str, torch.Tensor]:
+    """Per sample and step (B, K): the spread head's Gaussian negative log-likelihood of the prediction's error
+    (normalised units, constant dropped; the mean zp is detached, so the mean readout does not learn from it),
+    the variance
+    ratio (squared error over predicted variance; 1 when calibrated), and, per token (mean over dims), the
+    predicted variance and the squared error (B, K, V, N), for their correlation. zp, zt, log_var (B, K, V, N, D)."""
+    r2 = ((zt.float() - zp.detach().float()) / model.z_std).pow(2)  # (B, K, V, N, D)
+    lv = log_var.float()
+    ratio = r2 * torch.exp(-lv)  # (B, K, V, N, D)
+    return {"nll": 0.5 * (lv + ratio).flatten(2).mean(-1), "ratio": ratio.flatten(2).mean(-1),
+            "tok_var": lv.exp().mean(-1), "tok_err": r2.mean(-1)}
+
+
 def window_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int,
-                gamma: float, loss_form: str = "mean", change_weight: float = 0.0, state_weight: float = 0.0
-                ) -> tuple[torch.Tensor, dict[str, float]]:
+                gamma: float, loss_form: str = "mean", change_weight: float = 0.0, state_weight: float = 0.0,
+                spread_weight: float = 0.0) -> tuple[torch.Tensor, dict[str, float]]:
     """Eq. 2: the discounted K-step autoregressive loss of a batch of windows. ``change_weight`` W > 0 weighs
     each token's squared error by :func:`change_weights` (the tokens that change count more); 0 is eq. 2.
-    ``state_weight`` > 0 adds that times :func:`state_loss` (the batch must carry ``s``)."""
+    ``state_weight`` > 0 adds that times :func:`state_loss` (the batch must carry ``s``); ``spread_weight`` > 0
+    that times the spread head's discounted negative log-likelihood (:func:`spread_terms`)."""
     (zc, qc, ac), a_future, (zt, qt) = split_windows(model, batch, horizon)
-    zp, qp = model.rollout(zc, qc, ac, a_future)  # (B, K, V, N, D), (B, K, P)
+    zp, qp, *lv = model.rollout(zc, qc, ac, a_future, spread=spread_weight > 0)  # (B, K, V, N, D), (B, K, P)
     ez = per_horizon_mse(zp, zt).mean(dim=0)  # (K,)
     eq = per_horizon_mse(qp, qt).mean(dim=0)  # (K,)
     logs = {"z_mse_h1": float(ez[0].detach()), "q_mse_h1": float(eq[0].detach())}
@@ -118,6 +133,11 @@ def window_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], hori
     if state_weight > 0:
         st, st_logs = state_loss(model, batch, zp, zt, horizon)
         loss, logs = loss + state_weight * st, {**logs, **st_logs}
+    if spread_weight > 0:
+        sp = spread_terms(model, zp, zt, lv[0])
+        loss = loss + spread_weight * (w * sp["nll"].mean(dim=0)).sum()
+        logs.update({f"spread_nll_h{horizon}": float(sp["nll"][:, -1].mean().detach()),
+                     f"spread_ratio_h{horizon}": float(sp["ratio"][:, -1].mean().detach())})
     return loss, logs
 
 
@@ -350,11 +370,12 @@ def evaluate_predictor(model: WorldModelPredictor, dataset: Dataset, horizon: in
     device = device or next(model.parameters()).device
     sums: dict[str, torch.Tensor] = {}
     count = 0
+    headed = model.spread_head is not None
     with evaluating(model):
         for batch in DataLoader(dataset, batch_size=batch_size, shuffle=False):
             batch = {k: v.to(device) for k, v in batch.items()}
             (zc, qc, ac), a_future, (zt, qt) = split_windows(model, batch, horizon)
-            zp, qp = model.rollout(zc, qc, ac, a_future)  # (B, K, V, N, D), (B, K, P)
+            zp, qp, *lv = model.rollout(zc, qc, ac, a_future, spread=headed)  # (B, K, V, N, D), (B, K, P)
             parts = {"z_mse": per_horizon_mse(zp, zt), "q_mse": per_horizon_mse(qp, qt),
                      "copy_z_mse": per_horizon_mse(zc[:, -1:].expand_as(zt), zt),
                      "copy_q_mse": per_horizon_mse(qc[:, -1:].expand_as(qt), qt)}  # each (B, K)
@@ -363,6 +384,12 @@ def evaluate_predictor(model: WorldModelPredictor, dataset: Dataset, horizon: in
                 parts["state_pred_se"] = (model.read_state(zp) - st).pow(2).mean(dim=-1)  # (B, K)
                 parts["state_true_se"] = (model.read_state(zt) - st).pow(2).mean(dim=-1)  # (B, K)
                 parts["state_gap_se"] = (model.read_state(zp) - model.read_state(zt)).pow(2).mean(dim=-1)  # (B, K)
+            if headed:  # the spread head's fit, and the sums of the per-token log-log correlation
+                sp = spread_terms(model, zp, zt, lv[0])
+                x, y = sp["tok_var"].log().flatten(2).double(), sp["tok_err"].clamp_min(1e-12).log().flatten(2).double()
+                parts.update({"spread_nll": sp["nll"], "spread_ratio": sp["ratio"], "tok_x": x.mean(-1),
+                              "tok_y": y.mean(-1), "tok_xy": (x * y).mean(-1), "tok_xx": (x * x).mean(-1),
+                              "tok_yy": (y * y).mean(-1)})  # each (B, K)
             for k, v in parts.items():
                 sums[k] = sums.get(k, 0) + v.sum(dim=0).double()  # (K,)
             count += zc.shape[0]
@@ -371,6 +398,12 @@ def evaluate_predictor(model: WorldModelPredictor, dataset: Dataset, horizon: in
     for k, v in sums.items():
         mean = (v / max(count, 1)).cpu()  # (K,)
         out.update({f"{k}_h{i + 1}": float(mean[i]) for i in range(horizon)})
+    if headed:  # Pearson correlation, over held-out tokens, of log predicted variance with log squared error
+        m = {k: v.cpu() / max(count, 1) for k, v in sums.items() if k.startswith("tok_")}  # (K,) each
+        cov = m["tok_xy"] - m["tok_x"] * m["tok_y"]
+        corr = cov / ((m["tok_xx"] - m["tok_x"] ** 2) * (m["tok_yy"] - m["tok_y"] ** 2)).clamp_min(1e-24).sqrt()
+        out.update({f"spread_corr_h{i + 1}": float(corr[i]) for i in range(horizon)})
+        out = {k: v for k, v in out.items() if not k.startswith("tok_")}
     for k in ("state_pred", "state_true", "state_gap"):  # root-mean-square state errors in mm
         for i in range(horizon):
             if f"{k}_se_h{i + 1}" in out:
@@ -438,6 +471,12 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
     if init is not None:
         config["init"] = str(Path(init).resolve())
         old_dim = _check_init(init, cfg, encoder_info)
+    if train.spread_only:
+        if init is None or old_dim is not None or model.spread_head is None:
+            raise UserError("--spread-only fits a spread head onto a trained model: pass its checkpoint as --init "
+                            "(with the same encoder) and --spread-weight W > 0")
+        for name, p in model.named_parameters():  # the mean predictions stay the --init checkpoint's
+            p.requires_grad_(name.startswith("spread_head."))
 
     def fresh_stats() -> None:
         if init is not None:
@@ -474,7 +513,7 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
 
     def step(m: WorldModelPredictor, b: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, float]]:
         loss, logs = window_loss(m, b, train.horizon, train.gamma, train.loss_form, train.change_weight,
-                                 train.state_weight)
+                                 train.state_weight, train.spread_weight)
         if groups is not None:
             with torch.autocast(dev.type, enabled=False):  # --precision bfloat16: read and stack as stored
                 g = {k: v.to(dev) for k, v in next(groups).items()}
@@ -509,7 +548,8 @@ def _check_init(init: str | Path, cfg: PredictorConfig, encoder_info: dict[str, 
     run grows (:func:`grown_dims`). Returns the start's token size D when it is grown, else None."""
     saved = read_config(checkpoint_dir(init), KIND)
     theirs = to_dict(from_dict(PredictorConfig, saved["predictor"]))  # fields added since it was saved: their defaults
-    theirs.update(state_dim=cfg.state_dim, state_head=cfg.state_head)  # a fine-tune may add (or drop) a state head
+    theirs.update(state_dim=cfg.state_dim, state_head=cfg.state_head,  # a fine-tune may add (or drop) a state head
+                  spread_head=cfg.spread_head)  # or a spread head
     their_encoder = {k: v for k, v in (saved.get("encoder") or {}).items() if k != "path"}
     old_dim = grown_dims(theirs, their_encoder, cfg, encoder_info)
     if old_dim is not None:
