@@ -172,7 +172,7 @@ def test_a_nan_gate_is_refused():
     from wamplan.planning.policy_config import PlannedPolicyConfig
 
     for name in ("gate_threshold", "gate_above"):
-        with pytest.raises(ConfigError, match=f"{name} is NaN"):
+        with pytest.raises(ConfigError, match=f"{name} must be a finite number, got nan"):
             PlannedPolicyConfig(**{name: float("nan")})
 
 
@@ -587,6 +587,54 @@ def test_a_bad_value_is_named_by_its_option(tmp_path, capsys):
     assert not (tmp_path / "e").exists()
 
 
+def test_numbers_that_are_not_finite_are_named_by_their_option_before_any_work(tmp_path, capsys):
+    wm = ["wm", "train", "--data", tmp_path, "--out", tmp_path / "run"]
+    refused(capsys, [*wm, "--spread-weight", "inf"], "error: --spread-weight must be a finite number, got inf")
+    refused(capsys, [*wm, "--lr", "nan"], "error: --lr must be a finite number, got nan")
+    refused(capsys, ["eval", "--conditions", "7", "--out", tmp_path / "e", "--wam", MINI / "tinywam", "--wm-augmented",
+                     MINI / "wm_augmented", "--disagreement-weight", "inf"], "--disagreement-weight must be a finite")
+    refused(capsys, ["eval", "--conditions", "7", "--out", tmp_path / "e", "--wam", MINI / "tinywam", "--wm-augmented",
+                     MINI / "wm_augmented", "--temperature=-inf"], "--temperature must be a finite number")
+    refused(capsys, ["collect", "--source", "expert", "--episodes", "1", "--max-steps", "-4", "--out", tmp_path / "c"],
+            "--max-steps -4 must be at least 1")
+    assert not any(p.exists() for p in (tmp_path / "run", tmp_path / "e", tmp_path / "c"))
+    from wamplan.config import ConfigError
+    from wamplan.planning.policy import PlannedPolicyConfig
+
+    with pytest.raises(ConfigError, match="disagreement_weight must be a finite number, got '1'"):
+        PlannedPolicyConfig(disagreement_weight="1")  # a string from a hand-written call: named, not a TypeError
+
+
+def test_step_limits_below_one_are_refused(tmp_path):
+    from wamplan.envs.config import EnvConfig
+    from wamplan.envs.core import TaskEnv
+    from wamplan.policies.rollout import run_episode
+    import torch
+
+    from wamplan.errors import UserError
+    from wamplan.train_loop import AdamWConfig, fit
+
+    with pytest.raises(UserError, match="--max-steps 0 must be at least 1"):
+        fit(torch.nn.Linear(1, 1), [0] * 4, lambda m, b: (m.weight.sum(), {}), AdamWConfig(batch_size=1),
+            run_dir=tmp_path / "run", kind="k", config={}, max_steps=0)
+    assert not (tmp_path / "run").exists()
+    env = TaskEnv(EnvConfig())
+    try:
+        with pytest.raises(ValueError, match="max_steps must be >= 1"):
+            run_episode(env, None, seed=0, max_steps=0)
+    finally:
+        env.close()
+
+
+def test_report_refuses_a_directory_named_twice(tmp_path, capsys):
+    from wamplan.evaluation.records import append_record
+
+    run = tmp_path / "run"
+    run.mkdir()
+    append_record(run, dict(condition=1, seed=0, variant="open-loop", success=False, outcome="failure", length=10))
+    refused(capsys, ["report", run, f"{run}/"], "is named twice; name each evaluation directory once")
+
+
 def test_a_mistyped_option_gets_the_nearest_one(tmp_path, capsys):
     refused(capsys, ["eval", "--out", tmp_path, "--wm-augmneted", "x"],
             "unrecognized arguments: --wm-augmneted x; did you mean --wm-augmented?")
@@ -641,7 +689,7 @@ def test_report_of_a_condition_the_run_does_not_hold(tmp_path, capsys):
     run = tmp_path / "run"
     run.mkdir()
     append_record(run, dict(condition=1, seed=0, variant="open-loop", success=False, outcome="failure", length=10))
-    refused(capsys, ["report", run, f"{run}:5"], f"{run}:5", "no records of condition(s) [5]", "it has 1")
+    refused(capsys, ["report", tmp_path / "joined", f"{run}:5"], f"{run}:5", "no records of condition(s) [5]", "it has 1")
     (run / "records.jsonl").write_text('{"condition": 1, "seed": 1, "success": true, "outcome": "success"}\n')
     refused(capsys, ["report", run], "record 1 lacks length", "`wamplan eval` writes")  # hand-written: no length
 

@@ -144,4 +144,4 @@ def test_fidelity_refuses_a_spread_weight_without_a_model_that_spreads(refused):
     refused(["wm", "fidelity", "--wam", "checkpoints/mini/tinywam", "--wm", "checkpoints/mini/wm_augmented",
              "--seeds", "500", "--plan-spread-weight", "1"], "--plan-spread-weight", "--spread-weight")
     refused(["wm", "fidelity", "--wam", "checkpoints/mini/tinywam", "--wm", "checkpoints/mini/wm_augmented",
-             "--seeds", "500", "--plan-spread-weight", "0"], "--plan-spread-weight 0 must be above 0")
+             "--seeds", "500", "--plan-spread-weight", "0"], "--plan-spread-weight 0 must be a finite number above 0")

@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import re
 import types
 import typing
@@ -55,6 +56,24 @@ def require(cond: bool, message: str) -> None:
     """Raise ConfigError(message) unless cond holds."""
     if not cond:
         raise ConfigError(message)
+
+
+def check_numbers(cfg: Any) -> None:
+    """Refuse, in one ConfigError naming the field, a value of a number field (``int`` or ``float``, optional or a
+    tuple of them) of the dataclass ``cfg`` that is not a finite number: a string, ``nan`` or ``inf``. Configs call
+    it first in ``__post_init__``; their own checks (ranges, relations) follow."""
+    hints = _hints(type(cfg))
+    for f in dataclasses.fields(cfg):
+        st = _scalar_type(hints[f.name])
+        if st not in (int, float):
+            continue
+        value = getattr(cfg, f.name)
+        for v in value if isinstance(value, tuple) else (value,):
+            if v is None:
+                continue
+            ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+            require(ok or (st is int and isinstance(v, bool)),
+                    f"{type(cfg).__name__}.{f.name} must be a finite number, got {v!r}")
 
 
 def to_dict(cfg: Any) -> dict[str, Any]:

@@ -29,6 +29,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+from wamplan.config import check_numbers
 from wamplan.errors import UserError
 from wamplan.wam.tinywam import TinyWAMConfig
 from wamplan.wam.train import WAMTrainConfig
@@ -67,6 +68,7 @@ class Preset:
     sim_eval_episodes: int
 
     def __post_init__(self) -> None:
+        check_numbers(self)
         counts = (self.expert, self.noisy, self.pink, self.on_policy, self.eval_episodes)
         if min(counts) <= 0 or self.sim_eval_episodes < 0:
             raise UserError(f"preset {self.name}: episode counts must be positive, got {counts}")

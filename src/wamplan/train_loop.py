@@ -38,7 +38,7 @@ from torch.utils.data import DataLoader, Dataset
 
 from wamplan.checkpoint import (CKPT_DIR, CONFIG_FILE, STATE_DIR, has_training_state, load_training_state,
                                 load_weights, read_config, save_checkpoint)
-from wamplan.config import field, require
+from wamplan.config import check_numbers, field, require
 from wamplan.errors import SEED_LIMIT, UserError, checkpoint_kind, require_own_dir
 from wamplan.optim import make_adamw, optimizer_step, warmup_cosine
 from wamplan.progress import progress_bar
@@ -76,6 +76,7 @@ class LoopConfig:
                                       "optimiser stay float32), on a CPU or a GPU")
 
     def __post_init__(self) -> None:
+        check_numbers(self)
         name = type(self).__name__
         for k in ("epochs", "batch_size"):
             v = getattr(self, k)
@@ -102,6 +103,7 @@ class AdamWConfig(LoopConfig):
     betas: tuple[float, ...] = field((0.9, 0.999), "AdamW betas")
 
     def __post_init__(self) -> None:
+        check_numbers(self)
         super().__post_init__()
         require(len(self.betas) == 2 and all(0 <= b < 1 for b in self.betas),
                 f"{type(self).__name__}.betas must be two numbers in [0, 1), got {self.betas}")
@@ -283,6 +285,9 @@ def train(model: nn.Module, batches: Batches, step_fn: StepFn, cfg: LoopConfig, 
     ckpt, metrics_path = run_paths(run)
     device = device or next(model.parameters()).device
     say = log or (lambda _: None)
+    if max_steps is not None and max_steps < 1:
+        raise UserError(f"--max-steps {max_steps} must be at least 1 (optimisation steps in all); drop it to train "
+                        f"every epoch")
     check_run_dir(run)
     bs, n = cfg.batch_size, len(batches)
     steps_per_epoch = n // bs

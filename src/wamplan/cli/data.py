@@ -167,6 +167,8 @@ def cmd_collect(args: argparse.Namespace) -> int:
     from wamplan.parallel import Backend
 
     require_seeds(args.seed_start, args.episodes)
+    if args.max_steps is not None and args.max_steps < 1:
+        raise UserError(f"--max-steps {args.max_steps} must be at least 1; drop it for the task's own limit")
     require_dir(args.out)
     env = from_args(EnvConfig, args)
     env.require_views()  # every episode records the task's views

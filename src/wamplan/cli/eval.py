@@ -160,10 +160,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
     done = {record_key(r) for r in read_records(args.out)}
     total = len(conds) * len(seeds)
     have = sum((c, s, cfg.policy.first_chunk) in done for c in conds for s in seeds)
-    if have:
-        print(f"resuming: {have} of {total} episodes already recorded in {args.out}")
     counts: dict[int, Counter] = {c: Counter() for c in conds}
     records = run_evaluation(cfg, conds, seeds, args.out, workers=args.workers, backend=backend)  # checks inputs
+    if have:  # after the checks: a resume they refuse says only why
+        print(f"resuming: {have} of {total} episodes already recorded in {args.out}")
     bar = progress_bar(total=total, initial=have, desc="eval", unit="ep")
     proxy: Counter = Counter()  # a planning proxy's chunks, by what it did (the WAM is one at --wam-url)
     for rec in records:

@@ -537,8 +537,8 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
     if args.plan_foreground:
         labels += [weighed(lab) for lab, _ in specs]
     for w in args.plan_spread_weight or ():
-        if not w > 0:
-            raise UserError(f"--plan-spread-weight {w:g} must be above 0 (1: the expected cost)")
+        if not 0 < w < float("inf"):
+            raise UserError(f"--plan-spread-weight {w:g} must be a finite number above 0 (1: the expected cost)")
     if args.plan_state_weight is not None and not args.plan_state_weight > 0:
         raise UserError(f"--plan-state-weight {args.plan_state_weight:g} must be above 0 (e.g. 0.05)")
     cost, plan_cost = (_view_cost(flag, weights) for flag, weights in (
@@ -616,6 +616,12 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
         raise UserError("--cost-background-weight weighs nothing without --cost-foreground or --plan-foreground DIR; "
                         "give one of them")
     env = TaskEnv(EnvConfig(task=wam.task.name, camera_size=args.camera_size))
+    last = (env.max_episode_steps - 1) // wam.chunk_length  # the last chunk boundary inside an episode
+    if max(cfg.boundaries) > last:
+        env.close()
+        raise UserError(f"--boundaries {args.boundaries} reaches chunk {max(cfg.boundaries)}, past the episode: task "
+                        f"'{wam.task.name}' ends at step {env.max_episode_steps}, so its last boundary is chunk {last} "
+                        f"(step {last * wam.chunk_length}; a chunk is {wam.chunk_length} steps)")
     if blend:  # the first model's dynamics shared, its prediction moved toward the simulator's with its encoder
         from wamplan.planning.dynamics import BlendedDynamics, SimulatorDynamics
 

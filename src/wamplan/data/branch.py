@@ -24,6 +24,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from wamplan.config import check_numbers
 from wamplan.data.record import STATE_KEYS, collect_one, record_state, stack_state
 from wamplan.data.store import BRANCH_SEED_FACTOR, EpisodeData, EpisodeStore, parent_episode
 from wamplan.envs.core import TaskEnv
@@ -42,6 +43,7 @@ class BranchSpec:
     steps: tuple[int, int] | None = None  # (lo, hi): branch only the boundaries t with lo <= t <= hi
 
     def __post_init__(self):
+        check_numbers(self)
         if self.branches <= 0 or self.chunk <= 0 or self.context_steps < 0 or not self.sigmas:
             raise ValueError(f"invalid branch spec {self}")
         if self.steps is not None and not (len(self.steps) == 2 and 0 <= self.steps[0] <= self.steps[1]):

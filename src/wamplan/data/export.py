@@ -45,7 +45,7 @@ from typing import Any, Iterator
 import h5py
 import numpy as np
 
-from wamplan.config import field, require
+from wamplan.config import check_numbers, field, require
 from wamplan.data.store import IMAGE_COMPRESSION, EpisodeData, EpisodeStore, atomic_h5, source_tag
 from wamplan.envs.spec import TaskSpec
 from wamplan.errors import UserError
@@ -79,6 +79,7 @@ class CosmosExportConfig:
     sources: tuple[str, ...] = field((), "export only these sources (e.g. expert); empty: every episode")
 
     def __post_init__(self) -> None:
+        check_numbers(self)
         require(self.instruction == "" or bool(self.instruction.strip()), "--instruction must not be blank")
         require(self.image_size >= 0, f"--image-size must be >= 0 (0 keeps the store's size), got {self.image_size}")
         require(self.split in SPLITS, f"--split must be one of {list(SPLITS)}, got '{self.split}'")

@@ -32,7 +32,7 @@ from torch import nn
 from torch.utils.data import Dataset, TensorDataset
 
 from wamplan.checkpoint import MODEL_FILE, checkpoint_dir, load_tensors, read_config
-from wamplan.config import field, require, to_dict, with_default
+from wamplan.config import check_numbers, field, require, to_dict, with_default
 from wamplan.encoders.base import ENCODERS, FrozenEncoder, encoder_settings, register_encoder
 from wamplan.errors import UserError
 from wamplan.train_loop import AdamWConfig
@@ -160,6 +160,7 @@ class EncoderTrainConfig(AdamWConfig):
                                      "state read-out's (cm^2); 0 drops it")
 
     def __post_init__(self) -> None:
+        check_numbers(self)
         super().__post_init__()
         require(isinstance(self.width, int) and self.width > 0, f"width must be a positive int, got {self.width}")
         require(self.recon_weight >= 0, f"recon_weight must be >= 0, got {self.recon_weight}")

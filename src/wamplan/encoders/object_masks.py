@@ -26,7 +26,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from wamplan.config import field, require, to_dict, with_default
+from wamplan.config import check_numbers, field, require, to_dict, with_default
 from wamplan.data.foreground import ForegroundFrames
 from wamplan.encoders.base import FrozenEncoder, register_encoder
 from wamplan.encoders.foreground import draw_frame_maps, episode_frames
@@ -129,6 +129,7 @@ class MaskTrainConfig(AdamWConfig):
     width: int = field(64, "channels of the 16 x 16 layers")
 
     def __post_init__(self) -> None:
+        check_numbers(self)
         super().__post_init__()
         require(isinstance(self.width, int) and self.width > 0, f"width must be a positive int, got {self.width}")
 

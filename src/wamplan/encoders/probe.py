@@ -38,7 +38,7 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from wamplan.config import field, require
+from wamplan.config import check_numbers, field, require
 from wamplan.data.alignment import hole_position
 from wamplan.data.store import EpisodeStore, StoreError
 from wamplan.errors import UserError
@@ -58,6 +58,7 @@ class ProbeConfig:
                                  "axis (the alignment regime, where 4 mm matters)")
 
     def __post_init__(self):
+        check_numbers(self)
         require(0 < self.val_fraction < 1, f"val_fraction must be in (0, 1), got {self.val_fraction}")
         require(self.folds >= 2, f"folds must be >= 2, got {self.folds}")
         require(len(self.alphas) > 0 and all(a > 0 for a in self.alphas),

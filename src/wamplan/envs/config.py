@@ -7,7 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from wamplan.config import field, require
+from wamplan.config import check_numbers, field, require
 from wamplan.envs.spec import TASKS, TaskSpec, get_task
 
 # ManiSkill's backend names (mani_skill/envs/utils/system/backend.py); a CUDA one may name a device (cuda:1)
@@ -31,6 +31,7 @@ class EnvConfig:
                                 "(no camera views: state-only rollouts; eval and collect refuse it)")
 
     def __post_init__(self):
+        check_numbers(self)
         get_task(self.task)  # one line naming the registered tasks if unknown
         for flag, name, known in (("--sim-backend", self.sim_backend, SIM_BACKENDS),
                                   ("--render-backend", self.render_backend, RENDER_BACKENDS)):

@@ -7,7 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from wamplan.config import ensemble_members, field, from_dict, require
+from wamplan.config import check_numbers, ensemble_members, field, from_dict, require
 from wamplan.envs.config import EnvConfig
 from wamplan.evaluation.conditions import CONDITIONS
 from wamplan.planning.configs import DEFAULT_PLANNER, PLANNER_CONFIGS
@@ -70,6 +70,7 @@ class EvalConfig:
                            default_factory=_env_default)
 
     def __post_init__(self):
+        check_numbers(self)
         cls = PLANNER_CONFIGS.lookup(self.planner)
         pc = self.planner_config
         pc = cls() if pc is None else from_dict(cls, pc) if isinstance(pc, dict) else pc

@@ -41,7 +41,7 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from wamplan.config import field, require
+from wamplan.config import check_numbers, field, require
 from wamplan.planning.base import IterationStats, Planner, PlanResult, candidate_noise, make_planner
 from wamplan.planning.costs import CostFn, make_cost
 from wamplan.planning.defaults import DEFAULT_PLANNER
@@ -75,6 +75,7 @@ class FidelityConfig:
                              "plan); '' runs the WAM's chunks open loop")
 
     def __post_init__(self):
+        check_numbers(self)
         require(self.num_candidates >= 2, f"num_candidates must be >= 2, got {self.num_candidates}")
         require(self.sigma > 0, f"sigma must be > 0, got {self.sigma}")
         require(self.noise_beta >= 0, f"noise_beta must be >= 0 (0 = white noise), got {self.noise_beta}")

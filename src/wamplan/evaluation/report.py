@@ -403,6 +403,11 @@ def write_report(out_dir: str | Path, more: list[str | Path] = ()) -> dict[str, 
 
     out = Path(out_dir)
     dirs = [out, *(run_spec(m)[0] for m in more)]
+    seen: dict[Path, Path] = {}
+    for d in dirs:
+        first = seen.setdefault(d.resolve(), d)
+        if first is not d:
+            raise UserError(f"{d} is named twice; name each evaluation directory once")
     for d in dirs[1:]:
         if not (d / RECORDS).is_file():
             raise UserError(f"{d} has no evaluation records ({RECORDS}); name directories `wamplan eval` wrote")

@@ -12,7 +12,7 @@ import dataclasses
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from wamplan.config import ConfigError, field, require, with_default
+from wamplan.config import ConfigError, check_numbers, field, require, with_default
 from wamplan.registry import DuplicateName, Registry
 
 if TYPE_CHECKING:
@@ -43,6 +43,7 @@ class SamplingConfig:
         "i.i.d. per step (the paper); 1 = pink; 2 = smooth drifts that move the chunk's endpoint (as in iCEM)")
 
     def __post_init__(self) -> None:
+        check_numbers(self)
         require(self.noise_beta >= 0, f"noise_beta must be >= 0 (0 = white noise), got {self.noise_beta}")
         require(self.num_candidates >= 2, f"num_candidates must be >= 2, got {self.num_candidates}")
         require(self.iterations >= 1, f"iterations must be >= 1, got {self.iterations}; "
@@ -86,6 +87,7 @@ class CEMConfig(SamplingConfig):
                              "1 = sample std as in DINO-WM")
 
     def __post_init__(self) -> None:
+        check_numbers(self)
         super().__post_init__()
         require(self.std_ddof in (0, 1), f"std_ddof must be 0 or 1, got {self.std_ddof}")
         require(self.std_ddof < self.num_elites <= self.num_candidates,
@@ -104,6 +106,7 @@ class MPPIConfig(SamplingConfig):
     update_std: bool = field(True, "refit sigma to the weighted std of the candidates; off = keep sigma0")
 
     def __post_init__(self) -> None:
+        check_numbers(self)
         super().__post_init__()
         require(self.temperature > 0, f"temperature must be > 0, got {self.temperature}")
         require(0.0 <= self.momentum < 1.0, f"momentum must be in [0, 1), got {self.momentum}")
@@ -137,6 +140,7 @@ class DriftConfig(SamplingConfig):
     ridge: float = field(1e-4, "ridge on the response surface's coefficients (stabilises the fit)")
 
     def __post_init__(self) -> None:
+        check_numbers(self)
         super().__post_init__()
         require(self.noise_beta == 0, "drift searches constant per-step offsets; noise_beta does not apply "
                                       f"(got {self.noise_beta}); leave it at 0")
@@ -171,6 +175,7 @@ class CEMGripperConfig(CEMConfig):
         0.3, "categorical refit: p = (1 - s) * elite frequencies + s * previous p (0 = plain CEM refit)")
 
     def __post_init__(self) -> None:
+        check_numbers(self)
         super().__post_init__()
         require(self.gripper_open is None or self.gripper_open != self.gripper_closed,
                 "gripper_open and gripper_closed must differ")

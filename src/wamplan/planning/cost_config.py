@@ -7,7 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Sequence
 
-from wamplan.config import field, require
+from wamplan.config import check_numbers, field, require
 
 COST_NAMES = {"patch", "cls"}  # the names of costs.COSTS, known without importing it (register_cost adds to both)
 
@@ -30,6 +30,7 @@ class CostConfig:
                                      "the target; needs a world model trained with `wm train --state-weight`")
 
     def __post_init__(self) -> None:
+        check_numbers(self)
         require(self.name in COST_NAMES, f"unknown cost '{self.name}'; choose one of {sorted(COST_NAMES)}")
         require(all(w >= 0 for w in self.view_weights) and
                 (not self.view_weights or sum(self.view_weights) > 0),

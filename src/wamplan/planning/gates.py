@@ -13,7 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Callable
 
-from wamplan.config import require
+from wamplan.config import check_numbers, require
 
 SKIPPED = ("gated", "gated-above")  # open-loop reasons of chunks whose search was skipped
 DISCARDED = ("rejected", "rank-gated")  # open-loop reasons of chunks that were searched, the plan then not executed
@@ -29,9 +29,7 @@ class Gates:
     accept_margin: float | None = None
 
     def __post_init__(self):
-        for name, v in (("gate_threshold", self.threshold), ("gate_above", self.above)):
-            require(v is None or v == v, f"{name} is NaN, which no cost passes or fails; give a number (see "
-                                         f"`wamplan gate-calibrate`) or leave it off")
+        check_numbers(self)  # a NaN gate, which no cost passes or fails, is refused here
         require(self.accept_margin is None or 0.0 <= self.accept_margin < 1.0,
                 f"accept_margin must be in [0, 1) or None, got {self.accept_margin}")
         require(self.threshold is None or self.above is None or self.threshold < self.above,

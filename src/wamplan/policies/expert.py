@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from wamplan.config import field, require
+from wamplan.config import check_numbers, field, require
 from wamplan.envs.spec import Observation, TaskSpec
 from wamplan.errors import UserError
 from wamplan.policies.base import Policy, policy_task, register_policy
@@ -74,6 +74,7 @@ class ExpertConfig:
                          "first step, while moving)", choices=TURN_PHASES)
 
     def __post_init__(self):
+        check_numbers(self)
         require(self.turn_in in TURN_PHASES, f"turn_in must be one of {list(TURN_PHASES)}, got {self.turn_in!r}")
         require(self.insert_step > 0, f"insert_step must be > 0, got {self.insert_step}")
         require(0 < self.gain <= 1.5, f"gain must be in (0, 1.5], got {self.gain}")

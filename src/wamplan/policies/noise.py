@@ -14,7 +14,7 @@ from typing import Any
 import colorednoise
 import numpy as np
 
-from wamplan.config import field, require, to_dict
+from wamplan.config import check_numbers, field, require, to_dict
 from wamplan.envs.spec import Observation, TaskSpec
 from wamplan.policies.base import Policy, policy_task, register_policy
 from wamplan.policies.expert import ExpertConfig, ExpertPolicy
@@ -27,6 +27,7 @@ class NoisyExpertConfig:
     seed_offset: int = field(1_000_003, "added to the episode seed for the noise stream")
 
     def __post_init__(self):
+        check_numbers(self)
         require(self.noise_std >= 0, f"noise_std must be >= 0, got {self.noise_std}")
         require(0 <= self.gripper_flip_prob <= 1, f"gripper_flip_prob must be in [0, 1], got {self.gripper_flip_prob}")
 
@@ -75,6 +76,7 @@ class PinkNoiseConfig:
     seed_offset: int = field(2_000_003, "added to the episode seed for the noise stream")
 
     def __post_init__(self):
+        check_numbers(self)
         require(self.scale >= 0, f"scale must be >= 0, got {self.scale}")
         require(self.horizon is None or self.horizon > 0, f"horizon must be > 0, got {self.horizon}")
 

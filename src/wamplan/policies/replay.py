@@ -13,7 +13,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-from wamplan.config import field, require, to_dict
+from wamplan.config import check_numbers, field, require, to_dict
 from wamplan.envs.spec import Observation, TaskSpec
 from wamplan.errors import UserError
 from wamplan.policies.base import Policy, register_policy
@@ -34,6 +34,7 @@ class DemoReplayConfig:
     noise_std: float = field(0.0, "std of white Gaussian noise added to the arm's entries of every action")
 
     def __post_init__(self):
+        check_numbers(self)
         require(self.noise_std >= 0, f"--noise-std must be >= 0, got {self.noise_std}")
 
 

@@ -46,7 +46,9 @@ def run_episode(env: TaskEnv, policy: Policy, seed: int, *, images_at: Callable[
     if isinstance(task, TaskSpec):
         check_same_task(env.task.name, task.name, f"the policy ({type(policy).__name__})",
                         f"run it in make_env(task='{task.name}') or use a policy made for '{env.task.name}'")
-    limit = min(max_steps or env.max_episode_steps, env.max_episode_steps)
+    if max_steps is not None and max_steps < 1:
+        raise ValueError(f"max_steps must be >= 1 (or None: the env's limit), got {max_steps}")
+    limit = env.max_episode_steps if max_steps is None else min(max_steps, env.max_episode_steps)
     t0 = time.perf_counter()
     want = (lambda t: policy.wants_images(t) or (images_at is not None and images_at(t)))
     policy.reset(seed)

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import urlparse, urlunparse
 
-from wamplan.config import field, require
+from wamplan.config import check_numbers, field, require
 from wamplan.errors import UserError
 from wamplan.evaluation.config import WM_DTYPES, profile_names
 from wamplan.wam import protocol
@@ -52,6 +52,7 @@ class ProxyConfig:
                                      "computed in float32 either way", choices=WM_DTYPES)
 
     def __post_init__(self) -> None:
+        check_numbers(self)
         require(bool(self.upstream), "--upstream: name the WAM to plan for (an /act URL or a WAM checkpoint)")
         require("://" not in self.upstream or self.upstream_is_url,
                 f"--upstream {self.upstream}: only http:// and https:// URLs are reached (e.g. "

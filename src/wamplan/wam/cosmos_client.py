@@ -45,7 +45,7 @@ import numpy as np
 import requests
 import urllib3
 
-from wamplan.config import ConfigError, field, require, to_dict
+from wamplan.config import ConfigError, check_numbers, field, require, to_dict
 from wamplan.envs.spec import TASKS, Observation, get_task
 from wamplan.wam import protocol
 from wamplan.wam.base import WAM, WAMError, WAMOutput, WAMOutputError, WAMServerError, register_wam
@@ -106,6 +106,7 @@ class CosmosClientConfig:
         "plan with a world model whose frameskip is shorter than the chunk (4 8 12 for the shipped one); empty: none")
 
     def __post_init__(self) -> None:
+        check_numbers(self)
         get_task(self.task)  # one line naming the registered tasks if unknown
         require(self.url.startswith(("http://", "https://")),
                 f"{_flag('url')} must be an http(s) URL such as http://127.0.0.1:8777/act, got '{self.url}'")

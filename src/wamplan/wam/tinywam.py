@@ -35,7 +35,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from wamplan.config import ConfigError, field, from_dict, require, to_dict
+from wamplan.config import ConfigError, check_numbers, field, from_dict, require, to_dict
 from wamplan.envs.spec import Observation, TaskSpec, get_task
 from wamplan.wam.base import LEGACY_TASK, WAM, WAMError, WAMOutput, register_wam, register_wam_loader
 
@@ -60,6 +60,7 @@ class TinyWAMConfig:
     residual: bool = field(True, "predict the future views as a change of the current views (else directly)")
 
     def __post_init__(self) -> None:
+        check_numbers(self)
         n = len(self.channels)
         require(n >= 1 and all(isinstance(c, int) and c > 0 for c in self.channels),
                 f"TinyWAMConfig.channels must be positive ints, e.g. 16 32 64 128; got {self.channels}")

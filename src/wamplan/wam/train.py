@@ -28,7 +28,7 @@ import torch.nn.functional as F
 from torch.utils.data import DataLoader
 
 from wamplan.checkpoint import CONFIG_FILE, CheckpointError, has_training_state, load_weights, read_config
-from wamplan.config import field, from_dict, require, to_dict, with_default
+from wamplan.config import check_numbers, field, from_dict, require, to_dict, with_default
 from wamplan.device import resolve_device
 from wamplan.errors import UserError
 from wamplan.train_loop import (LoopConfig, check_resume, check_run_dir, evaluating, fit, read_metrics, run_paths,
@@ -56,6 +56,7 @@ class WAMTrainConfig(LoopConfig):
     device: str = field("auto", "torch device: auto, cpu, cuda, cuda:1, mps, ...")
 
     def __post_init__(self) -> None:
+        check_numbers(self)
         super().__post_init__()
         require(self.image_weight >= 0, f"WAMTrainConfig.image_weight must be >= 0, got {self.image_weight}")
         require(self.image_loss in IMAGE_LOSSES,

@@ -11,7 +11,8 @@ import typing
 from dataclasses import dataclass
 from typing import Any
 
-from wamplan.config import ConfigError, add_field_argument, as_options, field, preset_default_text, require
+from wamplan.config import (ConfigError, add_field_argument, as_options, check_numbers, field, preset_default_text,
+                            require)
 from wamplan.train_loop import AdamWConfig
 
 ACTION_CONDITIONING = ("input", "adaln")  # PredictorConfig.action_conditioning
@@ -68,6 +69,7 @@ class PredictorConfig:
                                      "cost with --disagreement-weight (the expected cost at weight 1)")
 
     def __post_init__(self) -> None:
+        check_numbers(self)
         for name in ("num_views", "num_patches", "enc_dim", "proprio_dim", "action_dim", "frameskip",
                      "context", "depth", "heads", "head_dim", "mlp_dim", "proprio_emb", "action_emb"):
             v = getattr(self, name)
@@ -147,6 +149,7 @@ class DecoderConfig:
     head_channels: int = field(128, "channels of the first upsampling stage (halved each stage, min 16)")
 
     def __post_init__(self) -> None:
+        check_numbers(self)
         for name in ("num_patches", "enc_dim", "image_size", "width", "depth", "heads", "mlp_dim",
                      "head_channels"):
             v = getattr(self, name)
@@ -214,8 +217,9 @@ class TrainConfig(AdamWConfig):
                                      "model's mean predictions stay the --init checkpoint's, bit for bit")
 
     def __post_init__(self) -> None:
+        check_numbers(self)
         super().__post_init__()
-        require(self.spread_weight >= 0 and self.spread_weight == self.spread_weight,
+        require(self.spread_weight >= 0,
                 f"TrainConfig.spread_weight must be a number >= 0 (0: off), got {self.spread_weight}")
         require(not self.spread_only or self.spread_weight > 0,
                 "TrainConfig.spread_only trains the spread head alone, so it needs spread_weight > 0")
@@ -227,13 +231,13 @@ class TrainConfig(AdamWConfig):
         require(self.sibling_weight >= 0, f"TrainConfig.sibling_weight must be >= 0, got {self.sibling_weight}")
         require(self.sibling_horizon >= 1, f"TrainConfig.sibling_horizon must be >= 1, got {self.sibling_horizon}")
         require(self.sibling_groups >= 1, f"TrainConfig.sibling_groups must be >= 1, got {self.sibling_groups}")
-        require(self.rank_weight >= 0 and self.rank_weight == self.rank_weight,
+        require(self.rank_weight >= 0,
                 f"TrainConfig.rank_weight must be a number >= 0 (0: off), got {self.rank_weight}")
         require((self.rank_weight > 0) == bool(self.rank_wam),
                 f"TrainConfig.rank_weight {self.rank_weight} and rank_wam {self.rank_wam!r} go together: the ranking "
                 f"loss needs the WAM that gives its targets, and that WAM is used by the ranking loss only")
         require(self.rank_temperature > 0, f"TrainConfig.rank_temperature must be > 0, got {self.rank_temperature}")
-        require(self.state_weight >= 0 and self.state_weight == self.state_weight,
+        require(self.state_weight >= 0,
                 f"TrainConfig.state_weight must be a number >= 0 (0: off), got {self.state_weight}")
         require(self.change_weight >= 0, f"TrainConfig.change_weight must be >= 0 (0: off), got {self.change_weight}")
 
