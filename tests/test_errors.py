@@ -605,6 +605,13 @@ def test_numbers_that_are_not_finite_are_named_by_their_option_before_any_work(t
         PlannedPolicyConfig(disagreement_weight="1")  # a string from a hand-written call: named, not a TypeError
 
 
+def test_a_chunk_rule_for_conditions_that_plan_nothing_is_refused(tmp_path, capsys):
+    refused(capsys, ["eval", "--conditions", "1", "--episodes", "1", "--out", tmp_path / "e", "--wam", MINI / "tinywam",
+                     "--disagreement-weight", "1"], "--disagreement-weight sets how the planned policy plans",
+            "conditions [1] plan nothing")
+    assert not (tmp_path / "e").exists()  # nothing stored that a later run with planning conditions would trip on
+
+
 def test_step_limits_below_one_are_refused(tmp_path):
     from wamplan.envs.config import EnvConfig
     from wamplan.envs.core import TaskEnv
