@@ -49,6 +49,7 @@ def test_eval_conditions_1_and_6_then_resume_and_report(run, capsys):
     assert main(["report", str(run / "eval")]) == 0
     assert (run / "eval" / "figure3.png").is_file()
     other = [*args[:-4], "--num-candidates", "8", "--iterations", "1"]
+    capsys.readouterr()
     assert main(other) == 2
     said = capsys.readouterr()
     assert "other settings" in said.err and "resuming" not in said.out  # the refusal alone, no resume announced

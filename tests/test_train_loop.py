@@ -146,7 +146,7 @@ def test_trainer_configs_share_one_base_and_read_the_shipped_checkpoints():
         if name in ("tinywam", "wm_augmented"):  # saved by the current code: the same keys, no more (but fields
             newer = {"precision": "float32"}  # added since, whose defaults change nothing the checkpoint did)
             newer |= {"change_weight": 0, "state_weight": 0, "rank_weight": 0, "rank_wam": "",
-                      "rank_temperature": 0.1} if name == "wm_augmented" else {}
+                      "rank_temperature": 0.1, "spread_weight": 0, "spread_only": False} if name == "wm_augmented" else {}
             assert set(to_dict(cls())) - set(newer) == set(saved), name
             assert all(getattr(cls(), k) == v for k, v in newer.items()), name
     parser = argparse.ArgumentParser()

@@ -14,6 +14,7 @@ import argparse
 import dataclasses
 import json
 import math
+import numbers
 import re
 import types
 import typing
@@ -58,10 +59,11 @@ def require(cond: bool, message: str) -> None:
         raise ConfigError(message)
 
 
-def check_numbers(cfg: Any) -> None:
+def check_numbers(cfg: Any, infinite: tuple[str, ...] = ()) -> None:
     """Refuse, in one ConfigError naming the field, a value of a number field (``int`` or ``float``, optional or a
-    tuple of them) of the dataclass ``cfg`` that is not a finite number: a string, ``nan`` or ``inf``. Configs call
-    it first in ``__post_init__``; their own checks (ranges, relations) follow."""
+    tuple of them) of the dataclass ``cfg`` that is not a finite number: a string, ``nan`` or ``inf`` (``infinite``
+    names the fields where ±inf means something, e.g. a gate every cost passes). Configs call it first in
+    ``__post_init__``; their own checks (ranges, relations) follow."""
     hints = _hints(type(cfg))
     for f in dataclasses.fields(cfg):
         st = _scalar_type(hints[f.name])
@@ -71,7 +73,8 @@ def check_numbers(cfg: Any) -> None:
         for v in value if isinstance(value, tuple) else (value,):
             if v is None:
                 continue
-            ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+            ok = (isinstance(v, numbers.Real) and not isinstance(v, bool)  # numpy's numbers too
+                  and (math.isfinite(v) or (f.name in infinite and not math.isnan(v))))
             require(ok or (st is int and isinstance(v, bool)),
                     f"{type(cfg).__name__}.{f.name} must be a finite number, got {v!r}")
 

@@ -29,7 +29,7 @@ import queue
 from dataclasses import dataclass
 from typing import Any, Callable, Iterator, TypeVar
 
-from wamplan.config import check_numbers, require
+from wamplan.config import require
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -46,7 +46,6 @@ class Backend:
     retries: int = 3  # ray: restarts of a dead actor, and retries of the item it was running
 
     def __post_init__(self):
-        check_numbers(self)
         require(self.kind in BACKENDS, f"backend must be one of {BACKENDS}, got '{self.kind}'")
         require(self.retries >= 0, f"retries must be >= 0, got {self.retries}")
         require(self.kind == "ray" or not self.address, "an address is only for the ray backend; pass --ray ADDRESS")

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from wamplan.config import check_numbers, field, require
+from wamplan.config import field, require
 from wamplan.registry import Registry
 
 @dataclass
@@ -74,7 +74,6 @@ class TaskSpec:
                                                       "pairs (the cube's align_xy_tol, say)")
 
     def __post_init__(self):
-        check_numbers(self)
         require(self.action_dim > 0 and self.proprio_dim > 0, f"task {self.name}: action_dim and proprio_dim "
                                                               f"must be > 0")
         require(len(self.cameras) > 0 and len(set(self.cameras)) == len(self.cameras),

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from wamplan.config import check_numbers, require
+from wamplan.config import require
 from wamplan.planning.gates import DISCARDED, SKIPPED
 
 OPEN_LOOP = ("first-chunk", "warm-up", *SKIPPED, *DISCARDED)  # why a chunk runs the WAM's actions
@@ -52,7 +52,6 @@ class ChunkDecision:
     timings: ChunkTimings = ChunkTimings()
 
     def __post_init__(self):
-        check_numbers(self)
         require(self.reason is None or self.reason in OPEN_LOOP, f"reason must be None or one of {OPEN_LOOP}, "
                 f"got {self.reason!r}")
         require(self.reason is not None or self.plan is not None, "a chunk without an open-loop reason needs a plan")

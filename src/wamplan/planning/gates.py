@@ -29,7 +29,7 @@ class Gates:
     accept_margin: float | None = None
 
     def __post_init__(self):
-        check_numbers(self)  # a NaN gate, which no cost passes or fails, is refused here
+        check_numbers(self, infinite=("threshold", "above"))  # a NaN gate, which no cost passes or fails: refused
         require(self.accept_margin is None or 0.0 <= self.accept_margin < 1.0,
                 f"accept_margin must be in [0, 1) or None, got {self.accept_margin}")
         require(self.threshold is None or self.above is None or self.threshold < self.above,

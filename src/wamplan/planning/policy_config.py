@@ -65,7 +65,7 @@ class PlannedPolicyConfig:
                                    "clipped to the action bounds; 1 = the plan")
 
     def __post_init__(self):
-        check_numbers(self)
+        check_numbers(self, infinite=("gate_threshold", "gate_above"))
         require(self.first_chunk in FIRST_CHUNKS, f"first_chunk must be one of {FIRST_CHUNKS}, got {self.first_chunk!r}")
         require(self.warm_start in WARM_STARTS, f"warm_start must be one of {WARM_STARTS}, got {self.warm_start!r}")
         require(0.0 <= self.warm_weight <= 1.0, f"warm_weight must be in [0, 1], got {self.warm_weight}")
