@@ -603,13 +603,18 @@ def test_numbers_that_are_not_finite_are_named_by_their_option_before_any_work(t
 
     with pytest.raises(ConfigError, match="disagreement_weight must be a finite number, got '1'"):
         PlannedPolicyConfig(disagreement_weight="1")  # a string from a hand-written call: named, not a TypeError
+    import numpy as np
+    import torch
 
+    from wamplan.planning.cost_config import CostConfig
+    from wamplan.worldmodel.config import TrainConfig
 
-def test_a_chunk_rule_for_conditions_that_plan_nothing_is_refused(tmp_path, capsys):
-    refused(capsys, ["eval", "--conditions", "1", "--episodes", "1", "--out", tmp_path / "e", "--wam", MINI / "tinywam",
-                     "--disagreement-weight", "1"], "--disagreement-weight sets how the planned policy plans",
-            "conditions [1] plan nothing")
-    assert not (tmp_path / "e").exists()  # nothing stored that a later run with planning conditions would trip on
+    assert CostConfig(view_weights=[0, 0, 1]).view_weights == [0, 0, 1]  # lists, arrays and 0-d tensors are numbers
+    assert float(TrainConfig(lr=torch.tensor(1e-3)).lr) == pytest.approx(1e-3) and TrainConfig(lr=np.float32(1)).lr
+    with pytest.raises(ConfigError, match=r"view_weights must be finite numbers, got nan in \(0, nan, 1\)"):
+        CostConfig(view_weights=(0, float("nan"), 1))
+    refused(capsys, ["wm", "fidelity", "--wam", "w", "--wm", "x=y", "--seeds", "1", "--sigma", "nan"],
+            "--sigma must be a finite number, got nan")
 
 
 def test_step_limits_below_one_are_refused(tmp_path):

@@ -122,12 +122,13 @@ def test_spread_only_fits_a_head_onto_a_checkpoint_and_keeps_its_means(expert_st
     shutil.copytree(expert_store, store)
     base = tmp_path / "base"
     args = ["wm", "train", "--data", str(store), "--epochs", "1", "--batch-size", "8", "--log-every-steps", "1"]
-    assert main([*args, "--out", str(base)]) == 0
+    assert main([*args, "--out", str(base), "--state-weight", "0.5", "--state-head", "ridge"]) == 0
     run = tmp_path / "spread"
     assert main([*args, "--out", str(run), "--spread-weight", "1", "--spread-only", "--init",
                  str(base / "checkpoint")]) == 0
     tuned, start = load_predictor(run), load_predictor(base)
     assert tuned.cfg.spread_head and tuned.spread_head is not None and start.spread_head is None
+    assert tuned.state_head is not None and tuned.cfg.state_head == "ridge"  # the init's state head, kept as it was
     own = tuned.state_dict()
     assert {k for k in own if not k.startswith("spread_head.")} == set(start.state_dict())
     for k, v in start.state_dict().items():  # frozen: the --init checkpoint's weights, bit for bit
@@ -138,6 +139,8 @@ def test_spread_only_fits_a_head_onto_a_checkpoint_and_keeps_its_means(expert_st
     assert val and val[-1]["val/spread_ratio_h2"] > 0 and -1 <= val[-1]["val/spread_corr_h2"] <= 1
     refused([*args, "--out", tmp_path / "alone", "--spread-weight", "1", "--spread-only"], "--spread-only", "--init")
     refused([*args, "--out", tmp_path / "unweighed", "--spread-only"], "--spread-weight")
+    refused([*args, "--out", tmp_path / "both", "--spread-weight", "1", "--spread-only", "--state-weight", "0.5",
+             "--init", base / "checkpoint"], "--spread-only", "--state-weight", "drop them")
 
 
 def test_fidelity_refuses_a_spread_weight_without_a_model_that_spreads(refused):

@@ -64,19 +64,25 @@ def check_numbers(cfg: Any, infinite: tuple[str, ...] = ()) -> None:
     tuple of them) of the dataclass ``cfg`` that is not a finite number: a string, ``nan`` or ``inf`` (``infinite``
     names the fields where ±inf means something, e.g. a gate every cost passes). Configs call it first in
     ``__post_init__``; their own checks (ranges, relations) follow."""
-    hints = _hints(type(cfg))
+    try:
+        hints = _hints(type(cfg))
+    except NameError:  # an annotation only a type checker resolves (a plugin's): its fields go unchecked here
+        return
     for f in dataclasses.fields(cfg):
         st = _scalar_type(hints[f.name])
         if st not in (int, float):
             continue
         value = getattr(cfg, f.name)
-        for v in value if isinstance(value, tuple) else (value,):
+        many = isinstance(value, (tuple, list)) or getattr(value, "ndim", 0) > 0  # a sequence, array or tensor
+        for v in value if many else (value,):
             if v is None:
                 continue
+            v = v.item() if getattr(v, "ndim", None) == 0 and hasattr(v, "item") else v  # 0-d array or tensor
             ok = (isinstance(v, numbers.Real) and not isinstance(v, bool)  # numpy's numbers too
                   and (math.isfinite(v) or (f.name in infinite and not math.isnan(v))))
             require(ok or (st is int and isinstance(v, bool)),
-                    f"{type(cfg).__name__}.{f.name} must be a finite number, got {v!r}")
+                    f"{type(cfg).__name__}.{f.name} must be {'finite numbers' if many else 'a finite number'}, "
+                    f"got {v!r}{f' in {value!r}' if many else ''}")
 
 
 def to_dict(cfg: Any) -> dict[str, Any]:

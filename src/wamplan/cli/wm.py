@@ -7,7 +7,7 @@ import json
 from collections import Counter
 from pathlib import Path
 
-from wamplan.config import Once, add_arguments, ensemble_members, from_args, int_list
+from wamplan.config import ConfigError, Once, add_arguments, as_options, ensemble_members, from_args, int_list
 from wamplan.errors import UserError, require_dir, require_file, require_paths, require_seeds
 from wamplan.cli.foreground import foreground_options, masks_options
 from wamplan.cli.main import add_command, add_group, register_command
@@ -512,11 +512,15 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
     from wamplan.wam import load_wam
     from wamplan.worldmodel.train import load_world_model
 
-    cfg = FidelityConfig(num_candidates=args.candidates, sigma=args.sigma, noise_beta=args.noise_beta,
-                         top_k=args.top_k,
-                         boundaries=tuple(int_list(args.boundaries, "--boundaries", example="2-8 or 2,5,8")),
-                         seed=args.sample_seed,
-                         plan=args.plan, execute=args.execute)
+    flags = dict(num_candidates="--candidates", sigma="--sigma", noise_beta="--noise-beta", top_k="--top-k",
+                 boundaries="--boundaries", seed="--sample-seed")
+    try:
+        cfg = FidelityConfig(num_candidates=args.candidates, sigma=args.sigma, noise_beta=args.noise_beta,
+                             top_k=args.top_k,
+                             boundaries=tuple(int_list(args.boundaries, "--boundaries", example="2-8 or 2,5,8")),
+                             seed=args.sample_seed, plan=args.plan, execute=args.execute)
+    except ConfigError as e:  # named by the options, as from_args names them
+        raise UserError(as_options(str(e), "FidelityConfig", flags)) from None
     seeds = int_list(args.seeds, "--seeds")
     for seed in (min(seeds), max(seeds)):
         require_seeds(seed, flag="--seeds")

@@ -131,14 +131,6 @@ class EvalConfig:
             from wamplan.planning.policy_config import check_settings
 
             check_settings(self.policy, spec.chunk_len, self.task_planner_config)  # the planner fits the task
-        else:  # a chunk rule set for conditions that plan nothing would only be stored, and bind a resume to it
-            default = PlannedPolicyConfig()
-            moved = sorted("--" + k.replace("_", "-") for k in vars(default)
-                           if getattr(self.policy, k) != getattr(default, k))
-            if moved:
-                raise UserError(f"{', '.join(moved)} {'sets' if len(moved) == 1 else 'set'} how the planned policy "
-                                f"plans, but conditions {conditions} plan nothing; add a planning condition (2-7) or "
-                                f"drop {'it' if len(moved) == 1 else 'them'}")
         if self.oracle_blend > 0 and not any(CONDITIONS[c].learned for c in conditions):
             raise UserError(f"--oracle-blend blends a world model's predictions, but conditions {conditions} plan in "
                             "none; add condition 6 or 7, or drop --oracle-blend")

@@ -9,9 +9,10 @@ actions the backend's rollout covers (``covered``): Δ·⌊H/Δ⌋ for the learn
   of the predictor; the context frames before the current one are encoded once per chunk (batch 1) and
   shared by every candidate and every CEM iteration.
   A predictor with a spread head (``wm train --spread-weight``) also gives, through ``predict``, its predicted
-  variance of the terminal tokens, averaged over views, patches and dims (the units of the patch cost): the
-  planned policy adds it to the cost with ``disagreement_weight``, and at weight 1 the cost is the expected
-  squared distance to the target under the model's Gaussian, not the mean's.
+  variance of the terminal tokens, averaged over views, patches and dims (the units of the plain patch cost): the
+  planned policy adds it to the cost with ``disagreement_weight``, and at weight 1 the plain patch cost becomes its
+  expected value under the model's Gaussian (with view weights, pooling, a foreground or the cls cost the term is a
+  penalty in the plain cost's units, not that cost's expectation).
 * :class:`EnsembleDynamics` holds several learned world models (checkpoints, or seeds of one recipe): it
   predicts their mean and, through ``predict``, their disagreement, the variance across members averaged
   over views, patches and dims, plus the mean of the members' own predicted variances where they have spread

@@ -51,7 +51,7 @@ class PlannedPolicyConfig:
     warm_weight: float = field(0.5, "with warm_start=residual: the share of the previous correction carried over")
     disagreement_weight: float = field(0.0, "add this times the prediction's spread to the cost: an ensemble's "
                                        "disagreement plus its members' predicted variances, or one model's "
-                                       "predicted variance (a spread head: at 1 the cost is the expected one); "
+                                       "predicted variance (a spread head: at 1 the plain patch cost's expectation); "
                                        "0 = off")
     accept_margin: float | None = field(None, "run the plan only if its cost is at least this fraction below the "
                                         "WAM chunk's, else the WAM's chunk; None = always the plan")

@@ -65,8 +65,10 @@ class PredictorConfig:
                                    "started from a ridge fit on the training set's true latents before training)")
     spread_head: bool = field(False, "also predict, from the same hidden state, each token dim's log-variance of the "
                                      "prediction's error (a heteroscedastic Gaussian around the mean prediction); set "
-                                     "by `wm train --spread-weight`; the planner adds the predicted variance to its "
-                                     "cost with --disagreement-weight (the expected cost at weight 1)")
+                                     "by `wm train --spread-weight`; the planner adds the predicted variance, pooled "
+                                     "over views, patches and dims, to its cost with --disagreement-weight (at weight "
+                                     "1 the expected value of the plain patch cost; with view weights, pooling, a "
+                                     "foreground or the cls cost, a penalty in the plain cost's units)")
 
     def __post_init__(self) -> None:
         check_numbers(self)
@@ -211,10 +213,12 @@ class TrainConfig(AdamWConfig):
 
     spread_weight: float = field(0.0, "weight of the spread head's loss (0: off, no head): the Gaussian negative "
                                       "log-likelihood of each predicted token's error under the head's predicted "
-                                      "variance, the mean prediction held fixed in it (the mean readout learns from "
-                                      "eq. 2 alone; the shared blocks from both, unless --spread-only)")
-    spread_only: bool = field(False, "train the spread head alone (every other weight frozen, from --init): the "
-                                     "model's mean predictions stay the --init checkpoint's, bit for bit")
+                                      "variance, each step's own mean prediction held fixed in it (the shared blocks, "
+                                      "and through the predictions fed back to later steps the readout, learn from it "
+                                      "too, unless --spread-only)")
+    spread_only: bool = field(False, "train the spread head alone (every other weight frozen, from --init, a state "
+                                     "head included): the model's mean predictions stay the --init checkpoint's, bit "
+                                     "for bit; no other loss applies")
 
     def __post_init__(self) -> None:
         check_numbers(self)
@@ -223,6 +227,9 @@ class TrainConfig(AdamWConfig):
                 f"TrainConfig.spread_weight must be a number >= 0 (0: off), got {self.spread_weight}")
         require(not self.spread_only or self.spread_weight > 0,
                 "TrainConfig.spread_only trains the spread head alone, so it needs spread_weight > 0")
+        others = [k for k in ("state_weight", "sibling_weight", "rank_weight", "change_weight") if getattr(self, k)]
+        require(not (self.spread_only and others), f"TrainConfig.spread_only trains the spread head alone, which "
+                                                   f"{', '.join(others)} cannot reach; drop them")
         require(self.horizon >= 1, f"TrainConfig.horizon (K) must be >= 1, got {self.horizon}")
         require(0.0 < self.gamma <= 1.0, f"TrainConfig.gamma must be in (0, 1], got {self.gamma}")
         require(self.loss_form in ("mean", "sum"), f"TrainConfig.loss_form must be mean or sum, got {self.loss_form!r}")

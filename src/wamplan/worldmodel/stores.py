@@ -151,6 +151,12 @@ def train_predictor_on_stores(stores: Sequence[str | Path], out: str | Path, pre
     predictor = predictor_for_task(predictor, task, cameras)
     predictor = dataclasses.replace(predictor, state_dim=len(STATE_QUANTITIES) if train.state_weight > 0 else 0,
                                     spread_head=train.spread_weight > 0)
+    if train.spread_only and init is not None:  # the head joins the --init model as it is, its state head included
+        from wamplan.checkpoint import checkpoint_dir, read_config
+
+        saved = read_config(checkpoint_dir(init), KIND)["predictor"]
+        predictor = dataclasses.replace(predictor, state_dim=saved.get("state_dim", 0),
+                                        state_head=saved.get("state_head", predictor.state_head))
     if train.rank_weight > 0 and group_targets is None:
         raise UserError(f"--rank-weight {train.rank_weight} needs each branch group's target: pass group_targets "
                         f"(wam.targets.group_targets with the WAM of --rank-wam)")

@@ -100,8 +100,8 @@ def state_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], zp: t
 def spread_terms(model: WorldModelPredictor, zp: torch.Tensor, zt: torch.Tensor, log_var: torch.Tensor
                  ) -> dict[str, torch.Tensor]:
     """Per sample and step (B, K): the spread head's Gaussian negative log-likelihood of the prediction's error
-    (normalised units, constant dropped; the mean zp is detached, so the mean readout does not learn from it),
-    the variance
+    (normalised units, constant dropped; each step's own mean zp is detached here, the predictions of earlier steps
+    fed back into it are not), the variance
     ratio (squared error over predicted variance; 1 when calibrated), and, per token (mean over dims), the
     predicted variance and the squared error (B, K, V, N), for their correlation. zp, zt, log_var (B, K, V, N, D)."""
     r2 = ((zt.float() - zp.detach().float()) / model.z_std).pow(2)  # (B, K, V, N, D)
@@ -490,8 +490,8 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
         else:
             mean, std = compute_feature_stats(train_set, seed=train.seed)
             model.set_feature_stats(mean, std)
-        if model.state_head is not None and cfg.state_head == "ridge":
-            fit_state_head(model, train_set, seed=train.seed)
+        if model.state_head is not None and cfg.state_head == "ridge" and not train.spread_only:
+            fit_state_head(model, train_set, seed=train.seed)  # with --spread-only the --init's head is kept
 
     def evaluate(m: torch.nn.Module) -> dict[str, float]:
         out = evaluate_predictor(m, val_set, train.horizon, train.gamma,  # type: ignore[arg-type]
