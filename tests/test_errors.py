@@ -695,6 +695,17 @@ def test_env_check_names_a_broken_vk_icd_filenames(tmp_path, monkeypatch, capsys
     refused(capsys, ["env", "check"], "VK_ICD_FILENAMES=", "cannot be read as JSON")
 
 
+def test_an_option_another_command_names_otherwise_is_answered_with_this_commands_name(tmp_path, capsys):
+    refused(capsys, ["serve", "--wam", MINI / "tinywam", "--world-model", MINI / "wm_augmented"],
+            "unrecognized arguments: --wam; this command names it --upstream")
+    refused(capsys, ["wm", "eval", "--wm", MINI / "wm_augmented", "--data", tmp_path],  # not "--ckpt is required"
+            "unrecognized arguments: --wm; this command names it --ckpt")
+    refused(capsys, ["wam", "serve", "--wam", MINI / "tinywam"], "this command names it --ckpt")
+    refused(capsys, ["eval", "--ckpt", "x", "--out", tmp_path / "e"], "this command names it --wam or --wm-augmented")
+    refused(capsys, ["wam", "serve", "--ckpt", "x", "--max-request-bytes", "5"],
+            "this command names it --max-request-mb (in its own units)")
+
+
 def test_report_of_a_condition_the_run_does_not_hold(tmp_path, capsys):
     from wamplan.evaluation.records import append_record
 

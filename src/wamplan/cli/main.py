@@ -93,6 +93,9 @@ class _LazySubParsers(argparse._SubParsersAction):
         sub = self.build(name, asks_help=_asks_help(rest))
         if self.dest is not argparse.SUPPRESS:
             setattr(namespace, self.dest, name)
+        renamed = _named_otherwise(rest, sub)  # before argparse, whose "required" error would hide the reason
+        if renamed:
+            sub.error(renamed)
         subnamespace, extras = sub.parse_known_args(rest, None)
         for key, value in vars(subnamespace).items():
             setattr(namespace, key, value)
@@ -100,13 +103,41 @@ class _LazySubParsers(argparse._SubParsersAction):
             sub.error(f"unrecognized arguments: {' '.join(extras)}{_did_you_mean(extras, sub)}")
 
 
+# Options that name one thing in different commands (a WAM; a world model; a request size): a command that lacks
+# the one given but takes another of its group says so (``--ckpt`` is a WAM in `wam serve`, a world model in `wm eval`).
+SYNONYMS = (("--wam", "--upstream", "--ckpt", "--policy"),
+            ("--wm-augmented", "--world-model", "--wm", "--ckpt", "--plan-with"),
+            ("--max-request-mb", "--max-request-bytes"))
+
+
+def _usage_flags(parser: argparse.ArgumentParser) -> set[str]:
+    """The options ``parser`` takes, read from its usage line (which lists each once, and no prose)."""
+    import re
+
+    return set(re.findall(r"(?<![\w-])--[a-z][\w-]*[a-z0-9]", parser.format_usage()))
+
+
+def _named_otherwise(args: list[str], parser: argparse.ArgumentParser) -> str:
+    """For the first option in ``args`` that ``parser`` lacks but names by a synonym (:data:`SYNONYMS`): the error
+    line that says so ('unrecognized arguments: --wam; this command names it --upstream'); else ''."""
+    known = _usage_flags(parser)
+    for arg in args:
+        flag = arg.split("=")[0]
+        if not flag.startswith("--") or flag in known:
+            continue
+        names = sorted({s for group in SYNONYMS if flag in group for s in group if s in known})
+        if names:
+            units = " (in its own units)" if "--max-request-mb" in (flag, *names) else ""
+            return f"unrecognized arguments: {flag}; this command names it {' or '.join(names)}{units}"
+    return ""
+
+
 def _did_you_mean(extras: list[str], parser: argparse.ArgumentParser) -> str:
     """'; did you mean --x?' for the first unknown option close to one of ``parser``'s (read from its usage line,
     which lists each option it takes once and no prose)."""
     import difflib
-    import re
 
-    known = sorted(set(re.findall(r"(?<![\w-])--[a-z][\w-]*[a-z0-9]", parser.format_usage())))
+    known = sorted(_usage_flags(parser))
     for arg in extras:
         flag = arg.split("=")[0]
         if flag.startswith("--"):
