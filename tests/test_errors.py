@@ -540,6 +540,7 @@ def test_bad_act_requests_get_a_4xx_and_the_reason(act_server, body, status, rea
 
 def test_the_client_prints_the_servers_reason(act_server):
     from wamplan.envs.contract import CAMERAS, Observation
+    from wamplan.errors import UserError
     from wamplan.wam.base import WAMServerError
     from wamplan.wam.cosmos_client import CosmosPolicyClient
 
@@ -550,6 +551,10 @@ def test_the_client_prints_the_servers_reason(act_server):
     with pytest.raises(WAMServerError, match=r"refused the request \(HTTP 422: the WAM 'strict' cannot answer this "
                                              r"request: knows only the instruction 't', got 'fold'\)"):
         client.predict(obs, "fold")
+    floats = Observation(step=0, proprio=np.zeros(10, np.float32), images={c: np.full((8, 8, 3), 0.5, np.float32)
+                                                                           for c in CAMERAS})
+    with pytest.raises(UserError, match="the Cosmos client: the '.*' image is float32"):  # not cast to black bytes
+        client.predict(floats, "t")
 
 
 def test_a_directory_of_another_kind_is_named_with_what_it_holds(tmp_path, capsys):

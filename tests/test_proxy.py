@@ -550,3 +550,28 @@ def test_the_client_keeps_its_frames_and_episode_start_until_an_answer_is_read()
         assert first[k] == retry[k] and k in first, k
     assert first["seed"] == 7 and "reset" not in second and second["session_id"] == first["session_id"]
     assert sorted(second["chunk_frames"]) == ["12", "4", "8"] and "chunk_frames" not in first
+
+
+def test_a_chunk_length_the_upstreams_health_contradicts_is_refused_at_start_up(proxy):
+    srv, _ = proxy  # a wamplan server: its /health reports 16-step chunks
+    with pytest.raises(UserError, match="returns 16-step chunks, not 8; drop --chunk-length or fix it"):
+        build_proxy(ProxyConfig(upstream=f"{srv.url}/act", world_model=WM_CKPT, device="cpu", chunk_length=8))
+
+
+def test_a_planned_chunk_refuses_missing_cameras_and_float_pixels_in_one_line():
+    from wamplan.envs.spec import ObservationError
+
+    policy = planned_policy(load_wam(WAM_CKPT, device="cpu"), world_model=WM_CKPT, device="cpu")
+    policy.reset(seed=0)
+    p = np.zeros(10, np.float32)
+    hand = {c: np.zeros((64, 64, 3), np.uint8) for c in ("front", "side", "hand")}
+    with pytest.raises(ObservationError, match=r"has no image for \['wrist'\] \(has \['front', 'hand', 'side'\]\)"):
+        policy.plan_chunk(Observation(step=0, proprio=p, images=hand))
+    floats = {c: np.full((64, 64, 3), 0.5, np.float32) for c in ("front", "side", "wrist")}
+    with pytest.raises(ObservationError, match=r"the 'front' image is float32 of shape \(64, 64, 3\); give \(H, W, 3\) "
+                                               r"uint8 pixels"):
+        policy.plan_chunk(Observation(step=0, proprio=p, images=floats))
+    with pytest.raises(ObservationError, match="TinyWAM.predict: the 'front' image is float32"):
+        policy.wam.predict(Observation(step=0, proprio=p, images=floats), "x")
+    with pytest.raises(TypeError, match="world_model must be a checkpoint directory"):
+        planned_policy(policy.wam, world_model=None)

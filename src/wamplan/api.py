@@ -56,6 +56,9 @@ def planned_policy(wam: WAM | str | Path, world_model: str | Path | Sequence[str
     views and returns (A,) actions of the WAM's task; ``policy.plan_chunk(obs)`` decides one chunk ->
     :class:`ChunkDecision`.
     """
+    if not isinstance(world_model, (str, Path, list, tuple)):
+        raise TypeError(f"world_model must be a checkpoint directory (a str or Path) or a list of them (an ensemble), "
+                        f"got {type(world_model).__name__}; pass e.g. world_model='checkpoints/mini/wm_augmented'")
     parts = [world_model] if isinstance(world_model, (str, Path)) else list(world_model)
     paths = [p for part in parts for p in (ensemble_members(part) if isinstance(part, str) else [str(part)]) if p]
     choice = {} if planner is None else {"planner": planner}

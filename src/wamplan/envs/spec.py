@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from wamplan.config import field, require
+from wamplan.errors import UserError
 from wamplan.registry import Registry
 
 @dataclass
@@ -144,6 +145,26 @@ def check_same_task(expected: str, found: str | None, what: str, fix: str | None
     if found is not None and found != expected:
         fix = fix or f"pass --task {found} or use a {what.split()[0]} made for '{expected}'"
         raise TaskMismatch(f"{what} was made for task '{found}', but this run uses task '{expected}'; {fix}")
+
+
+class ObservationError(UserError, ValueError):
+    """An observation lacks what its consumer needs (a camera's image, or pixels of the wrong kind)."""
+
+
+def require_images(obs: Observation, cameras: Any, where: str) -> None:
+    """An :class:`ObservationError` in one line unless ``obs.images`` holds an (H, W, 3) uint8 array for every camera
+    of ``cameras`` (floats in [0, 1] or wider integers would otherwise be cast to bytes silently)."""
+    images = obs.images or {}
+    missing = [c for c in cameras if c not in images]
+    if missing:
+        raise ObservationError(f"{where}: the observation at step {obs.step} has no image for {missing} (has "
+                               f"{sorted(images)}); give one for each of {list(cameras)}")
+    for cam in cameras:
+        img = images[cam]
+        if not (isinstance(img, np.ndarray) and img.ndim == 3 and img.shape[2] == 3 and img.dtype == np.uint8):
+            kind = (f"{img.dtype} of shape {img.shape}" if isinstance(img, np.ndarray) else type(img).__name__)
+            raise ObservationError(f"{where}: the '{cam}' image is {kind}; give (H, W, 3) uint8 pixels 0-255 (floats "
+                                   f"in [0, 1]: (img * 255).round().astype(np.uint8))")
 
 
 def require_observation(obs: Any, where: str) -> None:

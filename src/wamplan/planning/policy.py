@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from wamplan.config import to_dict
-from wamplan.envs.spec import Observation, check_same_task, require_observation
+from wamplan.envs.spec import Observation, check_same_task, require_images, require_observation
 from wamplan.planning.base import Planner
 from wamplan.planning.costs import CostFn
 from wamplan.planning.decision import ChunkCosts, ChunkDecision, ChunkTimings
@@ -156,6 +156,7 @@ class PlannedPolicy(Policy):
         (its record) and becomes ``last_decision``. Call it once per boundary, in step order after ``reset``
         (``act`` does); between boundaries, ``act`` must see every step."""
         require_observation(obs, "PlannedPolicy.plan_chunk")
+        require_images(obs, self.cameras, "PlannedPolicy.plan_chunk")
         t = obs.step
         if t % self.chunk:
             raise PlanningError(f"plan_chunk plans at chunk boundaries (steps 0, {self.chunk}, "

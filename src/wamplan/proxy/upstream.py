@@ -61,6 +61,8 @@ class HttpUpstream(Upstream):
     comes from ``$WAMPLAN_UPSTREAM_SECRET``. ``shape`` is read from its ``/health`` where it has one (wamplan's)."""
 
     def __init__(self, url: str, timeout_s: float, chunk_length: int | None = None):
+        """``chunk_length``: the chunk length it returns, where its ``/health`` does not report one (what it reports
+        wins, so a different ``--chunk-length`` is refused at start-up, not at every request)."""
         self.url, self.timeout_s, self.where = url, timeout_s, f"the upstream WAM at {url}"
         self._session = requests.Session()
         self._session.trust_env = urlparse(url).hostname not in ("127.0.0.1", "localhost", "::1")
@@ -69,7 +71,7 @@ class HttpUpstream(Upstream):
         self.unreachable: str | None = None  # why the start-up's /health got no answer at all (None: it answered)
         health = self._health()
         self.shape = UpstreamShape(
-            chunk_length=chunk_length or health.get("chunk_length"), action_dim=health.get("action_dim"),
+            chunk_length=health.get("chunk_length") or chunk_length, action_dim=health.get("action_dim"),
             cameras=tuple(health["cameras"]) if health.get("cameras") else None,
             image_size=health.get("image_size"), task=health.get("task"))
 

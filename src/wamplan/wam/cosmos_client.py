@@ -46,7 +46,7 @@ import requests
 import urllib3
 
 from wamplan.config import ConfigError, check_numbers, field, require, to_dict
-from wamplan.envs.spec import TASKS, Observation, get_task
+from wamplan.envs.spec import TASKS, Observation, get_task, require_images
 from wamplan.wam import protocol
 from wamplan.wam.base import WAM, WAMError, WAMOutput, WAMOutputError, WAMServerError, register_wam
 
@@ -339,7 +339,8 @@ class CosmosPolicyClient(WAM):
             if cam not in obs.images:
                 raise WAMError(f"the observation has no '{cam}' image (has {sorted(obs.images)}); render it or "
                                f"change {_flag('request_fields')}")
-            img = np.asarray(obs.images[cam], dtype=np.uint8)  # (H, W, 3)
+            require_images(obs, [cam], "the Cosmos client")
+            img = obs.images[cam]  # (H, W, 3) uint8
             images[name] = resize_image(img, cfg.send_image_size) if cfg.send_image_size else img
         proprio = np.asarray(obs.proprio, dtype=np.float32).reshape(-1)  # (P,)
         if not np.isfinite(proprio).all():

@@ -36,7 +36,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from wamplan.config import ConfigError, check_numbers, field, from_dict, require, to_dict
-from wamplan.envs.spec import Observation, TaskSpec, get_task
+from wamplan.envs.spec import Observation, TaskSpec, get_task, require_images
 from wamplan.wam.base import LEGACY_TASK, WAM, WAMError, WAMOutput, register_wam, register_wam_loader
 
 KIND = "tinywam"
@@ -266,7 +266,8 @@ class TinyWAM(WAM):
         if proprio.shape != (self.config.proprio_dim,) or not np.isfinite(proprio).all():
             raise WAMError(f"the observation's proprio has shape {proprio.shape} or non-finite values; TinyWAM "
                            f"needs a finite ({self.config.proprio_dim},) vector")
-        views = torch.from_numpy(np.stack([np.asarray(obs.images[c], dtype=np.uint8) for c in self.cameras]))  # (V, h, w, 3)
+        require_images(obs, self.cameras, "TinyWAM.predict")
+        views = torch.from_numpy(np.stack([obs.images[c] for c in self.cameras]))  # (V, h, w, 3) uint8
         size = views.shape[1]
         if self.trained_camera_size and size != self.trained_camera_size and not self._warned_size:
             self._warned_size = True
