@@ -619,13 +619,13 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
     elif args.cost_background_weight is not None and not args.plan_foreground:
         raise UserError("--cost-background-weight weighs nothing without --cost-foreground or --plan-foreground DIR; "
                         "give one of them")
-    env = TaskEnv(EnvConfig(task=wam.task.name, camera_size=args.camera_size))
-    last = (env.max_episode_steps - 1) // wam.chunk_length  # the last chunk boundary inside an episode
+    env_cfg = EnvConfig(task=wam.task.name, camera_size=args.camera_size)
+    last = (env_cfg.episode_steps - 1) // wam.chunk_length  # the last chunk boundary inside an episode
     if max(cfg.boundaries) > last:
-        env.close()
         raise UserError(f"--boundaries {args.boundaries} reaches chunk {max(cfg.boundaries)}, past the episode: task "
-                        f"'{wam.task.name}' ends at step {env.max_episode_steps}, so its last boundary is chunk {last} "
+                        f"'{wam.task.name}' ends at step {env_cfg.episode_steps}, so its last boundary is chunk {last} "
                         f"(step {last * wam.chunk_length}; a chunk is {wam.chunk_length} steps)")
+    env = TaskEnv(env_cfg)
     if blend:  # the first model's dynamics shared, its prediction moved toward the simulator's with its encoder
         from wamplan.planning.dynamics import BlendedDynamics, SimulatorDynamics
 

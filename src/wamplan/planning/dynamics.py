@@ -160,20 +160,22 @@ class LearnedDynamics(Dynamics):
         self._prefix = self.model.encode_prefix(z[None, :-1], q[None, :-1], a[None])  # batch 1, shared
         self._cur = (z[None, -1], q[None, -1])  # (1, V, N, D), (1, P)
 
+    def _blocks(self, actions: torch.Tensor) -> torch.Tensor:
+        """actions (B, L, A) -> the rollout's action blocks (B, S, Δ·A) in the predictor's device and dtype."""
+        b, length, na = actions.shape
+        return actions.to(self.device, self.dtype).reshape(b, length // self.frameskip, self.frameskip * na)
+
     @torch.inference_mode()
     def terminal(self, actions: torch.Tensor) -> torch.Tensor:
-        b, length, na = actions.shape
-        blocks = actions.to(self.device, self.dtype).reshape(b, length // self.frameskip, self.frameskip * na)
-        z, _ = self.model.rollout_from_prefix(self._prefix, *self._cur, blocks)  # (B, S, V, N, D); blocks (B, S, Δ·A)
+        z, _ = self.model.rollout_from_prefix(self._prefix, *self._cur, self._blocks(actions))  # (B, S, V, N, D)
         return z[:, -1].float()  # (B, V, N, D)
 
     @torch.inference_mode()
     def predict(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         if not self.spreads:
             return super().predict(actions)
-        b, length, na = actions.shape
-        blocks = actions.to(self.device, self.dtype).reshape(b, length // self.frameskip, self.frameskip * na)
-        z, _, lv = self.model.rollout_from_prefix(self._prefix, *self._cur, blocks, spread=True)  # (B, S, V, N, D) x2
+        z, _, lv = self.model.rollout_from_prefix(self._prefix, *self._cur, self._blocks(actions),
+                                                  spread=True)  # (B, S, V, N, D) x2
         var = self.model.token_variance(lv[:, -1].float())  # (B, V, N, D) in the tokens' units
         return z[:, -1].float(), var.flatten(1).mean(dim=1)  # (B, V, N, D), (B,)
 

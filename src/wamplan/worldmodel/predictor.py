@@ -254,24 +254,28 @@ class WorldModelPredictor(nn.Module):
             kvs.append(kv)
         return h.view(b, t, m, d), kvs
 
-    def _readout(self, h: torch.Tensor, z: torch.Tensor, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """hidden (B, T, M', d) and the inputs z (Bz, T, V, N, D), q (Bq, T, P) of the same frames ->
-        next-frame predictions z (B, T, V, N, D), q (B, T, P), read from the M visual tokens."""
+    def _visual(self, h: torch.Tensor) -> torch.Tensor:
+        """hidden (B, T, M', d) -> the M visual tokens' normed hidden (B, T, M, d), what every head reads (action
+        tokens are not read out)."""
+        return self.norm(h[:, :, :self.cfg.tokens_per_frame])
+
+    def _readout(self, hn: torch.Tensor, z: torch.Tensor, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """normed visual hidden (B, T, M, d) (:meth:`_visual`) and the inputs z (Bz, T, V, N, D), q (Bq, T, P) of
+        the same frames -> next-frame predictions z (B, T, V, N, D), q (B, T, P)."""
         cfg = self.cfg
-        h = self.norm(h[:, :, :cfg.tokens_per_frame])  # (B, T, M, d): action tokens are not read out
-        dz = self.z_head(h).unflatten(2, (cfg.num_views, cfg.num_patches)) * self.z_std  # (B, T, V, N, D)
-        dq = self.q_head(h.mean(dim=2))  # (B, T, P), pooled over the frame's tokens
+        dz = self.z_head(hn).unflatten(2, (cfg.num_views, cfg.num_patches)) * self.z_std  # (B, T, V, N, D)
+        dq = self.q_head(hn.mean(dim=2))  # (B, T, P), pooled over the frame's tokens
         if cfg.predict_delta:
             return z.to(dz.dtype) + dz, q.to(dq.dtype) + dq
         return dz + self.z_mean, dq
 
     LOG_VAR_RANGE = (-12.0, 6.0)  # the spread head's log-variance is clamped to this (normalised units)
 
-    def _log_var(self, h: torch.Tensor) -> torch.Tensor:
-        """hidden (B, T, M', d) -> the spread head's log-variances (B, T, V, N, D) of the next frame's tokens,
-        in normalised units (per dim divided by z_std), clamped to :attr:`LOG_VAR_RANGE`."""
+    def _log_var(self, hn: torch.Tensor) -> torch.Tensor:
+        """normed visual hidden (B, T, M, d) (:meth:`_visual`) -> the spread head's log-variances (B, T, V, N, D) of
+        the next frame's tokens, in normalised units (per dim divided by z_std), clamped to :attr:`LOG_VAR_RANGE`."""
         cfg = self.cfg
-        lv = self.spread_head(self.norm(h[:, :, :cfg.tokens_per_frame]))  # (B, T, M, D)
+        lv = self.spread_head(hn)  # (B, T, M, D)
         return lv.unflatten(2, (cfg.num_views, cfg.num_patches)).clamp(*self.LOG_VAR_RANGE)
 
     def token_variance(self, log_var: torch.Tensor) -> torch.Tensor:
@@ -309,7 +313,7 @@ class WorldModelPredictor(nn.Module):
         self._check(z, q, a)
         x, cond = self._embed(z, q, a)  # (B, T, M', d), (B, T, Ea) or None
         h, _ = self._blocks(x, 0, [], cond=cond)  # (B, T, M', d)
-        return self._readout(h, z, q)
+        return self._readout(self._visual(h), z, q)
 
     def encode_prefix(self, z: torch.Tensor, q: torch.Tensor, a: torch.Tensor) -> PrefixCache:
         """Cache the context frames before the current one: z (Bp, Tp, V, N, D), q (Bp, Tp, P),
@@ -352,9 +356,10 @@ class WorldModelPredictor(nn.Module):
             else:
                 h, kv = self._blocks(x, t, window, cond=cond)  # (B, 1, M', d); per layer (B, heads, M', e)
                 window = (window + [kv])[-keep:] if keep > 0 else []  # the last H_ctx-1 frames
+            hn = self._visual(h)  # (B, 1, M, d), read by the token readout and the spread head alike
             if spread:
-                lvs.append(self._log_var(h))  # (B, 1, V, N, D)
-            z_t, q_t = self._readout(h, z_t, q_t)  # (B, 1, V, N, D), (B, 1, P)
+                lvs.append(self._log_var(hn))  # (B, 1, V, N, D)
+            z_t, q_t = self._readout(hn, z_t, q_t)  # (B, 1, V, N, D), (B, 1, P)
             zs.append(z_t)
             qs.append(q_t)
             t += 1
