@@ -180,7 +180,7 @@ def window_flops(cfg, horizon: int) -> int:
 def train_section(s: Settings) -> dict[str, Any]:
     from wamplan.optim import make_adamw, optimizer_step, warmup_cosine
     from wamplan.worldmodel.predictor import WorldModelPredictor
-    from wamplan.worldmodel.train import window_loss
+    from wamplan.worldmodel.losses import window_loss
 
     cfg, tc = predictor_config(s.tiny), get_world_model_preset("paper").train
     flops = window_flops(cfg, tc.horizon)

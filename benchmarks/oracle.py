@@ -27,7 +27,7 @@ from wamplan.planning import CEMConfig, make_cost, make_planner
 from wamplan.planning.dynamics import SimulatorDynamics
 from wamplan.planning.policy import PlannedPolicy
 from wamplan.wam import load_wam
-from wamplan.worldmodel.train import load_world_model
+from wamplan.worldmodel.load import load_world_model
 
 
 class FullStepDynamics(SimulatorDynamics):

@@ -41,7 +41,7 @@ from wamplan.planning.dynamics import LearnedDynamics, PlanningContext
 from wamplan.planning.timing import planner_settings, timed
 from wamplan.worldmodel.config import PredictorConfig
 from wamplan.worldmodel.predictor import WorldModelPredictor
-from wamplan.worldmodel.train import load_predictor
+from wamplan.worldmodel.load import load_predictor
 from wamplan.presets import get_world_model_preset as get_preset
 from wamplan.worldmodel.stores import predictor_for_task
 

@@ -50,7 +50,7 @@ def _profile():
 def train_step_timer(model: WorldModelPredictor, batch_size: int, horizon: int = 2):
     """A function ``step() -> seconds`` timing one optimisation step of eq. 2 (K = ``horizon``) on a random batch
     of windows: the rollout with autograd, the backward pass and AdamW."""
-    from wamplan.worldmodel.train import window_loss
+    from wamplan.worldmodel.losses import window_loss
 
     cfg = model.cfg
     t = cfg.context + horizon

@@ -205,7 +205,7 @@ def test_the_ranking_loss_is_the_kl_of_the_planners_weights():
     true ones (a model that hardly moves with the chunk), positive and differentiable when the order is wrong."""
     from wamplan.planning.configs import MPPIConfig
     from wamplan.planning.mppi import MPPIPlanner
-    from wamplan.worldmodel.train import mppi_log_weights, rank_loss
+    from wamplan.worldmodel.losses import mppi_log_weights, rank_loss
 
     gen = torch.Generator().manual_seed(0)
     costs = torch.rand(5, generator=gen)
@@ -284,7 +284,7 @@ def test_the_action_response_script_scores_sibling_and_drastic_changes(three_sib
     import sys
 
     from wamplan.data.readers import BranchGroups
-    from wamplan.worldmodel.train import load_world_model
+    from wamplan.worldmodel.load import load_world_model
 
     mod = repo_script("scripts/wm_action_response.py")
     model, enc = load_world_model("checkpoints/mini/wm_augmented")
@@ -317,7 +317,7 @@ def test_the_error_persistence_script_pairs_windows_a_chunk_apart(three_siblings
     from wamplan.data.features import feature_key
     from wamplan.data.readers import WorldModelWindows
     from wamplan.worldmodel.stores import encode_stores
-    from wamplan.worldmodel.train import load_world_model
+    from wamplan.worldmodel.load import load_world_model
 
     mod = repo_script("scripts/wm_error_persistence.py")
     model, enc = load_world_model("checkpoints/mini/wm_augmented")

@@ -63,7 +63,7 @@ def test_wm_eval_reports_copy_baseline(run, tmp_path):
     # the copy-the-last-frame baseline, recomputed here from the cached features of the same windows
     from wamplan.data.features import feature_key
     from wamplan.data.readers import WorldModelWindows
-    from wamplan.worldmodel.train import load_world_model
+    from wamplan.worldmodel.load import load_world_model
 
     model, enc = load_world_model(run / "wm")
     h = model.cfg.context

@@ -10,7 +10,7 @@ from wamplan.planning.dynamics import LearnedDynamics, SimulatorDynamics
 from wamplan.evaluation.fidelity import (FidelityConfig, Scored, boundary_stats, cost_slope, format_fidelity, ranks,
                                        run_fidelity, slope_cosine, spearman, top_overlap)
 from wamplan.wam import load_wam
-from wamplan.worldmodel.train import load_world_model
+from wamplan.worldmodel.load import load_world_model
 
 
 def test_rank_statistics():

@@ -195,7 +195,7 @@ def test_wm_fidelity_ranks_in_the_foreground_cost(tmp_path, capsys, refused):
 
 
 def load_encoder(wm: Path):
-    from wamplan.worldmodel.train import load_world_model
+    from wamplan.worldmodel.load import load_world_model
 
     return load_world_model(wm)[1]
 

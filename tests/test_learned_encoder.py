@@ -65,7 +65,7 @@ def test_a_finished_run_trains_longer_with_its_own_settings(trained, tmp_path, c
 
 def test_a_world_model_trains_on_its_features_and_reloads_it_from_any_folder(trained, tmp_path, monkeypatch):
     from wamplan.cli import main
-    from wamplan.worldmodel.train import load_world_model
+    from wamplan.worldmodel.load import load_world_model
 
     store, _, export = trained
     repo = tmp_path / "repo"  # the encoder named relative to the folder the model is trained in

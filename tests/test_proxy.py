@@ -31,7 +31,7 @@ from wamplan.wam import protocol
 from wamplan.wam.base import load_wam
 from wamplan.wam.server import BackgroundServer, create_app
 from wamplan.worldmodel import WorldModelPredictor, load_predictor
-from wamplan.worldmodel.train import KIND as PREDICTOR_KIND
+from wamplan.worldmodel.load import KIND as PREDICTOR_KIND
 
 CKPTS = Path(__file__).resolve().parents[1] / "checkpoints" / "mini"
 WAM_CKPT, WM_CKPT = str(CKPTS / "tinywam"), str(CKPTS / "wm_augmented")

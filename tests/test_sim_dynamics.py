@@ -151,7 +151,7 @@ def test_blended_dynamics_moves_the_models_prediction_toward_the_simulators(env)
     """BlendedDynamics (the --oracle-blend diagnostic) is the model at weight 0, the simulator at 1, and the
     straight line between them in embedding space at any other weight; the env is left at the snapshot."""
     from wamplan.planning.dynamics import BlendedDynamics, LearnedDynamics, PlanningContext
-    from wamplan.worldmodel.train import load_world_model
+    from wamplan.worldmodel.load import load_world_model
 
     model, enc = load_world_model("checkpoints/mini/wm_augmented")
     learned, sim = LearnedDynamics(model), SimulatorDynamics(env, enc)

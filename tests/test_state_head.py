@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from wamplan.data.readers import STATE_QUANTITIES, WorldModelWindows, state_targets
-from wamplan.worldmodel.train import load_predictor
+from wamplan.worldmodel.load import load_predictor
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -127,7 +127,7 @@ def test_stack_cube_stores_record_both_cubes_and_the_state_is_relative_to_the_ta
 def test_the_state_loss_trains_the_head_on_true_latents_and_the_predictor_through_the_fixed_head():
     from wamplan.worldmodel.config import PredictorConfig
     from wamplan.worldmodel.predictor import WorldModelPredictor
-    from wamplan.worldmodel.train import state_loss
+    from wamplan.worldmodel.losses import state_loss
 
     torch.manual_seed(0)
     cfg = PredictorConfig(num_views=1, num_patches=4, enc_dim=8, proprio_dim=2, action_dim=1, frameskip=1,

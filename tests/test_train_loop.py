@@ -99,7 +99,7 @@ def test_old_layout_checkpoints_load_and_are_not_trained_into(stores, tmp_path, 
     from pathlib import Path
 
     from wamplan.wam import load_wam
-    from wamplan.worldmodel.train import load_world_model
+    from wamplan.worldmodel.load import load_world_model
 
     ck = Path(__file__).parents[1] / "checkpoints" / "mini"
     assert load_wam(ck / "tinywam").name == "tinywam"

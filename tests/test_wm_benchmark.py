@@ -108,7 +108,8 @@ def test_wm_eval_prints_the_per_phase_table(bench_store, tmp_path, capsys):
     from wamplan.data.features import feature_key
     from wamplan.data.readers import BranchGroups
     from wamplan.worldmodel.benchmark import group_phases, phase_table
-    from wamplan.worldmodel.train import evaluate_siblings, load_world_model
+    from wamplan.worldmodel.load import load_world_model
+    from wamplan.worldmodel.siblings import evaluate_siblings
 
     out, _ = bench_store
     run = tmp_path / "wm"

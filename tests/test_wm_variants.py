@@ -18,7 +18,7 @@ from wamplan.worldmodel import PredictorConfig, TrainConfig, WorldModelPredictor
 from wamplan.worldmodel.config import ARCHITECTURE_FIELDS, add_architecture_arguments, architecture_from_args
 from wamplan.worldmodel.layers import AdaLNBlock
 from wamplan.worldmodel.synthetic import SyntheticWindows
-from wamplan.worldmodel.train import change_weights, window_loss
+from wamplan.worldmodel.losses import change_weights, window_loss
 
 SHIPPED = Path(__file__).parents[1] / "checkpoints" / "mini"
 TINY = PredictorConfig(num_views=1, num_patches=4, enc_dim=8, frameskip=2, context=3, depth=2, heads=2, head_dim=8,
@@ -57,12 +57,12 @@ def test_variants_are_off_by_default_and_old_configs_load_with_the_defaults():
         TrainConfig(change_weight=-1)
     from wamplan.errors import UserError
     from wamplan.presets import get_world_model_preset
-    from wamplan.worldmodel.train import _check_init
+    from wamplan.worldmodel.grow import check_init
 
     mini = get_world_model_preset("mini").predictor
-    _check_init(SHIPPED / "wm_augmented", mini, None)  # `wm train --init` from a checkpoint saved before the options
+    check_init(SHIPPED / "wm_augmented", mini, None)  # `wm train --init` from a checkpoint saved before the options
     with pytest.raises(UserError, match="is another predictor .*action_conditioning"):
-        _check_init(SHIPPED / "wm_augmented", dataclasses.replace(mini, action_conditioning="adaln"), None)
+        check_init(SHIPPED / "wm_augmented", dataclasses.replace(mini, action_conditioning="adaln"), None)
     wide = PredictorConfig(action_tokens=True, frameskip=4)
     assert wide.frame_tokens == wide.tokens_per_frame + 4
     assert from_dict(PredictorConfig, json.loads(json.dumps(to_dict(wide)))) == wide
@@ -213,7 +213,7 @@ def test_wm_train_encoder_kwargs_reach_the_features_and_the_checkpoint(expert_st
 
     from wamplan.cli import main
     from wamplan.data.features import feature_key
-    from wamplan.worldmodel.train import load_world_model
+    from wamplan.worldmodel.load import load_world_model
 
     store = shutil.copytree(expert_store, tmp_path / "expert")  # a copy: training caches features in the store
     dct = {"name": "patch-pixels", "input_size": 64, "patch_size": 16, "proj_dim": 128, "seed": 0, "basis": "dct"}

@@ -239,7 +239,7 @@ def _windows(n: int = 14) -> SyntheticWindows:
 
 def test_checkpoint_round_trip_gives_identical_outputs(tmp_path):
     from wamplan.encoders import make_encoder
-    from wamplan.worldmodel.train import load_world_model
+    from wamplan.worldmodel.load import load_world_model
     enc = make_encoder("patch-pixels", input_size=32, patch_size=16, proj_dim=8)  # 4 tokens x 8, as TINY
     model, _ = train_predictor(_windows(), TINY, TRAIN, tmp_path, device="cpu", max_steps=2, progress=False,
                                encoder_info=enc.config_dict())
@@ -455,7 +455,7 @@ def test_a_decoder_draws_only_the_tokens_of_the_encoder_it_was_trained_on():
 def test_init_grows_onto_a_concat_encoder_whose_first_part_it_was_trained_on_and_its_parts_reweigh(tmp_path):
     from wamplan.checkpoint import load_weights
     from wamplan.encoders import make_encoder
-    from wamplan.worldmodel.train import grow_weights
+    from wamplan.worldmodel.grow import grow_weights
 
     pp = make_encoder("patch-pixels", input_size=32, patch_size=16, proj_dim=8).config_dict()  # 4 tokens x 8, as TINY
     extra = dict(name="patch-pixels", input_size=32, patch_size=16, proj_dim=4, seed=1)
@@ -480,7 +480,7 @@ def test_init_grows_onto_a_concat_encoder_whose_first_part_it_was_trained_on_and
                         encoder_info=scaled, init=tmp_path / "base")
 
     from wamplan.worldmodel.reweigh import reweigh_parts
-    from wamplan.worldmodel.train import load_world_model
+    from wamplan.worldmodel.load import load_world_model
 
     out = reweigh_parts(tmp_path / "grown", [1, 2.0], tmp_path / "w")  # part 1 from scale 0.5 to 2: 4x
     heavy, enc = load_world_model(out)
@@ -508,7 +508,7 @@ def test_a_spliced_model_predicts_each_part_exactly_as_its_own_model_and_refuses
     from wamplan.planning.dynamics import LearnedDynamics, PlanningContext
     from wamplan.worldmodel.reweigh import reweigh_parts, splice_parts
     from wamplan.worldmodel.splice import SplicedPredictor
-    from wamplan.worldmodel.train import load_predictor, load_world_model
+    from wamplan.worldmodel.load import load_predictor, load_world_model
 
     pp = make_encoder("patch-pixels", input_size=32, patch_size=16, proj_dim=8).config_dict()  # 4 tokens x 8
     extra = dict(name="patch-pixels", input_size=32, patch_size=16, proj_dim=4, seed=1)  # 4 tokens x 4

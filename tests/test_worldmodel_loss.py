@@ -5,7 +5,7 @@ import torch
 
 from wamplan.worldmodel.config import PredictorConfig
 from wamplan.worldmodel.predictor import WorldModelPredictor
-from wamplan.worldmodel.train import per_horizon_mse, split_windows, window_loss
+from wamplan.worldmodel.losses import per_horizon_mse, split_windows, window_loss
 
 
 def test_sum_form_weights_proprio_by_its_share_of_the_elements():
@@ -28,7 +28,8 @@ def test_sum_form_weights_proprio_by_its_share_of_the_elements():
 def test_sibling_loss_sees_only_how_the_prediction_moves_with_the_chunk():
     """Sibling windows share their context: an error common to the whole group cancels, an error in how one
     chunk's outcome differs from its siblings' does not."""
-    from wamplan.worldmodel.train import evaluate_siblings, sibling_loss
+    from wamplan.worldmodel.losses import sibling_loss
+    from wamplan.worldmodel.siblings import evaluate_siblings
 
     torch.manual_seed(0)
     cfg = PredictorConfig(num_patches=4, enc_dim=8, frameskip=4, context=3, depth=1, heads=2, head_dim=8,
@@ -81,7 +82,7 @@ def test_sibling_statistics_per_view_token_and_feature_split_the_pooled_ones():
     elements), and a sibling difference in one view's truth shows in that view's spread alone; per token and per
     feature, the mean over a view's tokens or features is the view's figure, and a difference in one feature shows
     in that feature alone."""
-    from wamplan.worldmodel.train import sibling_statistics
+    from wamplan.worldmodel.siblings import sibling_statistics
 
     torch.manual_seed(0)
     cfg = PredictorConfig(num_patches=4, enc_dim=8, frameskip=4, context=3, depth=1, heads=2, head_dim=8,
@@ -116,7 +117,7 @@ def test_rank_siblings_scores_a_planner_s_pick():
     """Ranking by the true outcomes is perfect (rho 1, regret 0, top-1 1); the reversed order is the worst
     (rho -1, the worst pick: regret above chance's 1); a shared offset in every prediction can reorder the
     siblings, which is what removing the shared error undoes."""
-    from wamplan.worldmodel.train import _rank_siblings
+    from wamplan.worldmodel.siblings import _rank_siblings
 
     torch.manual_seed(0)
     true = torch.randn(5, 6, 12)  # (B, G, F)
@@ -135,7 +136,8 @@ def test_rank_siblings_scores_a_planner_s_pick():
 
 
 def test_sibling_ranking_per_group_with_and_without_the_shared_error():
-    from wamplan.worldmodel.train import RANKING, _rank_siblings, sibling_futures, sibling_ranking
+    from wamplan.worldmodel.losses import sibling_futures
+    from wamplan.worldmodel.siblings import RANKING, _rank_siblings, sibling_ranking
 
     torch.manual_seed(0)
     cfg = PredictorConfig(num_patches=4, enc_dim=8, frameskip=4, context=3, depth=1, heads=2, head_dim=8,

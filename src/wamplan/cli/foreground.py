@@ -33,7 +33,7 @@ def cmd_foreground(args: argparse.Namespace) -> int:
     from wamplan.envs.config import EnvConfig
     from wamplan.envs.core import TaskEnv
     from wamplan.evaluation.build import load_policy
-    from wamplan.worldmodel.train import load_world_model
+    from wamplan.worldmodel.load import load_world_model
 
     require_paths([args.wm], "--wm", "pass a world-model checkpoint directory")
     if args.episodes < 2:

@@ -277,7 +277,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     from wamplan.checkpoint import CheckpointError, checkpoint_dir, read_config
     from wamplan.train_loop import check_run_dir
     from wamplan.worldmodel.stores import train_predictor_on_stores
-    from wamplan.worldmodel.train import KIND
+    from wamplan.worldmodel.load import KIND
 
     require_dir(args.out)
     check_run_dir(args.out, "a world-model training run")  # before the stores are encoded, which may take long
@@ -351,7 +351,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from wamplan.data.features import feature_key
     from wamplan.data.readers import BranchGroups, WorldModelWindows
     from wamplan.worldmodel.stores import encode_stores, stores_task
-    from wamplan.worldmodel.train import evaluate_predictor, load_world_model, trained_val_fraction
+    from wamplan.worldmodel.load import load_world_model, trained_val_fraction
+    from wamplan.worldmodel.train import evaluate_predictor
 
     require_file(args.json, "--json")
     if args.horizon < 1:
@@ -510,7 +511,7 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
     from wamplan.evaluation.fidelity import FidelityConfig, Scored, format_fidelity, run_fidelity
     from wamplan.planning.policy import PlannedPolicyConfig
     from wamplan.wam import load_wam
-    from wamplan.worldmodel.train import load_world_model
+    from wamplan.worldmodel.load import load_world_model
 
     flags = dict(num_candidates="--candidates", sigma="--sigma", noise_beta="--noise-beta", top_k="--top-k",
                  boundaries="--boundaries", seed="--sample-seed")

@@ -10,7 +10,7 @@ of tokens N, laid out the same way. ``scales`` (one per part, default 1) multipl
 planning cost, a plain mean over dims, weighs the parts as chosen (e.g. equal per-dim variance on a store).
 
 A world model trained on ``patch-pixels`` can be grown onto a ``concat`` whose first part is that same
-encoder at scale 1 (``wm train --init``, ``worldmodel.train``): it starts predicting the first part's dims
+encoder at scale 1 (``wm train --init``, ``worldmodel.grow``): it starts predicting the first part's dims
 exactly as before.
 """
 

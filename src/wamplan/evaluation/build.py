@@ -46,7 +46,7 @@ def plan_in_world_model(cfg: EvalConfig, wam: WAM | str, paths: Sequence[str]) -
     an ensemble), every model loaded onto ``cfg.device``, as condition 7 plans with ``cfg``."""
     from wamplan.planning.dynamics import learned_dynamics
     from wamplan.wam import load_wam
-    from wamplan.worldmodel.train import load_world_model
+    from wamplan.worldmodel.load import load_world_model
 
     dyn, enc = learned_dynamics([load_world_model(p, device=cfg.device, dtype=cfg.wm_dtype) for p in paths])
     wam = load_wam(wam, device=cfg.device) if isinstance(wam, (str, Path)) else wam

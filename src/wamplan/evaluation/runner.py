@@ -60,7 +60,7 @@ class EvalWorker:
         self._policies: dict[int, Any] = {}
 
     def _world_model(self, path: str):
-        from wamplan.worldmodel.train import load_world_model
+        from wamplan.worldmodel.load import load_world_model
 
         if path not in self._models:
             self._models[path] = load_world_model(path, device=self.cfg.device, dtype=self.cfg.wm_dtype)
@@ -228,7 +228,7 @@ def _check_inputs(cfg: EvalConfig, conditions: list[int]) -> None:
     from wamplan.errors import UserError, require_paths
     from wamplan.planning.costs import pool_fits
     from wamplan.planning.policy_config import check_frameskip, check_replan_every
-    from wamplan.worldmodel.train import load_world_model
+    from wamplan.worldmodel.load import load_world_model
 
     if cfg.wam:
         from wamplan.wam import load_wam

@@ -64,7 +64,7 @@ def build_proxy(cfg: ProxyConfig, upstream: Upstream | None = None, planning: di
     from wamplan.planning.dynamics import learned_dynamics, task_name
     from wamplan.wam.base import LEGACY_TASK, load_wam
     from wamplan.wam.cosmos_client import profile_config
-    from wamplan.worldmodel.train import load_world_model
+    from wamplan.worldmodel.load import load_world_model
 
     paths = [p for p in ensemble_members(cfg.world_model) if p]
     dynamics, encoder = learned_dynamics([load_world_model(p, device=cfg.device, dtype=cfg.wm_dtype) for p in paths])

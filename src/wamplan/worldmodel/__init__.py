@@ -1,19 +1,36 @@
 """The world model (paper §3.2): a block-causal ViT predictor over frozen patch features, a pixel
-decoder for inspection and their training (the ``paper``/``mini`` sizes live in ``wamplan.presets``).
+decoder for inspection, their training and their loading (the ``paper``/``mini`` sizes live in ``wamplan.presets``).
 
     from wamplan.worldmodel import load_predictor
     wm = load_predictor("runs/wm")                                  # eval mode
     prefix = wm.encode_prefix(z[:, :2], q[:, :2], a_past)          # once per chunk, batch 1
     z_pred, q_pred = wm.rollout_from_prefix(prefix, z[:, 2], q[:, 2], a_cand)  # (C, S, ...)
+
+The names below are loaded on first use, so that loading a world model (``worldmodel.load``) does not import its
+training.
 """
 
-from wamplan.worldmodel.config import DecoderConfig, DecoderTrainConfig, PredictorConfig, TrainConfig
-from wamplan.worldmodel.decoder import Decoder, evaluate_decoder, load_decoder, train_decoder
-from wamplan.worldmodel.predictor import PrefixCache, WorldModelPredictor, action_blocks
-from wamplan.worldmodel.train import (compute_feature_stats, evaluate_predictor, load_predictor, train_predictor,
-                                      window_loss)
+from __future__ import annotations
 
-__all__ = ["action_blocks", "DecoderConfig", "DecoderTrainConfig", "PredictorConfig", "TrainConfig", "Decoder",
-           "PrefixCache", "WorldModelPredictor", "compute_feature_stats",
-           "evaluate_decoder", "evaluate_predictor", "load_decoder", "load_predictor", "train_decoder",
-           "train_predictor", "window_loss"]
+import importlib
+from typing import Any
+
+_HOMES = {
+    "config": ("DecoderConfig", "DecoderTrainConfig", "PredictorConfig", "TrainConfig"),
+    "decoder": ("Decoder", "evaluate_decoder", "load_decoder", "train_decoder"),
+    "predictor": ("PrefixCache", "WorldModelPredictor", "action_blocks"),
+    "load": ("load_predictor",),
+    "losses": ("window_loss",),
+    "train": ("compute_feature_stats", "evaluate_predictor", "train_predictor"),
+}
+_WHERE = {name: module for module, names in _HOMES.items() for name in names}
+__all__ = sorted(_WHERE)
+
+
+def __getattr__(name: str) -> Any:
+    module = _WHERE.get(name)
+    if module is None:
+        raise AttributeError(f"module 'wamplan.worldmodel' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"wamplan.worldmodel.{module}"), name)
+    globals()[name] = value  # later lookups skip this function
+    return value

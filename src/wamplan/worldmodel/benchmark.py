@@ -42,7 +42,8 @@ from wamplan.envs.spec import TaskSpec
 from wamplan.errors import UserError
 from wamplan.worldmodel.predictor import WorldModelPredictor
 from wamplan.worldmodel.stores import encode_stores, stores_task
-from wamplan.worldmodel.train import load_world_model, pool_siblings, sibling_statistics
+from wamplan.worldmodel.load import load_world_model
+from wamplan.worldmodel.siblings import pool_siblings, sibling_statistics
 
 PHASES = ("grasp", "carry", "alignment", "descent")
 ALL = "all"

@@ -128,7 +128,7 @@ class StateHead(nn.Module):
 class WorldModelPredictor(nn.Module):
     """The predictor of ``cfg``. ``task`` (a :class:`~wamplan.envs.spec.TaskSpec`; None: not known, e.g. a model
     built in memory) and ``cameras`` (the camera of each of the V views, in order) say what it was trained on;
-    a checkpoint records both and ``worldmodel.train.load_predictor`` always sets ``task``."""
+    a checkpoint records both and ``worldmodel.load.load_predictor`` always sets ``task``."""
 
     def __init__(self, cfg: PredictorConfig, task: str | TaskSpec | None = None,
                  cameras: Sequence[str] | None = None) -> None:

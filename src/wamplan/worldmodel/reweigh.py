@@ -26,7 +26,7 @@ import torch
 from wamplan.checkpoint import checkpoint_dir, read_config, read_meta, save_checkpoint
 from wamplan.errors import UserError
 from wamplan.worldmodel.splice import SPLICE_KIND, SplicedPredictor, spliced_record
-from wamplan.worldmodel.train import KIND, load_world_model
+from wamplan.worldmodel.load import KIND, load_world_model
 
 
 def _concat_record(src: str | Path, what: str) -> tuple[Path, dict]:

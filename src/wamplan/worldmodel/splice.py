@@ -12,7 +12,7 @@ the planning cost (a mean over all D dims) then adds the learned dims' error to 
 
 A spliced checkpoint is one ordinary checkpoint directory of kind ``wm-splice``: every model's weights in one
 ``model.safetensors`` (``base.*``, ``parts.<i>.*``), each model's own config record in ``config.json``.
-``worldmodel.train.load_world_model`` loads it like any world model; ``worldmodel.reweigh.splice_parts`` makes one.
+``worldmodel.load.load_world_model`` loads it like any world model; ``worldmodel.reweigh.splice_parts`` makes one.
 """
 
 from __future__ import annotations

@@ -86,7 +86,7 @@ def labelled_models(specs: Sequence[str], stores: Sequence[str | Path]) -> Itera
     """For each ``LABEL=CHECKPOINT`` of ``specs``, in order: its label, the world model (in eval mode) and its
     encoder's feature key, once ``stores`` are encoded in that encoder's features; a spec without a label or a
     checkpoint is refused in one line (before its model loads)."""
-    from wamplan.worldmodel.train import load_world_model
+    from wamplan.worldmodel.load import load_world_model
 
     for spec in specs:
         label, sep, ckpt = spec.partition("=")
@@ -144,7 +144,8 @@ def train_predictor_on_stores(stores: Sequence[str | Path], out: str | Path, pre
     encoder)`` -> (len(groups), V, N, D): each branch group's planning target, encoded by the run's encoder
     (``wam.targets.group_targets`` with a WAM); ``train.rank_weight`` > 0 needs it."""
     from wamplan.data.readers import STATE_QUANTITIES, BranchGroups, WorldModelWindows
-    from wamplan.worldmodel.train import KIND, train_predictor
+    from wamplan.worldmodel.load import KIND
+    from wamplan.worldmodel.train import train_predictor
 
     task, cameras = stores_task(stores)
     check_image_stride(stores, predictor.frameskip)  # before encoding, which may take long

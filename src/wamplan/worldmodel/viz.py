@@ -24,7 +24,7 @@ def rollout_figure(ckpt: str | Path, decoder: str | Path, store_dir: str | Path,
     from wamplan.data.store import EpisodeStore
     from wamplan.plot import save_figure
     from wamplan.worldmodel.decoder import load_decoder
-    from wamplan.worldmodel.train import load_world_model
+    from wamplan.worldmodel.load import load_world_model
 
     models = [("model", *load_world_model(ckpt))]
     if compare is not None:

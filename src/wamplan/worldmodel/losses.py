@@ -1,0 +1,233 @@
+"""The world model's losses (paper eq. 2) on windows of H_ctx + K frames, and the sibling and ranking losses on
+branch groups.
+
+A dataset item is a dict of one window of T >= H_ctx + K frames (frameskip Delta apart)::
+
+    {"z": (T, V, N, D) float16/32 frozen features, "q": (T, P) float32, "a": (T, Delta*A) float32}
+
+where ``a[t]`` is the block of Delta actions executed from frame t. From the H_ctx context frames the
+predictor unrolls K steps autoregressively with the ground-truth actions (its predictions fed back), and
+
+    loss = sum_{h=1..K} gamma**(h-1) * (MSE(z_pred_h, z_h) + MSE(q_pred_h, q_h))
+
+with MSE the *mean* over elements (``loss_form="mean"``, our default). The paper writes squared norms,
+||dz||^2 + ||dq||^2, which weight proprio by P / (V·N·D) against the features (10 / 6144 in the mini
+preset, 10 / 602112 in the paper's), i.e. practically not at all; ``loss_form="sum"`` is that form divided
+by V·N·D (the same optimum, a comparable scale).
+
+``change_weight`` W > 0 (``TrainConfig``; 0 by default) weighs each visual token's squared error by how much
+that token changes from the current frame (:func:`change_weights`: mean 1 over a window's tokens), so the few
+tokens where the arm and the cube move are not drowned by the many static ones; logged as ``z_wmse_h1``.
+
+A branch group (``data.readers.BranchGroups``) is G windows that share their context and differ in the chunk
+executed from the current frame: z (B, G, T, V, N, D), ... :func:`sibling_loss` scores how the prediction moves
+with the chunk, :func:`rank_loss` how the model weighs the siblings against a target; the held-out metrics of
+both are in :mod:`wamplan.worldmodel.siblings`.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from wamplan.data.readers import STATE_UNIT_MM
+from wamplan.worldmodel.config import TrainConfig
+from wamplan.worldmodel.predictor import WorldModelPredictor
+
+def split_windows(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int):
+    """Context, actions and targets of a batch of windows."""
+    z, q, a = batch["z"].float(), batch["q"].float(), batch["a"].float()  # (B, T, V, N, D), (B, T, P), (B, T, DA)
+    h = model.cfg.context
+    if z.shape[1] < h + horizon:
+        raise ValueError(f"windows hold {z.shape[1]} frames; need H_ctx + K = {h + horizon}")
+    ctx = (z[:, :h], q[:, :h], a[:, :h - 1])  # (B, H, V, N, D), (B, H, P), (B, H-1, DA)
+    a_future = a[:, h - 1:h - 1 + horizon]  # (B, K, DA), a_future[:, 0] executed from the current frame
+    target = (z[:, h:h + horizon], q[:, h:h + horizon])  # (B, K, V, N, D), (B, K, P)
+    return ctx, a_future, target
+
+
+def per_horizon_mse(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """pred, target (B, K, ...) -> MSE per sample and step (B, K)."""
+    return (pred - target).pow(2).flatten(2).mean(dim=-1)
+
+
+def change_weights(z_cur: torch.Tensor, z_target: torch.Tensor, change_weight: float) -> torch.Tensor:
+    """Per-token loss weights from how much each token changes: z_cur (B, V, N, D) the current frame, z_target
+    (B, K, V, N, D) the K targets -> (B, K, V, N, 1) = (1 + W * c / mean_tokens(c)) / (1 + W), with c a token's
+    mean squared change from the current frame; they average to 1 over the tokens of each window and step."""
+    c = (z_target - z_cur[:, None]).pow(2).mean(dim=-1, keepdim=True)  # (B, K, V, N, 1)
+    rel = c / c.mean(dim=(2, 3), keepdim=True).clamp_min(1e-12)  # (B, K, V, N, 1), mean 1 over (V, N)
+    return (1 + change_weight * rel) / (1 + change_weight)
+
+
+def state_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], zp: torch.Tensor, zt: torch.Tensor,
+               horizon: int) -> tuple[torch.Tensor, dict[str, float]]:
+    """The state head's loss on a batch of windows, two terms that never mix:
+
+    * the head learns to read the privileged targets ``batch["s"]`` (B, T, S) from every true frame's latent
+      (the latents are frozen features, so this trains the head alone);
+    * the predictor learns to make its predictions zp (B, K, V, N, D) read as the true frames zt (B, K, V, N, D)
+      do, through the head with its weights held fixed: the squared difference of the two readings, whose
+      gradient reaches the predictor only. The head is defined by the true latents, so the predictor cannot hide
+      a private code of the state in its predictions; it can only get the directions of the latent that the head
+      reads right.
+
+    Logs the root-mean-square errors in mm of the head on true latents against the targets (``state_mm_true``) and
+    of the predictions' reading against the true latents' at the first step (``state_mm_h1``)."""
+    s = batch["s"].float()  # (B, T, S) cm
+    e_true = (model.read_state(batch["z"].float()) - s).pow(2).mean()
+    fixed = {k: v.detach() for k, v in model.state_head.named_parameters()}
+    read = lambda z: torch.func.functional_call(model.state_head, fixed, (model.normalised(z),))  # noqa: E731
+    e_pred = (read(zp) - read(zt).detach()).pow(2).mean(dim=(0, 2))  # (K,)
+    mm = STATE_UNIT_MM
+    return e_true + e_pred.mean(), {"state_mm_true": float(e_true.detach().sqrt()) * mm,
+                                    "state_mm_h1": float(e_pred[0].detach().sqrt()) * mm}
+
+
+def spread_terms(model: WorldModelPredictor, zp: torch.Tensor, zt: torch.Tensor, log_var: torch.Tensor
+                 ) -> dict[str, torch.Tensor]:
+    """Per sample and step (B, K): the spread head's Gaussian negative log-likelihood of the prediction's error
+    (normalised units, constant dropped; each step's own mean zp is detached here, the predictions of earlier steps
+    fed back into it are not), the variance
+    ratio (squared error over predicted variance; 1 when calibrated), and, per token (mean over dims), the
+    predicted variance and the squared error (B, K, V, N), for their correlation. zp, zt, log_var (B, K, V, N, D)."""
+    r2 = ((zt.float() - zp.detach().float()) / model.z_std).pow(2)  # (B, K, V, N, D)
+    lv = log_var.float()
+    ratio = r2 * torch.exp(-lv)  # (B, K, V, N, D)
+    return {"nll": 0.5 * (lv + ratio).flatten(2).mean(-1), "ratio": ratio.flatten(2).mean(-1),
+            "tok_var": lv.exp().mean(-1), "tok_err": r2.mean(-1)}
+
+
+def window_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int,
+                gamma: float, loss_form: str = "mean", change_weight: float = 0.0, state_weight: float = 0.0,
+                spread_weight: float = 0.0) -> tuple[torch.Tensor, dict[str, float]]:
+    """Eq. 2: the discounted K-step autoregressive loss of a batch of windows. ``change_weight`` W > 0 weighs
+    each token's squared error by :func:`change_weights` (the tokens that change count more); 0 is eq. 2.
+    ``state_weight`` > 0 adds that times :func:`state_loss` (the batch must carry ``s``); ``spread_weight`` > 0
+    that times the spread head's discounted negative log-likelihood (:func:`spread_terms`)."""
+    (zc, qc, ac), a_future, (zt, qt) = split_windows(model, batch, horizon)
+    zp, qp, *lv = model.rollout(zc, qc, ac, a_future, spread=spread_weight > 0)  # (B, K, V, N, D), (B, K, P)
+    ez = per_horizon_mse(zp, zt).mean(dim=0)  # (K,)
+    eq = per_horizon_mse(qp, qt).mean(dim=0)  # (K,)
+    logs = {"z_mse_h1": float(ez[0].detach()), "q_mse_h1": float(eq[0].detach())}
+    if change_weight > 0:
+        w_tok = change_weights(zc[:, -1], zt, change_weight)  # (B, K, V, N, 1)
+        ez = ((zp - zt).pow(2) * w_tok).flatten(2).mean(dim=-1).mean(dim=0)  # (K,) the weighted MSE
+        logs["z_wmse_h1"] = float(ez[0].detach())
+    q_weight = 1.0 if loss_form == "mean" else qt[0, 0].numel() / zt[0, 0].numel()  # sum form: P / (V·N·D)
+    w = gamma ** torch.arange(horizon, device=ez.device, dtype=ez.dtype)  # (K,)
+    loss = (w * (ez + q_weight * eq)).sum()
+    if state_weight > 0:
+        st, st_logs = state_loss(model, batch, zp, zt, horizon)
+        loss, logs = loss + state_weight * st, {**logs, **st_logs}
+    if spread_weight > 0:
+        sp = spread_terms(model, zp, zt, lv[0])
+        loss = loss + spread_weight * (w * sp["nll"].mean(dim=0)).sum()
+        logs.update({f"spread_nll_h{horizon}": float(sp["nll"][:, -1].mean().detach()),
+                     f"spread_ratio_h{horizon}": float(sp["ratio"][:, -1].mean().detach())})
+    return loss, logs
+
+SIBLING_SPLITS = ("group", "view", "token", "feature")  # how :func:`sibling_errors` splits a group's elements
+
+
+def _pool_elements(x: torch.Tensor, per: str) -> torch.Tensor:
+    """(B, G, K, V, N, D) -> the mean over the siblings G and the elements of each part ``per`` splits into:
+    (B, K) a group, (B, K, V) a view, (B, K, V, N) a token, (B, K, V, D) a feature of a view (over its tokens)."""
+    if per == "feature":
+        return x.mean(dim=4).mean(dim=1)
+    return x.flatten({"group": 3, "view": 4, "token": 5}[per]).mean(dim=-1).mean(dim=1)
+
+
+def sibling_futures(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int
+                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A batch of branch groups (z (B, G, T, V, N, D), ...) -> the predicted, the true and the copied (current
+    frame) futures, each (B, G, K, V, N, D)."""
+    b, g = batch["z"].shape[:2]
+    flat = {k: batch[k].flatten(0, 1) for k in ("z", "q", "a")}  # (B G, T, ...)
+    (zc, qc, ac), a_future, (zt, _) = split_windows(model, flat, horizon)
+    zp, _ = model.rollout(zc, qc, ac, a_future)  # (B G, K, V, N, D)
+    copy = zc[:, -1:].expand_as(zt)  # (B G, K, V, N, D)
+    return tuple(x.unflatten(0, (b, g)) for x in (zp, zt, copy))  # type: ignore[return-value]
+
+
+def sibling_errors(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int,
+                    per: str = "group", futures: tuple[torch.Tensor, ...] | None = None) -> dict[str, torch.Tensor]:
+    """Per group of a batch of branch groups (z (B, G, T, V, N, D), ...), each (B, K), a mean over the siblings
+    and elements (``per="view"``: each (B, K, V), a mean over the siblings and each view's elements;
+    ``per="token"``: each (B, K, V, N), over the siblings and each token's features; ``per="feature"``: each
+    (B, K, V, D), over the siblings and a view's tokens, feature by feature): ``err`` the squared error of
+    the sibling-relative prediction, ``spread`` that of predicting no difference, ``cross`` the product of the
+    predicted and true sibling differences (the gain: cross / spread), ``z_mse`` the siblings' plain latent error
+    and ``copy_z_mse`` that of copying the current frame. ``futures`` (:func:`sibling_futures`'s three) reuses a
+    rollout already made."""
+    zp, zt, copy = futures if futures is not None else sibling_futures(model, batch, horizon)  # (B, G, K, V, N, D)
+    dp, dt = zp - zp.mean(dim=1, keepdim=True), zt - zt.mean(dim=1, keepdim=True)  # relative to the group mean
+
+    return {"err": _pool_elements((dp - dt).pow(2), per), "spread": _pool_elements(dt.pow(2), per),
+            "cross": _pool_elements(dp * dt, per), "z_mse": _pool_elements((zp - zt).pow(2), per),
+            "copy_z_mse": _pool_elements((copy - zt).pow(2), per)}
+
+
+def sibling_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int,
+                 gamma: float, futures: tuple[torch.Tensor, ...] | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+    """The sibling loss of a batch of branch groups (``data.readers.BranchGroups``): the G windows of a group share
+    their context, so each one's predicted future minus the group's mean prediction must equal its true future
+    minus the group's mean. The shared part of the error cancels: what is left is exactly how the prediction
+    moves with the chunk, which is all that ranking CEM's candidates uses. Visual features only, like the
+    planner's cost. Logs at step K: ``sib_mse`` and ``sib_rel`` (that error over the error of predicting no
+    difference: 0 exact, 1 no better than predicting none; in training, a mean of per-step ratios). ``futures``
+    (:func:`sibling_futures`'s three) reuses a rollout already made."""
+    s = sibling_errors(model, batch, horizon, futures=futures)
+    err, spread = s["err"].mean(dim=0), s["spread"].mean(dim=0)  # (K,)
+    w = gamma ** torch.arange(horizon, device=err.device, dtype=err.dtype)  # (K,)
+    return (w * err).sum(), {f"sib_mse_h{horizon}": float(err[-1].detach()),
+                             f"sib_rel_h{horizon}": float((err[-1] / spread[-1].clamp_min(1e-12)).detach())}
+
+
+def cost_span(costs: torch.Tensor) -> torch.Tensor:
+    """Costs (..., G) -> their range max - min (..., 1), floored at 1e-12."""
+    return (costs.max(dim=-1, keepdim=True).values - costs.min(dim=-1, keepdim=True).values).clamp_min(1e-12)
+
+
+def mppi_log_weights(costs: torch.Tensor, temperature: float, span: torch.Tensor | None = None) -> torch.Tensor:
+    """Costs (..., G) of G candidates -> the log of MPPI's weights over them (..., G): softmax(-(c - min c) /
+    (temperature * span)), with span (..., 1) the costs' own range by default: the planner's range-normalised
+    weighting (``planning.mppi``)."""
+    span = cost_span(costs) if span is None else span
+    return torch.log_softmax(-costs / (temperature * span), dim=-1)  # the shift by min c cancels in the softmax
+
+
+def rank_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int, temperature: float,
+              futures: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+    """The ranking loss of a batch of branch groups carrying their ``target`` (B, V, N, D)
+    (``BranchGroups.with_targets``): each sibling's cost is the squared distance of its outcome ``horizon`` frames
+    on to the target (the planner's patch cost, up to a constant); the loss is KL(true || predicted) between MPPI's
+    weights of the siblings from their true and from their predicted costs (:func:`mppi_log_weights`), a mean over
+    the groups: 0 when the model would weigh the siblings as the simulator does. Both are normalised by the TRUE
+    costs' range (a predicted range near zero would scale the gradients without bound), so the predicted costs must
+    also differ as much as the true ones do. ``futures`` (predicted, true
+    outcomes, each (B, G, K, V, N, D)) reuses a rollout already made. Logs ``rank_kl`` and ``rank_top1`` (the model's
+    lowest-cost sibling is the true one's)."""
+    zp, zt = futures if futures is not None else sibling_futures(model, batch, horizon)[:2]
+    t = batch["target"].to(zp.dtype)[:, None]  # (B, 1, V, N, D)
+    pred = (zp[:, :, -1] - t).pow(2).flatten(2).mean(-1)  # (B, G)
+    true = (zt[:, :, -1] - t).pow(2).flatten(2).mean(-1).detach()  # (B, G)
+    span = cost_span(true)  # (B, 1)
+    log_w, log_p = mppi_log_weights(true, temperature, span), mppi_log_weights(pred, temperature, span)  # (B, G)
+    kl = (log_w.exp() * (log_w - log_p)).sum(-1).mean()
+    top1 = (pred.argmin(-1) == true.argmin(-1)).float().mean()
+    return kl, {"rank_kl": float(kl.detach()), "rank_top1": float(top1)}
+
+
+def group_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], train: TrainConfig
+               ) -> tuple[torch.Tensor, dict[str, float]]:
+    """``train.sibling_weight`` times :func:`sibling_loss` plus ``train.rank_weight`` times :func:`rank_loss` of a
+    batch of branch groups, from one rollout of the siblings."""
+    zp, zt, copy = sibling_futures(model, batch, train.sibling_horizon)
+    loss, logs = zp.new_zeros(()), {}
+    if train.sibling_weight > 0:
+        sib, sib_logs = sibling_loss(model, batch, train.sibling_horizon, train.gamma, (zp, zt, copy))
+        loss, logs = loss + train.sibling_weight * sib, {**logs, **sib_logs}
+    if train.rank_weight > 0:
+        rk, rk_logs = rank_loss(model, batch, train.sibling_horizon, train.rank_temperature, (zp, zt))
+        loss, logs = loss + train.rank_weight * rk, {**logs, **rk_logs}
+    return loss, logs
