@@ -1,11 +1,11 @@
-# Two entry points, both idempotent: `make demo` (set up, then the main job) and `make test`.
+# Two entry points, both idempotent: `make demo` (set up, then the main job) and `make test`; `make test-lab` runs the lab's tests.
 SHELL := /bin/bash
 VENV ?= .venv
 PY := $(VENV)/bin/python
 WAMPLAN := $(VENV)/bin/wamplan
 DEMO_OUT ?= out/demo
 
-.PHONY: setup demo test test-slow bench clean
+.PHONY: setup demo test test-slow test-lab bench clean
 
 setup:
 	@bash scripts/setup.sh
@@ -18,6 +18,10 @@ test: setup
 
 test-slow: setup
 	$(PY) -m pytest -q -m slow
+
+# the lab's probes' tests (lab/), not part of `make test`
+test-lab: setup
+	$(PY) -m pytest -q lab
 
 bench: setup
 	$(PY) benchmarks/planner.py

@@ -206,22 +206,3 @@ def readout_for(wm: Path):
 
     enc = load_encoder(wm)
     return ForegroundReadout(3, enc.num_patches, enc.dim)
-
-
-def test_the_wrist_warp_of_a_pose_onto_itself_is_the_picture_and_a_sideways_move_shifts_it(repo_script):
-    warp = repo_script("scripts/wrist_warp_probe.py").warp
-    rng = np.random.default_rng(0)
-    h = w = 32
-    K = np.array([[20.0, 0, w / 2], [0, 20.0, h / 2], [0, 0, 1]])
-    down = np.array([[1.0, 0, 0], [0, -1, 0], [0, 0, -1]])  # looking straight down at z = 0 from 0.5 m
-    E = np.concatenate([down, (-down @ np.array([0, 0, 0.5]))[:, None]], 1)  # (3, 4) world -> camera
-    img = rng.integers(0, 255, (h, w, 3)).astype(np.uint8)
-    none = np.zeros((h, w), bool)
-    a = {"K": K, "E": E, "rgb": img, "robot": none, "cube": none, "grasped": False}
-    np.testing.assert_array_equal(warp(a, a), img)
-    moved = dict(a, E=np.concatenate([down, (-down @ np.array([0.05, 0, 0.5]))[:, None]], 1))  # 5 cm along x
-    out = warp(a, moved)  # 5 cm at 0.5 m and f = 20 px: the table moves 2 px in the picture
-    np.testing.assert_array_equal(out[:, :-2], img[:, 2:])
-    keep = none.copy()
-    keep[:4] = True  # the robot's pixels stay where they were
-    np.testing.assert_array_equal(warp(dict(a, robot=keep), moved)[:4], img[:4])

@@ -59,7 +59,7 @@ def _squares(episodes: int, frames: int = 10, size: int = 64) -> ForegroundFrame
                             ("background", "red", "blue"), "cube-insertion")
 
 
-def test_it_learns_to_read_the_objects_and_loads_by_digest_beside_patch_pixels(tmp_path, repo_script):
+def test_it_learns_to_read_the_objects_and_loads_by_digest_beside_patch_pixels(tmp_path):
     frames = _squares(10)
     cfg = MaskTrainConfig(epochs=12, batch_size=16, lr=3e-3, width=16, warmup_epochs=0.5, log_every_steps=1000)
     metrics = train_object_masks(frames, tmp_path / "run", cfg, task="cube-insertion", progress=False)
@@ -78,11 +78,6 @@ def test_it_learns_to_read_the_objects_and_loads_by_digest_beside_patch_pixels(t
     cat = make_encoder("concat", parts=[{"name": "patch-pixels"}, enc.config_dict()], scales=[1, 2])
     assert cat.dim == 128 + 32 and cat.parts[1].sha == enc.sha
     torch.testing.assert_close(cat.part_tokens(cat.encode(frames.images[0, 0]), 1), enc.encode(frames.images[0, 0]))
-    # the sibling picture draws the mask tokens of a concat as the class map they hold, the real frame's here
-    read = repo_script("scripts/wm_sibling_picture.py").mask_reader(cat)
-    true = cell_shares(frames.labels[-1:, 0], 3).argmax(1)[0].numpy()  # (16, 16)
-    assert (read(cat.encode(frames.images[-1, 0])[0]) == true).mean() > 0.8
-    assert repo_script("scripts/wm_sibling_picture.py").mask_reader(make_encoder("patch-pixels")) is None
     # a world model's record finds a relative encoder under the folders above its checkpoint
     info = locate_weights("concat", cat.config_dict(), tmp_path / "wm" / "checkpoint")
     assert info["parts"][1]["near"] == str(tmp_path / "wm" / "checkpoint") and "near" not in info["parts"][0]
@@ -140,24 +135,3 @@ def test_frames_round_trip(tmp_path):
     np.testing.assert_array_equal(back.labels, frames.labels)
     assert (back.cameras, back.classes, back.task) == (frames.cameras, frames.classes, frames.task)
     assert back.masks.dtype == bool and back.masks.sum() == (frames.labels > 0).sum()
-
-
-def test_concat_scale_equalises_the_parts_per_dim_variance(repo_script, expert_store, capsys):
-    """scripts/concat_scale.py: the factor that gives a part the base's per-dim variance; by construction a part
-    that is the base times 3 needs 1/3, and a part equal to the base needs 1."""
-    mod = repo_script("scripts/concat_scale.py")
-    moments = mod.DimMoments()
-    z = torch.randn(50, 16, 4) * torch.tensor([1.0, 2.0, 3.0, 4.0]) + 7.0  # per-dim variances 1, 4, 9, 16
-    moments.add(z[:20])
-    moments.add(z[20:])  # in two batches, as frames come
-    assert moments.variance() == pytest.approx(float(z.reshape(-1, 4).double().var(0, unbiased=False).mean()), rel=1e-9)
-    base = '{"name": "patch-pixels", "input_size": 64, "patch_size": 16, "proj_dim": 32}'
-    tripled = '{"name": "concat", "parts": [%s], "scales": [3]}' % base
-    mod.main([str(expert_store), tripled, "--base", base])
-    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    assert out["scale"] == pytest.approx(1 / 3) and out["frames"] > 10
-    assert out["part_variance"] == pytest.approx(9 * out["base_variance"])
-    with pytest.raises(UserError, match="an encoder config is not JSON"):
-        mod.main([str(expert_store), "{name: x}"])
-    with pytest.raises(UserError, match="a JSON object with its \"name\""):
-        mod.main([str(expert_store), '{"ckpt": "x"}'])

@@ -5,7 +5,6 @@ from __future__ import annotations
 import dataclasses
 import json
 
-import numpy as np
 import pytest
 import torch
 
@@ -559,24 +558,3 @@ def test_a_spliced_model_predicts_each_part_exactly_as_its_own_model_and_refuses
     with pytest.raises(UserError, match="splice models trained on the same cameras in the same order"):
         SplicedPredictor(WorldModelPredictor(grown_cfg, "cube-insertion", ["front", "side"]), {0: other}, [8, 4],
                          [1, 0.5])
-
-
-def test_sibling_picture_draws_a_concat_model_through_the_part_its_decoder_knows(tmp_path, repo_script):
-    from wamplan.encoders import make_encoder
-
-    a = dict(name="patch-pixels", input_size=32, patch_size=16, proj_dim=8)
-    b = dict(name="patch-pixels", input_size=32, patch_size=16, proj_dim=4, seed=2)
-    cfg = DecoderConfig(num_patches=4, enc_dim=4, image_size=16, width=32, depth=1, heads=4, mlp_dim=64,
-                        head_channels=16)
-    train_decoder(_Pairs(8, cfg), cfg, DecoderTrainConfig(batch_size=8), tmp_path, device="cpu", max_steps=1,
-                  progress=False, encoder_info=make_encoder(**b).config_dict())
-    drawer = repo_script("scripts/wm_sibling_picture.py").drawer
-    cat = make_encoder("concat", parts=[a, b], scales=[1, 0.5])
-    dec, tokens, part = drawer(cat, tmp_path)
-    assert part == "patch-pixels"  # part 1's name
-    z = cat.encode(np.random.default_rng(0).integers(0, 256, (2, 32, 32, 3), dtype=np.uint8))  # (2, 4, 12)
-    torch.testing.assert_close(tokens(z), 2 * z[..., 8:])  # part 1's dims, its scale 0.5 undone
-    assert dec(tokens(z)).shape == (2, 3, 16, 16)
-    assert torch.equal(drawer(make_encoder(**b), tmp_path)[1](z), z)  # a plain encoder: its tokens as they are
-    with pytest.raises(UserError, match="trained on none of the encoders"):
-        drawer(make_encoder(**a), tmp_path)

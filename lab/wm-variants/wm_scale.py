@@ -1,9 +1,9 @@
-"""The world-model recipe of ``scripts/wm_variants.sh`` at scale on one machine with a GPU, in one command.
+"""The world-model recipe of ``lab/wm-variants/wm_variants.sh`` at scale on one machine with a GPU, in one command.
 
-    python scripts/wm_scale.py OUT                         # on a GPU machine: every core collects, the GPU trains
-    python scripts/wm_scale.py OUT --variant adaln="--action-conditioning adaln --epochs 12" \
+    python lab/wm-variants/wm_scale.py OUT                         # on a GPU machine: every core collects, the GPU trains
+    python lab/wm-variants/wm_scale.py OUT --variant adaln="--action-conditioning adaln --epochs 12" \
         --variant dct="--action-conditioning adaln --epochs 12 --encoder-kwargs '{\"basis\": \"dct\"}'"
-    python scripts/wm_scale.py OUT --collect-seconds 60 --workers 2 --render-backend cpu --device cpu \
+    python lab/wm-variants/wm_scale.py OUT --collect-seconds 60 --workers 2 --render-backend cpu --device cpu \
         --epochs 1 --variant mini=""                       # a small rehearsal on a CPU machine
 
 1. Collection for a fixed time (``--collect-seconds``) on ``--workers`` simulator processes, shared among the

@@ -1,6 +1,6 @@
 """The factor a ``concat`` part needs for the planning cost to weigh it as much as the first part, per dim.
 
-    python scripts/concat_scale.py STORES '{"name": "object-masks", "ckpt": "runs/masks"}' [--base JSON]
+    python lab/representation/concat_scale.py STORES '{"name": "object-masks", "ckpt": "runs/masks"}' [--base JSON]
 
 The planning cost is a plain mean over dims of squared differences, so what a part weighs is its per-dim
 variance. Over every stored frame of STORES (comma separated; all views, all tokens) the script prints each

@@ -5,7 +5,7 @@ At every chunk boundary t + H of a WAM's open-loop episodes, the readout's foreg
 read from the WAM's prediction of the frame at t + H (made at t) and from the real frame at t + H, and both are
 compared with the simulator's segmentation of the real frame:
 
-    python scripts/foreground_reading.py --wam checkpoints/mini/tinywam --wm checkpoints/mini/wm_augmented \\
+    python lab/representation/foreground_reading.py --wam checkpoints/mini/tinywam --wm checkpoints/mini/wm_augmented \\
         --readout checkpoints/candidates/fg_cube --seeds 3016-3019 [--picture OUT.png] [--json OUT.json]
 
 Prints, per camera, the mean absolute error of the share on the WAM's prediction and on the real frame, and the
@@ -26,7 +26,7 @@ from wamplan.envs.config import EnvConfig
 from wamplan.envs.core import TaskEnv
 from wamplan.policies.rollout import run_episode
 from wamplan.wam import WAMPolicy, load_wam
-from wamplan.worldmodel.train import load_world_model
+from wamplan.worldmodel.load import load_world_model
 
 
 def readings(wam_path: str, wm_path: str, readout_path: str, seeds: list[int], camera_size: int = 224):

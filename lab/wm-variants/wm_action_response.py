@@ -1,6 +1,6 @@
 """How far world models move their prediction of a chunk's end with the chunk: sibling-sized changes against drastic ones.
 
-    python scripts/wm_action_response.py STORE shipped=checkpoints/stack-cube/wm_augmented new=RUN [--split val]
+    python lab/wm-variants/wm_action_response.py STORE shipped=checkpoints/stack-cube/wm_augmented new=RUN [--split val]
 
 For every branch group of STORE (``wamplan collect --branches``; the held-out split by default), each model rolls
 the siblings' chunks out from their shared context, and the chunk's last predicted frame (visual tokens) is compared:
@@ -30,7 +30,7 @@ FIGURES = ("pred_spread", "true_spread", "zeroed", "negated", "chunk_abs", "sibl
 def action_response(model, groups, horizon: int) -> dict[str, float]:
     """The figures of the module docstring for ``model`` over ``groups`` (a ``BranchGroups`` in its encoder's
     features), each a mean over the groups; ``groups`` = their number."""
-    from wamplan.worldmodel.train import sibling_futures
+    from wamplan.worldmodel.losses import sibling_futures
 
     h = model.cfg.context
     sums = dict.fromkeys(FIGURES, 0.0)

@@ -2,8 +2,8 @@
 model: its own plan's gain in the simulator, paired against the first model, with the ranking scores, the gains in the
 model's own cost, the cube's xy change and the paired median with a sign test beside it.
 
-    python scripts/fidelity_table.py runs/fid41/screen_500-505.json runs/fid41/screen_506-511.json [--markdown]
-    python scripts/fidelity_table.py runs/fid41/descent.json --steps 128-160     # one phase's boundaries only
+    python lab/tools/fidelity_table.py runs/fid41/screen_500-505.json runs/fid41/screen_506-511.json [--markdown]
+    python lab/tools/fidelity_table.py runs/fid41/descent.json --steps 128-160     # one phase's boundaries only
 
 Every file must score the same models in the same order (the first is the reference of the paired column) with the
 same candidate settings; a boundary (seed, step) found in two files is one error line.

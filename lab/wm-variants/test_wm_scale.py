@@ -1,4 +1,4 @@
-"""scripts/wm_scale.py's pure parts: the worker split, the --variant syntax and the encoders the variants need.
+"""lab/wm-variants/wm_scale.py's pure parts: the worker split, the --variant syntax and the encoders the variants need.
 (The script itself runs on a GPU machine; a CPU rehearsal is in its docstring.)"""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import pytest
 
 @pytest.fixture(scope="module")
 def wm_scale(repo_script):
-    return repo_script("scripts/wm_scale.py")
+    return repo_script("lab/wm-variants/wm_scale.py")
 
 
 def test_the_worker_split_sums_to_the_total_with_one_per_source_at_least(wm_scale):

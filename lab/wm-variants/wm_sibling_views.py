@@ -1,12 +1,12 @@
 """Where the chunk's effect is seen, view by view: the sibling statistics of ``wamplan wm eval`` split by camera.
 
-    python scripts/wm_sibling_views.py checkpoints/mini/wm_augmented runs/wm41/e4/adaln/checkpoint \
+    python lab/wm-variants/wm_sibling_views.py checkpoints/mini/wm_augmented runs/wm41/e4/adaln/checkpoint \
         --data data/wm_bench [--tokens descent] [--json views.json]
 
 For each checkpoint, phase (grasp, carry, alignment, descent, all) and camera: ``share``, that view's part of how
 much the sibling chunks' true outcomes differ (the spread, summed over the views = 1: where the world shows the
 chunk's effect), and the model's ``sib_rel_hK`` / ``sib_gain_hK`` on that view alone (``wamplan wm eval``'s
-definitions, `worldmodel/train.py`). A view with a large share and a low gain is where the model misses most.
+definitions, `worldmodel/siblings.py`). A view with a large share and a low gain is where the model misses most.
 ``--tokens PHASE`` also prints, for that phase, each view's patch grid: every token's share of the spread (of all
 views together) and the model's ``sib_gain_hK`` on that token alone. ``--bands PHASE`` prints, for that phase, the
 model's figures on each view's first K feature dimensions only (``--band-dims``): with the low-pass encoder
@@ -24,7 +24,7 @@ import torch
 
 from wamplan.errors import UserError
 from wamplan.worldmodel.benchmark import ALL, PHASES, benchmark_parser, in_phase, load_benchmark, pool_by_phase
-from wamplan.worldmodel.train import sibling_statistics
+from wamplan.worldmodel.siblings import sibling_statistics
 
 
 def split_statistics(ckpt: str, data: list[Path], horizon: int, per: str = "token"):

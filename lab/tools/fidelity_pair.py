@@ -3,7 +3,7 @@ cost and another as the yardstick), paired boundary by boundary: the mean differ
 of the rank agreement, the top-k overlap and the pick gain; how alike the two runs' costs rank the candidates
 (median Spearman of the simulator's costs, and of the model's); and how often the model picks the same candidate.
 
-    python scripts/fidelity_pair.py fid_plain.json fid_fg.json [--model shipped]
+    python lab/tools/fidelity_pair.py fid_plain.json fid_fg.json [--model shipped]
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The data of the representation runs (issue 56: the state head, the task-cnn encoder), re-created by one command:
 #
-#   scripts/representation_data.sh [OUT] [SET]   # OUT: default data/s56; SET: default 0; about 35 min on two cores
+#   lab/representation/representation_data.sh [OUT] [SET]   # OUT: default data/s56; SET: default 0; about 35 min on two cores
 #
 #   OUT/expert     40 expert (seeds 1000-1039) + 40 noisy-expert (2000-2039) episodes of cube-insertion
 #   OUT/branches   20 on-policy parents of checkpoints/mini/tinywam (5300-5319), 6 branches at every boundary
@@ -11,7 +11,7 @@
 #
 # Two collectors at once, one thread each; every collection resumes where it stopped when re-run.
 set -euo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 OUT=${1:-data/s56}
 SET=${2:-0}
 [[ $SET =~ ^[0-9]+$ ]] || { echo "representation_data.sh: SET must be a whole number >= 0, got '$SET'" >&2; exit 2; }

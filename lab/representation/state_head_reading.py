@@ -8,7 +8,7 @@ script measures, at every chunk boundary t of held-out episodes of a WAM policy 
 the WAM's prediction of it made at t, and from the world model's own prediction of it (the executed chunk
 rolled out from the real history at t, as the planner rolls out each candidate):
 
-    python scripts/state_head_reading.py --store STORE --wam checkpoints/mini/tinywam \\
+    python lab/representation/state_head_reading.py --store STORE --wam checkpoints/mini/tinywam \\
         --wm checkpoints/candidates/s56_state_ridge [--json OUT.json]
 
 ``--probe STORE2`` reads with a ridge probe instead of a head: fitted on the tokens of all views of every stored

@@ -1,11 +1,11 @@
 """The world-model variants table (issue 41) from ``wamplan wm eval --json`` reports on the benchmark store.
 
-    .venv/bin/python scripts/wm_variants_table.py runs/wm41/e4/*/bench.json
+    .venv/bin/python lab/wm-variants/wm_variants_table.py runs/wm41/e4/*/bench.json
 
 One row per report, named by its folder (``bench.json``) or by its folder and name (``NAME.bench.json``, as
-for the variants of ``scripts/wm_scale.py``): ``sib_rel_h4`` / ``sib_gain_h4`` for every phase, the latent error one
+for the variants of ``lab/wm-variants/wm_scale.py``): ``sib_rel_h4`` / ``sib_gain_h4`` for every phase, the latent error one
 and four frames ahead (the ``all`` row: every group's siblings), the planning time per chunk that ``wm eval`` measured, and the
-training time where ``scripts/wm_variants.sh`` recorded it (``FOLDER.seconds``). Markdown on stdout.
+training time where ``lab/wm-variants/wm_variants.sh`` recorded it (``FOLDER.seconds``). Markdown on stdout.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from pathlib import Path
 
 
 def training_seconds(report: Path) -> str:
-    """The training time ``scripts/wm_variants.sh`` recorded beside the run (``RUN.seconds``, one line per attempt)."""
+    """The training time ``lab/wm-variants/wm_variants.sh`` recorded beside the run (``RUN.seconds``, one line per attempt)."""
     log = report.parent.with_name(report.parent.name + ".seconds")
     lines = log.read_text().split() if log.is_file() else []
     return f"{sum(int(x) for x in lines) / 60:.0f} min" if lines and all(x.isdigit() for x in lines) else "—"

@@ -1,4 +1,4 @@
-"""``scripts/compare_runs.py`` (two evaluation directories paired seed by seed) and ``scripts/fidelity_pair.py``
+"""``lab/tools/compare_runs.py`` (two evaluation directories paired seed by seed) and ``lab/tools/fidelity_pair.py``
 (two fidelity runs paired boundary by boundary)."""
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ def _run(path, outcomes: dict[int, str], search: float = 1.0):
 
 
 def test_compare_runs_pairs_seeds_and_counts_what_moved(tmp_path, repo_script):
-    cmp = repo_script("scripts/compare_runs.py")
+    cmp = repo_script("lab/tools/compare_runs.py")
     a = _run(tmp_path / "a", {0: "success", 1: "success", 2: "lifted_not_aligned", 3: "success", 9: "success"},
              search=0.5)
     b = _run(tmp_path / "b", {0: "success", 1: "descended_not_seated", 2: "success", 3: "descended_not_seated"})
@@ -42,7 +42,7 @@ def _fidelity(path, picks, spearman):
 
 
 def test_fidelity_pair_pairs_boundaries(tmp_path, repo_script):
-    fp = repo_script("scripts/fidelity_pair.py")
+    fp = repo_script("lab/tools/fidelity_pair.py")
     a = fp.boundaries(_fidelity(tmp_path / "a.json", [0, 1, 2], [0.5, 0.6, 0.7]), "shipped")
     b = fp.boundaries(_fidelity(tmp_path / "b.json", [0, 1, 3], [0.6, 0.7, 0.8]), "shipped")
     r = fp.pair(a, b)

@@ -2,7 +2,7 @@
 into its chunk beside the decoded predictions of one or more world models (same context, each sibling's own
 actions), so one sees whether a model moves its prediction with the chunk as the world does.
 
-    python scripts/wm_sibling_picture.py STORE --wm shipped=checkpoints/mini/wm_augmented,new=RUN \\
+    python lab/representation/wm_sibling_picture.py STORE --wm shipped=checkpoints/mini/wm_augmented,new=RUN \\
         --decoder checkpoints/mini/decoder --camera wrist --group 0 --out sib.png
 
 Each model reads the store's cached features of its own encoder; a model on a ``concat`` encoder is drawn
@@ -76,7 +76,7 @@ def main(argv: list[str] | None = None) -> Path:
     from wamplan.data.readers import BranchGroups
     from wamplan.errors import UserError
     from wamplan.plot import save_figure
-    from wamplan.worldmodel.train import load_world_model
+    from wamplan.worldmodel.load import load_world_model
 
     pairs = [s.partition("=") for s in args.wm.split(",")]
     if any(not lab or not path for lab, _, path in pairs):

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # World-model variants from scratch on one training set, judged on the fixed benchmark store (issue 41).
 #
-#   scripts/wm_variants.sh [EPOCHS]         # EPOCHS: passes over the training set for every variant (default 4,
+#   lab/wm-variants/wm_variants.sh [EPOCHS]         # EPOCHS: passes over the training set for every variant (default 4,
 #                                           # the mini preset's)
 #
 # Every step is resumable (a finished one leaves NAME.done; NAME.seconds sums its attempts), so re-running
@@ -13,10 +13,10 @@
 #   3. runs/wm41/eEPOCHS/VARIANT: `wamplan wm train --preset mini` from scratch, the same data, epochs and
 #      seed for each VARIANT (the default architecture is the control)
 #   4. its bench.json, and runs/wm41/eEPOCHS/shipped/bench.json: `wamplan wm eval` on the store
-# Then: `python scripts/wm_variants_table.py runs/wm41/e4/*/bench.json` prints the variants table.
-# DRY=1 scripts/wm_variants.sh prints the commands that are still to run and runs nothing.
+# Then: `python lab/wm-variants/wm_variants_table.py runs/wm41/e4/*/bench.json` prints the variants table.
+# DRY=1 lab/wm-variants/wm_variants.sh prints the commands that are still to run and runs nothing.
 set -euo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 EPOCHS=${1:-4}
 export OMP_NUM_THREADS=1
 PY=.venv/bin/python
@@ -82,4 +82,4 @@ train adaln_sib4 --action-conditioning adaln --sibling-weight 4 & b=$!; both $a 
 train adaln_dct_sib4 --action-conditioning adaln --encoder-kwargs '{"basis": "dct"}' --sibling-weight 4 & a=$!
 train adaln_dct_sib16 --action-conditioning adaln --encoder-kwargs '{"basis": "dct"}' --sibling-weight 16 & b=$!
 both $a $b
-echo "[$(date +%H:%M:%S)] done: $PY scripts/wm_variants_table.py $RUNS/*/bench.json"
+echo "[$(date +%H:%M:%S)] done: $PY lab/wm-variants/wm_variants_table.py $RUNS/*/bench.json"

@@ -1,11 +1,11 @@
 """How well world models rank sibling chunks for a planner, per phase of the task: leave-one-out on branch groups.
 
-    python scripts/wm_ranking.py checkpoints/mini/wm_augmented checkpoints/candidates/wm_dct_sib4_e8_cpu \
+    python lab/wm-variants/wm_ranking.py checkpoints/mini/wm_augmented checkpoints/candidates/wm_dct_sib4_e8_cpu \
         --data data/wm_bench [--json ranking.json]
 
 For every branch group of the stores, each sibling's true outcome K frames on is in turn the target, and the other
 siblings are ranked by the distance of their predicted outcome to it, as the planner ranks candidates against the
-WAM's predicted images (`worldmodel.train.sibling_ranking`). Per checkpoint and phase: ``rank_rho`` (Spearman's rho
+WAM's predicted images (`worldmodel.siblings.sibling_ranking`). Per checkpoint and phase: ``rank_rho`` (Spearman's rho
 of the predicted and true orders), ``rank_regret`` (0 = picks the best sibling, 1 = no better than chance) and
 ``rank_top1``; then the same with the predictions' group mean replaced by the true one (``*_sib``): how the ranking
 would be if only the error the siblings share were removed. ``sib_rel_hK`` scores only the latter part.
@@ -24,7 +24,7 @@ from wamplan.errors import UserError
 from wamplan.wam.base import WAM, load_wam
 from wamplan.wam.targets import check_target_wam, group_targets
 from wamplan.worldmodel.benchmark import ALL, PHASES, benchmark_parser, in_phase, load_benchmark
-from wamplan.worldmodel.train import RANKING, sibling_ranking
+from wamplan.worldmodel.siblings import RANKING, sibling_ranking
 
 
 def ranking_table(ckpt: str, data: list[Path], horizon: int, wam: WAM | None = None) -> dict[str, dict[str, float]]:

@@ -2,7 +2,7 @@
 interval, its outcomes and its mean search time a planned chunk; the seeds one gained and lost against the other
 with the exact sign test; and how the changed seeds' outcomes moved.
 
-    python scripts/compare_runs.py runs/s65/val_fg runs/s65/val_plain [--condition 7]
+    python lab/tools/compare_runs.py runs/s65/val_fg runs/s65/val_plain [--condition 7]
 
 Only the seeds both directories hold count. The first directory is A, the second B ("A gained": A succeeded where
 B failed).

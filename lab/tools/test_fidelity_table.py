@@ -1,4 +1,4 @@
-"""scripts/fidelity_table.py: fidelity JSON files of split seeds merged into one paired table."""
+"""lab/tools/fidelity_table.py: fidelity JSON files of split seeds merged into one paired table."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import pytest
 
 @pytest.fixture(scope="module")
 def table(repo_script):
-    return repo_script("scripts/fidelity_table.py")
+    return repo_script("lab/tools/fidelity_table.py")
 
 
 def _row(gain: float) -> dict:

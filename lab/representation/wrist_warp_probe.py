@@ -11,7 +11,7 @@ prediction is encoded with the world model's encoder and compared, token by toke
 - model: the world model's prediction of the executed chunk from the real history (as the planner rolls out each
   candidate).
 
-    python scripts/wrist_warp_probe.py --wam checkpoints/mini/tinywam --wm checkpoints/mini/wm_augmented \\
+    python lab/representation/wrist_warp_probe.py --wam checkpoints/mini/tinywam --wm checkpoints/mini/wm_augmented \\
         --seeds 3016-3019 [--picture OUT.png]
 
 Prints the mean squared token error of each (the wrist view; lower is better) and, per boundary, which is closer.
@@ -36,7 +36,7 @@ from wamplan.envs.core import TaskEnv
 from wamplan.planning.dynamics import PlanningContext, learned_dynamics
 from wamplan.policies.rollout import run_episode
 from wamplan.wam import WAMPolicy, load_wam
-from wamplan.worldmodel.train import load_world_model
+from wamplan.worldmodel.load import load_world_model
 
 CAM = "wrist"
 

@@ -1,6 +1,6 @@
 """Does a world model's error at one chunk boundary predict its error one chunk later? A probe of test-time correction.
 
-    python scripts/wm_error_persistence.py STORE shipped=checkpoints/mini/wm_augmented [new=RUN] [--split val]
+    python lab/wm-variants/wm_error_persistence.py STORE shipped=checkpoints/mini/wm_augmented [new=RUN] [--split val]
 
 At a chunk boundary the robot has just seen how the last chunk really ended, so the model's error on it is known.
 If errors persisted from chunk to chunk, a planner could subtract it from every candidate's prediction. For each
@@ -42,7 +42,7 @@ def error_persistence(model, windows, horizon: int, batch_size: int = 32) -> dic
     """The figures of the module docstring for ``model`` over ``windows`` (in its encoder's features)."""
     from torch.utils.data import default_collate
 
-    from wamplan.worldmodel.train import split_windows
+    from wamplan.worldmodel.losses import split_windows
 
     def last_frame(idx: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
         """The error of the predicted last frame and the true change to it, each (B, V·N·D)."""

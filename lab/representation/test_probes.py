@@ -1,0 +1,121 @@
+"""The representation lever's probes: wrist_warp_probe.py's warp, concat_scale.py, and wm_sibling_picture.py's
+drawer and mask reader."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from wamplan.data.foreground import ForegroundFrames
+from wamplan.encoders import make_encoder
+from wamplan.encoders.object_masks import MaskTrainConfig, ObjectMaskEncoder, cell_shares, train_object_masks
+from wamplan.errors import UserError
+from wamplan.worldmodel import DecoderConfig, DecoderTrainConfig, train_decoder
+
+
+def test_the_wrist_warp_of_a_pose_onto_itself_is_the_picture_and_a_sideways_move_shifts_it(repo_script):
+    warp = repo_script("lab/representation/wrist_warp_probe.py").warp
+    rng = np.random.default_rng(0)
+    h = w = 32
+    K = np.array([[20.0, 0, w / 2], [0, 20.0, h / 2], [0, 0, 1]])
+    down = np.array([[1.0, 0, 0], [0, -1, 0], [0, 0, -1]])  # looking straight down at z = 0 from 0.5 m
+    E = np.concatenate([down, (-down @ np.array([0, 0, 0.5]))[:, None]], 1)  # (3, 4) world -> camera
+    img = rng.integers(0, 255, (h, w, 3)).astype(np.uint8)
+    none = np.zeros((h, w), bool)
+    a = {"K": K, "E": E, "rgb": img, "robot": none, "cube": none, "grasped": False}
+    np.testing.assert_array_equal(warp(a, a), img)
+    moved = dict(a, E=np.concatenate([down, (-down @ np.array([0.05, 0, 0.5]))[:, None]], 1))  # 5 cm along x
+    out = warp(a, moved)  # 5 cm at 0.5 m and f = 20 px: the table moves 2 px in the picture
+    np.testing.assert_array_equal(out[:, :-2], img[:, 2:])
+    keep = none.copy()
+    keep[:4] = True  # the robot's pixels stay where they were
+    np.testing.assert_array_equal(warp(dict(a, robot=keep), moved)[:4], img[:4])
+
+
+def test_concat_scale_equalises_the_parts_per_dim_variance(repo_script, expert_store, capsys):
+    """concat_scale.py: the factor that gives a part the base's per-dim variance; by construction a part that is
+    the base times 3 needs 1/3, and a part equal to the base needs 1."""
+    mod = repo_script("lab/representation/concat_scale.py")
+    moments = mod.DimMoments()
+    z = torch.randn(50, 16, 4) * torch.tensor([1.0, 2.0, 3.0, 4.0]) + 7.0  # per-dim variances 1, 4, 9, 16
+    moments.add(z[:20])
+    moments.add(z[20:])  # in two batches, as frames come
+    assert moments.variance() == pytest.approx(float(z.reshape(-1, 4).double().var(0, unbiased=False).mean()), rel=1e-9)
+    base = '{"name": "patch-pixels", "input_size": 64, "patch_size": 16, "proj_dim": 32}'
+    tripled = '{"name": "concat", "parts": [%s], "scales": [3]}' % base
+    mod.main([str(expert_store), tripled, "--base", base])
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert out["scale"] == pytest.approx(1 / 3) and out["frames"] > 10
+    assert out["part_variance"] == pytest.approx(9 * out["base_variance"])
+    with pytest.raises(UserError, match="an encoder config is not JSON"):
+        mod.main([str(expert_store), "{name: x}"])
+    with pytest.raises(UserError, match="a JSON object with its \"name\""):
+        mod.main([str(expert_store), '{"ckpt": "x"}'])
+
+
+class _Pairs(torch.utils.data.Dataset):
+    """Images whose patch (i, j) is a flat colour set by token i * grid + j."""
+
+    def __init__(self, n: int, cfg: DecoderConfig, size: int = 32):
+        g = torch.Generator().manual_seed(0)
+        self.z = torch.randn(n, cfg.num_patches, cfg.enc_dim, generator=g)  # (n, N, D)
+        colour = torch.sigmoid(2 * self.z[:, :, :3]).view(n, cfg.grid, cfg.grid, 3)  # (n, g, g, 3)
+        cell = size // cfg.grid
+        img = colour.repeat_interleave(cell, 1).repeat_interleave(cell, 2)  # (n, H, W, 3)
+        self.img = (img * 255).round().to(torch.uint8)
+
+    def __len__(self) -> int:
+        return len(self.z)
+
+    def __getitem__(self, i: int):
+        return {"z": self.z[i], "image": self.img[i]}
+
+
+def test_sibling_picture_draws_a_concat_model_through_the_part_its_decoder_knows(tmp_path, repo_script):
+    a = dict(name="patch-pixels", input_size=32, patch_size=16, proj_dim=8)
+    b = dict(name="patch-pixels", input_size=32, patch_size=16, proj_dim=4, seed=2)
+    cfg = DecoderConfig(num_patches=4, enc_dim=4, image_size=16, width=32, depth=1, heads=4, mlp_dim=64,
+                        head_channels=16)
+    train_decoder(_Pairs(8, cfg), cfg, DecoderTrainConfig(batch_size=8), tmp_path, device="cpu", max_steps=1,
+                  progress=False, encoder_info=make_encoder(**b).config_dict())
+    drawer = repo_script("lab/representation/wm_sibling_picture.py").drawer
+    cat = make_encoder("concat", parts=[a, b], scales=[1, 0.5])
+    dec, tokens, part = drawer(cat, tmp_path)
+    assert part == "patch-pixels"  # part 1's name
+    z = cat.encode(np.random.default_rng(0).integers(0, 256, (2, 32, 32, 3), dtype=np.uint8))  # (2, 4, 12)
+    torch.testing.assert_close(tokens(z), 2 * z[..., 8:])  # part 1's dims, its scale 0.5 undone
+    assert dec(tokens(z)).shape == (2, 3, 16, 16)
+    assert torch.equal(drawer(make_encoder(**b), tmp_path)[1](z), z)  # a plain encoder: its tokens as they are
+    with pytest.raises(UserError, match="trained on none of the encoders"):
+        drawer(make_encoder(**a), tmp_path)
+
+
+def _squares(episodes: int, frames: int = 10, size: int = 64) -> ForegroundFrames:
+    """A red and a blue square at random places on a random grey texture, one camera: classes 1 and 2."""
+    rng = np.random.default_rng(0)
+    n = episodes * frames
+    images = rng.integers(60, 160, (n, 1, size, size, 3)).astype(np.uint8)
+    labels = np.zeros((n, 1, size, size), np.uint8)
+    for i in range(n):
+        for cls, colour in ((1, (220, 30, 20)), (2, (20, 40, 220))):
+            y, x = rng.integers(0, size - 16, 2)
+            labels[i, 0, y:y + 16, x:x + 16] = cls
+            images[i, 0, y:y + 16, x:x + 16] = colour
+    return ForegroundFrames(images, labels, np.repeat(np.arange(episodes), frames), ("cam",),
+                            ("background", "red", "blue"), "cube-insertion")
+
+
+def test_the_sibling_picture_reads_a_concats_mask_tokens_as_the_class_map_they_hold(tmp_path, repo_script):
+    frames = _squares(10)
+    cfg = MaskTrainConfig(epochs=12, batch_size=16, lr=3e-3, width=16, warmup_epochs=0.5, log_every_steps=1000)
+    train_object_masks(frames, tmp_path / "run", cfg, task="cube-insertion", progress=False)
+    enc = ObjectMaskEncoder(ckpt=str(tmp_path / "run"))
+    cat = make_encoder("concat", parts=[{"name": "patch-pixels"}, enc.config_dict()], scales=[1, 2])
+    picture = repo_script("lab/representation/wm_sibling_picture.py")
+    read = picture.mask_reader(cat)
+    true = cell_shares(frames.labels[-1:, 0], 3).argmax(1)[0].numpy()  # (16, 16), a held-out frame
+    assert (read(cat.encode(frames.images[-1, 0])[0]) == true).mean() > 0.8
+    assert picture.mask_reader(make_encoder("patch-pixels")) is None
