@@ -96,13 +96,31 @@ def test_fidelity_refuses_a_pose_term_for_models_without_a_state_head(capsys):
     assert "must be above 0" in capsys.readouterr().err
 
 
-def test_fidelity_plans_with_the_pose_term_of_a_model_with_a_state_head(tmp_path, capsys):
+@pytest.fixture(scope="module")
+def headed_wm(tmp_path_factory):
+    """The shipped world model with a linear state head added (seeded, untrained): its predictions are the shipped
+    model's, and the head gives the pose term something to read."""
+    from wamplan.checkpoint import load_tensors, read_meta, save_checkpoint
+    from wamplan.worldmodel.predictor import WorldModelPredictor
+
+    meta = read_meta("checkpoints/mini/wm_augmented")
+    record = json.loads(json.dumps(meta["config"]))
+    record["predictor"].update(state_dim=len(STATE_QUANTITIES), state_head="ridge")
+    torch.manual_seed(0)
+    model = WorldModelPredictor.from_record(record)
+    shipped = load_tensors("checkpoints/mini/wm_augmented/model.safetensors")
+    missing, unexpected = model.load_state_dict({k: v.float() for k, v in shipped.items()}, strict=False)
+    assert not unexpected and missing and all(k.startswith("state_head.") for k in missing)
+    return save_checkpoint(tmp_path_factory.mktemp("headed") / "wm", model, record, kind=meta["kind"])
+
+
+def test_fidelity_plans_with_the_pose_term_of_a_model_with_a_state_head(headed_wm, tmp_path, capsys):
     """The headed model gets a twin LABEL+pose that scores (and with --plan, plans) with the pose term."""
     from wamplan.cli import main
 
     out = tmp_path / "f.json"
     assert main(["wm", "fidelity", "--wam", "checkpoints/mini/tinywam", "--wm",
-                 "s=checkpoints/candidates/s56_state_ridge", "--seeds", "500", "--boundaries", "1", "--candidates", "4",
+                 f"s={headed_wm}", "--seeds", "500", "--boundaries", "1", "--candidates", "4",
                  "--top-k", "2", "--plan-state-weight", "0.3", "--camera-size", "64", "--json", str(out)]) == 0
     rec = json.loads(out.read_text())["records"][0]
     assert set(rec["models"]) == {"s", "s+pose"}

@@ -1,7 +1,7 @@
 """``concat``: the tokens of several frozen encoders side by side, one token grid.
 
     enc = make_encoder("concat", parts=[{"name": "patch-pixels"},
-                                        {"name": "task-cnn", "ckpt": "checkpoints/candidates/enc_taskcnn"}],
+                                        {"name": "task-cnn", "ckpt": "runs/enc"}],  # a trained task-cnn
                        scales=[1.0, 0.366])
     z = enc.encode(images)              # (B, 16, 128 + 128): part 0's dims first, then part 1's
 
