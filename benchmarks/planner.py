@@ -6,7 +6,6 @@ one line per preset and the speed-up ratio.
     .venv/bin/python benchmarks/planner.py                       # mini and paper presets, --planner wamplan
     .venv/bin/python benchmarks/planner.py --planner cem         # the paper's CEM (the same 32 x 4 evaluations)
     .venv/bin/python benchmarks/planner.py --presets mini --repeats 10
-    .venv/bin/python benchmarks/planner.py --presets mini --replan-every 8   # + the re-plans of a chunk
     .venv/bin/python benchmarks/planner.py --presets paper --candidates 8 --iterations 1 --repeats 1   # CPU
     .venv/bin/python benchmarks/planner.py --presets mini --tasks cube-insertion peg-insertion-side   # per task
     .venv/bin/python benchmarks/planner.py --presets mini --dtypes float32 bfloat16 --compile     # arithmetic
@@ -66,10 +65,10 @@ class NaiveDynamics(LearnedDynamics):
         return z[:, -1].float()  # (B, V, N, D), as LearnedDynamics returns it
 
 
-def time_search(dyn, ctx, target, planner, repeats: int, length: int = CHUNK) -> float:
-    """Median seconds of one search over the first ``length`` steps of a chunk (its covered actions)."""
+def time_search(dyn, ctx, target, planner, repeats: int) -> float:
+    """Median seconds of one search over a chunk (its covered actions)."""
     cost = make_cost("patch")
-    covered = dyn.covered(length)
+    covered = dyn.covered(CHUNK)
     seed = torch.zeros(covered, dyn.model.cfg.action_dim)  # (L, A)
 
     def search(i: int) -> None:
@@ -102,8 +101,6 @@ def main() -> None:
     ap.add_argument("--iterations", type=int, default=4, help="search iterations (paper: 4)")
     ap.add_argument("--candidates", type=int, default=32, help="candidates per iteration (paper: 32); fewer "
                     "makes the paper preset feasible on a CPU (the ratio is what compares)")
-    ap.add_argument("--replan-every", type=int, default=None, help="also time a chunk with re-planning every K "
-                    "steps (--replan-every of wamplan eval): the boundary's search plus the shorter re-plans")
     ap.add_argument("--ckpt", nargs="+", default=[], help="also time these predictor checkpoints' architectures")
     args = ap.parse_args()
     dev = resolve_device(args.device)
@@ -133,7 +130,7 @@ def main() -> None:
                 print(f"[{name} {task} {mode}] KV-cached search {fast:.3f} s/chunk, {fast / reference:.2f}x "
                       f"{modes[0][0]}'s")
                 continue
-            reference, ref_model, ref_inputs = fast, model, (ctx, target)
+            reference = fast
             slow = time_search(NaiveDynamics(model), ctx, target, planner, args.repeats)
             if name in args.ckpt:  # against the first preset's first task
                 versus = f", {fast / first[args.presets[0]]:.2f}x the {args.presets[0]} preset's on {args.tasks[0]}"
@@ -143,21 +140,6 @@ def main() -> None:
             print(f"[{name} {task} {mode}] {model.num_params() / 1e6:.1f} M params, {cfg.num_views}x"
                   f"{cfg.num_patches} tokens/frame, {steps} rollout steps/chunk: KV-cached search {fast:.3f} "
                   f"s/chunk{versus}, naive {slow:.3f} s/chunk, speed-up {slow / fast:.2f}x")
-        k = args.replan_every
-        if not k:
-            continue
-        from wamplan.planning.history import PlanningError  # only re-planning needs these
-        from wamplan.planning.policy_config import check_replan_every
-        try:
-            check_replan_every(k, CHUNK, cfg.frameskip)  # what `wamplan eval` accepts
-        except PlanningError as e:
-            print(f"[{name} {task}] not timed with re-planning: {e}")
-            continue
-        rests = range(CHUNK - k, 0, -k)  # what each re-plan still covers: 16 - K, 16 - 2K, ...
-        total = reference + sum(time_search(LearnedDynamics(ref_model), *ref_inputs, planner, args.repeats, r)
-                                for r in rests)  # the first arithmetic's model
-        print(f"[{name} {task} {modes[0][0]}] re-planning every {k} steps ({len(rests)} re-plan(s) of {', '.join(map(str, rests))} steps):"
-              f" {total:.3f} s/chunk KV-cached, {total / reference:.2f}x the whole-chunk search")
 
 
 if __name__ == "__main__":

@@ -91,8 +91,6 @@ def _policy(a0: float = 0.2, dynamics: Dynamics | None = None, **cfg) -> Planned
     (0.2, {}, None, H, None),
     (0.2, {}, ToyDynamics(frameskip=10), H, "warm-up"),  # its history reaches step -4
     (0.2, dict(gate_threshold=1.0), None, H, "gated"),  # every cost is below 1
-    (0.2, dict(gate_above=0.0), None, H, "gated-above"),  # every cost is above 0
-    (TARGET / 255, dict(rank_gate=0.5), None, H, "rank-gated"),  # no sample beats the WAM's perfect chunk
     (TARGET / 255, dict(accept_margin=0.5), None, H, "rejected"),  # nor can the plan
 ])
 def test_each_open_loop_reason_comes_from_its_setting(a0, cfg, dynamics, step, reason):
@@ -102,18 +100,18 @@ def test_each_open_loop_reason_comes_from_its_setting(a0, cfg, dynamics, step, r
     assert d.step == step and d.reason == reason and d.planned == (reason is None)
     assert d.seed.shape == d.executed.shape == (H, ACTION_DIM)
     np.testing.assert_array_equal(d.executed, d.seed if reason else d.plan)
-    assert (d.plan is not None) == (reason in (None, "rank-gated", "rejected"))  # searched or not
+    assert (d.plan is not None) == (reason in (None, "rejected"))  # searched or not
     assert (d.target is not None) == (reason not in ("first-chunk", "warm-up"))
     assert pol.info()["chunks"] == [d.record()] and pol.last_decision is d
     assert pol.info()["open_loop_chunks"] == ({} if reason is None else {reason: 1})
-    if reason in ("gated", "gated-above", "rejected"):
+    if reason in ("gated", "rejected"):
         assert d.costs.seed is not None and d.record()["seed_cost"] == d.costs.seed
     if reason == "rejected":
         assert d.costs.plan >= (1 - 0.5) * d.costs.seed and d.record()["plan_cost"] == d.costs.plan
     if reason is None:
         assert d.costs.best < d.costs.seed and d.correction[0] > 0  # toward the target: a0 grows
         assert d.record()["correction"] == list(d.correction)
-    assert set(OPEN_LOOP) == {"first-chunk", "warm-up", "gated", "gated-above", "rank-gated", "rejected"}
+    assert set(OPEN_LOOP) == {"first-chunk", "warm-up", "gated", "rejected"}
 
 
 def test_the_actions_run_are_the_decisions_executed_chunk():
@@ -193,10 +191,9 @@ def _history(rest_state=False) -> FrameHistory:
 
 def test_history_keeps_the_frames_of_each_boundary_and_hands_them_with_the_actions_between():
     hist = _history()
-    assert [s for s in range(40) if hist.wants(s, H)] == [0, 8, 12, 16, 24, 28, 32]
-    assert [s for s in range(H, 2 * H) if hist.wants(s, 8)] == [16, 20, 24, 28]  # a chunk that re-plans at 8
+    assert [s for s in range(40) if hist.wants(s)] == [0, 8, 12, 16, 24, 28, 32]
     for t in range(2 * H + 1):
-        hist.observe(_obs(t, images=hist.wants(t, H)), H)
+        hist.observe(_obs(t, images=hist.wants(t)))
         hist.record_action(np.full(ACTION_DIM, t / 100, np.float32))
     assert sorted(hist.frames) == [8, 12, 16, 24, 28, 32]  # frame 0 is no longer needed
     ctx = hist.planning_context(2 * H)
@@ -207,7 +204,7 @@ def test_history_keeps_the_frames_of_each_boundary_and_hands_them_with_the_actio
 
 def test_a_rest_state_history_repeats_the_first_frame_holding_still():
     hist = _history(rest_state=True)
-    hist.observe(_obs(0), H)
+    hist.observe(_obs(0))
     ctx = hist.planning_context(0)
     assert ctx.z[:, 0, 0, 0].tolist() == [0.0, 0.0, 0.0]
     np.testing.assert_array_equal(ctx.a.numpy(), np.tile(HOLD_ACTION, (2, 4)))
@@ -217,14 +214,14 @@ def test_a_missing_frame_is_an_error():
     hist = _history()
     for t in range(H):
         if t != 12:  # frame 12 is never shown
-            hist.observe(_obs(t), H)
+            hist.observe(_obs(t))
         hist.record_action(np.zeros(ACTION_DIM, np.float32))
-    hist.observe(_obs(H), H)
+    hist.observe(_obs(H))
     with pytest.raises(PlanningError, match=r"history frames at steps \[12\] are missing"):
         hist.planning_context(H)
     with pytest.raises(PlanningError, match="needs the views at step 24"):
-        hist.observe(_obs(24, images=False), H)
-    hist.observe(_obs(20, images=False), H)  # not a history frame: nothing needed
+        hist.observe(_obs(24, images=False))
+    hist.observe(_obs(20, images=False))  # not a history frame: nothing needed
 
 
 def test_a_learned_models_history_reaches_its_dynamics():
@@ -246,21 +243,18 @@ def test_gates_decide_before_and_after_the_search():
         return lambda: calls.append(value) or value
 
     assert Gates().before_search(None) is None and not Gates().needs_wam_cost
-    assert Gates().after_search(float("nan"), None, plan_cost(1.0)) == (None, None) and not calls
-    band = Gates(threshold=0.1, above=0.5)
-    assert band.needs_wam_cost
-    assert [band.before_search(c) for c in (0.1, 0.3, 0.5, 0.6)] == ["gated", None, None, "gated-above"]
-    rank = Gates(rank=0.5, accept_margin=0.2)
-    assert rank.after_search(0.25, 1.0, plan_cost(0.1)) == ("rank-gated", None) and not calls  # never scored
-    assert rank.after_search(float("nan"), 1.0, plan_cost(0.1)) == ("rank-gated", None)  # no rank: the WAM's
-    assert rank.after_search(0.5, 1.0, plan_cost(0.7)) == (None, 0.7)  # 0.7 <= (1 - 0.2) x 1.0: the plan runs
-    assert rank.after_search(0.5, 1.0, plan_cost(0.9)) == ("rejected", 0.9) and calls == [0.7, 0.9]
-    assert Gates(accept_margin=0.0).after_search(0.0, 1.0, plan_cost(1.0)) == (None, 1.0)  # not worse: kept
-    assert PlannedPolicyConfig(gate_threshold=0.1, rank_gate=0.5).gates == Gates(threshold=0.1, rank=0.5)
+    assert Gates().after_search(None, plan_cost(1.0)) == (None, None) and not calls
+    gate = Gates(threshold=0.1)
+    assert gate.needs_wam_cost
+    assert [gate.before_search(c) for c in (0.1, 0.3)] == ["gated", None]
+    accept = Gates(accept_margin=0.2)
+    assert accept.after_search(1.0, plan_cost(0.7)) == (None, 0.7)  # 0.7 <= (1 - 0.2) x 1.0: the plan runs
+    assert accept.after_search(1.0, plan_cost(0.9)) == ("rejected", 0.9) and calls == [0.7, 0.9]
+    assert Gates(accept_margin=0.0).after_search(1.0, plan_cost(1.0)) == (None, 1.0)  # not worse: kept
+    assert PlannedPolicyConfig(gate_threshold=0.1, accept_margin=0.2).gates == Gates(threshold=0.1, accept_margin=0.2)
 
 
-@pytest.mark.parametrize("kw, match", [(dict(threshold=0.5, above=0.1), "must be below gate_above"),
-                                       (dict(rank=0.0), "rank_gate must be in"),
+@pytest.mark.parametrize("kw, match", [(dict(threshold=float("nan")), "threshold"),
                                        (dict(accept_margin=1.0), "accept_margin must be in")])
 def test_gates_refuse_settings_that_cannot_work(kw, match):
     with pytest.raises(ConfigError, match=match):

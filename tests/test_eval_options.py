@@ -56,7 +56,7 @@ def test_a_registered_planner_appears_in_eval_with_its_options(toy_planner, caps
     with pytest.raises(SystemExit):
         build_parser().parse_args(["eval", "--help"])
     out = capsys.readouterr().out
-    assert "--planner {cem,cem-gripper,drift,mppi,toy,wamplan}" in out and "--shift SHIFT" in out and "[toy]" in out
+    assert "--planner {cem,cem-gripper,mppi,toy,wamplan}" in out and "--shift SHIFT" in out and "[toy]" in out
     assert "--toy-temperature" in out and "--mppi-temperature" in out  # the clash is spelled per planner
     with pytest.raises(ConfigError, match="shift must be >= 0"):
         _cfg("--planner", "toy", "--shift", "-1")
@@ -159,13 +159,13 @@ def test_the_world_models_arithmetic_reaches_the_models_the_runs_plan_in(tmp_pat
 
 
 def test_a_directory_from_before_a_new_setting_resumes_at_its_default(tmp_path):
-    """A setting added after a directory was written (here the planner's noise_beta) does not block resuming
+    """A setting added after a directory was written (here the planner's min_std) does not block resuming
     it when requested at its default, which is what the older version ran with; another value still does."""
     _check_same_settings(tmp_path, _cfg())
     path = tmp_path / "eval_config.json"
     stored = json.loads(path.read_text())
-    del stored["planner_config.noise_beta"], stored["policy.rank_gate"]
-    for other in ((), ("--noise-beta", "2"), ("--rank-gate", "0.5")):
+    del stored["planner_config.min_std"], stored["policy.accept_margin"]
+    for other in ((), ("--min-std", "0.01"), ("--accept-margin", "0.5")):
         path.write_text(json.dumps(stored))  # the old directory, as written before the two settings existed
         if not other:
             _check_same_settings(tmp_path, _cfg())
@@ -175,6 +175,22 @@ def test_a_directory_from_before_a_new_setting_resumes_at_its_default(tmp_path):
 
 
 def test_a_directory_of_another_planner_names_the_flag_that_resumes_it(tmp_path):
+def test_a_directory_from_before_an_option_left_resumes_only_if_it_ran_what_runs_now(tmp_path):
+    """Options that left wamplan (they measured no gain), stored by an older version: at the value that ran what
+    runs now the directory resumes (and forgets them); at another value it is refused in one line naming the option."""
+    _check_same_settings(tmp_path, _cfg())
+    path = tmp_path / "eval_config.json"
+    stored = json.loads(path.read_text())
+    retired = {"planner_config.noise_beta": 0.0, "policy.gate_above": None, "policy.rank_gate": None,
+               "policy.replan_every": None, "policy.bias_correction": 0.0, "policy.correction_gain": 1.0}
+    path.write_text(json.dumps({**stored, **retired}))
+    _check_same_settings(tmp_path, _cfg())
+    assert json.loads(path.read_text()) == stored
+    path.write_text(json.dumps({**stored, **retired, "policy.correction_gain": 0.5}))
+    with pytest.raises(UserError, match="--correction-gain 0.5, an option wamplan no longer has"):
+        _check_same_settings(tmp_path, _cfg())
+
+
     """Directories written when CEM was the default ran it; the new default refuses them in one line that
     names --planner cem, which resumes them."""
     _check_same_settings(tmp_path, _cfg("--planner", "cem"))
@@ -409,7 +425,7 @@ def test_a_directory_refuses_another_world_model_and_accepts_one_added_later(tmp
     ["--planner", "cem", "--num-elites", "99"],  # a config that refuses its values
     ["--cost-name", "nope"],
     ["--wam", "checkpoints/mini/tinywam", "--cost-view-weights", "1", "1"],
-    ["--wam", "checkpoints/mini/tinywam", "--replan-every", "5"],
+    ["--wam", "checkpoints/mini/tinywam", "--num-optimized", "20"],  # more steps than the task's chunk
     ["--wam", "checkpoints/mini/tinywam", "--wam-send-chunk-frames", "4"],  # frames go to a served WAM only
 ])
 def test_eval_refuses_bad_arguments_before_torch_loads(argv, tmp_path):

@@ -77,27 +77,6 @@ def test_fidelity_of_a_world_model_and_of_the_simulator_against_itself(env):
     assert wrist["simulator"]["spearman"] == pytest.approx(1.0, abs=1e-9)
 
 
-def test_a_bias_corrected_twin_scores_the_same_candidates_with_its_correction(env):
-    """Scored(policy=PlannedPolicyConfig(bias_correction=...)) sharing the plain model's dynamics: the same
-    candidates and simulator costs, its own model costs, and the bias measured from the second boundary on."""
-    from wamplan.planning.policy import PlannedPolicyConfig
-
-    wam = load_wam("checkpoints/mini/tinywam", device="cpu")
-    model, enc = load_world_model("checkpoints/mini/wm_augmented")
-    dyn = LearnedDynamics(model)
-    models = [Scored("augmented", dyn, enc),
-              Scored("augmented+bias", dyn, enc, PlannedPolicyConfig(bias_correction=1.0))]
-    cfg = FidelityConfig(num_candidates=4, top_k=2, boundaries=(2, 3), task_metric=False)
-    recs = run_fidelity(env, wam, models, [501], cfg)["records"]
-    assert [r["step"] for r in recs] == [32, 48]
-    for r in recs:
-        plain, fixed = r["models"]["augmented"], r["models"]["augmented+bias"]
-        assert plain["true_costs"] == fixed["true_costs"] and plain["model_costs"] != fixed["model_costs"]
-        assert "bias" not in plain and fixed["bias"] > 0
-    fixed = [r["models"]["augmented+bias"] for r in recs]
-    assert "bias_left" not in fixed[0] and fixed[1]["bias_left"] > 0
-
-
 def test_a_twin_with_its_own_view_weights_ranks_and_plans_in_its_cost_and_is_scored_in_the_runs(env):
     """Scored(cost=...) sharing the model's dynamics: the same candidates and simulator (yardstick) costs, its own
     model costs of them, and its own search's plan scored by the simulator after the other model's."""
@@ -121,8 +100,6 @@ def test_fidelity_cli_refuses_labels_that_collide_before_loading_anything(capsys
     base = ["wm", "fidelity", "--wam", "checkpoints/mini/tinywam", "--seeds", "500"]
     assert main(base + ["--wm", f"a={wm},a=/no/such/dir"]) == 2  # the label is checked before the paths
     assert "a appears twice" in capsys.readouterr().err
-    assert main(base + ["--wm", f"x={wm},x+bias={wm}", "--bias-correction", "0.5"]) == 2
-    assert "x+bias appears twice" in capsys.readouterr().err
     assert main(base + ["--wm", f"x={wm},x+views={wm}", "--plan-view-weights", "1", "1", "0.5"]) == 2
     assert "x+views appears twice" in capsys.readouterr().err
     assert main(base + ["--wm", "x=/no/such/dir", "--plan-view-weights", "1", "-1", "1"]) == 2
@@ -191,9 +168,9 @@ def test_each_models_own_plan_is_scored_and_one_model_can_drive_the_episode(shor
     assert first["model_costs"] != pytest.approx(plain["records"][0]["models"]["augmented"]["model_costs"])
     from wamplan.planning.policy import PlannedPolicyConfig
 
-    damped = [*models, Scored("damped", models[0].dynamics, enc, PlannedPolicyConfig(correction_gain=0.5))]
-    with pytest.raises(ValueError, match="'damped' would record another chunk"):  # its history would lie
-        run_fidelity(env, wam, damped, [500], dataclasses.replace(cfg, execute="augmented"))
+    gated = [*models, Scored("gated", models[0].dynamics, enc, PlannedPolicyConfig(gate_threshold=float("inf")))]
+    with pytest.raises(ValueError, match="'gated' would record another chunk"):  # its history would lie
+        run_fidelity(env, wam, gated, [500], dataclasses.replace(cfg, execute="augmented"))
     with pytest.raises(ValueError, match="names no scored model"):
         run_fidelity(env, wam, models, [500], dataclasses.replace(cfg, execute="other"))
 

@@ -174,29 +174,6 @@ def test_sampling_statistics_and_per_dim_std():
     assert samples.mean(0).abs().max() < 0.03
 
 
-def _lag1(x: torch.Tensor) -> float:
-    """Lag-1 autocorrelation along H of samples x (B, H, A)."""
-    return float(torch.corrcoef(torch.stack([x[:, :-1].flatten(), x[:, 1:].flatten()]))[0, 1])
-
-
-@pytest.mark.parametrize("name", ["cem", "mppi"])
-def test_coloured_noise_keeps_sigma_and_moves_the_endpoint(name):
-    """noise_beta colours the samples along the chunk without changing their per-step sigma; beta 2 makes
-    each candidate a smooth drift (lag-1 correlation ~0.8) whose summed displacement is ~2x white noise's."""
-    seed = torch.zeros(H, A)
-    stats = {}
-    for beta in (0.0, 2.0):
-        cfg = make_planner(name).config_cls(num_candidates=4001, iterations=1, init_std=0.1, noise_beta=beta)
-        rec = Recorder(lambda c: torch.zeros(c.shape[0]))
-        make_planner(name, cfg).plan(seed, rec, seed=0)
-        samples = rec.calls[0][0][1:]  # (4000, H, A), the mean left out
-        torch.testing.assert_close(samples.std(0), torch.full((H, A), 0.1), atol=0.006, rtol=0)
-        stats[beta] = (_lag1(samples), float(samples.sum(1).std()))
-    assert abs(stats[0.0][0]) < 0.03 and stats[2.0][0] > 0.7
-    assert stats[0.0][1] == pytest.approx(0.1 * math.sqrt(H), rel=0.05)
-    assert stats[2.0][1] > 1.8 * stats[0.0][1]
-
-
 @pytest.mark.parametrize("name", ["cem", "mppi", "cem-gripper"])
 def test_seed_rank_is_the_share_of_first_samples_scored_below_the_seed(name):
     for seed, expect in ((torch.zeros(H, A), 0.0), (None, None)):
@@ -215,8 +192,8 @@ def test_seed_rank_is_the_share_of_first_samples_scored_below_the_seed(name):
 
 
 def test_white_noise_is_the_papers_sampling_bit_for_bit():
-    """noise_beta 0 draws exactly what the paper's CEM drew before the option existed: N(mu, sigma^2) from
-    torch.randn on the seeded generator, candidate 0 the mean."""
+    """The samples are exactly what the paper's CEM draws: N(mu, sigma^2) from torch.randn on the seeded
+    generator, candidate 0 the mean."""
     g = torch.Generator().manual_seed(3)
     seed = torch.rand(H, A, generator=g) * 0.4 - 0.2
     rec = Recorder(lambda c: c.square().sum((1, 2)))
@@ -283,7 +260,6 @@ def test_device_follows_seed_actions(name, device):
     ({"iterations": 0}, "iterations"),
     ({"num_optimized": 0}, "num_optimized"),
     ({"action_low": 1.0, "action_high": -1.0}, "action_low"),
-    ({"noise_beta": -1.0}, "noise_beta"),
 ])
 def test_bad_cem_configs(kwargs, match):
     with pytest.raises(ConfigError, match=match):
@@ -355,7 +331,7 @@ def test_the_wamplan_preset_is_mppi_at_its_tuned_settings():
     assert isinstance(make_planner("wamplan").config, WamplanConfig)
 
 
-@pytest.mark.parametrize("name", ["cem", "mppi", "wamplan", "cem-gripper", "drift"])
+@pytest.mark.parametrize("name", ["cem", "mppi", "wamplan", "cem-gripper"])
 def test_the_sampling_sigma_follows_the_tasks_controller(name):
     """A task's sigma_scale multiplies init_std per action entry (ManiSkill's 10 cm-a-unit translation gets a fifth
     of the cube's sigma, its rotation a tenth), an explicit init_std_per_dim is kept as given, and the cube's own config is untouched."""
@@ -369,14 +345,12 @@ def test_the_sampling_sigma_follows_the_tasks_controller(name):
     assert base.for_task(CUBE).init_std_per_dim == ()  # the unit task: nothing to scale
     given = cls(init_std_per_dim=(0.3,) * 7)
     assert given.for_task(seven).init_std_per_dim == (0.3,) * 7
-    if name != "drift":  # the Gaussian samplers: candidates of iteration 0 spread by the scaled sigma
-        rec = Recorder(lambda c: c.square().sum((1, 2)))
-        make_planner(name, cls(num_candidates=512, iterations=1)).for_task(seven).plan(
-            torch.zeros(H, 7), rec, seed=0)
-        spread = rec.calls[0][0][1:].std(dim=(0, 1))  # (7,) over candidates and steps, the mean left out
-        want = torch.tensor([base.init_std * s for s in seven.sigma_scale])  # (7,)
-        n = 6 if name == "cem-gripper" else 7  # cem-gripper draws the gripper from categories, not a Gaussian
-        assert torch.allclose(spread[:n], want[:n], rtol=0.1)
+    rec = Recorder(lambda c: c.square().sum((1, 2)))  # candidates of iteration 0 spread by the scaled sigma
+    make_planner(name, cls(num_candidates=512, iterations=1)).for_task(seven).plan(torch.zeros(H, 7), rec, seed=0)
+    spread = rec.calls[0][0][1:].std(dim=(0, 1))  # (7,) over candidates and steps, the mean left out
+    want = torch.tensor([base.init_std * s for s in seven.sigma_scale])  # (7,)
+    n = 6 if name == "cem-gripper" else 7  # cem-gripper draws the gripper from categories, not a Gaussian
+    assert torch.allclose(spread[:n], want[:n], rtol=0.1)
 
 
 def test_a_tasks_sigma_scale_is_checked():

@@ -87,7 +87,6 @@ def test_the_spread_head_learns_where_the_error_is_and_leaves_the_means_alone(he
 
 
 def test_the_planners_spread_is_the_predicted_variance_and_an_ensemble_adds_its_members(headed):
-    from wamplan.planning import make_planner
     from wamplan.planning.policy import PlannedPolicyConfig
     from wamplan.planning.policy_config import PlanningError, check_fits
 
@@ -108,11 +107,9 @@ def test_the_planners_spread_is_the_predicted_variance_and_an_ensemble_adds_its_
     z2, spread2 = ens.predict(cands)  # identical members: no disagreement, their own variance remains
     torch.testing.assert_close(spread2, spread)
     assert dyn.spreads and ens.spreads and not LearnedDynamics(WorldModelPredictor(TINY)).spreads
-    planner = make_planner("mppi")
-    check_fits(PlannedPolicyConfig(disagreement_weight=1.0), 2, planner, dyn)  # a headed model may weigh its spread
+    check_fits(PlannedPolicyConfig(disagreement_weight=1.0), 2, dyn)  # a headed model may weigh its spread
     with pytest.raises(PlanningError, match="spread head"):
-        check_fits(PlannedPolicyConfig(disagreement_weight=1.0), 2, planner,
-                   LearnedDynamics(WorldModelPredictor(TINY)))
+        check_fits(PlannedPolicyConfig(disagreement_weight=1.0), 2, LearnedDynamics(WorldModelPredictor(TINY)))
 
 
 def test_spread_only_fits_a_head_onto_a_checkpoint_and_keeps_its_means(expert_store, tmp_path, refused):

@@ -186,11 +186,9 @@ def add_field_argument(parser: Any, flag: str, dest: str, f: dataclasses.Field, 
                             metavar=metavar, help=help_, choices=choices)
 
 
-def add_arguments(parser: Any, cls: type, prefix: str = "", presets: dict[str, Any] | None = None,
-                  hide: tuple[str, ...] = ()) -> None:
+def add_arguments(parser: Any, cls: type, prefix: str = "", presets: dict[str, Any] | None = None) -> None:
     """Add one ``--name`` option per scalar field of ``cls`` (default None = keep the config default);
-    nested configs and fields declared with ``cli=False`` are skipped; the fields named in ``hide`` (which the
-    command refuses, in its own words) are taken but left out of ``--help``. ``presets`` ({name: instance of
+    nested configs and fields declared with ``cli=False`` are skipped. ``presets`` ({name: instance of
     cls}): the defaults come from the chosen preset, and the help shows each preset's value."""
     hints = _hints(cls)
     for f in dataclasses.fields(cls):
@@ -198,8 +196,7 @@ def add_arguments(parser: Any, cls: type, prefix: str = "", presets: dict[str, A
         if dataclasses.is_dataclass(t) or not f.metadata.get("cli", True):
             continue
         add_field_argument(parser, "--" + (prefix + f.name).replace("_", "-"), prefix + f.name, f, t,
-                           default_text=preset_default_text(f.name, presets),
-                           **({"help_": argparse.SUPPRESS} if f.name in hide else {}))
+                           default_text=preset_default_text(f.name, presets))
 
 
 def preset_default_text(name: str, presets: dict[str, Any] | None) -> str | None:

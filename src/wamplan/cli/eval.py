@@ -215,7 +215,7 @@ def cmd_gate_calibrate(args: argparse.Namespace) -> int:
     for c, row in table.items():
         print(f"condition {c}: {row['chunks']} planned chunks, fraction planned {row['planned_fraction']:.2f}")
         for q, v in row["quantiles"].items():
-            print(f"  --gate-threshold {v:.6g}  skips ~{q:.0%} of these chunks   (--gate-above {v:.6g}: ~{1 - q:.0%})")
+            print(f"  --gate-threshold {v:.6g}  skips ~{q:.0%} of these chunks")
     return 0
 
 

@@ -17,10 +17,9 @@ from wamplan.planning.cost_config import CostConfig
 from wamplan.planning.policy_config import PlannedPolicyConfig
 
 
-def add_planning_arguments(p: argparse.ArgumentParser, hide: tuple[str, ...] = ()) -> None:
-    """The planned policy's chunk rules (the fields in ``hide`` left out of ``--help``), the cost (``--cost-*``),
-    ``--planner`` and every planner's options."""
-    add_arguments(p.add_argument_group("planned policy"), PlannedPolicyConfig, hide=hide)
+def add_planning_arguments(p: argparse.ArgumentParser) -> None:
+    """The planned policy's chunk rules, the cost (``--cost-*``), ``--planner`` and every planner's options."""
+    add_arguments(p.add_argument_group("planned policy"), PlannedPolicyConfig)
     add_arguments(p.add_argument_group("cost"), CostConfig, prefix="cost_")
     add_planner_arguments(p, default=EvalConfig.planner)
 

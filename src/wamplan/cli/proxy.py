@@ -26,9 +26,7 @@ def _options(p: argparse.ArgumentParser) -> None:
     from wamplan.cli.eval_options import add_planning_arguments
 
     add_arguments(p, ProxyConfig)
-    # the planner, cost and chunk rules, as `wamplan eval` takes them; --replan-every is refused in words (the proxy
-    # answers whole chunks), so --help leaves it out
-    add_planning_arguments(p, hide=("replan_every",))
+    add_planning_arguments(p)  # the planner, cost and chunk rules, as `wamplan eval` takes them
     add_listen_options(p, 8778, "shared secret every request must carry (X-WAMplan-Secret header, Authorization: "
                                 "Bearer or Api-Key, or ?token=SECRET in the URL); default: $WAMPLAN_ACT_SECRET, none if unset. "
                                 "The upstream's own secret, if any, is read from $WAMPLAN_UPSTREAM_SECRET")

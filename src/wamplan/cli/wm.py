@@ -208,8 +208,6 @@ def _fidelity_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--candidates", type=int, default=32, help="the WAM's chunk + N-1 samples")
     p.add_argument("--sigma", type=float, default=0.10, help="std of the candidates' noise around the WAM's chunk "
                                                              "(default: 0.1, the search's first spread)")
-    p.add_argument("--noise-beta", type=float, default=0.0,
-                   help="temporal colour of the samples' noise (0 = white; 2 = smooth drifts), as `eval --noise-beta`")
     p.add_argument("--top-k", type=int, default=8, help="score how many of the simulator's k best candidates the "
                                                         "model also ranks in its k best (default: 8)")
     p.add_argument("--boundaries", default="1-4", help="chunk boundaries to score, as chunk indices (1 = step H), "
@@ -228,12 +226,9 @@ def _fidelity_options(p: argparse.ArgumentParser) -> None:
                    help="also score every model ranking (and, with --plan, searching) in the cost weighed by this "
                         "foreground readout (as `eval --cost-foreground`), as LABEL+fg; the simulator's yardstick "
                         "keeps the run's cost")
-    p.add_argument("--bias-correction", type=float, default=None, metavar="A",
-                   help="also score every model with `eval --bias-correction A` (its error on the chunk just run "
-                        "added to its predictions), as LABEL+bias; the same candidates, dynamics and references")
     p.add_argument("--plan-view-weights", type=float, nargs="+", default=None, metavar="W",
                    help="also score every model ranking (and, with --plan, searching) with these per-view cost weights "
-                        "(front side wrist), as LABEL+views, without --bias-correction; the simulator's yardstick "
+                        "(front side wrist), as LABEL+views; the simulator's yardstick "
                         "keeps --cost-view-weights")
     p.add_argument("--plan-state-weight", type=float, default=None, metavar="W",
                    help="also score every model that has a state head (`wm train --state-weight`) ranking and "
@@ -513,11 +508,10 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
     from wamplan.wam import load_wam
     from wamplan.worldmodel.load import load_world_model
 
-    flags = dict(num_candidates="--candidates", sigma="--sigma", noise_beta="--noise-beta", top_k="--top-k",
+    flags = dict(num_candidates="--candidates", sigma="--sigma", top_k="--top-k",
                  boundaries="--boundaries", seed="--sample-seed")
     try:
-        cfg = FidelityConfig(num_candidates=args.candidates, sigma=args.sigma, noise_beta=args.noise_beta,
-                             top_k=args.top_k,
+        cfg = FidelityConfig(num_candidates=args.candidates, sigma=args.sigma, top_k=args.top_k,
                              boundaries=tuple(int_list(args.boundaries, "--boundaries", example="2-8 or 2,5,8")),
                              seed=args.sample_seed, plan=args.plan, execute=args.execute)
     except ConfigError as e:  # named by the options, as from_args names them
@@ -532,11 +526,9 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
         label, _, paths = spec.rpartition("=")
         members = ensemble_members(paths)  # A+B+C: an ensemble, its mean prediction scored (as --wm-augmented)
         specs.append((label or "+".join(Path(p).name for p in members), members))
-    twin, viewed, posed, weighed = "{}+bias".format, "{}+views".format, "{}+pose".format, "{}+fg".format  # twins
+    viewed, posed, weighed = "{}+views".format, "{}+pose".format, "{}+fg".format  # twins
     spread = "{}+spread{:g}".format
     labels = [lab for lab, _ in specs]
-    if args.bias_correction is not None:
-        labels += [twin(lab) for lab, _ in specs]
     if args.plan_view_weights is not None:
         labels += [viewed(lab) for lab, _ in specs]
     if args.plan_foreground:
@@ -559,7 +551,7 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
                         f"(name a model with LABEL=PATH)")
     dup = sorted(lab for lab, n in Counter(labels).items() if n > 1)
     if dup:
-        raise UserError(f"--wm labels must differ (twins are LABEL+bias, LABEL+views, LABEL+fg, LABEL@W): "
+        raise UserError(f"--wm labels must differ (twins are LABEL+views, LABEL+fg, LABEL@W): "
                         f"{', '.join(dup)} "
                         f"appears twice; name each model, e.g. --wm shipped=DIR,new=DIR")
     models, tasks = [], {}  # world-model path -> the task it was trained on
@@ -568,10 +560,7 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
         loaded = [load_world_model(path, device=args.device) for path in members]
         tasks.update({path: predictor.task.name for path, (predictor, _) in zip(members, loaded)})
         models.append(Scored(label, *learned_dynamics(loaded)))
-        if args.bias_correction is not None:  # the same model (and dynamics object), scored as the corrected policy
-            models.append(Scored(twin(label), models[-1].dynamics, models[-1].encoder,
-                                 PlannedPolicyConfig(bias_correction=args.bias_correction)))
-    if args.plan_view_weights is not None:  # each model's twin, sharing its dynamics, planning without a correction
+    if args.plan_view_weights is not None:  # each model's twin, sharing its dynamics, planning with those weights
         plain = {m.label: m for m in models}
         models += [Scored(viewed(label), plain[label].dynamics, plain[label].encoder, cost=plan_cost)
                    for label, _ in specs]

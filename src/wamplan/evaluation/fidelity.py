@@ -60,8 +60,6 @@ TASK_METRIC = "cube_xy_error"  # the task metric task_metric needs: the cube tas
 class FidelityConfig:
     num_candidates: int = field(32, "candidates per boundary: the WAM's chunk + N-1 Gaussian samples")
     sigma: float = field(0.10, "std of the samples around the WAM's chunk (normalised action units)")
-    noise_beta: float = field(0.0, "temporal colour of the samples' noise, as the planners' noise_beta (0 = white), "
-                                   "coloured over the whole chunk")
     top_k: int = field(8, "size of the top sets whose overlap is reported (chance = k/N)")
     boundaries: tuple[int, ...] = field((1, 2, 3, 4), "chunk boundaries to score, as chunk indices (1 = step H; "
                                         "0, the first chunk, always runs open loop); the episode stops after the last")
@@ -78,7 +76,6 @@ class FidelityConfig:
         check_numbers(self)
         require(self.num_candidates >= 2, f"num_candidates must be >= 2, got {self.num_candidates}")
         require(self.sigma > 0, f"sigma must be > 0, got {self.sigma}")
-        require(self.noise_beta >= 0, f"noise_beta must be >= 0 (0 = white noise), got {self.noise_beta}")
         require(1 <= self.top_k <= self.num_candidates,
                 f"top_k must be in [1, num_candidates={self.num_candidates}], got {self.top_k}")
         require(len(self.boundaries) > 0 and min(self.boundaries) >= 1,
@@ -209,7 +206,7 @@ class Scored:
     label: str
     dynamics: Dynamics
     encoder: Any
-    policy: PlannedPolicyConfig | None = None  # e.g. bias_correction: the model scored as that policy would
+    policy: PlannedPolicyConfig | None = None  # e.g. disagreement_weight: the model scored as that policy would
     cost: CostFn | None = None  # the model's own planning cost (its ranking and search); None: the run's cost
 
 
@@ -282,8 +279,7 @@ class FidelityPolicy(Policy):
         cands = base[None]  # (1, H, A): an unscored boundary only keeps every policy's history going
         if scored:
             g = torch.Generator().manual_seed(self.cfg.seed * 1_000_003 + self._seed * 1000 + t)
-            noise = candidate_noise((self.cfg.num_candidates - 1, *base.shape), g, base.device,
-                                    self.cfg.noise_beta)  # (N-1, H, A)
+            noise = candidate_noise((self.cfg.num_candidates - 1, *base.shape), g, base.device)  # (N-1, H, A)
             cands = torch.cat([base[None], (base + self.cfg.sigma * noise).clamp(-1, 1)])  # (N, H, A)
         for label, s in self.scorers.items():
             s.candidates, s.costs, s.execute, s.planned = cands, None, None, None
@@ -301,8 +297,8 @@ class FidelityPolicy(Policy):
                 p.act(obs)
                 if self.cfg.execute and not np.allclose(p.last_decision.executed, executed, atol=1e-6):
                     raise ValueError(f"model {label!r} would record another chunk than {self.cfg.execute!r}'s plan "
-                                     f"at step {t} (its rollout covers fewer steps, or its policy settings damp, "
-                                     f"gate or re-plan); score models of one frameskip with the default settings")
+                                     f"at step {t} (its rollout covers fewer steps, or its policy settings gate "
+                                     f"its plan); score models of one frameskip with the default settings")
         plans = {label: torch.cat([self.scorers[label].planned, base[self.scorers[label].planned.shape[0]:]])
                  for label in self.labels if scored and self.scorers[label].planned is not None}  # label -> (H, A)
         if self.cfg.execute in plans:  # what ran, should the executor's settings have put the WAM's chunk instead
@@ -330,9 +326,7 @@ class FidelityPolicy(Policy):
             true = true_all[:n]
             covered = self.policies[label].dynamics.covered(self.chunk)  # the steps this model scores
             shift = (cands - cands[:1])[:, :covered].sum(dim=1)[:, self.arm]  # (N, arm entries): end-point shift
-            d = self.policies[label].last_decision  # this boundary's
-            bias = {k: v for k, v in (("bias", d.bias), ("bias_left", d.bias_left)) if v is not None}
-            rec["models"][label] = dict(boundary_stats(model, true, self.cfg.top_k, shift), **bias,
+            rec["models"][label] = dict(boundary_stats(model, true, self.cfg.top_k, shift),
                                         model_costs=model.tolist(), true_costs=true.tolist())
             if label in slot:
                 j, ref = slot[label], self.scorers[first].costs

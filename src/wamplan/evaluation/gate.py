@@ -3,7 +3,7 @@
 Every planned chunk's record keeps ``seed_cost``, the WAM's own chunk scored through the planning objective.
 Run an always-planning evaluation on seeds kept apart from the test seeds, then read the quantiles here: a
 threshold at the q-quantile skips the search on about a fraction q of those chunks (``--gate-threshold``, the
-cheap ones), or on the other 1 - q (``--gate-above``, the costly ones). The fraction of chunks
+cheap ones). The fraction of chunks
 planned in an evaluation is ``planned_chunks / (planned_chunks + sum(open_loop_chunks.values()))``.
 """
 

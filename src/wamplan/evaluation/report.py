@@ -137,10 +137,13 @@ def markdown_table1(rows: list[dict[str, Any]]) -> str:
 def markdown_timing(rows: list[dict[str, Any]]) -> str:
     """Per planned chunk: time per stage, and how many chunks were planned or ran open loop (and why)."""
     out = ["| Condition | WAM query (s/chunk) | target encoding (s/chunk) | search (s/chunk) | chunks planned "
-           "| open loop: first / warm-up / gated / gated above / rejected / rank-gated |", "|---|---|---|---|---|---|"]
+           "| open loop: first / warm-up / gated / rejected |", "|---|---|---|---|---|---|"]
     for r in rows:
         ol = r.get("open_loop_chunks", {})
-        counts = " / ".join(str(ol.get(k, 0)) for k in ("first-chunk", "warm-up", "gated", "gated-above", "rejected", "rank-gated")) if r["condition"] != 1 else "—"
+        reasons = ("first-chunk", "warm-up", "gated", "rejected")
+        counts = " / ".join(str(ol.get(k, 0)) for k in reasons)
+        older = ", ".join(f"{k} {n}" for k, n in ol.items() if k not in reasons)  # an older version's retired gates
+        counts = "—" if r["condition"] == 1 else counts + (f" ({older})" if older else "")
         out.append(f"| {r['condition']} | {_fmt(r.get('mean_wam_s'), 3)} | {_fmt(r.get('mean_target_encode_s'), 3)} "
                    f"| {_fmt(r.get('mean_search_s'), 3)} | {r.get('planned_chunks', 0)} | {counts} |")
     return "\n".join(out)

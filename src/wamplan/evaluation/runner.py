@@ -179,6 +179,24 @@ def _same_setting(key: str, before: Any, now: Any) -> bool:
     return _same(before, now)
 
 
+# Settings that left the core (no measured gain; their record is in the lab's table) at the value that ran what runs
+# now: a directory that stored one of them at that value resumes, another value is refused.
+RETIRED = {"planner_config.noise_beta": 0.0, "policy.gate_above": None, "policy.rank_gate": None,
+           "policy.replan_every": None, "policy.bias_correction": 0.0, "policy.correction_gain": 1.0}
+
+
+def _without_retired(out: Path, before: dict[str, Any]) -> dict[str, Any]:
+    """The stored settings ``before`` without the :data:`RETIRED` ones; one line if one ran at another value."""
+    from wamplan.errors import UserError
+
+    for k, v in RETIRED.items():
+        if k in before and before[k] != v:
+            flag = "--" + k.split(".", 1)[1].replace("_", "-")
+            raise UserError(f"{out} holds an evaluation run with {flag} {before[k]}, an option wamplan no longer has "
+                            f"(it measured no gain); use another --out")
+    return {k: v for k, v in before.items() if k not in RETIRED}
+
+
 def _settings_to_store(out: Path, cfg: EvalConfig, recorded: bool = True) -> dict[str, Any]:
     """Records of one directory must come from one configuration (see :func:`settings`); a world model
     or simulator encoder not given before may be added later. ``recorded``: ``out`` holds records; settings
@@ -189,7 +207,7 @@ def _settings_to_store(out: Path, cfg: EvalConfig, recorded: bool = True) -> dic
     path = out / CONFIG
     now = settings(cfg)
     if path.is_file() and recorded:
-        before = json.loads(path.read_text())
+        before = _without_retired(out, json.loads(path.read_text()))
         ran = before.get("planner", "cem")  # a directory that names no planner was written when cem was the default
         if ran != now["planner"]:
             raise UserError(f"{out} holds an evaluation with --planner {ran} (eval's default is {DEFAULT_PLANNER} "
@@ -227,7 +245,7 @@ def _check_inputs(cfg: EvalConfig, conditions: list[int]) -> None:
     from wamplan.encoders.foreground import load_foreground
     from wamplan.errors import UserError, require_paths
     from wamplan.planning.costs import pool_fits
-    from wamplan.planning.policy_config import check_frameskip, check_replan_every
+    from wamplan.planning.policy_config import check_frameskip
     from wamplan.worldmodel.load import load_world_model
 
     if cfg.wam:
@@ -256,8 +274,6 @@ def _check_inputs(cfg: EvalConfig, conditions: list[int]) -> None:
                                 f"predicts {n} tokens a view; pass a divisor of {math.isqrt(n)}")
             if cfg.cost.foreground:  # a readout of another encoder, task or views: refused here, not in the workers
                 load_foreground(cfg.cost.foreground, encoder, spec.name, predictor.cameras or spec.cameras)
-            if cfg.policy.replan_every is not None:  # the re-plans' rollouts must end at the target's step
-                check_replan_every(cfg.policy.replan_every, cfg.env.spec.chunk_len, predictor.cfg.frameskip)
 
 
 def run_evaluation(cfg: EvalConfig, conditions: list[int], seeds: list[int], out_dir: str | Path,

@@ -1,4 +1,4 @@
-"""Planning: costs and the sampling optimisers (CEM, MPPI, gripper-aware CEM, drift) that refine a WAM's action chunk.
+"""Planning: costs and the sampling optimisers (CEM, MPPI, gripper-aware CEM) that refine a WAM's action chunk.
 
 Planners are pure: ``make_planner(name, config).plan(seed_actions (H, A), objective) -> PlanResult``,
 where ``objective(candidates (B, H_opt, A)) -> costs (B,)`` wraps the caller's dynamics and cost.
@@ -15,11 +15,10 @@ from typing import Any
 _HOMES = {
     "base": ("PLANNERS", "IterationStats", "Objective", "PlanResult", "Planner", "SamplingPlanner", "make_planner",
              "register_planner"),
-    "configs": ("CEMConfig", "CEMGripperConfig", "DriftConfig", "MPPIConfig", "SamplingConfig"),
+    "configs": ("CEMConfig", "CEMGripperConfig", "MPPIConfig", "SamplingConfig"),
     "cost_config": ("CostConfig",),
     "cem": ("CEMPlanner",),
     "cem_gripper": ("CEMGripperPlanner",),
-    "drift": ("DriftPlanner",),
     "mppi": ("MPPIPlanner",),
     "costs": ("COSTS", "CostFn", "cls_cost", "make_cost", "patch_cost", "register_cost"),
 }

@@ -109,10 +109,6 @@ class SamplingPlanner(Planner):
         'elite' cost statistic (0-d tensor)."""
 
     # Hooks for planners that search some dimensions differently (e.g. a discrete gripper); no-ops here.
-    def _noise(self, shape: tuple[int, int, int], gen: torch.Generator | None, device: torch.device) -> Tensor:
-        """Each iteration, the standard noise (B', H_opt, A) that sigma scales around mu."""
-        return candidate_noise(shape, gen, device, self.config.noise_beta)
-
     def _begin(self, mu: Tensor, sigma: Tensor, frozen: Tensor) -> None:
         """Once per plan, before sampling: may set up state and edit mu, sigma, frozen (H_opt, A) in place."""
 
@@ -138,7 +134,7 @@ class SamplingPlanner(Planner):
         best = mu
         rows, seed_rank = [], torch.tensor(float("nan"))
         for it in range(cfg.iterations):
-            noise = self._noise((n_sampled, *mu.shape), gen, mu.device)  # (B', H_opt, A)
+            noise = candidate_noise((n_sampled, *mu.shape), gen, mu.device)  # (B', H_opt, A)
             cand = mu + sigma * noise  # (B', H_opt, A)
             if cfg.include_mean:
                 cand = torch.cat([mu.unsqueeze(0), cand])  # (B, H_opt, A), candidate 0 = mean
@@ -194,41 +190,12 @@ def _make_generator(generator: torch.Generator | None, seed: int | None,
     return generator
 
 
-def _randn(shape: tuple[int, ...], gen: torch.Generator | None, device: torch.device) -> Tensor:
-    """Standard normal noise on ``device``, drawn on the generator's own device (so a CPU generator
-    gives the same numbers whatever the planning device)."""
+def candidate_noise(shape: tuple[int, ...], gen: torch.Generator | None, device: torch.device) -> Tensor:
+    """Standard normal noise (the paper's i.i.d. samples) on ``device``, drawn on the generator's own device
+    (so a CPU generator gives the same numbers whatever the planning device)."""
     if gen is None:
         return torch.randn(shape, device=device)
     return torch.randn(shape, generator=gen, device=gen.device).to(device)
-
-
-def candidate_noise(shape: tuple[int, int, int], gen: torch.Generator | None, device: torch.device,
-                    beta: float = 0.0) -> Tensor:
-    """(B, H, A) noise of unit variance per element, coloured along H with power spectrum 1/f^beta.
-
-    beta 0 is exactly ``_randn`` (the paper's i.i.d. samples). Otherwise white noise is filtered in the
-    frequency domain by f^(-beta/2), the lowest frequency 1/H standing in for f = 0 (as iCEM's
-    ``colorednoise`` sampler does), and divided by the filter's exact gain, so every element has unit
-    variance for any H (``colorednoise``'s own normalisation is off by 16 % at H = 16, beta 2). With beta 2
-    the variance sits in the lowest frequencies: a candidate is mostly a smooth drift of the whole chunk,
-    and sigma buys endpoint displacement instead of per-step jitter (for H = 16 the summed noise has
-    about twice the spread of white noise at the same sigma). Like iCEM's, the noise is circular (the last
-    step correlates with the first), and for H <= 3 every bin gets the same gain, so it stays white."""
-    if beta == 0:
-        return _randn(shape, gen, device)
-    home = gen.device if gen is not None else device  # filter where the numbers are drawn: the same on any device
-    x = _randn(shape, gen, home)  # (B, H, A)
-    h = shape[1]
-    f = torch.fft.rfftfreq(h, device=home)  # (H//2 + 1,) cycles per step
-    f[0] = f[1] if h > 1 else 1.0
-    gain = f ** (-beta / 2)  # (H//2 + 1,)
-    mult = torch.full_like(gain, 2.0)  # each bin stands for itself and its mirror in the full spectrum...
-    mult[0] = 1.0  # ...except f = 0
-    if h % 2 == 0:
-        mult[-1] = 1.0  # ...and the Nyquist bin
-    gain = gain / torch.sqrt((mult * gain**2).sum() / h)  # unit variance after the filter
-    spec = torch.fft.rfft(x, dim=1) * gain[None, :, None]  # (B, H//2 + 1, A)
-    return torch.fft.irfft(spec, n=h, dim=1).to(device)  # (B, H, A)
 
 
 def _score(objective: Objective, cand: Tensor) -> Tensor:
@@ -255,8 +222,7 @@ class _PlannerRegistry(Registry):
 
 
 PLANNERS = _PlannerRegistry("planner", set_name=True, modules=(
-    "wamplan.planning.cem", "wamplan.planning.mppi", "wamplan.planning.cem_gripper", "wamplan.planning.drift",
-    "wamplan.planning.defaults"))
+    "wamplan.planning.cem", "wamplan.planning.mppi", "wamplan.planning.cem_gripper", "wamplan.planning.defaults"))
 register_planner = PLANNERS.register  # class decorator: make a planner (with its config_cls) constructible by name
 
 

@@ -1,6 +1,6 @@
 """The planners' settings, and the registry of those settings by planner name, importable without torch: a
 command builds its options from them and refuses bad settings before torch loads. Each planner's module
-(``cem``, ``mppi``, ``drift``, ``cem_gripper``, ``defaults``) holds its search and takes its config from here;
+(``cem``, ``mppi``, ``cem_gripper``, ``defaults``) holds its search and takes its config from here;
 ``register_planner`` (``wamplan.planning.base``) enters a new planner's config in :data:`PLANNER_CONFIGS`, so its
 options appear on the command line as the built-in planners' do. ``TEMPERATURE`` pins the temperature of wamplan's
 default planner (MPPI, ``DEFAULT_PLANNER``) here, so that it stays the same planner if MPPI's default changes.
@@ -38,13 +38,9 @@ class SamplingConfig:
         "(None = all; 15 for the paper's frameskip 5 with 16-step chunks)")
     action_low: float = field(-1.0, "lower action bound; candidates are clipped to it")
     action_high: float = field(1.0, "upper action bound; candidates are clipped to it")
-    noise_beta: float = field(
-        0.0, "temporal colour of the sampling noise along the chunk, power spectrum 1/f^beta: 0 = white, "
-        "i.i.d. per step (the paper); 1 = pink; 2 = smooth drifts that move the chunk's endpoint (as in iCEM)")
 
     def __post_init__(self) -> None:
         check_numbers(self)
-        require(self.noise_beta >= 0, f"noise_beta must be >= 0 (0 = white noise), got {self.noise_beta}")
         require(self.num_candidates >= 2, f"num_candidates must be >= 2, got {self.num_candidates}")
         require(self.iterations >= 1, f"iterations must be >= 1, got {self.iterations}; "
                 "to skip planning, execute the WAM's chunk directly")
@@ -124,44 +120,6 @@ class WamplanConfig(MPPIConfig):
 
 
 @dataclass(frozen=True)
-class DriftConfig(SamplingConfig):
-    """Drift search; sigma is the std of the per-step drift (0.025 moves the chunk's end point by ~8 mm at 2 cm
-    per unit action over 16 steps)."""
-
-    iterations: int = field(2, "response-surface fits, each around the previous step's centre")
-    init_std: float = field(0.025, "std of the per-step drift for every searched action dimension")
-    search_dims: tuple[int, ...] = field(
-        (), "action dimensions whose drift is searched (empty = the task's arm entries: x, y, z, yaw for the cube); "
-        "the others, the gripper among them, stay the WAM's. init_std_per_dim, if given, sets their stds (a 0 also "
-        "leaves one out)")
-    step_radius: float = field(1.0, "farthest step from the current centre, in units of sigma (a trust region: "
-                                    "1 = no farther than the samples the surface was fitted on reach)")
-    std_shrink: float = field(0.5, "sigma is multiplied by this after each iteration")
-    ridge: float = field(1e-4, "ridge on the response surface's coefficients (stabilises the fit)")
-
-    def __post_init__(self) -> None:
-        check_numbers(self)
-        super().__post_init__()
-        require(self.noise_beta == 0, "drift searches constant per-step offsets; noise_beta does not apply "
-                                      f"(got {self.noise_beta}); leave it at 0")
-        require(not self.search_dims or (min(self.search_dims) >= 0 and
-                                         len(set(self.search_dims)) == len(self.search_dims)),
-                f"search_dims must be distinct action indices >= 0, got {self.search_dims}")
-        require(self.step_radius > 0, f"step_radius must be > 0, got {self.step_radius}")
-        require(0 < self.std_shrink <= 1, f"std_shrink must be in (0, 1], got {self.std_shrink}")
-        require(self.ridge >= 0, f"ridge must be >= 0, got {self.ridge}")
-
-    def for_task(self, task: TaskSpec) -> DriftConfig:
-        """Empty ``search_dims`` filled with ``task``'s arm entries, and sigma scaled as in
-        :meth:`SamplingConfig.for_task`."""
-        cfg = super().for_task(task)
-        require(not cfg.search_dims or max(cfg.search_dims) < task.action_dim,
-                f"search_dims {cfg.search_dims} name entries past task '{task.name}''s {task.action_dim}-D actions; "
-                f"give indices 0-{task.action_dim - 1} (or none: the task's arm entries {task.arm})")
-        return cfg if cfg.search_dims else dataclasses.replace(cfg, search_dims=task.arm)
-
-
-@dataclass(frozen=True)
 class CEMGripperConfig(CEMConfig):
     """CEM over the continuous dimensions plus a categorical search over gripper switch times."""
 
@@ -203,8 +161,7 @@ class CEMGripperConfig(CEMConfig):
 
 
 PLANNER_CONFIGS = Registry("planner")  # planner name -> its config class (the built-in ones above, then plug-ins)
-PLANNER_CONFIGS.update({"cem": CEMConfig, "mppi": MPPIConfig, DEFAULT_PLANNER: WamplanConfig, "drift": DriftConfig,
-                        "cem-gripper": CEMGripperConfig})
+PLANNER_CONFIGS.update({"cem": CEMConfig, "mppi": MPPIConfig, DEFAULT_PLANNER: WamplanConfig, "cem-gripper": CEMGripperConfig})
 
 
 def register_planner_config(name: str, config_cls: Any) -> None:

@@ -31,7 +31,7 @@ class ChunkTimings:
 
     wam_s: float = 0.0  # querying the seed WAM (and the target WAM)
     target_encode_s: float = 0.0  # encoding the target views
-    search_s: float = 0.0  # from the encoded target to the decision: bias measurement, gates, search
+    search_s: float = 0.0  # from the encoded target to the decision: gates, search
 
 
 @dataclass(frozen=True)
@@ -40,15 +40,13 @@ class ChunkDecision:
 
     step: int
     seed: np.ndarray  # (H, A) float32: the WAM's chunk
-    executed: np.ndarray  # (H, A): what the policy runs, the plan or the WAM's chunk (re-plans may replace its tail)
+    executed: np.ndarray  # (H, A): what the policy runs, the plan or the WAM's chunk
     reason: str | None = None  # why the WAM's chunk runs open loop (one of OPEN_LOOP); None: the plan runs
     target: torch.Tensor | None = None  # (V, N, D) the encoded target views, on the dynamics' device, or None
     plan: np.ndarray | None = None  # (H, A) the search's plan (with the WAM's uncovered tail); None: no search ran
     costs: ChunkCosts = ChunkCosts()
     seed_rank: float | None = None  # share of the search's first random candidates scored below the WAM's chunk
     correction: tuple[float, ...] | None = None  # (A,) plan minus the WAM's chunk, mean over the searched steps
-    bias: float | None = None  # bias_correction: mean square of the model's error on the chunk just run
-    bias_left: float | None = None  # ... of that error minus bias_correction x the previous chunk's
     timings: ChunkTimings = ChunkTimings()
 
     def __post_init__(self):
@@ -65,11 +63,10 @@ class ChunkDecision:
 
     def record(self) -> dict[str, Any]:
         """The chunk's record in ``info()["chunks"]`` (what evaluation records keep): plain data, its keys in a
-        fixed order. A chunk that re-plans (``replan_every``) gets ``replans`` and their time added later."""
+        fixed order."""
         t = self.timings
         rec: dict[str, Any] = dict(step=self.step, planned=self.planned, wam_s=t.wam_s,
                                    target_encode_s=t.target_encode_s, search_s=t.search_s)
-        rec.update({k: v for k, v in (("bias", self.bias), ("bias_left", self.bias_left)) if v is not None})
         if self.plan is None:  # no search: why, and the WAM chunk's cost where a gate read it
             rec["open_loop"] = self.reason
             if self.costs.seed is not None:

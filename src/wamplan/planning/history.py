@@ -1,7 +1,7 @@
 """The history a learned world model conditions on: which frames of an episode to keep, and the context
 (frames and the actions executed between them) it gets at a planning point.
 
-At planning point t (a chunk boundary, or a re-planning step) the history is the frames at
+At planning point t (a chunk boundary) the history is the frames at
 t-(Tc-1)Δ, ..., t-Δ, t with the actions executed between them, anchored to t whether or not Δ divides the
 chunk (Δ=5, H=16: frames t-10, t-5, t). Before step 0 the robot rested: with ``rest_state`` the first frame
 stands in for the earlier ones, with the task's ``hold_action`` (arm still, gripper open) between them; without it, a
@@ -64,17 +64,16 @@ class FrameHistory:
         """Whether the history of planning point t lies inside the episode (none of it synthesised)."""
         return self.steps(t)[0] >= 0
 
-    def wants(self, step: int, period: int) -> bool:
+    def wants(self, step: int) -> bool:
         """Whether ``step`` is a history frame: t - iΔ (0 <= i < Tc) for some planning point t >= step, the
-        planning points being the multiples of ``period`` (the chunk, or the re-planning period of a chunk
-        that re-plans)."""
-        return self.keeps_frames and any((step + i * self.frameskip) % period == 0 for i in range(self.context))
+        planning points being the chunk boundaries."""
+        return self.keeps_frames and any((step + i * self.frameskip) % self.chunk == 0 for i in range(self.context))
 
-    def observe(self, obs: Observation, period: int) -> None:
+    def observe(self, obs: Observation) -> None:
         """Encode and keep the frame of ``obs`` if it is a history frame (see :meth:`wants`) not kept yet, and
         forget the frames no planning point needs any more."""
         t = obs.step
-        if not self.wants(t, period) or t in self.frames:
+        if not self.wants(t) or t in self.frames:
             return
         if obs.images is None:
             raise PlanningError(f"the planned policy needs the views at step {t} (a history frame) but "

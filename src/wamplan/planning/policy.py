@@ -14,7 +14,7 @@ Contract, the same for every dynamics backend:
   history with ``first_chunk="rest-history"`` (appendix A); a later boundary whose history reaches before
   step 0 runs open loop too ("warm-up");
 * the :class:`~wamplan.planning.gates.Gates` may run the WAM's chunk instead of a plan, without a search
-  ("gated", "gated-above") or after it ("rank-gated", "rejected");
+  ("gated") or after it ("rejected");
 * each boundary's :class:`ChunkDecision` says what runs and why; ``info()["chunks"]`` keeps its record and
   ``info()["open_loop_chunks"]`` counts the open-loop reasons;
 * a history frame that should exist but was never shown to the policy is a :class:`PlanningError`.
@@ -29,6 +29,7 @@ world model's checkpoint, or the simulator's env) must have been made for the sa
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from typing import Any
 
@@ -77,7 +78,7 @@ class PlannedPolicy(Policy):
         self.chunk = wam.chunk_length
         self.history = FrameHistory.for_dynamics(dynamics, self.chunk, self.encode, self.task.hold_action,
                                                  rest_state=self.config.first_chunk == "rest-history")
-        self.period = check_fits(self.config, self.chunk, self.planner, dynamics)  # between planning points: H, or K
+        check_fits(self.config, self.chunk, dynamics)
         self.reset()
 
     @property
@@ -97,37 +98,29 @@ class PlannedPolicy(Policy):
             self.target_wam.begin_episode(seed)
         self.history.reset()
         self._queue: list[np.ndarray] = []  # (A,) the actions still to run of the current chunk
-        self.chunks: list[dict[str, Any]] = []  # one record a chunk (ChunkDecision.record, plus its re-plans)
+        self.chunks: list[dict[str, Any]] = []  # one record a chunk (ChunkDecision.record)
         self.last_plan = None  # the latest PlanResult
         self.last_decision: ChunkDecision | None = None
         self._correction: torch.Tensor | None = None  # (H_opt, A) last planned chunk minus its WAM seed
-        self._replan: dict[str, Any] | None = None  # the planned chunk being executed: its target and record
         self._episode_seed = seed or 0
-        self._bias: torch.Tensor | None = None  # (V, N, D) the model's error on the chunk before (bias_correction)
 
     def wants_images(self, step: int) -> bool:
         return (step % self.chunk == 0 or any(step % self.chunk in w.frame_offsets for w in self._wams())
-                or self.history.wants(step, self._frame_period()))
+                or self.history.wants(step))
 
     def _wams(self) -> tuple[WAM, ...]:
         """The WAM and, where it is another, the target's WAM: each gets the in-chunk frames it asks for."""
         return (self.wam,) if self.target_wam is self.wam else (self.wam, self.target_wam)
 
-    def _frame_period(self) -> int:
-        """The spacing of the planning points ahead: ``replan_every`` inside a chunk that re-plans, else H."""
-        return self.period if self._replan is not None else self.chunk
-
     def act(self, obs: Observation) -> np.ndarray:
         require_observation(obs, "PlannedPolicy.act")
         t = obs.step
-        self.history.observe(obs, self._frame_period())
+        self.history.observe(obs)
         for w in self._wams():
             if t % self.chunk in w.frame_offsets:
                 w.observe(obs)
         if t % self.chunk == 0:
             self._queue = list(self.plan_chunk(obs).executed)
-        elif t % self.period == 0 and self._replan is not None:
-            self._queue = list(self._replan_rest(obs))
         a = self._queue.pop(0)
         self.history.record_action(a)
         return a
@@ -140,7 +133,6 @@ class PlannedPolicy(Policy):
             if not c["planned"]:
                 open_loop[c["open_loop"]] = open_loop.get(c["open_loop"], 0) + 1
         return dict(chunks=self.chunks, planned_chunks=len(planned), open_loop_chunks=open_loop,
-                    replans=sum(len(c.get("replans", ())) for c in self.chunks),
                     mean_s={k: float(np.mean([c[k] for c in planned])) for k in keys} if planned else {})
 
     def config_dict(self) -> dict[str, Any]:
@@ -161,23 +153,16 @@ class PlannedPolicy(Policy):
         if t % self.chunk:
             raise PlanningError(f"plan_chunk plans at chunk boundaries (steps 0, {self.chunk}, "
                                 f"{2 * self.chunk}, ...), got step {t}; use act() between boundaries")
-        self._replan = None
-        self.history.observe(obs, self.chunk)
+        self.history.observe(obs)
         t0 = time.perf_counter()
         seed_out: WAMOutput = self.wam.predict(obs, self.instruction)
         wam_s = time.perf_counter() - t0
-        context = None
         rule = self.open_loop_rule(t)
         if rule is not None:
-            return self._open_loop(t, seed_out.actions, rule, wam_s)
-        if self.dynamics.needs_history:
-            context = self.history.planning_context(t)
-        decision, objective = self._search(obs, seed_out, context, wam_s)
-        rec = self._record(decision)
-        if decision.planned and self.period < self.chunk:
-            self._replan = dict(objective=objective, rec=rec, seed=seed_out.actions)
-            rec["replans"] = []
-        return decision
+            return self._record(ChunkDecision(t, seed_out.actions, seed_out.actions, rule,
+                                              timings=ChunkTimings(wam_s=wam_s)))
+        context = self.history.planning_context(t) if self.dynamics.needs_history else None
+        return self._search(obs, seed_out, context, wam_s)
 
     def open_loop_rule(self, t: int) -> str | None:
         """Why the chunk at boundary t runs open loop whatever the WAM proposes: "first-chunk" (the paper's rule,
@@ -189,103 +174,91 @@ class PlannedPolicy(Policy):
             return "warm-up"
         return None
 
-    def _open_loop(self, t: int, seed: np.ndarray, reason: str, wam_s: float) -> ChunkDecision:
-        decision = ChunkDecision(t, seed, seed, reason, timings=ChunkTimings(wam_s=wam_s))
-        self._record(decision)
+    def _record(self, decision: ChunkDecision) -> ChunkDecision:
+        """Keep ``decision`` as the last one and its record in ``chunks`` -> the decision."""
+        self.chunks.append(decision.record())
+        self.last_decision = decision
         return decision
 
-    def _record(self, decision: ChunkDecision) -> dict[str, Any]:
-        rec = decision.record()
-        self.chunks.append(rec)
-        self.last_decision = decision
-        return rec
-
     def _search(self, obs: Observation, seed_out: WAMOutput, context: PlanningContext | None,
-                wam_s: float) -> tuple[ChunkDecision, Any]:
-        """Plan a chunk whose history exists: the target, the gates and the search -> (decision, objective)."""
-        if self.config.warm_start != "none":
-            correction, self._correction = self._correction, None  # only a chunk planned just before carries over
-        t1 = time.perf_counter()
-        target_out = seed_out if self.target_wam is self.wam else self.target_wam.predict(obs, self.instruction)
-        t2 = time.perf_counter()
-        target = self.encode(target_out.images)  # (V, N, D) on the search's device
-        t3 = time.perf_counter()
-        bias, bias_ms, bias_left = self._measure_bias(obs.step) if self.config.bias_correction > 0 else (None,) * 3
+                wam_s: float) -> ChunkDecision:
+        """Plan a chunk whose history exists: encode the target, ask the gate whether to search, set the initial
+        mean, search, decide between the plan and the WAM's chunk, record the decision."""
+        carried, self._correction = self._correction, None  # only the chunk planned just before carries over
+        target, query_s, encode_s = self._encode_target(obs, seed_out)  # (V, N, D)
+        started = time.perf_counter()  # the chunk's search_s: from here to its decision
         self.dynamics.prepare(context)
-        covered = self.dynamics.covered(self.chunk)
-        seed = torch.as_tensor(seed_out.actions, device=self.device)[:covered]  # (H_opt, A)
-        objective = self.objective(target, bias)
+        objective = self.objective(target)
+        seed = torch.as_tensor(seed_out.actions, device=self.device)[:self.dynamics.covered(self.chunk)]  # (H_opt, A)
+        wam_cost = self._wam_cost(objective, seed)
+        skip = self.gates.before_search(wam_cost)
+        if skip is not None:
+            decision = ChunkDecision(obs.step, seed_out.actions, seed_out.actions, skip, target=target,
+                                     costs=ChunkCosts(seed=wam_cost))
+        else:
+            init = self._initial_mean(seed, carried)  # (H_opt, A)
+            self.last_plan = self.planner.plan(init, objective, seed=self._plan_seed(obs.step))
+            decision = self._decide(obs.step, seed_out.actions, seed, init, objective, wam_cost, target)
+        timings = ChunkTimings(wam_s + query_s, encode_s, time.perf_counter() - started)
+        return self._record(dataclasses.replace(decision, timings=timings))
 
-        def decided(executed: np.ndarray, reason: str | None, **kw: Any) -> ChunkDecision:
-            timings = ChunkTimings(wam_s + t2 - t1, t3 - t2, time.perf_counter() - t3)
-            return ChunkDecision(obs.step, seed_out.actions, executed, reason, target=target, bias=bias_ms,
-                                 bias_left=bias_left, timings=timings, **kw)
+    def _encode_target(self, obs: Observation, seed_out: WAMOutput) -> tuple[torch.Tensor, float, float]:
+        """The target WAM's predicted views at t+H (the seed WAM's own, unless another WAM aims), encoded ->
+        ((V, N, D) on the search's device, seconds querying the target WAM, seconds encoding)."""
+        t0 = time.perf_counter()
+        target_out = seed_out if self.target_wam is self.wam else self.target_wam.predict(obs, self.instruction)
+        t1 = time.perf_counter()
+        target = self.encode(target_out.images)  # (V, N, D)
+        return target, t1 - t0, time.perf_counter() - t1
 
-        wam_cost = None
-        if self.gates.needs_wam_cost or self.config.warm_start != "none":
-            wam_cost = float(objective(self.clip(seed)[None])[0])  # the WAM's own chunk, scored as the planner would
-        reason = self.gates.before_search(wam_cost)
-        if reason is not None:
-            return decided(seed_out.actions, reason, costs=ChunkCosts(seed=wam_cost)), objective
-        init = seed
-        if self.config.warm_start == "residual" and correction is not None:
-            init = seed.clone()  # (H_opt, A)
-            init[:, self._arm] += self.config.warm_weight * correction[:, self._arm]  # the gripper stays the WAM's
-        result = self.planner.plan(init, objective, seed=self._plan_seed(obs.step))
-        self.last_plan = result
-        planned = self._damped(result.actions[:covered], seed)  # (H_opt, A) what is executed of the plan
-        if self.config.warm_start != "none":
-            self._correction = planned.float() - seed.float()  # (H_opt, A)
-        plan = np.concatenate([planned.cpu().numpy(), seed_out.actions[covered:]]).astype(np.float32)  # (H, A)
-        reason, plan_cost = self.gates.after_search(result.seed_rank, wam_cost,
-                                                    lambda: float(objective(self.clip(planned)[None])[0]))
-        if reason is not None:
-            self._correction = None  # the WAM's chunk ran: nothing of this plan carries over
+    def _wam_cost(self, objective, seed: torch.Tensor) -> float | None:
+        """The WAM's own chunk (H_opt, A), scored as the planner would, where a gate or the warm start reads it;
+        else None (not scored)."""
+        if not (self.gates.needs_wam_cost or self.config.warm_start != "none"):
+            return None
+        return float(objective(self.clip(seed)[None])[0])
+
+    def _initial_mean(self, seed: torch.Tensor, carried: torch.Tensor | None) -> torch.Tensor:
+        """The search's initial mean (H_opt, A): the WAM's chunk ``seed``, plus with ``warm_start="residual"``
+        ``warm_weight`` times the ``carried`` correction of the chunk planned just before (arm entries only)."""
+        if self.config.warm_start != "residual" or carried is None:
+            return seed
+        init = seed.clone()  # (H_opt, A)
+        init[:, self._arm] += self.config.warm_weight * carried[:, self._arm]  # the gripper stays the WAM's
+        return init
+
+    def _decide(self, step: int, seed_actions: np.ndarray, seed: torch.Tensor, init: torch.Tensor, objective,
+                wam_cost: float | None, target: torch.Tensor) -> ChunkDecision:
+        """The plan of the search just run (``last_plan``) against the WAM's chunk ``seed_actions`` (H, A), whose
+        first H_opt steps ``seed`` the search covered: the accept gate's verdict, the costs and the correction
+        carried to the next chunk's search (warm start) -> the decision (its timings left to the caller)."""
+        result, covered = self.last_plan, seed.shape[0]
+        planned = result.actions[:covered]  # (H_opt, A) what is executed of the plan
+        plan = np.concatenate([planned.cpu().numpy(), seed_actions[covered:]]).astype(np.float32)  # (H, A)
+        reason, plan_cost = self.gates.after_search(wam_cost, lambda: float(objective(self.clip(planned)[None])[0]))
+        if reason is None and self.config.warm_start != "none":
+            self._correction = planned.float() - seed.float()  # (H_opt, A) the correction the next search carries
         init_cost = float(result.seed_cost)  # NaN without include_mean
         costs = ChunkCosts(seed=init_cost if wam_cost is None else wam_cost, best=float(result.best_cost),
                            plan=plan_cost, init=None if init is seed else init_cost)
-        change = (plan[:covered] - seed_out.actions[:covered]).mean(0)  # (A,) what planning changed, per action dim
-        return decided(seed_out.actions if reason else plan, reason, plan=plan, costs=costs,
-                       seed_rank=result.seed_rank, correction=tuple(round(float(v), 4) for v in change)), objective
-
-    def _replan_rest(self, obs: Observation) -> np.ndarray:
-        """At a re-planning step inside a planned chunk: search the rest of it again from this observation,
-        toward the chunk's target, starting from the rest of the current plan. -> (R, A) the actions to run."""
-        t0 = time.perf_counter()
-        rest = np.stack(self._queue)  # (R, A) what the plan would still execute
-        # a planned chunk had its history at its boundary, so the later frames of this one exist too
-        self.dynamics.prepare(self.history.planning_context(obs.step) if self.dynamics.needs_history else None)
-        covered = self.dynamics.covered(len(rest))
-        init = torch.as_tensor(rest[:covered], device=self.device)  # (R_opt, A)
-        result = self.planner.plan(init, self._replan["objective"], seed=self._plan_seed(obs.step))
-        planned = self._damped(result.actions[:covered], init)  # (R_opt, A)
-        plan = np.concatenate([planned.cpu().numpy(), rest[covered:]]).astype(np.float32)  # (R, A)
-        offset = obs.step % self.chunk
-        if self._correction is not None:  # the chunk's executed correction now ends with this re-plan
-            seed = torch.as_tensor(self._replan["seed"][offset:offset + covered], device=self.device)  # (R_opt, A)
-            self._correction[offset:offset + covered] = planned.float() - seed.float()
-        self.last_plan = result
-        dt = time.perf_counter() - t0
-        rec = self._replan["rec"]
-        rec["replans"].append(dict(step=obs.step, seed_cost=float(result.seed_cost), best_cost=float(result.best_cost),
-                                   search_s=dt))
-        rec["search_s"] += dt  # a chunk's search time includes its re-plans
-        return plan
+        change = (plan[:covered] - seed_actions[:covered]).mean(0)  # (A,) what planning changed, per action dim
+        return ChunkDecision(step, seed_actions, seed_actions if reason else plan, reason, target=target, plan=plan,
+                             costs=costs, seed_rank=result.seed_rank,
+                             correction=tuple(round(float(v), 4) for v in change))
 
     # ------------------------------------------------------------------ scoring
-    def objective(self, target: torch.Tensor, bias: torch.Tensor | None = None):
-        """candidates (B, H_opt, A) -> costs (B,): the cost of the dynamics' prediction (plus ``bias_correction``
-        times ``bias`` (V, N, D), when given) against ``target`` (V, N, D), plus ``disagreement_weight`` times
-        the prediction's spread (an ensemble's disagreement, a spread head's variance)."""
+    def objective(self, target: torch.Tensor):
+        """candidates (B, H_opt, A) -> costs (B,): the cost of the dynamics' prediction against ``target``
+        (V, N, D), plus ``disagreement_weight`` times the prediction's spread (an ensemble's disagreement, a spread
+        head's variance)."""
         w = self.config.disagreement_weight
-        shift = None if bias is None else self.config.bias_correction * bias  # (V, N, D)
 
         def objective(cands: torch.Tensor) -> torch.Tensor:
             if w == 0:
                 z, spread = self.dynamics.terminal(cands), None  # (B, V, N, D)
             else:
                 z, spread = self.dynamics.predict(cands)  # (B, V, N, D), (B,)
-            c = self.cost(z if shift is None else z.float() + shift, target)  # (B,)
+            c = self.cost(z, target)  # (B,)
             return c if spread is None else c + w * spread.to(self.device)
 
         return objective
@@ -301,33 +274,6 @@ class PlannedPolicy(Policy):
         lo, hi = getattr(self.planner.config, "action_low", -1.0), getattr(self.planner.config, "action_high", 1.0)
         return actions.float().clamp(lo, hi)
 
-    def _measure_bias(self, t: int) -> tuple[torch.Tensor | None, float | None, float | None]:
-        """The learned model's error on the chunk that ended at boundary t: the frame seen at t minus its
-        prediction from the previous boundary's history under the executed actions -> (the error (V, N, D), its
-        mean square, the mean square left after the previous error's correction), Nones where it cannot be
-        measured. Leaves the dynamics prepared at t - H (the caller prepares it again)."""
-        prev, bias_prev = t - self.chunk, self._bias
-        self._bias = None
-        if not self.dynamics.needs_history or not self.history.real(prev):
-            return None, None, None  # the simulator has no bias; a history before step 0 is not a real one
-        context = self.history.planning_context(prev)
-        acts = self.history.actions(prev, t)  # (H, A)
-        self.dynamics.prepare(context)
-        self._bias = self.history.frames[t][0] - self.dynamics.terminal(acts[None])[0].float()  # (V, N, D)
-        left = None  # would the chunk before's bias have predicted this one's?
-        if bias_prev is not None:
-            left = float((self._bias - self.config.bias_correction * bias_prev).square().mean())
-        return self._bias, float(self._bias.square().mean()), left
-
     def _plan_seed(self, step: int) -> int:
         """The planner's random seed for a search at ``step`` of this episode: reproducible per episode and step."""
         return self.config.plan_seed + self._episode_seed * 1000 + step
-
-    def _damped(self, actions: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
-        """(L, A) planned actions -> (L, A): ``ref`` (the WAM's chunk, or the plan a re-plan refines) plus
-        ``correction_gain`` times the planned change, clipped to the planner's bounds; the plan itself at gain 1."""
-        g = self.config.correction_gain
-        if g == 1.0:
-            return actions
-        ref = ref.to(actions)  # (L, A)
-        return self.clip(ref + g * (actions - ref)).to(actions)

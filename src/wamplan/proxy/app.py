@@ -184,7 +184,7 @@ class Proxy:
                 raise BadRequest(f"chunk_frames offset {off!r} is not in 1..{H - 1}")
             obs = self._observation(frames[off], prev + int(off), f"chunk_frames[{off}]")
             with self.model_lock:
-                history.observe(obs, H)
+                history.observe(obs)
 
     def _upstream_history(self, session: Session, req: protocol.ActRequest) -> None:
         """The frames of upstream's ``proprio_history`` / ``images_history`` that the world model's history keeps."""
@@ -200,12 +200,12 @@ class Proxy:
         history, t = session.policy.history, session.step
         for i in range(n):
             step = t - (n - i) * self.cfg.history_spacing
-            if step < 0 or step in history.frames or not history.wants(step, self.chunk):
+            if step < 0 or step in history.frames or not history.wants(step):
                 continue
             frame = {name: views[k * n + i] for k, name in enumerate(order)}
             obs = self._observation({**frame, "proprio": q[i]}, step, f"images_history[{i}]")
             with self.model_lock:
-                history.observe(obs, self.chunk)
+                history.observe(obs)
 
     def _observation(self, frame: Any, step: int, what: str) -> Observation:
         if not isinstance(frame, dict):
@@ -259,7 +259,7 @@ class Proxy:
             missing = [s for s in history.steps(t) if 0 <= s < t and s not in history.frames]
             if missing:
                 with self.model_lock:
-                    history.observe(obs, self.chunk)
+                    history.observe(obs)
                 notes.append(f"the world model needs the frames at steps {missing} (one every {self.frameskip} steps "
                              f"before step {t}); send the frames seen during each chunk in chunk_frames")
                 return out.actions, "no-history", {}

@@ -45,12 +45,8 @@ def check_fit(task: TaskSpec, upstream: Upstream, chunk: int, columns: tuple[int
 
 def check_planning(ecfg: Any, task: TaskSpec) -> None:
     """Refuse, in one line, what the planned policy itself would not: view weights not one per camera of the world
-    model's task, and re-planning inside a chunk, which a proxy cannot do (it answers whole chunks). The rest of the
-    chunk rules are checked by building one planned policy at start-up (``build_proxy``)."""
-    from wamplan.planning.policy_config import PlanningError
-
-    if ecfg.policy.replan_every is not None:
-        raise PlanningError("the proxy answers whole chunks and cannot re-plan inside one; drop --replan-every")
+    model's task. The rest of the chunk rules are checked by building one planned policy at start-up
+    (``build_proxy``)."""
     ecfg.cost.check_cameras(task.name, task.cameras)
 
 
@@ -96,5 +92,5 @@ def build_proxy(cfg: ProxyConfig, upstream: Upstream | None = None, planning: di
     check_planning(ecfg, task)
     make = lambda wam: planned_policy(ecfg, wam, dynamics, encoder, world_models=paths)  # noqa: E731
     make(AnsweredWAM(task, chunk, cameras))  # what only the world model can refuse (a pose term, an ensemble's
-    # disagreement, bias correction's frameskip) is refused now, once, not on every robot's first request
+    # disagreement, a frameskip longer than the chunk) is refused now, once, not on every robot's first request
     return Proxy(cfg, upstream, dynamics, encoder, task, make, request_map, response_map, columns, chunk)
