@@ -133,9 +133,9 @@ def test_the_world_models_arithmetic_reaches_the_models_the_runs_plan_in(tmp_pat
     workers load for conditions 6 and 7 (and the one the API's planned policy loads); their encoders stay float32."""
     from pathlib import Path
 
-    from wamplan.evaluation.build import plan_in_world_model
     from wamplan.evaluation.records import append_record
     from wamplan.evaluation.runner import EvalWorker
+    from wamplan.planning.build import plan_in_world_model
 
     mini = Path(__file__).resolve().parents[1] / "checkpoints" / "mini"
     argv = ["--wm-dtype", "bfloat16", "--wam", str(mini / "tinywam"), "--wm-plain", str(mini / "wm_plain"),
@@ -154,8 +154,9 @@ def test_the_world_models_arithmetic_reaches_the_models_the_runs_plan_in(tmp_pat
             assert next(policy.encoder.parameters(), torch.zeros(1)).dtype == torch.float32
     finally:
         worker.env.close()
-    assert plan_in_world_model(cfg, str(mini / "tinywam"), [str(mini / "wm_plain")]).dynamics.dtype == torch.bfloat16
-    assert plan_in_world_model(_cfg(), str(mini / "tinywam"), [str(mini / "wm_plain")]).dynamics.dtype == torch.float32
+    for c, dtype in ((cfg, torch.bfloat16), (_cfg(), torch.float32)):
+        policy = plan_in_world_model(str(mini / "tinywam"), [str(mini / "wm_plain")], c.planning, c.device, c.wm_dtype)
+        assert policy.dynamics.dtype == dtype
 
 
 def test_a_directory_from_before_a_new_setting_resumes_at_its_default(tmp_path):

@@ -13,8 +13,8 @@ The tasks: ``wamplan.tasks()`` names the registered ones, ``wamplan.get_task(nam
 
 Every name of ``__all__`` is also an attribute of ``wamplan`` itself, imported on first use (so that
 ``import wamplan`` and the command line stay fast). The settings and their defaults are the evaluation's
-(``wamplan eval``, condition 7): one code path builds the policy for both; the planned policy plans for its
-WAM's task, and refuses a world model made for another.
+(``wamplan eval``, condition 7): one factory (``wamplan.planning.build``) builds the policy for both; the planned
+policy plans for its WAM's task, and refuses a world model made for another.
 """
 
 from __future__ import annotations
@@ -27,9 +27,9 @@ from wamplan.errors import require_paths
 from wamplan.envs.spec import TASKS, Observation, TaskSpec, get_task, register_task
 from wamplan.envs.config import EnvConfig
 from wamplan.envs.core import TaskEnv
-from wamplan.evaluation.build import plan_in_world_model
-from wamplan.evaluation.config import EvalConfig
 from wamplan.planning import CostConfig
+from wamplan.planning.build import PlanningConfig, plan_in_world_model
+from wamplan.planning.configs import DEFAULT_PLANNER
 from wamplan.planning.decision import ChunkDecision
 from wamplan.planning.policy import PlannedPolicy
 from wamplan.planning.policy_config import PlannedPolicyConfig
@@ -61,7 +61,6 @@ def planned_policy(wam: WAM | str | Path, world_model: str | Path | Sequence[str
                         f"got {type(world_model).__name__}; pass e.g. world_model='checkpoints/mini/wm_augmented'")
     parts = [world_model] if isinstance(world_model, (str, Path)) else list(world_model)
     paths = [p for part in parts for p in (ensemble_members(part) if isinstance(part, str) else [str(part)]) if p]
-    choice = {} if planner is None else {"planner": planner}
     if isinstance(cost, str):
         cost = CostConfig(name=cost)
     elif isinstance(cost, dict):
@@ -69,11 +68,10 @@ def planned_policy(wam: WAM | str | Path, world_model: str | Path | Sequence[str
     elif cost is not None and not isinstance(cost, CostConfig):
         raise TypeError(f"cost is of type {type(cost).__name__}; pass a CostConfig, a cost name ('patch', 'cls') or a "
                         f"dict of CostConfig's fields")
-    cfg = EvalConfig(wam=str(wam) if isinstance(wam, (str, Path)) else "", wm_augmented=",".join(paths),
-                     device=device, planner_config=planner_config, cost=cost or CostConfig(),
-                     policy=from_dict(PlannedPolicyConfig, settings), **choice)
+    planning = PlanningConfig(DEFAULT_PLANNER if planner is None else planner, planner_config, cost or CostConfig(),
+                              from_dict(PlannedPolicyConfig, settings))
     require_paths(paths or [""], "world_model", "pass a world model checkpoint (from `wamplan wm train`)")
-    return plan_in_world_model(cfg, wam, paths)
+    return plan_in_world_model(wam, paths, planning, device=device)
 
 
 def make_env(task: str = "cube-insertion", **settings: Any) -> TaskEnv:

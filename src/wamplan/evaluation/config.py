@@ -7,10 +7,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from wamplan.config import check_numbers, ensemble_members, field, from_dict, require
+from wamplan.config import check_numbers, ensemble_members, field, require
 from wamplan.envs.config import EnvConfig
 from wamplan.evaluation.conditions import CONDITIONS
-from wamplan.planning.configs import DEFAULT_PLANNER, PLANNER_CONFIGS
+from wamplan.planning.build import WM_DTYPES, PlanningConfig
+from wamplan.planning.configs import DEFAULT_PLANNER
 from wamplan.planning.cost_config import CostConfig
 from wamplan.planning.policy_config import PlannedPolicyConfig
 
@@ -21,9 +22,6 @@ _WORLD_MODEL_FIELDS = {"learned-plain": "wm_plain", "learned-augmented": "wm_aug
 
 def _env_default() -> EnvConfig:
     return EnvConfig()
-
-
-WM_DTYPES = ("float32", "bfloat16")  # --wm-dtype's values
 
 
 def profile_names() -> tuple[str, ...]:
@@ -71,15 +69,15 @@ class EvalConfig:
 
     def __post_init__(self):
         check_numbers(self)
-        cls = PLANNER_CONFIGS.lookup(self.planner)
-        pc = self.planner_config
-        pc = cls() if pc is None else from_dict(cls, pc) if isinstance(pc, dict) else pc
-        require(isinstance(pc, cls), f"planner '{self.planner}' needs a {cls.__name__} as planner_config, "
-                f"got {type(pc).__name__}; pass that planner's config or None")
-        object.__setattr__(self, "planner_config", pc)
+        object.__setattr__(self, "planner_config", self.planning.planner_config)  # its config class, checked
         require(self.wm_dtype in WM_DTYPES, f"wm_dtype '{self.wm_dtype}' is not one of {', '.join(WM_DTYPES)}")
         require(0.0 <= self.oracle_blend <= 1.0, f"--oracle-blend {self.oracle_blend} is outside [0, 1]; 0 plans in "
                 "the world model alone, 1 with the simulator's dynamics")
+
+    @property
+    def planning(self) -> PlanningConfig:
+        """How the planned conditions plan: the planner with its config, the cost and the chunk rules."""
+        return PlanningConfig(self.planner, self.planner_config, self.cost, self.policy)
 
     @property
     def task_planner_config(self) -> Any:

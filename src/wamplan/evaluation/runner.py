@@ -73,7 +73,7 @@ class EvalWorker:
     def policy(self, cid: int):
         if cid in self._policies:
             return self._policies[cid]
-        from wamplan.evaluation.build import planned_policy
+        from wamplan.planning.build import planned_policy
         from wamplan.planning.dynamics import BlendedDynamics, SimulatorDynamics, learned_dynamics
         from wamplan.wam import WAMPolicy
         from wamplan.wam.oracle import ExpertOracleWAM
@@ -93,7 +93,7 @@ class EvalWorker:
             oracle = ExpertOracleWAM(self.env) if "expert" in (c.seed, c.target) else None
             seed_wam = oracle if c.seed == "expert" else self.wam
             target_wam = oracle if c.target == "expert" else self.wam
-            pol = planned_policy(cfg, seed_wam, dyn, enc, target_wam=target_wam, world_models=paths)
+            pol = planned_policy(seed_wam, dyn, enc, cfg.planning, target_wam=target_wam, world_models=paths)
         self._policies[cid] = pol
         return pol
 

@@ -8,6 +8,7 @@ from typing import Any
 from wamplan.config import ensemble_members
 from wamplan.envs.spec import TaskSpec, check_same_task, get_task
 from wamplan.errors import UserError
+from wamplan.planning.build import PlanningConfig, planned_policy
 from wamplan.proxy.app import Proxy
 from wamplan.proxy.config import ProxyConfig
 from wamplan.proxy.upstream import AnsweredWAM, HttpUpstream, LocalUpstream, Upstream
@@ -43,20 +44,17 @@ def check_fit(task: TaskSpec, upstream: Upstream, chunk: int, columns: tuple[int
                         f"(the target would be upsampled); use a world model trained at {size} px or less")
 
 
-def check_planning(ecfg: Any, task: TaskSpec) -> None:
+def check_planning(planning: PlanningConfig, task: TaskSpec) -> None:
     """Refuse, in one line, what the planned policy itself would not: view weights not one per camera of the world
     model's task. The rest of the chunk rules are checked by building one planned policy at start-up
     (``build_proxy``)."""
-    ecfg.cost.check_cameras(task.name, task.cameras)
+    planning.cost.check_cameras(task.name, task.cameras)
 
 
 def build_proxy(cfg: ProxyConfig, upstream: Upstream | None = None, planning: dict[str, Any] | None = None) -> Proxy:
     """The proxy of ``cfg``: the world model loaded, the upstream reached (or ``upstream``), the fit checked.
-    ``planning``: :class:`~wamplan.evaluation.config.EvalConfig`'s ``planner``, ``planner_config``, ``policy`` and
+    ``planning``: :class:`~wamplan.planning.build.PlanningConfig`'s ``planner``, ``planner_config``, ``policy`` and
     ``cost`` (any of them; unset: condition 7's defaults), checked against the world model's task and the chunk."""
-    from wamplan.evaluation.build import planned_policy
-    from wamplan.envs.config import EnvConfig
-    from wamplan.evaluation.config import EvalConfig
     from wamplan.planning.dynamics import learned_dynamics, task_name
     from wamplan.wam.base import LEGACY_TASK, load_wam
     from wamplan.wam.cosmos_client import profile_config
@@ -65,8 +63,7 @@ def build_proxy(cfg: ProxyConfig, upstream: Upstream | None = None, planning: di
     paths = [p for p in ensemble_members(cfg.world_model) if p]
     dynamics, encoder = learned_dynamics([load_world_model(p, device=cfg.device, dtype=cfg.wm_dtype) for p in paths])
     task = get_task(task_name(dynamics) or LEGACY_TASK)
-    ecfg = EvalConfig(wm_augmented=",".join(paths), device=cfg.device, wm_dtype=cfg.wm_dtype,
-                      env=EnvConfig(task=task.name), **(planning or {}))
+    plan_cfg = PlanningConfig(**(planning or {}))
     cameras = tuple(dynamics.cameras or task.cameras)
     profile = cfg.profile
     client = profile_config(profile, task=task.name) if profile else None
@@ -85,12 +82,12 @@ def build_proxy(cfg: ProxyConfig, upstream: Upstream | None = None, planning: di
         if cfg.upstream_is_url:
             upstream = HttpUpstream(cfg.upstream, cfg.upstream_timeout_s, cfg.chunk_length)
         else:
-            upstream = LocalUpstream(load_wam(cfg.upstream, device=ecfg.device), response_map)
+            upstream = LocalUpstream(load_wam(cfg.upstream, device=cfg.device), response_map)
     chunk = cfg.chunk_length or upstream.shape.chunk_length or profile_chunk or task.chunk_len
     size = getattr(encoder, "input_size", None)
     check_fit(task, upstream, chunk, columns, cameras, getattr(dynamics, "frameskip", chunk), size, cfg.world_model)
-    check_planning(ecfg, task)
-    make = lambda wam: planned_policy(ecfg, wam, dynamics, encoder, world_models=paths)  # noqa: E731
+    check_planning(plan_cfg, task)
+    make = lambda wam: planned_policy(wam, dynamics, encoder, plan_cfg, world_models=paths)  # noqa: E731
     make(AnsweredWAM(task, chunk, cameras))  # what only the world model can refuse (a pose term, an ensemble's
     # disagreement, a frameskip longer than the chunk) is refused now, once, not on every robot's first request
     return Proxy(cfg, upstream, dynamics, encoder, task, make, request_map, response_map, columns, chunk)

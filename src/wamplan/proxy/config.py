@@ -9,7 +9,8 @@ from urllib.parse import urlparse, urlunparse
 
 from wamplan.config import check_numbers, field, require
 from wamplan.errors import UserError
-from wamplan.evaluation.config import WM_DTYPES, profile_names
+from wamplan.evaluation.config import profile_names
+from wamplan.planning.build import WM_DTYPES
 from wamplan.wam import protocol
 
 DEFAULT_ROBOT = "default"  # the session of plain /act (and of a WebSocket on /)

@@ -1,0 +1,77 @@
+"""Building a planned policy: a WAM whose chunks are refined by a planner searching in a dynamics model (learned world
+models, or the simulator) under a cost and chunk rules, the one factory the evaluation, the Python API and the
+planning proxy share. :class:`PlanningConfig` holds how it plans; :func:`planned_policy` builds one on given
+dynamics, :func:`plan_in_world_model` loads the world models (and the WAM) first. Importing this module does not
+import torch."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Sequence
+
+from wamplan.config import field, from_dict, require
+from wamplan.planning.configs import DEFAULT_PLANNER, PLANNER_CONFIGS
+from wamplan.planning.cost_config import CostConfig
+from wamplan.planning.policy_config import PlannedPolicyConfig
+
+if TYPE_CHECKING:
+    from wamplan.planning.dynamics import Dynamics
+    from wamplan.planning.policy import PlannedPolicy
+    from wamplan.wam.base import WAM
+
+WM_DTYPES = ("float32", "bfloat16")  # the world models' arithmetic in the search (--wm-dtype's values)
+
+
+@dataclass(frozen=True)
+class PlanningConfig:
+    """How a planned policy plans: the planner by registry name with its config, the cost and the chunk rules."""
+
+    planner: str = field(DEFAULT_PLANNER, "planner by registry name (wamplan.planning.PLANNERS)")
+    planner_config: Any = field(None, "the planner's config (its config_cls, or a dict of overrides); "
+                                "None = its defaults")
+    cost: CostConfig = field(help="the planning cost", default_factory=CostConfig)
+    policy: PlannedPolicyConfig = field(help="the planned policy's chunk rules", default_factory=PlannedPolicyConfig)
+
+    def __post_init__(self) -> None:
+        cls = PLANNER_CONFIGS.lookup(self.planner)
+        pc = self.planner_config
+        pc = cls() if pc is None else from_dict(cls, pc) if isinstance(pc, dict) else pc
+        require(isinstance(pc, cls), f"planner '{self.planner}' needs a {cls.__name__} as planner_config, "
+                f"got {type(pc).__name__}; pass that planner's config or None")
+        object.__setattr__(self, "planner_config", pc)
+
+
+def planned_policy(wam: WAM, dynamics: Dynamics, encoder: Any, planning: PlanningConfig | None = None,
+                   target_wam: WAM | None = None, world_models: Sequence[str] = ()) -> PlannedPolicy:
+    """``wam`` refined by planning in ``dynamics`` (whose observations ``encoder`` encodes) as ``planning`` says
+    (None: the defaults). ``target_wam``: the WAM whose predicted images aim the search (None: ``wam``);
+    ``world_models``: the checkpoints behind ``dynamics``, recorded resolved (none for the simulator)."""
+    from wamplan.planning import make_planner
+    from wamplan.planning.costs import build_cost
+    from wamplan.planning.policy import PlannedPolicy
+
+    planning = planning or PlanningConfig()
+    weigh = None
+    if planning.cost.foreground:  # the readout reads the target's tokens: it must be fit on this encoder
+        from wamplan.encoders.foreground import foreground_weigher
+
+        weigh = foreground_weigher(planning.cost.foreground, encoder, planning.cost.background_weight,
+                                   wam.task.name, dynamics.cameras or wam.task.cameras)
+    cost = build_cost(planning.cost, getattr(dynamics, "read_state", None), weigh)  # the pose term reads the state head
+    return PlannedPolicy(wam, make_planner(planning.planner, planning.planner_config), dynamics, encoder, cost,
+                         target_wam=target_wam, config=planning.policy,
+                         world_models=tuple(str(Path(p).resolve()) for p in world_models))
+
+
+def plan_in_world_model(wam: WAM | str | Path, world_models: Sequence[str], planning: PlanningConfig | None = None,
+                        device: str = "auto", wm_dtype: str = "float32") -> PlannedPolicy:
+    """``wam`` (a WAM, or its checkpoint directory) planned in the world model checkpoints ``world_models`` (several:
+    an ensemble), every model loaded onto ``device``, the world models' rollouts in ``wm_dtype`` (``WM_DTYPES``)."""
+    from wamplan.planning.dynamics import learned_dynamics
+    from wamplan.wam import load_wam
+    from wamplan.worldmodel.load import load_world_model
+
+    dyn, enc = learned_dynamics([load_world_model(p, device=device, dtype=wm_dtype) for p in world_models])
+    wam = load_wam(wam, device=device) if isinstance(wam, (str, Path)) else wam
+    return planned_policy(wam, dyn, enc, planning, world_models=world_models)
