@@ -175,7 +175,6 @@ def test_a_directory_from_before_a_new_setting_resumes_at_its_default(tmp_path):
             _check_same_settings(tmp_path, _cfg(*other))
 
 
-def test_a_directory_of_another_planner_names_the_flag_that_resumes_it(tmp_path):
 def test_a_directory_from_before_an_option_left_resumes_only_if_it_ran_what_runs_now(tmp_path):
     """Options that left wamplan (they measured no gain), stored by an older version: at the value that ran what
     runs now the directory resumes (and forgets them); at another value it is refused in one line naming the option."""
@@ -192,6 +191,7 @@ def test_a_directory_from_before_an_option_left_resumes_only_if_it_ran_what_runs
         _check_same_settings(tmp_path, _cfg())
 
 
+def test_a_directory_of_another_planner_names_the_flag_that_resumes_it(tmp_path):
     """Directories written when CEM was the default ran it; the new default refuses them in one line that
     names --planner cem, which resumes them."""
     _check_same_settings(tmp_path, _cfg("--planner", "cem"))
