@@ -264,7 +264,8 @@ def test_checkpoint_round_trip_gives_identical_outputs(tmp_path):
 def test_checkpoints_record_the_task_and_cameras_and_old_ones_mean_the_cube(tmp_path):
     from wamplan.data.store import EpisodeStore
     from wamplan.envs.config import EnvConfig
-    from wamplan.worldmodel.stores import predictor_for_task, stores_task
+    from wamplan.data.store import stores_task
+    from wamplan.worldmodel.stores import predictor_for_task
 
     cams = ("base_camera", "hand_camera")  # TINY has 2 views, as peg-insertion-side
     train_predictor(_windows(), TINY, TRAIN, tmp_path / "peg", device="cpu", max_steps=1, progress=False,

@@ -307,7 +307,7 @@ def _rank_targets(train, stores: list[str], frameskip: int):
     from wamplan.envs.spec import check_same_task
     from wamplan.wam.base import load_wam
     from wamplan.wam.targets import check_target_wam, group_targets
-    from wamplan.worldmodel.stores import stores_task
+    from wamplan.data.store import stores_task
 
     from wamplan.checkpoint import CheckpointError
 
@@ -345,7 +345,8 @@ def cmd_train_decoder(args: argparse.Namespace) -> int:
 def cmd_eval(args: argparse.Namespace) -> int:
     from wamplan.data.features import feature_key
     from wamplan.data.readers import BranchGroups, WorldModelWindows
-    from wamplan.worldmodel.stores import encode_stores, stores_task
+    from wamplan.data.store import stores_task
+    from wamplan.worldmodel.stores import encode_stores
     from wamplan.worldmodel.load import load_world_model, trained_val_fraction
     from wamplan.worldmodel.train import evaluate_predictor
 

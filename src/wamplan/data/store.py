@@ -399,6 +399,21 @@ def describe_stores(stores: Sequence[str | Path], sources: Sequence[str] | None 
             "episodes": f"{len(names)} episode files, sha1 {digest}"}
 
 
+def stores_task(stores: Sequence[str | Path]) -> tuple[TaskSpec, tuple[str, ...]]:
+    """The task and the cameras (in the order their views are stacked) of ``stores``; one line when they hold
+    episodes of different tasks or cameras (one run trains on one task)."""
+    if not stores:
+        raise UserError("--data needs at least one episode store directory")
+    first = EpisodeStore(stores[0])
+    for root in stores[1:]:
+        other = EpisodeStore(root)
+        if other.task_name != first.task_name or other.cameras != first.cameras:
+            raise UserError(f"--data mixes tasks: {stores[0]} holds task '{first.task_name}' (cameras "
+                            f"{list(first.cameras)}), {root} task '{other.task_name}' (cameras {list(other.cameras)}); "
+                            f"train on the stores of one task")
+    return first.task, first.cameras
+
+
 def verify_episode(path: str | Path) -> tuple[str | None, bool]:
     """Read every byte of the episode file ``path`` through HDF5, which checks each chunk's checksum where the
     file has them: ``(the problem, or None; whether every dataset carries a checksum)``."""

@@ -86,7 +86,7 @@ def load_items(stores: Sequence[str | Path], cfg: TinyWAMConfig, split: str, val
     """Read the items of ``split`` from ``stores`` (of one task) into memory at ``cfg.image_size``; ``cfg``'s
     unset fields are the stores' task's."""
     from wamplan.data.readers import WAMSamples
-    from wamplan.worldmodel.stores import stores_task
+    from wamplan.data.store import stores_task
 
     task, store_cameras = stores_task(stores)
     cfg = cfg.for_task(task, store_cameras)
@@ -217,7 +217,7 @@ def train_tinywam(stores: Sequence[str | Path], out: str | Path, model_cfg: Tiny
     are the stores' task's. ``max_steps`` stops after that many optimisation steps in all (checkpointed; call
     again to continue)."""
     from wamplan.data.store import EpisodeStore, describe_stores
-    from wamplan.worldmodel.stores import stores_task
+    from wamplan.data.store import stores_task
 
     out = Path(out)
     check_run_dir(out, "a TinyWAM checkpoint")

@@ -36,14 +36,14 @@ from torch.utils.data import Dataset
 from wamplan.data.alignment import NEAR, hole_position
 from wamplan.data.features import feature_key
 from wamplan.data.readers import BranchGroups
-from wamplan.data.store import EpisodeStore
+from wamplan.data.store import EpisodeStore, stores_task
 from wamplan.encoders.base import FrozenEncoder
 from wamplan.envs.spec import TaskSpec
 from wamplan.errors import UserError
-from wamplan.worldmodel.predictor import WorldModelPredictor
-from wamplan.worldmodel.stores import encode_stores, stores_task
 from wamplan.worldmodel.load import load_world_model
+from wamplan.worldmodel.predictor import WorldModelPredictor
 from wamplan.worldmodel.siblings import pool_siblings, sibling_statistics
+from wamplan.worldmodel.stores import encode_stores
 
 PHASES = ("grasp", "carry", "alignment", "descent")
 ALL = "all"

@@ -1,7 +1,7 @@
 """Training the world model from episode stores: encode the views once (cached beside each store), build
 the windows (predictor) or frames (decoder), and train into a run directory; re-running resumes.
 
-The stores of one run hold one task (:func:`stores_task`): the predictor's views, proprio and action sizes
+The stores of one run hold one task (``data.store.stores_task``): the predictor's views, proprio and action sizes
 are that task's and its cameras (the preset's are the cube's), and its checkpoint records the task's name
 and the cameras (``config["data"]``; ``load_predictor`` gives them as ``model.task`` and ``model.cameras``).
 
@@ -20,23 +20,6 @@ from wamplan.data.features import feature_key
 from wamplan.envs.spec import TaskSpec
 from wamplan.errors import UserError
 from wamplan.worldmodel.config import DecoderConfig, DecoderTrainConfig, PredictorConfig, TrainConfig
-
-
-def stores_task(stores: Sequence[str | Path]) -> tuple[TaskSpec, tuple[str, ...]]:
-    """The task and the cameras (in the order their views are stacked) of ``stores``; one line when they hold
-    episodes of different tasks or cameras (one run trains on one task)."""
-    from wamplan.data.store import EpisodeStore
-
-    if not stores:
-        raise UserError("--data needs at least one episode store directory")
-    first = EpisodeStore(stores[0])
-    for root in stores[1:]:
-        other = EpisodeStore(root)
-        if other.task_name != first.task_name or other.cameras != first.cameras:
-            raise UserError(f"--data mixes tasks: {stores[0]} holds task '{first.task_name}' (cameras "
-                            f"{list(first.cameras)}), {root} task '{other.task_name}' (cameras {list(other.cameras)}); "
-                            f"train on the stores of one task")
-    return first.task, first.cameras
 
 
 def check_image_stride(stores: Sequence[str | Path], frameskip: int) -> None:
@@ -144,6 +127,7 @@ def train_predictor_on_stores(stores: Sequence[str | Path], out: str | Path, pre
     encoder)`` -> (len(groups), V, N, D): each branch group's planning target, encoded by the run's encoder
     (``wam.targets.group_targets`` with a WAM); ``train.rank_weight`` > 0 needs it."""
     from wamplan.data.readers import STATE_QUANTITIES, BranchGroups, WorldModelWindows
+    from wamplan.data.store import stores_task
     from wamplan.worldmodel.load import KIND
     from wamplan.worldmodel.train import train_predictor
 
@@ -203,6 +187,7 @@ def train_decoder_on_stores(stores: Sequence[str | Path], out: str | Path, decod
                             max_steps: int | None = None, progress: bool = True) -> dict[str, Any]:
     """Train (or resume) the picture decoder on the (features, image) frames of ``stores`` (of one task)."""
     from wamplan.data.readers import FeatureFrames
+    from wamplan.data.store import stores_task
     from wamplan.worldmodel.decoder import KIND, train_decoder
 
     task, cameras = stores_task(stores)
