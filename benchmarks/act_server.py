@@ -28,6 +28,7 @@ import numpy as np
 import requests
 
 from wamplan.envs.contract import CAMERAS, Observation
+from wamplan.serving import HEALTH_ROUTE, SECRET_ENV
 from wamplan.wam import load_wam, protocol
 from wamplan.wam.cosmos_client import CosmosClientConfig, CosmosPolicyClient
 
@@ -74,14 +75,14 @@ def main() -> None:
     assert len({w.actions.tobytes() for w in want}) == args.distinct, "the distinct observations must differ"
 
     port, secret = free_port(), secrets.token_urlsafe(16)
-    env = {**os.environ, protocol.SECRET_ENV: secret, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1")}
+    env = {**os.environ, SECRET_ENV: secret, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1")}
     src = str(Path(__file__).resolve().parents[1] / "src")
     env["PYTHONPATH"] = src + os.pathsep + env.get("PYTHONPATH", "")
     proc = subprocess.Popen([sys.executable, "-m", "wamplan.cli", "wam", "serve", "--ckpt", args.ckpt,
                              "--host", HOST, "--port", str(port), "--log-level", "warning"], env=env)
     base = f"http://{HOST}:{port}"
     try:
-        health = wait_healthy(base + protocol.HEALTH_ROUTE, proc)
+        health = wait_healthy(base + HEALTH_ROUTE, proc)
         print(f"server: {health}")
         refused = requests.post(base + protocol.ROUTE, data=b"{}", headers=protocol.JSON_HEADERS, timeout=10)
         print(f"without the secret: HTTP {refused.status_code} {refused.text}")

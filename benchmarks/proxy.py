@@ -29,8 +29,9 @@ from openpi_client.websocket_client_policy import WebsocketClientPolicy
 from wamplan.proxy.app import create_proxy_app
 from wamplan.proxy.build import build_proxy
 from wamplan.proxy.config import ProxyConfig
+from wamplan.serving.runner import BackgroundServer
 from wamplan.wam import load_wam, protocol
-from wamplan.wam.server import BackgroundServer, create_app
+from wamplan.wam.server import create_app
 
 CKPTS = Path(__file__).resolve().parents[1] / "checkpoints" / "mini"
 FIELDS = {"primary_image": "front", "left_wrist_image": "side", "right_wrist_image": "wrist"}
@@ -65,7 +66,7 @@ def main() -> None:
         task = {"task_description": "insert the cube into the square hole"}
         ws = {with_frames: WebsocketClientPolicy(host=f"ws://{srv.host}:{srv.port}") for with_frames in (False, True)}
         for k in range(args.chunks):
-            times["direct"].append(timed(direct.act_url, {**frame(rng, args.size), **task})[0])
+            times["direct"].append(timed(direct.url + protocol.ROUTE, {**frame(rng, args.size), **task})[0])
             for robot, with_frames in (("blind", False), ("seeing", True)):
                 extra = {}
                 if with_frames and k:

@@ -19,10 +19,12 @@ from wamplan.checkpoint import save_checkpoint
 from wamplan.config import to_dict
 from wamplan.envs.contract import CAMERAS, Observation
 from wamplan.errors import UserError
+from wamplan import serving
+from wamplan.serving.runner import BackgroundServer
 from wamplan.wam import protocol
 from wamplan.wam.base import WAM, WAMOutput, WAMServerError, load_wam
 from wamplan.wam.cosmos_client import CosmosClientConfig, CosmosPolicyClient
-from wamplan.wam.server import BackgroundServer, create_app, serve
+from wamplan.wam.server import create_app, serve
 from wamplan.wam.tinywam import KIND as TINYWAM_KIND
 from wamplan.wam.tinywam import TinyWAMConfig, TinyWAMNet
 
@@ -67,50 +69,51 @@ def client(url: str, **kw) -> CosmosPolicyClient:
 
 
 def test_the_secret_is_enforced(guarded, tiny_ckpt, monkeypatch):
-    for headers in ({}, {protocol.SECRET_HEADER: "wrong"}, {"Authorization": "Bearer wrong"},
+    for headers in ({}, {serving.SECRET_HEADER: "wrong"}, {"Authorization": "Bearer wrong"},
                     {"Authorization": SECRET}):
-        r = post(guarded.act_url, body(0), **headers)
+        r = post(guarded.url + protocol.ROUTE, body(0), **headers)
         assert r.status_code == 401
         assert r.json() == {"error": "missing or wrong shared secret: send it in the X-WAMplan-Secret header, as "
                                      "Authorization: Bearer or Api-Key (openpi's api_key), or as ?token=SECRET in the "
                                      "URL (the wamplan client reads $WAMPLAN_ACT_SECRET)"}
         assert "\n" not in r.text
-    for headers in ({protocol.SECRET_HEADER: SECRET}, {"Authorization": f"Bearer {SECRET}"},
+    for headers in ({serving.SECRET_HEADER: SECRET}, {"Authorization": f"Bearer {SECRET}"},
                     {"Authorization": f"Api-Key {SECRET}"}):
-        r = post(guarded.act_url, body(0), **headers)
+        r = post(guarded.url + protocol.ROUTE, body(0), **headers)
         assert r.status_code == 200 and "actions" in json.loads(r.text)
     # a client that cannot send headers (upstream's) carries the secret in its server URL
     token = requests.utils.quote(SECRET)
-    assert post(f"{guarded.act_url}?token={token}", body(0)).status_code == 200
-    assert post(f"{guarded.act_url}?token=wrong", body(0)).status_code == 401
+    assert post(f"{guarded.url}{protocol.ROUTE}?token={token}", body(0)).status_code == 200
+    assert post(f"{guarded.url}{protocol.ROUTE}?token=wrong", body(0)).status_code == 401
     want = load_wam(tiny_ckpt).predict(make_obs(1), "insert")
-    np.testing.assert_array_equal(client(guarded.act_url, secret=SECRET).predict(make_obs(1), "insert").actions,
-                                  want.actions)
-    monkeypatch.setenv(protocol.SECRET_ENV, SECRET)  # the client's default
-    np.testing.assert_array_equal(client(guarded.act_url).predict(make_obs(1), "insert").actions, want.actions)
-    monkeypatch.delenv(protocol.SECRET_ENV)
+    act_url = guarded.url + protocol.ROUTE
+    np.testing.assert_array_equal(client(act_url, secret=SECRET).predict(make_obs(1), "insert").actions, want.actions)
+    monkeypatch.setenv(serving.SECRET_ENV, SECRET)  # the client's default
+    np.testing.assert_array_equal(client(act_url).predict(make_obs(1), "insert").actions, want.actions)
+    monkeypatch.delenv(serving.SECRET_ENV)
     with pytest.raises(WAMServerError, match=r"HTTP 401.*set \$WAMPLAN_ACT_SECRET"):
-        client(guarded.act_url).predict(make_obs(1), "insert")
+        client(guarded.url + protocol.ROUTE).predict(make_obs(1), "insert")
 
 
 def test_no_secret_means_open(tiny_ckpt):
     with BackgroundServer(create_app(load_wam(tiny_ckpt), secret="")) as srv:
-        assert post(srv.act_url, body(0)).status_code == 200
+        assert post(srv.url + protocol.ROUTE, body(0)).status_code == 200
 
 
 def test_request_size_limit(guarded):
     big = make_obs(2)
     big.images = {c: np.zeros((128, 128, 3), np.uint8) for c in CAMERAS}  # ~200 KB of json_numpy
-    r = client(guarded.act_url, secret=SECRET)
+    r = client(guarded.url + protocol.ROUTE, secret=SECRET)
     with pytest.raises(WAMServerError, match=r"too large \(HTTP 413\).*send_image_size.*--max-request-mb") as e:
         r.predict(big, "insert")
     assert "--wam-send-image-size" not in str(e.value)  # no command has that flag
     payload = b" " * (64 * 1024 + 1)
     for data in (payload, iter([payload[:40000], payload[40000:]])):  # with a Content-Length, and chunked
-        resp = post(guarded.act_url, data, **{protocol.SECRET_HEADER: SECRET})
+        resp = post(guarded.url + protocol.ROUTE, data, **{serving.SECRET_HEADER: SECRET})
         assert resp.status_code == 413 and "over the server's limit of 65536 bytes" in resp.json()["error"]
         assert "--max-request-mb" in resp.json()["error"] and "--wam-send-image-size" not in resp.json()["error"]
-    assert post(guarded.act_url, body(0), **{protocol.SECRET_HEADER: SECRET}).status_code == 200  # ~10 KB: fine
+    ok = post(guarded.url + protocol.ROUTE, body(0), **{serving.SECRET_HEADER: SECRET})
+    assert ok.status_code == 200  # ~10 KB: fine
 
 
 def test_health_needs_no_secret(guarded):
@@ -146,7 +149,7 @@ def test_concurrent_clients_get_their_own_answers(guarded, tiny_ckpt):
     start = threading.Barrier(n_threads)
 
     def work(t: int) -> None:
-        c = client(guarded.act_url, secret=SECRET)
+        c = client(guarded.url + protocol.ROUTE, secret=SECRET)
         start.wait()
         for k in range(per_thread):
             i = t * per_thread + k
@@ -211,7 +214,8 @@ def shipped():
 def test_an_upstream_client_parses_every_answer(shipped, return_all, encoded):
     srv, wam = shipped
     obs = aloha_observation(3)
-    got = upstream_get_action(f"{srv.act_url}?token={requests.utils.quote(SECRET)}", obs, return_all, encoded)
+    url = f"{srv.url}{protocol.ROUTE}?token={requests.utils.quote(SECRET)}"
+    got = upstream_get_action(url, obs, return_all, encoded)
     actions = np.stack(got["actions"])  # a list of (A,) rows, as upstream sends them
     direct = wam.predict(Observation(step=0, proprio=obs["proprio"][:10].astype(np.float32),
                                      images={"front": obs["primary_image"], "side": obs["left_wrist_image"],
@@ -234,13 +238,13 @@ def test_an_upstream_client_parses_every_answer(shipped, return_all, encoded):
     # wamplan's own client reads the stand-in as no value
     views = {"front": obs["primary_image"], "side": obs["left_wrist_image"], "wrist": obs["right_wrist_image"]}
     ours = Observation(step=0, proprio=np.zeros(10, np.float32), images=views)
-    assert client(srv.act_url, secret=SECRET).predict(ours, "insert").value is None
+    assert client(srv.url + protocol.ROUTE, secret=SECRET).predict(ours, "insert").value is None
 
 
 def test_a_short_proprio_is_padded(shipped):
     srv, _ = shipped
     obs = dict(aloha_observation(4), proprio=np.ones(7))
-    got = upstream_get_action(f"{srv.act_url}?token={requests.utils.quote(SECRET)}", obs)
+    got = upstream_get_action(f"{srv.url}{protocol.ROUTE}?token={requests.utils.quote(SECRET)}", obs)
     assert any("proprio of 7 entries padded with zeros to 10" in n for n in got["raw"]["wamplan"]["notes"])
 
 
@@ -266,20 +270,20 @@ def _bad_requests() -> dict[str, bytes]:
 @pytest.mark.parametrize("case", sorted(_bad_requests()))
 def test_a_clients_mistake_is_a_4xx_with_its_reason(shipped, case):
     srv, _ = shipped
-    r = post(srv.act_url, _bad_requests()[case], **{protocol.SECRET_HEADER: SECRET})
+    r = post(srv.url + protocol.ROUTE, _bad_requests()[case], **{serving.SECRET_HEADER: SECRET})
     assert 400 <= r.status_code < 500, r.text
     assert r.json()["error"].startswith("bad /act request: ") and "\n" not in r.json()["error"]
 
 
 def test_the_upstream_error_mode_answers_as_upstream_and_logs_what_it_answered(tiny_ckpt, caplog):
     with BackgroundServer(create_app(load_wam(tiny_ckpt), errors="upstream", secret=SECRET)) as srv:
-        caplog.set_level(logging.WARNING, logger="wamplan.wam.server")
-        for data, headers in ((_bad_requests()["a missing image"], {protocol.SECRET_HEADER: SECRET}),
+        caplog.set_level(logging.WARNING, logger="wamplan.serving.refusals")
+        for data, headers in ((_bad_requests()["a missing image"], {serving.SECRET_HEADER: SECRET}),
                               (body(0), {})):  # a malformed request; a missing secret
-            r = post(srv.act_url, data, **headers)
+            r = post(srv.url + protocol.ROUTE, data, **headers)
             assert r.status_code == 200 and r.json() == "error"
             with pytest.raises(ValueError, match="unexpected server response"):  # what upstream's client does
-                upstream_get_action(srv.act_url, aloha_observation(0, size=16))
+                upstream_get_action(srv.url + protocol.ROUTE, aloha_observation(0, size=16))
         said = [r.getMessage() for r in caplog.records]
         assert any('answered HTTP 200 "error" (upstream error mode): bad /act request' in m for m in said)
         assert not any("HTTP 4" in m for m in said)  # the log says what was answered
@@ -301,7 +305,7 @@ class Overshooting(WAM):
 def test_clipped_actions_are_said_once_per_answer(caplog):
     with BackgroundServer(create_app(Overshooting())) as srv:
         caplog.set_level(logging.WARNING, logger="wamplan.wam.server")
-        got = upstream_get_action(srv.act_url, aloha_observation(1, size=16))
+        got = upstream_get_action(srv.url + protocol.ROUTE, aloha_observation(1, size=16))
     actions = np.stack(got["actions"])
     assert actions[0, :3].tolist() == [1.0, -1.0, 1.0] and np.abs(actions).max() == 1.0
     clip_notes = [n for n in got["raw"]["wamplan"]["notes"] if "clipped" in n]

@@ -483,7 +483,8 @@ def test_settings_stored_without_records_do_not_lock_the_folder(tmp_path):
 def act_server():
     from wamplan.envs.contract import CAMERAS
     from wamplan.wam.base import WAM, WAMError, WAMOutput
-    from wamplan.wam.server import BackgroundServer, create_app
+    from wamplan.serving.runner import BackgroundServer
+    from wamplan.wam.server import create_app
 
     class StrictWAM(WAM):
         """Refuses an instruction it was not trained on: a well-formed request the server answers with 422 (a
@@ -522,7 +523,7 @@ def _body(**changes) -> str:
     ("[" * 100_000 + "]" * 100_000, 400, "nests JSON arrays or objects too deeply"),
 ])
 def test_bad_act_requests_get_a_4xx_and_the_reason(act_server, body, status, reason):
-    r = requests.post(act_server.act_url, data=body, headers={"Content-Type": "application/json"}, timeout=10)
+    r = requests.post(f"{act_server.url}/act", data=body, headers={"Content-Type": "application/json"}, timeout=10)
     assert r.status_code == status and reason in r.json()["error"]
 
 
@@ -532,7 +533,7 @@ def test_the_client_prints_the_servers_reason(act_server):
     from wamplan.wam.base import WAMServerError
     from wamplan.wam.cosmos_client import CosmosPolicyClient
 
-    client = CosmosPolicyClient(url=act_server.act_url, proprio_dim=7)  # fitted back to 10 by the server
+    client = CosmosPolicyClient(url=f"{act_server.url}/act", proprio_dim=7)  # fitted back to 10 by the server
     obs = Observation(step=0, proprio=np.zeros(10, np.float32), images={c: np.zeros((8, 8, 3), np.uint8)
                                                                         for c in CAMERAS})
     assert client.predict(obs, "t").actions.shape == (16, 5)

@@ -238,7 +238,8 @@ def test_eval_plans_with_a_served_wam_through_a_profile(tmp_path, capsys):
 
     from wamplan.evaluation.records import read_records
     from wamplan.wam import WAM, WAMOutput
-    from wamplan.wam.server import BackgroundServer, create_app
+    from wamplan.serving.runner import BackgroundServer
+    from wamplan.wam.server import create_app
 
     class HoldWAM(WAM):
         name = "test-hold"

@@ -27,9 +27,10 @@ from wamplan.proxy.app import create_proxy_app
 from wamplan.proxy.build import build_proxy
 from wamplan.proxy.config import ProxyConfig
 from wamplan.proxy.upstream import Upstream, UpstreamShape
+from wamplan.serving.runner import BackgroundServer
 from wamplan.wam import protocol
 from wamplan.wam.base import load_wam
-from wamplan.wam.server import BackgroundServer, create_app
+from wamplan.wam.server import create_app
 from wamplan.worldmodel import WorldModelPredictor, load_predictor
 from wamplan.worldmodel.load import KIND as PREDICTOR_KIND
 
@@ -157,7 +158,7 @@ def test_a_plan_over_budget_answers_the_wams_chunk(tmp_path):
 
 def test_an_upstream_server_behind_the_proxy_passes_its_fields_through():
     up = BackgroundServer(create_app(load_wam(WAM_CKPT, device="cpu"))).start()
-    p = build_proxy(ProxyConfig(upstream=up.act_url, world_model=WM_CKPT, device="cpu"))
+    p = build_proxy(ProxyConfig(upstream=up.url + protocol.ROUTE, world_model=WM_CKPT, device="cpu"))
     assert p.upstream.unreachable is None  # its /health answered
     try:
         with BackgroundServer(create_proxy_app(p, secret="s")) as srv:
@@ -186,7 +187,8 @@ def test_an_upstream_that_wants_a_secret_the_proxy_lacks_is_named_so(monkeypatch
                              ("wrong", "is not its own: set it to the upstream's")):
             if secret:
                 monkeypatch.setenv("WAMPLAN_UPSTREAM_SECRET", secret)
-            p = build_proxy(ProxyConfig(upstream=up.act_url, world_model=WM_CKPT, device="cpu", errors="http"))
+            p = build_proxy(ProxyConfig(upstream=up.url + protocol.ROUTE, world_model=WM_CKPT, device="cpu",
+                                        errors="http"))
             try:
                 with BackgroundServer(create_proxy_app(p)) as srv:
                     r = requests.post(f"{srv.url}/act", data=request(observation(1, 0)), timeout=60)
@@ -314,20 +316,37 @@ def test_the_proxy_rolls_the_world_model_out_in_the_dtype_it_is_given():
         p.close()
 
 
+STACK_READOUT = "<a foreground readout fit on stack-cube>"  # stands for the stack_readout fixture's directory
+
+
+@pytest.fixture(scope="module")
+def stack_readout(tmp_path_factory) -> str:
+    """An untrained foreground readout of the shipped world model's encoder, saved as one fit on task 'stack-cube'
+    (its weights do not matter to the refusal)."""
+    from wamplan.encoders.foreground import ForegroundReadout, save_foreground
+    from wamplan.worldmodel.load import load_world_model
+
+    encoder = load_world_model(WM_CKPT)[1]
+    readout = ForegroundReadout(3, encoder.num_patches, encoder.dim)
+    out = tmp_path_factory.mktemp("fg") / "fg_stack"
+    return str(save_foreground(out, readout, encoder, {}, "stack-cube", ("front", "side", "wrist")))
+
+
 @pytest.mark.parametrize("flags, said", [
     (["--cost-view-weights", "1", "1"], "--cost-view-weights gives 2 weights, but task 'cube-insertion' has 3 "
                                         "cameras"),
     (["--num-elites", "4"], "--num-elites is an option of planner(s) ['cem', 'cem-gripper'], not of 'wamplan'"),
     (["--cost-state-weight", "0.3"], "needs a world model with a state head"),  # what only the model can refuse
-    (["--cost-foreground", str(Path(__file__).resolve().parents[1] / "checkpoints" / "candidates" / "fg_stack")],
+    (["--cost-foreground", STACK_READOUT],
      "was fit on task 'stack-cube', but the planning acts in 'cube-insertion'"),  # a readout of another task
     (["--disagreement-weight", "0.1"], "pass several checkpoints joined by + (eval --wm-augmented A+B, serve "
                                        "--world-model A+B)"),
     (["--planner", "cem-gripper", "--gripper-dim", "9"], "gripper_dim 9 is not an entry of task 'cube-insertion''s"),
 ])
-def test_serve_refuses_planning_settings_that_do_not_fit_in_one_line(capsys, flags, said):
+def test_serve_refuses_planning_settings_that_do_not_fit_in_one_line(capsys, stack_readout, flags, said):
     from wamplan.cli.main import main
 
+    flags = [stack_readout if f == STACK_READOUT else f for f in flags]
     code = main(["serve", "--upstream", WAM_CKPT, "--world-model", WM_CKPT, "--device", "cpu", *flags])
     err = capsys.readouterr().err.strip()
     assert code == 2 and len(err.splitlines()) == 1 and said in err, err
@@ -525,7 +544,7 @@ def test_the_client_keeps_its_frames_and_episode_start_until_an_answer_is_read()
 
     with BackgroundServer(create_app(load_wam(WAM_CKPT, device="cpu"))) as srv:
         flaky = Flaky()
-        client = CosmosPolicyClient(url=srv.act_url, send_chunk_frames=(4, 8, 12), session=flaky)
+        client = CosmosPolicyClient(url=srv.url + protocol.ROUTE, send_chunk_frames=(4, 8, 12), session=flaky)
         client.begin_episode(7)
         obs = observation(1, 0)
         with pytest.raises(Exception, match="500"):

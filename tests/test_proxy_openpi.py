@@ -25,7 +25,7 @@ from wamplan.proxy.build import build_proxy
 from wamplan.proxy.config import ProxyConfig
 from wamplan.proxy.config import parse_ws_fields
 from wamplan.proxy.openpi import as_request, unpack, ws_fields_warning
-from wamplan.wam.server import BackgroundServer
+from wamplan.serving.runner import BackgroundServer
 
 from test_proxy import FIELDS, WAM_CKPT, WM_CKPT, H, in_process_episode, observation  # noqa: I001
 

@@ -18,6 +18,8 @@ from wamplan.checkpoint import CheckpointError, save_checkpoint
 from wamplan.config import ConfigError, to_dict
 from wamplan.envs.contract import CAMERAS, Observation
 from wamplan.errors import UserError
+from wamplan.serving.refusals import error_reply
+from wamplan.serving.runner import BackgroundServer
 from wamplan.wam import protocol
 from wamplan.wam.base import (
     DEFAULT_INSTRUCTION,
@@ -33,7 +35,7 @@ from wamplan.wam.base import (
     validate_wam_output,
 )
 from wamplan.wam.cosmos_client import PROFILES, CosmosClientConfig, CosmosPolicyClient, profile_config, resize_image
-from wamplan.wam.server import BackgroundServer, create_app
+from wamplan.wam.server import create_app
 from wamplan.wam.tinywam import KIND as TINYWAM_KIND
 from wamplan.wam.tinywam import TinyWAMConfig, TinyWAMNet
 
@@ -213,7 +215,7 @@ def test_round_trip_over_http(echo):
     srv, wam = echo
     n0 = len(wam.calls)
     obs = make_obs()
-    out = client(srv.act_url).predict(obs, "insert the cube")
+    out = client(srv.url + protocol.ROUTE).predict(obs, "insert the cube")
     seen_obs, instruction = wam.calls[-1]
     assert len(wam.calls) == n0 + 1 and instruction == "insert the cube"
     np.testing.assert_array_equal(seen_obs.proprio, obs.proprio)
@@ -226,7 +228,7 @@ def test_round_trip_over_http(echo):
     np.testing.assert_array_equal(out.actions, expected)
     assert out.value == pytest.approx(0.25)
     assert out.timing["http_s"] <= out.timing["query_s"]  # the query = adapting + HTTP + decoding
-    assert out.extras == {"attempts": 1, "url": srv.act_url}
+    assert out.extras == {"attempts": 1, "url": srv.url + protocol.ROUTE}
 
 
 def test_tinywam_round_trip_through_the_server_matches_calling_it_directly(tiny_server, tiny_ckpt):
@@ -234,7 +236,7 @@ def test_tinywam_round_trip_through_the_server_matches_calling_it_directly(tiny_
     for step in (0, 5):
         obs = make_obs(step)  # 24 x 32 renders: TinyWAM resizes them to its 32 px on both paths
         want = direct.predict(obs, "insert the cube")
-        got = client(tiny_server.act_url).predict(obs, "insert the cube")
+        got = client(tiny_server.url + protocol.ROUTE).predict(obs, "insert the cube")
         np.testing.assert_array_equal(got.actions, want.actions)  # float32 survives json_numpy exactly
         assert got.actions.shape == (H, A) and np.abs(got.actions).max() > 0.01  # a real, non-zero chunk
         assert got.value is None and want.value is None
@@ -243,7 +245,7 @@ def test_tinywam_round_trip_through_the_server_matches_calling_it_directly(tiny_
             np.testing.assert_array_equal(got.images[c], want.images[c])
     # the predicted views are the model's, per camera: they differ from each other and between inputs
     assert not np.array_equal(got.images["front"], got.images["side"])
-    other = client(tiny_server.act_url).predict(make_obs(0), "t")
+    other = client(tiny_server.url + protocol.ROUTE).predict(make_obs(0), "t")
     assert not np.array_equal(got.images["front"], other.images["front"])
 
 
@@ -252,7 +254,7 @@ def test_tinywam_server_with_a_custom_camera_mapping(tiny_server, tiny_ckpt):
     permuted views, and the client maps its predictions back by response field."""
     direct = load_wam(tiny_ckpt)
     obs = make_obs(9)
-    c = client(tiny_server.act_url,
+    c = client(tiny_server.url + protocol.ROUTE,
                request_fields=("side=primary_image", "front=left_wrist_image", "wrist=right_wrist_image"),
                response_fields=("front=future_wrist_image", "wrist=future_image"))
     got = c.predict(obs, "t")
@@ -363,7 +365,7 @@ def test_profiles_are_valid_and_unknown_ones_are_named():
 
 def test_empty_instruction_uses_server_default(echo):
     srv, wam = echo
-    client(srv.act_url).predict(make_obs(), "")
+    client(srv.url + protocol.ROUTE).predict(make_obs(), "")
     assert wam.calls[-1][1] == "default task"
 
 
@@ -384,7 +386,7 @@ def test_request_follows_cosmos_field_names(fake):
 def test_custom_camera_mapping(echo):
     srv, _ = echo
     obs = make_obs(5)
-    c = client(srv.act_url,
+    c = client(srv.url + protocol.ROUTE,
                request_fields=("side=primary_image", "front=left_wrist_image", "wrist=right_wrist_image"),
                response_fields=("front=future_wrist_image", "wrist=future_image"))
     out = c.predict(obs, "t")
@@ -437,10 +439,10 @@ def test_a_failing_wam_is_reported_with_its_reason(failing):
     Policy's does, HTTP 200 and "error", which the client reports too."""
     with pytest.raises(WAMServerError, match=r"answered HTTP 500 \(the WAM 'test-echo' failed on this request "
                                              r"\(RuntimeError: the model blew up\); the server's log has the traceback"):
-        client(failing.act_url).predict(make_obs(), "t")
+        client(failing.url + protocol.ROUTE).predict(make_obs(), "t")
     with BackgroundServer(create_app(EchoWAM(fail=True), bare_errors=True)) as srv:
         with pytest.raises(WAMServerError, match=r'answered "error".*traceback'):
-            client(srv.act_url).predict(make_obs(), "t")
+            client(srv.url + protocol.ROUTE).predict(make_obs(), "t")
 
 
 def test_error_reply_from_fake_server(fake):
@@ -453,13 +455,13 @@ def test_server_answers_a_malformed_request_with_its_reason(echo):
     srv, _ = echo
     body = json_numpy.dumps({"primary_image": np.zeros((4, 4, 3), np.uint8), "proprio": np.zeros(10, np.float32),
                              "task_description": "t"})  # both wrist images missing
-    r = requests.post(srv.act_url, data=body, headers=protocol.JSON_HEADERS, timeout=10)
+    r = requests.post(srv.url + protocol.ROUTE, data=body, headers=protocol.JSON_HEADERS, timeout=10)
     assert r.status_code == 400
     assert r.json() == {"error": "bad /act request: the request lacks field(s) ['left_wrist_image', "
                                  "'right_wrist_image']"}
     assert requests.get(srv.url + "/health", timeout=10).json()["ok"] is True  # ours adds one (issue 17)
     with BackgroundServer(create_app(EchoWAM(), bare_errors=True)) as bare:  # as Cosmos Policy's deploy.py
-        r = requests.post(bare.act_url, data=body, headers=protocol.JSON_HEADERS, timeout=10)
+        r = requests.post(bare.url + protocol.ROUTE, data=body, headers=protocol.JSON_HEADERS, timeout=10)
         assert r.status_code == 200 and r.json() == "error"
 
 
@@ -516,7 +518,7 @@ def test_retries_are_bounded():
 def test_retry_recovers_from_a_transient_failure(echo):
     srv, _ = echo
     session = FlakySession(failures=1)
-    c = CosmosPolicyClient(CosmosClientConfig(url=srv.act_url, retries=2, backoff_s=0.0), session=session)
+    c = CosmosPolicyClient(CosmosClientConfig(url=srv.url + protocol.ROUTE, retries=2, backoff_s=0.0), session=session)
     out = c.predict(make_obs(), "t")
     assert session.calls == 2 and out.extras["attempts"] == 2
 
@@ -636,7 +638,7 @@ def test_protocol_round_trips_and_double_encoding():
     np.testing.assert_array_equal(ans.actions, CHUNK)
     assert set(ans.future_images) == {"future_image"} and ans.value is None
     with pytest.raises(protocol.ErrorReply):
-        protocol.decode_response(protocol.error_reply())
+        protocol.decode_response(error_reply())
 
 
 # -- validation -----------------------------------------------------------------------------------------

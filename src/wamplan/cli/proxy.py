@@ -47,7 +47,7 @@ def _serve(args: argparse.Namespace) -> int:
     from wamplan.proxy.app import create_proxy_app
     from wamplan.proxy.build import build_proxy
     from wamplan.proxy.openpi import ws_fields_warning
-    from wamplan.wam.server import bind_socket, run_app
+    from wamplan.serving.runner import bind_socket, run_app
 
     resolve_device(cfg.device)
     planning = planning_from_args(args)

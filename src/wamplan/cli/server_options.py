@@ -20,8 +20,8 @@ def add_listen_options(p: argparse.ArgumentParser, port: int, secret_help: str) 
 def listen_secret(args: argparse.Namespace) -> str | None:
     """The shared secret after checking ``--port``: ``--secret``, else ``$WAMPLAN_ACT_SECRET``, else None."""
     from wamplan.errors import UserError
-    from wamplan.wam import protocol
+    from wamplan.serving import SECRET_ENV
 
     if not 0 < args.port < 65536:
         raise UserError(f"--port must be in 1..65535, got {args.port}")
-    return args.secret if args.secret is not None else os.environ.get(protocol.SECRET_ENV) or None
+    return args.secret if args.secret is not None else os.environ.get(SECRET_ENV) or None

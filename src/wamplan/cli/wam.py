@@ -84,7 +84,9 @@ def _serve(args: argparse.Namespace) -> int:
         raise UserError("--bare-errors is --errors upstream, which --errors http contradicts; give one of them")
     from wamplan.device import resolve_device
     from wamplan.wam.base import load_wam
-    from wamplan.wam.server import bind_socket, field_map, resolve_maps, serve
+    from wamplan.serving.runner import bind_socket
+    from wamplan.wam.protocol import field_map, resolve_maps
+    from wamplan.wam.server import serve
 
     resolve_device(args.device)  # before loading anything
 

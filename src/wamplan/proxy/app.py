@@ -22,7 +22,7 @@ A chunk runs the upstream's own chunk (open loop, the ``wamplan`` field says why
 episode, on a history that reaches before the episode, without the frames above (``no-history``), when planning
 takes longer than ``budget_ms`` (``over-budget``; the plan finishes in the background before the session's
 next request), when the planner's gates say so, or when planning fails (``planning-failed``, logged).
-Failures of the request or the upstream are answered in the error mode (``wamplan.wam.server.ERROR_MODES``).
+Failures of the request or the upstream are answered in the error mode (``wamplan.serving.ERROR_MODES``).
 """
 
 from __future__ import annotations
@@ -48,8 +48,9 @@ from wamplan.proxy.config import DEFAULT_ROBOT, PROXY_FIELDS, ProxyConfig
 from wamplan.proxy.openpi import add_openpi_routes
 from wamplan.proxy.sessions import BadRequest, Session, Sessions, session_name
 from wamplan.proxy.upstream import AnsweredWAM, Upstream, UpstreamError, to_output
+from wamplan.serving import HEALTH_ROUTE
+from wamplan.serving.refusals import Refused, check_secret, error_answer, read_body
 from wamplan.wam import protocol
-from wamplan.wam.server import Refused, check_secret, error_answer, field_map, fit_proprio, read_body
 
 log = logging.getLogger(__name__)
 
@@ -88,8 +89,8 @@ class Proxy:
         return Session(key, self._make_policy(wam), wam)
 
     def describe(self) -> str:
-        return (f"{field_map(self.request_map, self.response_map)}; chunks of {self.chunk}, task {self.task.name} "
-                f"action columns {list(self.columns)}; world model frameskip {self.frameskip}")
+        return (f"{protocol.field_map(self.request_map, self.response_map)}; chunks of {self.chunk}, task "
+                f"{self.task.name} action columns {list(self.columns)}; world model frameskip {self.frameskip}")
 
     def close(self) -> None:
         self.planner_pool.shutdown(wait=False, cancel_futures=True)
@@ -215,12 +216,12 @@ class Proxy:
             raise BadRequest(f"{what} lacks {missing}")
         images = {cam: protocol.as_image(frame[name], f"{what}['{name}']") for name, cam in self.request_map.items()}
         q = protocol.as_numbers(frame["proprio"], f"{what}['proprio']", ndim=1)  # (P,)
-        return Observation(step=step, proprio=fit_proprio(q, self.task.proprio_dim)[0], images=images)
+        return Observation(step=step, proprio=protocol.fit_proprio(q, self.task.proprio_dim)[0], images=images)
 
     def _answer(self, session: Session, req: protocol.ActRequest, why: str | None, notes: list[str],
                 t_in: float) -> protocol.ActResponse:
         t, H = session.step, self.chunk
-        proprio, note = fit_proprio(req.proprio, self.task.proprio_dim)  # (P,) what the world model reads
+        proprio, note = protocol.fit_proprio(req.proprio, self.task.proprio_dim)  # (P,) what the world model reads
         notes += [f"world model: {note}"] if note else []
         obs = Observation(step=t, proprio=proprio, images={cam: req.images[f] for f, cam in self.request_map.items()})
         forward = dataclasses.replace(req, encoded=False)  # the proxy decodes the answer itself
@@ -343,7 +344,7 @@ def create_proxy_app(proxy: Proxy, secret: str | None = None) -> FastAPI:
 
     add_openpi_routes(app, proxy, secret)
 
-    @app.get(protocol.HEALTH_ROUTE)
+    @app.get(HEALTH_ROUTE)
     async def health() -> dict:
         return {"ok": True, "proxy": True, **proxy.summary(), "sessions": len(proxy.sessions)}
 

@@ -12,7 +12,7 @@ from wamplan.planning.build import PlanningConfig, planned_policy
 from wamplan.proxy.app import Proxy
 from wamplan.proxy.config import ProxyConfig
 from wamplan.proxy.upstream import AnsweredWAM, HttpUpstream, LocalUpstream, Upstream
-from wamplan.wam.server import resolve_maps
+from wamplan.wam.protocol import resolve_maps
 
 
 def check_fit(task: TaskSpec, upstream: Upstream, chunk: int, columns: tuple[int, ...], cameras: tuple[str, ...],

@@ -11,11 +11,10 @@ from wamplan.config import check_numbers, field, require
 from wamplan.errors import UserError
 from wamplan.evaluation.config import profile_names
 from wamplan.planning.build import WM_DTYPES
-from wamplan.wam import protocol
+from wamplan.serving import DEFAULT_MAX_REQUEST_BYTES, ERROR_MODES
 
 DEFAULT_ROBOT = "default"  # the session of plain /act (and of a WebSocket on /)
 PROXY_FIELDS = ("session_id", "reset", "seed", "executed_actions", "chunk_frames")  # read by the proxy, never forwarded
-ERROR_MODES = ("http", "upstream")  # as `wamplan wam serve` answers failures (wamplan.wam.server.ERROR_MODES)
 
 
 @dataclass(frozen=True)
@@ -44,9 +43,8 @@ class ProxyConfig:
                                "images/cam_high=primary_image,state=proprio")
     history_spacing: int = field(12, "steps between the frames of upstream's eval client's proprio_history / "
                                      "images_history (its history_spacing_factor)")
-    max_request_bytes: int = field(protocol.DEFAULT_MAX_REQUEST_BYTES, "refuse larger /act bodies (HTTP 413) and "
-                                                                       "WebSocket messages (the connection is closed "
-                                                                       "with code 1009)")
+    max_request_bytes: int = field(DEFAULT_MAX_REQUEST_BYTES, "refuse larger /act bodies (HTTP 413) and WebSocket "
+                                                              "messages (the connection is closed with code 1009)")
     device: str = field("auto", "torch device for the world model (and a local upstream)")
     wm_dtype: str = field("float32", "arithmetic of the world model's rollouts in the search: float32, or bfloat16 "
                                      "(faster on a GPU; benchmarks/planner.py --dtypes times both); the cost is "

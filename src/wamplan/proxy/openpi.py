@@ -41,8 +41,8 @@ from wamplan.errors import UserError, reason
 from wamplan.proxy.config import DEFAULT_ROBOT, PROXY_FIELDS, parse_ws_fields
 from wamplan.proxy.sessions import session_name
 from wamplan.proxy.upstream import UpstreamError
+from wamplan.serving.refusals import Refused, check_secret
 from wamplan.wam import protocol
-from wamplan.wam.server import Refused, check_secret
 
 log = logging.getLogger(__name__)
 

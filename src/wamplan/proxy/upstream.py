@@ -18,9 +18,9 @@ import numpy as np
 import requests
 
 from wamplan.envs.spec import Observation, TaskSpec
+from wamplan.serving import HEALTH_ROUTE, SECRET_HEADER
 from wamplan.wam import protocol
 from wamplan.wam.base import WAM, WAMOutput
-from wamplan.wam.server import clip_actions
 
 UPSTREAM_SECRET_ENV = "WAMPLAN_UPSTREAM_SECRET"  # the upstream's shared secret, if it wants one
 
@@ -67,7 +67,7 @@ class HttpUpstream(Upstream):
         self._session = requests.Session()
         self._session.trust_env = urlparse(url).hostname not in ("127.0.0.1", "localhost", "::1")
         secret = os.environ.get(UPSTREAM_SECRET_ENV)
-        self._headers = {**protocol.JSON_HEADERS, **({protocol.SECRET_HEADER: secret} if secret else {})}
+        self._headers = {**protocol.JSON_HEADERS, **({SECRET_HEADER: secret} if secret else {})}
         self.unreachable: str | None = None  # why the start-up's /health got no answer at all (None: it answered)
         health = self._health()
         self.shape = UpstreamShape(
@@ -78,7 +78,7 @@ class HttpUpstream(Upstream):
     def _health(self) -> dict[str, Any]:
         parts = urlparse(self.url)
         path = parts.path[:-len(protocol.ROUTE)] if parts.path.endswith(protocol.ROUTE) else parts.path
-        url = urlunparse(parts._replace(path=path.rstrip("/") + protocol.HEALTH_ROUTE))
+        url = urlunparse(parts._replace(path=path.rstrip("/") + HEALTH_ROUTE))
         try:
             r = self._session.get(url, timeout=min(self.timeout_s, 5.0))
             body = r.json() if r.status_code == 200 else {}
@@ -99,7 +99,7 @@ class HttpUpstream(Upstream):
             raise UpstreamError(502, f"{self.where} is not reachable ({type(e).__name__})") from e
         if r.status_code in (401, 403):
             fix = (f"the secret in ${UPSTREAM_SECRET_ENV} is not its own: set it to the upstream's"
-                   if protocol.SECRET_HEADER in self._headers else
+                   if SECRET_HEADER in self._headers else
                    f"it wants a shared secret: start serve with ${UPSTREAM_SECRET_ENV} set to it")
             raise UpstreamError(502, f"{self.where} refused the proxy (HTTP {r.status_code}); {fix}")
         if r.status_code != 200:
@@ -144,7 +144,7 @@ def to_output(ans: protocol.ActResponse, task: TaskSpec, response_map: dict[str,
     H, A = ans.actions.shape
     if max(columns) >= A:
         raise UpstreamError(502, f"the upstream returned {A}-D actions; task {task.name} needs columns {list(columns)}")
-    actions, note = clip_actions(ans.actions[:, list(columns)].astype(np.float32))  # (H, A_task)
+    actions, note = protocol.clip_actions(ans.actions[:, list(columns)].astype(np.float32))  # (H, A_task)
     notes = [note] if note else []
     images = {}
     for cam, name in response_map.items():

@@ -47,6 +47,7 @@ import urllib3
 
 from wamplan.config import ConfigError, check_numbers, field, require, to_dict
 from wamplan.envs.spec import TASKS, Observation, get_task, require_images
+from wamplan.serving import SECRET_ENV, SECRET_HEADER
 from wamplan.wam import protocol
 from wamplan.wam.base import WAM, WAMError, WAMOutput, WAMOutputError, WAMServerError, register_wam
 
@@ -281,8 +282,8 @@ class CosmosPolicyClient(WAM):
             # A proxy from the environment must not capture a server on this machine.
             session.trust_env = urlparse(base.url).hostname not in ("127.0.0.1", "localhost", "::1")
         self._session = session
-        secret = secret if secret is not None else os.environ.get(protocol.SECRET_ENV)
-        self._headers = {**protocol.JSON_HEADERS, **({protocol.SECRET_HEADER: secret} if secret else {})}
+        secret = secret if secret is not None else os.environ.get(SECRET_ENV)
+        self._headers = {**protocol.JSON_HEADERS, **({SECRET_HEADER: secret} if secret else {})}
         self.attempts_made = 0  # HTTP attempts of the last query (diagnostics, tests)
         self.frame_offsets = base.send_chunk_frames
         self._session_id = uuid.uuid4().hex[:12]  # sent with send_chunk_frames: one proxy session a client
@@ -388,7 +389,7 @@ class CosmosPolicyClient(WAM):
                                  f"{protocol.ROUTE}: check {_flag('url')}")
         if resp.status_code == 401:
             raise WAMServerError(f"{self._where} refused the request (HTTP 401: wrong or missing shared secret); "
-                                 f"set ${protocol.SECRET_ENV} to the secret the server was started with")
+                                 f"set ${SECRET_ENV} to the secret the server was started with")
         if resp.status_code == 413:
             raise WAMServerError(f"{self._where} refused the request as too large (HTTP 413); send smaller "
                                  f"images (this client's send_image_size, now {self.config.send_image_size}; the "

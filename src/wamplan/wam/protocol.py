@@ -22,12 +22,12 @@ It follows NVlabs/cosmos-policy ``cosmos_policy/experiments/robot/aloha/deploy.p
   request or the answer (``notes``: one line each), and whatever a planning proxy reports; clients that do not
   know it ignore it.
 
-wamplan's own server adds what a real deployment needs, outside the protocol: an optional shared secret
-(``SECRET_HEADER``, ``Authorization: Bearer``, or the URL query parameter ``SECRET_QUERY`` for clients that
-cannot set headers; the client reads it from ``SECRET_ENV``), a request size
-limit (HTTP 413) and ``GET /health``; those refusals are HTTP 401 / 413 with a one-line ``{"error": ...}``, and
-so are its failures (400 a malformed request, 422 one the WAM refuses, 500 a failure of the WAM), unless started
-in the ``upstream`` error mode, which answers every failure as upstream does (see ``wamplan.wam.server``).
+wamplan's servers add what a real deployment needs, outside the protocol (:mod:`wamplan.serving`): an optional
+shared secret, a request size limit (HTTP 413) and ``GET /health``; those refusals are HTTP 401 / 413 with a
+one-line ``{"error": ...}``, and so are its failures (400 a malformed request, 422 one the WAM refuses, 500 a
+failure of the WAM), unless started in the ``upstream`` error mode, which answers every failure as upstream does.
+A server maps request fields to cameras and cameras to response fields (:func:`resolve_maps`), fits the proprio
+to its model's size (:func:`fit_proprio`) and clips actions into [-1, 1] (:func:`clip_actions`).
 
 Decoders raise :class:`ProtocolError` (malformed message) or :class:`ErrorReply` (the ``"error"`` answer);
 callers turn those into errors for people, naming the server.
@@ -44,6 +44,7 @@ import json_numpy
 import numpy as np
 
 from wamplan.errors import UserError
+from wamplan.serving import ERROR_REPLY
 
 ROUTE = "/act"
 DEFAULT_PORT = 8777
@@ -54,12 +55,7 @@ REQUEST_IMAGE_FIELD_SETS = (REQUEST_IMAGE_FIELDS, ROBOCASA_REQUEST_IMAGE_FIELDS)
 # The fields Cosmos Policy fills for a 3-camera (ALOHA-style) model; RoboCasa models add future_image2.
 RESPONSE_IMAGE_FIELDS = ("future_image", "future_wrist_image", "future_wrist_image2")
 KNOWN_RESPONSE_IMAGE_FIELDS = RESPONSE_IMAGE_FIELDS + ("future_image2",)
-ERROR_REPLY = "error"
 JSON_HEADERS = {"Content-Type": "application/json"}
-HEALTH_ROUTE = "/health"
-SECRET_HEADER = "X-WAMplan-Secret"
-SECRET_ENV = "WAMPLAN_ACT_SECRET"  # the shared secret, for `wamplan wam serve` and the client alike
-SECRET_QUERY = "token"  # ...?token=SECRET: the secret in the URL, for clients that cannot send a header
 # Upstream's server sends the first, its robot client reads the second: an answer carries both.
 VALUE_KEYS = ("value_prediction", "value_predictions")
 # The value sent for a model without a value head (upstream's best-of-N reads a missing value as 0.0).
@@ -69,7 +65,6 @@ RETURN_ALL_FIELD = "return_all_query_results"
 # The request fields every request carries besides its images; anything else is a request's ``extra``.
 _REQUEST_KEYS = ("proprio", "task_description", RETURN_ALL_FIELD)
 _ANSWER_KEYS = ("actions", "future_image_predictions", *VALUE_KEYS, WAMPLAN_FIELD)
-DEFAULT_MAX_REQUEST_BYTES = 16 * 2**20  # three 224-px views in json_numpy take ~0.6 MB
 
 
 class ProtocolError(ValueError):
@@ -242,11 +237,6 @@ def response_payload(resp: ActResponse, *, all_query_results: bool = False) -> d
     return answer
 
 
-def error_reply() -> str:
-    """The body Cosmos Policy sends (with HTTP 200) when a request fails."""
-    return json.dumps(ERROR_REPLY)
-
-
 def decode_response(body: bytes | str) -> ActResponse:
     """Parse and check an answer (client side). Raises ErrorReply for "error", ProtocolError if malformed."""
     obj = _loads(body, "answer")
@@ -294,3 +284,50 @@ def default_maps(cameras: tuple[str, ...]) -> tuple[dict[str, str], dict[str, st
                         f"images; pass a request map for the cameras to serve")
     request = {f: cameras[min(i, len(cameras) - 1)] for i, f in enumerate(fields)}
     return request, {c: futures[i] for i, c in enumerate(cameras)}
+
+
+def resolve_maps(cameras: tuple[str, ...], request_map: dict[str, str] | None = None,
+                 response_map: dict[str, str] | None = None) -> tuple[dict[str, str], dict[str, str]]:
+    """The maps a server for ``cameras`` uses (:func:`default_maps` where none are given), checked."""
+    default_request, default_response = default_maps(tuple(cameras))
+    request_map = dict(request_map or default_request)
+    response_map = dict(response_map or default_response)
+    bad = sorted(set(request_map) - {f for fs in REQUEST_IMAGE_FIELD_SETS for f in fs})
+    bad += sorted(set(response_map.values()) - set(KNOWN_RESPONSE_IMAGE_FIELDS))
+    if bad:
+        raise UserError(f"unknown /act field(s) {bad}; request fields are {list(REQUEST_IMAGE_FIELD_SETS)}, "
+                        f"response fields {list(KNOWN_RESPONSE_IMAGE_FIELDS)}")
+    unfed = [c for c in cameras if c not in request_map.values()]
+    if unfed:
+        raise UserError(f"camera(s) {unfed} are carried by no request field (request map: {request_map}); map them "
+                        f"to a request field")
+    return request_map, response_map
+
+
+def field_map(request_map: dict[str, str], response_map: dict[str, str]) -> str:
+    """One line: which request field feeds each camera and which answer field carries its prediction."""
+    req = ", ".join(f"{name} -> {cam}" for name, cam in request_map.items())
+    resp = ", ".join(f"{cam} -> {name}" for cam, name in response_map.items())
+    return f"request fields: {req}; predictions: {resp}"
+
+
+def fit_proprio(proprio: np.ndarray, size: int) -> tuple[np.ndarray, str | None]:
+    """(P,) -> (size,) float32: zero-padded or truncated to the model's size, with the note that says so
+    (None when it already fits)."""
+    n = proprio.shape[0]
+    if n == size:
+        return proprio, None
+    out = np.zeros(size, dtype=np.float32)  # (size,)
+    out[:min(n, size)] = proprio[:min(n, size)]
+    how = f"truncated to its first {size}" if n > size else f"padded with zeros to {size}"
+    return out, f"proprio of {n} entries {how}, the model's size"
+
+
+def clip_actions(actions: np.ndarray) -> tuple[np.ndarray, str | None]:
+    """(H, A) -> (H, A) clipped to [-1, 1], with the note saying how many entries changed (None if none did)."""
+    clipped = np.clip(actions, -1.0, 1.0).astype(np.float32)  # (H, A)
+    changed = int(np.count_nonzero(clipped != actions))
+    if not changed:
+        return clipped, None
+    return clipped, (f"{changed} of {actions.size} action entries were outside [-1, 1] (max |a| = "
+                     f"{float(np.abs(actions).max()):.4g}) and were clipped")
