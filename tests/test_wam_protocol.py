@@ -34,7 +34,8 @@ from wamplan.wam.base import (
     register_wam_loader,
     validate_wam_output,
 )
-from wamplan.wam.cosmos_client import PROFILES, CosmosClientConfig, CosmosPolicyClient, profile_config, resize_image
+from wamplan.wam.cosmos_client import CosmosClientConfig, CosmosPolicyClient, profile_config, resize_image
+from wamplan.wam.profiles import PROFILES
 from wamplan.wam.server import create_app
 from wamplan.wam.tinywam import KIND as TINYWAM_KIND
 from wamplan.wam.tinywam import TinyWAMConfig, TinyWAMNet

@@ -14,6 +14,7 @@ from wamplan.planning.build import WM_DTYPES, PlanningConfig
 from wamplan.planning.configs import DEFAULT_PLANNER
 from wamplan.planning.cost_config import CostConfig
 from wamplan.planning.policy_config import PlannedPolicyConfig
+from wamplan.wam.profiles import profile_names
 
 
 # A learned condition's dynamics -> the EvalConfig field holding its world-model checkpoints.
@@ -22,14 +23,6 @@ _WORLD_MODEL_FIELDS = {"learned-plain": "wm_plain", "learned-augmented": "wm_aug
 
 def _env_default() -> EnvConfig:
     return EnvConfig()
-
-
-def profile_names() -> tuple[str, ...]:
-    """``--wam-profile``'s (and ``serve --profile``'s) values: the named client profiles (left out: the client's
-    defaults)."""
-    from wamplan.wam.cosmos_client import PROFILES
-
-    return tuple(PROFILES)
 
 
 @dataclass(frozen=True)

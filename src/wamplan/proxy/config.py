@@ -9,9 +9,9 @@ from urllib.parse import urlparse, urlunparse
 
 from wamplan.config import check_numbers, field, require
 from wamplan.errors import UserError
-from wamplan.evaluation.config import profile_names
 from wamplan.planning.build import WM_DTYPES
 from wamplan.serving import DEFAULT_MAX_REQUEST_BYTES, ERROR_MODES
+from wamplan.wam.profiles import PROFILES, profile_names
 
 DEFAULT_ROBOT = "default"  # the session of plain /act (and of a WebSocket on /)
 PROXY_FIELDS = ("session_id", "reset", "seed", "executed_actions", "chunk_frames")  # read by the proxy, never forwarded
@@ -62,8 +62,6 @@ class ProxyConfig:
         require(self.upstream_is_url or Path(self.upstream).exists() or not re.match(r"^[\w.-]+:\d+(/|$)", self.upstream),
                 f"--upstream {self.upstream} looks like an address without its scheme; pass http://{self.upstream}")
         require(bool(self.world_model), "--world-model: name a world model checkpoint (from `wamplan wm train`)")
-        from wamplan.wam.cosmos_client import PROFILES
-
         require(not self.profile or self.profile in PROFILES,
                 f"--profile: unknown profile '{self.profile}'; profiles are {sorted(PROFILES)}")
         require(self.errors in ERROR_MODES, f"--errors must be one of {list(ERROR_MODES)}, got {self.errors!r}")

@@ -17,8 +17,8 @@ CLI flags: ``wamplan.config.add_arguments(parser, CosmosClientConfig, prefix="wa
 config field (configs are recorded with results): pass ``secret=`` or set ``$WAMPLAN_ACT_SECRET``; it goes in
 the ``X-WAMplan-Secret`` header.
 
-Named profiles (``PROFILES``, ``--wam-profile NAME``) hold the field mapping and sizes of a kind of server,
-so that nobody has to spell field names:
+Named profiles (``--wam-profile NAME``, :mod:`wamplan.wam.profiles`) hold the field mapping and sizes of a kind of
+server, so that nobody has to spell field names:
 
 * ``cosmos-robocasa``: a Cosmos Policy fine-tuned on ``wamplan data export --format cosmos-policy`` with its
   RoboCasa dataset class and served with RoboCasa observation names (``primary_image`` = front,
@@ -50,6 +50,7 @@ from wamplan.envs.spec import TASKS, Observation, get_task, require_images
 from wamplan.serving import SECRET_ENV, SECRET_HEADER
 from wamplan.wam import protocol
 from wamplan.wam.base import WAM, WAMError, WAMOutput, WAMOutputError, WAMServerError, register_wam
+from wamplan.wam.profiles import PROFILES
 
 FLAG_PREFIX = "--wam-"
 
@@ -181,14 +182,6 @@ class CosmosClientConfig:
     def response_map(self) -> dict[str, str]:
         """camera -> response field."""
         return dict(_pairs(self.response_pairs, "response_fields", self.cameras))
-
-
-_ROBOCASA = dict(request_fields=("front=primary_image", "side=secondary_image", "wrist=wrist_image"),
-                 response_fields=("front=future_image", "side=future_image2", "wrist=future_wrist_image"),
-                 chunk_length=16, action_indices=(0, 1, 2, 3, 4), proprio_dim=None, send_image_size=224)
-# ALOHA's fields are the client's defaults: left unset, they map any task's cameras by position.
-_ALOHA = dict(chunk_length=50, proprio_dim=14, send_image_size=224)
-PROFILES: dict[str, dict[str, Any]] = {"cosmos-robocasa": _ROBOCASA, "cosmos-aloha": _ALOHA}
 
 
 def profile_config(profile: str = "", **overrides: Any) -> CosmosClientConfig:
