@@ -71,18 +71,35 @@ def _data_commands(d: argparse.ArgumentParser) -> None:
                      "the mount, from the privileged poses")
     add_command(dsub, "view", _view_options, help="a contact sheet of the stored views over one episode")
     add_command(dsub, "import", _import_options,
-                help="turn ManiSkill trajectory files (.h5 + .json) into an episode store of their task",
-                description="Import a ManiSkill trajectory (its motion planner's, its replay tool's or its "
-                            "published demonstrations) into the store OUT: actions in another controller than the "
-                            "task's are converted by ManiSkill's replay_trajectory first (the converted file is "
-                            "written beside the original), then every episode is replayed open loop from its seed and "
-                            "recorded with the task's cameras. Episodes that no longer succeed are dropped (kept "
-                            "with --keep-failed or --noise-std); OUT/import.json reports the share that succeeded.")
+                help="turn ManiSkill trajectory files (.h5 + .json) or a LeRobot dataset into an episode store",
+                description="--format maniskill: import a ManiSkill trajectory (its motion planner's, its replay "
+                            "tool's or its published demonstrations) into the store OUT: actions in another "
+                            "controller than the task's are converted by ManiSkill's replay_trajectory first (the "
+                            "converted file is written beside the original), then every episode is replayed open loop "
+                            "from its seed and recorded with the task's cameras. Episodes that no longer succeed are "
+                            "dropped (kept with --keep-failed or --noise-std); OUT/import.json reports the share that "
+                            "succeeded. --format lerobot: read a LeRobotDataset directory (v3.0, v2.1 or v2.0; video "
+                            "or image features) into a new store OUT of --task (its action and proprio sizes must "
+                            "match), views resized to --camera-size; --key-map OURS=THEIRS names the dataset's keys "
+                            "where they are not action, observation.state and observation.images.<camera> (openpi's "
+                            "LIBERO set: action=actions observation.state=state observation.images.<camera>=image "
+                            "...). N frames make T = N-1 steps (the last frame's action is dropped). Such a store has "
+                            "no simulator state, stage flags or env seeds: the world model (wm train) and TinyWAM "
+                            "(wam train) train on it, but evaluation, the simulator-oracle dynamics, counterfactual "
+                            "branches and data alignment need a collected store. OUT appears whole or not at all.")
     add_command(dsub, "export", _export_options,
-                help="write a store in another project's training layout (Cosmos Policy HDF5)",
-                description="Write the store DIR under OUT in the HDF5 layout Cosmos Policy's post-training reads "
-                            "(OUT/demos/*.hdf5 RoboCasa-style demos, OUT/rollouts/*.hdf5 on-policy episodes). The "
-                            "store must be collected with --image-every 1.")
+                help="write a store in another project's training layout (Cosmos Policy HDF5, LeRobotDataset)",
+                description="--format cosmos-policy: write the store DIR under OUT in the HDF5 layout Cosmos Policy's "
+                            "post-training reads (OUT/demos/*.hdf5 RoboCasa-style demos, OUT/rollouts/*.hdf5 "
+                            "on-policy episodes). --format lerobot: write it as a LeRobotDataset at OUT (v3.0, or "
+                            "--lerobot-version 2.1): action, observation.state and the index columns in parquet, one "
+                            "MP4 a camera (observation.images.<camera>; AV1 by SVT-AV1 where PyAV has it, else H.264), "
+                            "meta/info.json, episodes, tasks and stats, wamplan's seed, source, success and outcome as "
+                            "episode fields; OUT appears whole or not at all. Both formats take a frame per control "
+                            "step, so the store must be collected with --image-every 1. An episode of T steps has T+1 "
+                            "frames (the last shows the final state): its actions get one padding row at the last "
+                            "frame, a no-op (no motion, the last gripper command), recorded in the export (lerobot "
+                            "import drops it again).")
 
 
 def _info_options(p: argparse.ArgumentParser) -> None:
@@ -116,13 +133,22 @@ def _import_options(p: argparse.ArgumentParser) -> None:
     from wamplan.envs.config import EnvConfig
     from wamplan.parallel import add_backend_argument
 
-    p.add_argument("trajectory", type=Path, help="a ManiSkill trajectory .h5 (its .json beside it)")
-    p.add_argument("out", type=Path, help="the store directory (created or resumed)")
-    p.add_argument("--format", required=True, choices=("maniskill",), help="the trajectory's format")
+    from wamplan.data.lerobot.importer import LeRobotImportConfig
+
+    p.add_argument("trajectory", type=Path, help="maniskill: a trajectory .h5 (its .json beside it); lerobot: the "
+                                                 "dataset directory (holding meta/info.json)")
+    p.add_argument("out", type=Path, help="the store directory (maniskill: created or resumed; lerobot: created)")
+    p.add_argument("--format", required=True, choices=("maniskill", "lerobot"), help="the input's format")
     p.add_argument("--workers", type=int, default=1, help="worker processes (one simulator each), or Ray actors")
     add_backend_argument(p)
-    p.add_argument("--image-every", type=int, default=4, help="store the task's views every N steps (and the last)")
-    p.add_argument("--episodes", type=int, default=None, help="import only the first N episodes (by seed)")
+    p.add_argument("--image-every", type=int, default=None,
+                   help="store the task's views every N steps (and the last); default 4 (maniskill), 1 (lerobot)")
+    p.add_argument("--episodes", type=int, default=None, help="import only the first N episodes (maniskill: by seed)")
+    g = p.add_argument_group("lerobot", "--format lerobot only")
+    g.add_argument("--key-map", nargs="+", default=None, metavar="OURS=THEIRS",
+                   help=LeRobotImportConfig.__dataclass_fields__["key_map"].metadata["help"])
+    g.add_argument("--lerobot-source", default=None, metavar="NAME",
+                   help=LeRobotImportConfig.__dataclass_fields__["source"].metadata["help"] + " (default: lerobot)")
     p.add_argument("--noise-std", type=float, default=0.0,
                    help="add white Gaussian noise of this std to the arm's entries of every replayed action "
                         "(noisy-expert data; episodes are kept whatever their outcome, source demo-noise<STD>)")
@@ -139,6 +165,11 @@ def cmd_import(args: argparse.Namespace) -> int:
     from wamplan.envs.spec import DEFAULT_TASK
 
     require_dir(args.out)
+    if args.format == "lerobot":
+        return _import_lerobot(args)
+    if args.key_map or args.lerobot_source:
+        raise UserError("--key-map and --lerobot-source are for --format lerobot; drop them")
+    args.image_every = 4 if args.image_every is None else args.image_every
     if args.workers <= 0 or args.image_every <= 0 or (args.episodes is not None and args.episodes <= 0):
         raise UserError("--workers, --image-every and --episodes must be positive")
     task, args.task = args.task, args.task or DEFAULT_TASK
@@ -150,13 +181,30 @@ def cmd_import(args: argparse.Namespace) -> int:
     return 0
 
 
+def _import_lerobot(args: argparse.Namespace) -> int:
+    from wamplan.data.lerobot.importer import LeRobotImportConfig, import_lerobot
+    from wamplan.envs.config import EnvConfig
+
+    if args.noise_std or args.keep_failed or args.workers != 1 or args.ray:
+        raise UserError("--noise-std, --keep-failed, --workers and --ray are for --format maniskill; drop them")
+    if args.task is None:
+        raise UserError("--format lerobot needs --task NAME: the registered task whose action and proprio sizes the "
+                        "dataset has (`wamplan tasks` lists them; docs/lerobot.md registers a new one)")
+    cfg = LeRobotImportConfig(key_map=tuple(args.key_map or ()), image_every=args.image_every or 1,
+                              source=args.lerobot_source or "lerobot", episodes=args.episodes or 0)
+    print(json.dumps(import_lerobot(args.trajectory, args.out, from_args(EnvConfig, args), cfg)))
+    return 0
+
+
 def _export_options(p: argparse.ArgumentParser) -> None:
     from wamplan.data.export import FORMATS, CosmosExportConfig
+    from wamplan.data.lerobot.export import LeRobotExportConfig
 
     p.add_argument("dir", type=Path, help="the episode store to export")
     p.add_argument("out", type=Path, help="the directory to write the exported files under (created)")
-    p.add_argument("--format", required=True, choices=FORMATS, help="the target layout")
+    p.add_argument("--format", required=True, choices=(*FORMATS, "lerobot"), help="the target layout")
     add_arguments(p, CosmosExportConfig)
+    add_arguments(p.add_argument_group("lerobot", "--format lerobot only"), LeRobotExportConfig)
     p.set_defaults(func=cmd_export)
 
 
@@ -326,10 +374,23 @@ def cmd_export(args: argparse.Namespace) -> int:
     import dataclasses
 
     from wamplan.data.export import CosmosExportConfig, export_cosmos_policy
+    from wamplan.data.lerobot.export import LeRobotExportConfig, export_lerobot
 
     require_dir(args.out, "OUT")
+    sources = tuple(s for x in args.sources or () for s in x.split(",") if s)
+    if args.format == "lerobot":
+        if args.split is not None:
+            raise UserError("--split is for --format cosmos-policy; drop it")
+        cfg = from_args(LeRobotExportConfig, args)  # its own options; the shared ones below
+        cfg = dataclasses.replace(cfg, image_size=args.image_size or 0, instruction=args.instruction or "",
+                                  sources=sources)
+        print(json.dumps(export_lerobot(args.dir, args.out, cfg), indent=1))
+        return 0
+    if given := [f"--{k.replace('_', '-')}" for k in ("lerobot_version", "fps", "vcodec", "crf")
+                 if getattr(args, k) is not None]:
+        raise UserError(f"{', '.join(given)}: for --format lerobot; drop {'them' if len(given) > 1 else 'it'}")
     cfg = from_args(CosmosExportConfig, args)  # no --instruction: the store's task's (what a WAM of it is sent)
-    cfg = dataclasses.replace(cfg, sources=tuple(s for x in cfg.sources for s in x.split(",") if s))
+    cfg = dataclasses.replace(cfg, sources=sources or cfg.sources)
     print(json.dumps(export_cosmos_policy(args.dir, args.out, cfg), indent=1))
     return 0
 

@@ -73,7 +73,8 @@ class CosmosExportConfig:
 
     instruction: str = field("", "task_description written with every episode (default: the store's task's "
                                  "instruction)")
-    image_size: int = field(224, "square size of the exported views (Cosmos Policy trains at 224); 0 keeps the store's")
+    image_size: int = field(224, "square size of the exported views (cosmos-policy: 224 by default, what Cosmos Policy "
+                                 "trains at; lerobot: the store's by default); 0 keeps the store's")
     split: str = field("auto", "auto: successful expert episodes are demos, the rest rollouts; or demos / rollouts",
                        choices=SPLITS)
     sources: tuple[str, ...] = field((), "export only these sources (e.g. expert); empty: every episode")
@@ -97,13 +98,32 @@ def resize_frames(frames: np.ndarray, size: int) -> np.ndarray:
     return y.permute(0, 2, 3, 1).round().clamp(0, 255).to(torch.uint8).numpy()  # (N, s, s, 3)
 
 
-def episode_arrays(ep: EpisodeData, image_size: int, task: TaskSpec) -> dict[str, Any]:
-    """One stored episode of ``task`` as Cosmos Policy's per-step arrays (N = T+1 steps; see the module
-    docstring)."""
+def require_every_step(store: EpisodeStore, layout: str = "Cosmos Policy") -> None:
+    """One line unless ``store`` keeps every step's views: ``layout`` (a format whose frames are control steps)
+    needs them, and there is no sound way to fill the missing ones."""
+    if store.image_every != 1:
+        raise UserError(f"{store.root} stores views every {store.image_every} steps, but {layout} needs every "
+                        f"step's views: re-collect with `wamplan collect ... --image-every 1`")
+
+
+def require_empty(out: Path) -> None:
+    """One line unless ``out`` is new or an empty directory: an export is not mixed into a checkpoint, a store,
+    anything."""
+    if out.exists() and not out.is_dir():
+        raise UserError(f"{out} is a file; choose a new OUT directory")
+    there = sorted(e.name for e in out.iterdir()) if out.is_dir() else []
+    if there:
+        raise UserError(f"{out} exists and is not empty ({', '.join(there[:3])}{', ...' if len(there) > 3 else ''}); "
+                        f"choose a new or empty OUT directory")
+
+
+def episode_arrays(ep: EpisodeData, image_size: int, task: TaskSpec, layout: str = "Cosmos Policy") -> dict[str, Any]:
+    """One stored episode of ``task`` as per-step arrays (N = T+1 steps, the actions padded by one no-op row; see
+    the module docstring), as Cosmos Policy's and LeRobot's layouts (``layout``, named in the refusal) hold them."""
     T = ep.length
     if not np.array_equal(ep.image_steps, np.arange(T + 1)):
         raise UserError(f"episode {ep.source} seed {ep.seed} has views at {len(ep.image_steps)} of its {T + 1} steps; "
-                        f"Cosmos Policy needs every step's views: re-collect with `wamplan collect --image-every 1`")
+                        f"{layout} needs every step's views: re-collect with `wamplan collect --image-every 1`")
     pad = np.zeros((1, ep.actions.shape[1]), np.float32)  # (1, A): no motion ...
     if (g := task.gripper_index) is not None:  # ... the last gripper command (open if none)
         pad[0, g] = ep.actions[-1, g] if T else task.gripper_open
@@ -138,9 +158,7 @@ def export_cosmos_policy(store_dir: str | Path, out_dir: str | Path, cfg: Cosmos
     task = store.task
     demo_views, rollout_views = view_names(store.cameras, DEMO_VIEWS), view_names(store.cameras, ROLLOUT_VIEWS)
     instruction = cfg.instruction or task.instruction
-    if store.image_every != 1:
-        raise UserError(f"{store_dir} stores views every {store.image_every} steps, but Cosmos Policy needs every "
-                        f"step's views: re-collect with `wamplan collect ... --image-every 1`")
+    require_every_step(store)
     paths = [m["path"] for m in store.iter_meta() if not cfg.sources or m["source"] in cfg.sources]
     if not paths:
         raise UserError(f"{store_dir} has no episode to export (sources {list(cfg.sources) or 'all'}); "
@@ -149,10 +167,7 @@ def export_cosmos_policy(store_dir: str | Path, out_dir: str | Path, cfg: Cosmos
     demos_path = out / DEMOS_FILE
     if demos_path.exists() or (out / ROLLOUTS_DIR).exists():
         raise UserError(f"{out} holds an export already; choose a new OUT directory or delete it")
-    there = sorted(e.name for e in out.iterdir()) if out.is_dir() else []
-    if there:  # a checkpoint, a store, anything: an export is not mixed into it
-        raise UserError(f"{out} exists and is not empty ({', '.join(there[:3])}{', ...' if len(there) > 3 else ''}); "
-                        f"choose a new or empty OUT directory")
+    require_empty(out)
     (out / ROLLOUTS_DIR).mkdir(parents=True)
     demos_path.parent.mkdir(parents=True, exist_ok=True)
     summary: dict[str, Any] = dict(out=str(out), demos=0, demo_steps=0, rollouts=0, rollout_steps=0,
