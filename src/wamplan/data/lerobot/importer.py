@@ -232,8 +232,13 @@ def import_lerobot(dataset: str | Path, out: str | Path, env: EnvConfig,
     with L.whole_or_nothing(Path(out)) as root:
         store = EpisodeStore(root, create=True, env=env.task_kwargs(), image_every=cfg.image_every,
                              provenance=dict(provenance(), imported_from=str(Path(dataset).resolve())), task=task)
-        n = 0
+        n, seen = 0, {}
         for ep in _read(ds, task, keys, env.camera_size, cfg):
+            index = ep.provenance["episode_index"]
+            if (other := seen.setdefault((ep.source, ep.seed), index)) != index:
+                raise L.LeRobotError(f"{ds.root}: episodes {other} and {index} are both source '{ep.source}' seed "
+                                     f"{ep.seed} (wamplan/seed), and a store holds one episode a seed; the dataset "
+                                     f"was merged from stores that share seeds")
             store.write(ep)
             n += 1
             frames += ep.length + 1
