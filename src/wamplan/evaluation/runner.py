@@ -147,12 +147,12 @@ def _same(a: Any, b: Any) -> bool:
 def settings(cfg: EvalConfig) -> dict[str, Any]:
     """The settings records of one directory must share, flat (``"planner_config.temperature": 0.1``), as they
     ran: the planner's task settings filled from the task, the episode length resolved (the task's when not
-    given). The first-chunk variant may differ (Table 2) and the device does not matter. The served-WAM keys
-    appear only when set, so directories written before they existed keep their settings."""
+    given). The first-chunk variant may differ (Table 2) and the device does not matter. The served-WAM keys and
+    ``--requery-every`` appear only when set, so directories written before they existed keep their settings."""
     ran = dataclasses.replace(cfg, planner_config=cfg.task_planner_config,
                               env=dataclasses.replace(cfg.env, max_episode_steps=cfg.env.episode_steps))
     return {k: v for k, v in _flat(to_dict(ran)).items() if k not in ("policy.first_chunk", "device")
-            and not (k in ("wam_url", "wam_profile") and not v)}
+            and not (k in ("wam_url", "wam_profile", "policy.requery_every") and not v)}
 
 
 def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:

@@ -1,7 +1,8 @@
 """The history a learned world model conditions on: which frames of an episode to keep, and the context
 (frames and the actions executed between them) it gets at a planning point.
 
-At planning point t (a chunk boundary) the history is the frames at
+At planning point t (a chunk boundary, or every ``period`` steps for a robot that runs part of each chunk) the
+history is the frames at
 t-(Tc-1)Δ, ..., t-Δ, t with the actions executed between them, anchored to t whether or not Δ divides the
 chunk (Δ=5, H=16: frames t-10, t-5, t). Before step 0 the robot rested: with ``rest_state`` the first frame
 stands in for the earlier ones, with the task's ``hold_action`` (arm still, gripper open) between them; without it, a
@@ -27,29 +28,33 @@ class FrameHistory:
     """The frames and executed actions of one episode, kept for a dynamics backend's planning contexts.
 
     ``frameskip`` Δ and ``context`` Tc are the dynamics' (a learned world model's stride and number of frames);
-    ``chunk`` H is the WAM's. ``keeps_frames`` is False for a backend that needs no history (the simulator):
+    ``chunk`` H is the WAM's; ``period`` (default H) is how many steps apart the planning points are (a robot that
+    runs K < H steps of each chunk before asking again: K). ``keeps_frames`` is False for a backend that needs no history (the simulator):
     then only the executed actions are kept. Frames are encoded with ``encode`` and kept on ``device``.
     ``hold_action`` (A,): the action of the rest before step 0 (the task's ``hold_action``), needed with
     ``rest_state``.
     """
 
     def __init__(self, chunk: int, frameskip: int, context: int, encode: Encode, device: torch.device, *,
-                 keeps_frames: bool = True, rest_state: bool = False, hold_action: np.ndarray | None = None):
+                 keeps_frames: bool = True, rest_state: bool = False, hold_action: np.ndarray | None = None,
+                 period: int | None = None):
         if rest_state and hold_action is None:
             raise ValueError("a rest-state history needs the task's hold_action (the action of the rest)")
         self.chunk, self.frameskip, self.context = chunk, frameskip, context
+        self.period = period or chunk
         self.encode, self.device = encode, device
         self.keeps_frames, self.rest_state, self.hold_action = keeps_frames, rest_state, hold_action
         self.reset()
 
     @classmethod
     def for_dynamics(cls, dynamics: Dynamics, chunk: int, encode: Encode, hold_action: np.ndarray,
-                     rest_state: bool = False) -> FrameHistory:
+                     rest_state: bool = False, period: int | None = None) -> FrameHistory:
         """The history ``dynamics`` needs (its frameskip and context; none for a backend without history);
-        ``hold_action`` (A,): the task's rest action."""
+        ``hold_action`` (A,): the task's rest action; ``period``: steps between planning points (default the
+        chunk)."""
         return cls(chunk, getattr(dynamics, "frameskip", chunk), getattr(dynamics, "context", 1), encode,
                    dynamics.device, keeps_frames=dynamics.needs_history, rest_state=rest_state,
-                   hold_action=hold_action)
+                   hold_action=hold_action, period=period)
 
     def reset(self) -> None:
         """Start a new episode."""
@@ -66,8 +71,8 @@ class FrameHistory:
 
     def wants(self, step: int) -> bool:
         """Whether ``step`` is a history frame: t - iΔ (0 <= i < Tc) for some planning point t >= step, the
-        planning points being the chunk boundaries."""
-        return self.keeps_frames and any((step + i * self.frameskip) % self.chunk == 0 for i in range(self.context))
+        planning points being every ``period`` steps (the chunk boundaries by default)."""
+        return self.keeps_frames and any((step + i * self.frameskip) % self.period == 0 for i in range(self.context))
 
     def observe(self, obs: Observation) -> None:
         """Encode and keep the frame of ``obs`` if it is a history frame (see :meth:`wants`) not kept yet, and
@@ -79,7 +84,7 @@ class FrameHistory:
             raise PlanningError(f"the planned policy needs the views at step {t} (a history frame) but "
                                 f"got none; drive it with run_episode or render when wants_images(t) is true")
         self.frames[t] = (self.encode(obs.images), torch.as_tensor(obs.proprio, device=self.device))
-        oldest = t - (self.context - 1) * self.frameskip - self.chunk  # nothing older is needed again
+        oldest = t - (self.context - 1) * self.frameskip - self.period  # nothing older is needed again
         self.frames = {s: f for s, f in self.frames.items() if s >= oldest}
 
     def record_action(self, action: np.ndarray) -> None:

@@ -15,6 +15,8 @@ Contract, the same for every dynamics backend:
   step 0 runs open loop too ("warm-up");
 * the :class:`~wamplan.planning.gates.Gates` may run the WAM's chunk instead of a plan, without a search
   ("gated") or after it ("rejected");
+* with ``requery_every`` K < H the WAM is queried and its chunk planned every K steps, and the first K actions of
+  each planned chunk run (a robot that runs part of each chunk; the reference the planning proxy follows);
 * each boundary's :class:`ChunkDecision` says what runs and why; ``info()["chunks"]`` keeps its record and
   ``info()["open_loop_chunks"]`` counts the open-loop reasons;
 * a history frame that should exist but was never shown to the policy is a :class:`PlanningError`.
@@ -76,9 +78,11 @@ class PlannedPolicy(Policy):
         self.world_models = tuple(world_models)  # the learned dynamics' checkpoints, for the record (config_dict)
         self.instruction = instruction or getattr(wam, "default_instruction", "")
         self.chunk = wam.chunk_length
-        self.history = FrameHistory.for_dynamics(dynamics, self.chunk, self.encode, self.task.hold_action,
-                                                 rest_state=self.config.first_chunk == "rest-history")
         check_fits(self.config, self.chunk, dynamics)
+        self.period = self.config.requery_every or self.chunk  # K: steps between the WAM's queries
+        self.history = FrameHistory.for_dynamics(dynamics, self.chunk, self.encode, self.task.hold_action,
+                                                 rest_state=self.config.first_chunk == "rest-history",
+                                                 period=self.period)
         self.reset()
 
     @property
@@ -101,11 +105,11 @@ class PlannedPolicy(Policy):
         self.chunks: list[dict[str, Any]] = []  # one record a chunk (ChunkDecision.record)
         self.last_plan = None  # the latest PlanResult
         self.last_decision: ChunkDecision | None = None
-        self._correction: torch.Tensor | None = None  # (H_opt, A) last planned chunk minus its WAM seed
+        self._correction: tuple[int, torch.Tensor] | None = None  # (its step, (H_opt, A) plan minus its WAM seed)
         self._episode_seed = seed or 0
 
     def wants_images(self, step: int) -> bool:
-        return (step % self.chunk == 0 or any(step % self.chunk in w.frame_offsets for w in self._wams())
+        return (step % self.period == 0 or any(step % self.period in w.frame_offsets for w in self._wams())
                 or self.history.wants(step))
 
     def _wams(self) -> tuple[WAM, ...]:
@@ -117,9 +121,9 @@ class PlannedPolicy(Policy):
         t = obs.step
         self.history.observe(obs)
         for w in self._wams():
-            if t % self.chunk in w.frame_offsets:
+            if t % self.period in w.frame_offsets:
                 w.observe(obs)
-        if t % self.chunk == 0:
+        if t % self.period == 0:
             self._queue = list(self.plan_chunk(obs).executed)
         a = self._queue.pop(0)
         self.history.record_action(a)
@@ -145,14 +149,14 @@ class PlannedPolicy(Policy):
     def plan_chunk(self, obs: Observation) -> ChunkDecision:
         """Decide the chunk that starts at ``obs.step`` (a chunk boundary, with images): query the WAM, then plan
         its chunk or run it open loop. The frame of ``obs`` joins the history, the decision joins ``chunks``
-        (its record) and becomes ``last_decision``. Call it once per boundary, in step order after ``reset``
-        (``act`` does); between boundaries, ``act`` must see every step."""
+        (its record) and becomes ``last_decision``. Call it once per boundary (every ``period`` steps), in step
+        order after ``reset`` (``act`` does); between boundaries, ``act`` must see every step."""
         require_observation(obs, "PlannedPolicy.plan_chunk")
         require_images(obs, self.cameras, "PlannedPolicy.plan_chunk")
         t = obs.step
-        if t % self.chunk:
-            raise PlanningError(f"plan_chunk plans at chunk boundaries (steps 0, {self.chunk}, "
-                                f"{2 * self.chunk}, ...), got step {t}; use act() between boundaries")
+        if t % self.period:
+            raise PlanningError(f"plan_chunk plans at chunk boundaries (steps 0, {self.period}, "
+                                f"{2 * self.period}, ...), got step {t}; use act() between boundaries")
         self.history.observe(obs)
         t0 = time.perf_counter()
         seed_out: WAMOutput = self.wam.predict(obs, self.instruction)
@@ -184,7 +188,8 @@ class PlannedPolicy(Policy):
                 wam_s: float) -> ChunkDecision:
         """Plan a chunk whose history exists: encode the target, ask the gate whether to search, set the initial
         mean, search, decide between the plan and the WAM's chunk, record the decision."""
-        carried, self._correction = self._correction, None  # only the chunk planned just before carries over
+        carried, self._correction = self._correction, None  # only the chunk planned just before, run whole, carries
+        carried = carried[1] if carried is not None and carried[0] == obs.step - self.chunk else None  # over
         target, query_s, encode_s = self._encode_target(obs, seed_out)  # (V, N, D)
         started = time.perf_counter()  # the chunk's search_s: from here to its decision
         self.dynamics.prepare(context)
@@ -237,7 +242,7 @@ class PlannedPolicy(Policy):
         plan = np.concatenate([planned.cpu().numpy(), seed_actions[covered:]]).astype(np.float32)  # (H, A)
         reason, plan_cost = self.gates.after_search(wam_cost, lambda: float(objective(self.clip(planned)[None])[0]))
         if reason is None and self.config.warm_start != "none":
-            self._correction = planned.float() - seed.float()  # (H_opt, A) the correction the next search carries
+            self._correction = (step, planned.float() - seed.float())  # (H_opt, A) the correction the next search carries
         init_cost = float(result.seed_cost)  # NaN without include_mean
         costs = ChunkCosts(seed=init_cost if wam_cost is None else wam_cost, best=float(result.best_cost),
                            plan=plan_cost, init=None if init is seed else init_cost)

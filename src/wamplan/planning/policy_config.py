@@ -46,6 +46,10 @@ class PlannedPolicyConfig:
                                        "0 = off")
     accept_margin: float | None = field(None, "run the plan only if its cost is at least this fraction below the "
                                         "WAM chunk's, else the WAM's chunk; None = always the plan")
+    requery_every: int = field(0, "query the WAM and plan every K steps, running the first K actions of each planned "
+                               "chunk (a robot that runs part of each chunk, e.g. openpi's LIBERO client's "
+                               "replan_steps=5; serve: what a client that sends no executed_actions runs); "
+                               "0 = the WAM's chunk")
 
     def __post_init__(self):
         check_numbers(self, infinite=("gate_threshold",))
@@ -53,6 +57,7 @@ class PlannedPolicyConfig:
         require(self.warm_start in WARM_STARTS, f"warm_start must be one of {WARM_STARTS}, got {self.warm_start!r}")
         require(0.0 <= self.warm_weight <= 1.0, f"warm_weight must be in [0, 1], got {self.warm_weight}")
         require(self.disagreement_weight >= 0, f"disagreement_weight must be >= 0, got {self.disagreement_weight}")
+        require(self.requery_every >= 0, f"--requery-every must be >= 0 (0: the WAM's chunk), got {self.requery_every}")
         _ = self.gates  # the Gates validate the gate settings
 
     @property
@@ -75,6 +80,9 @@ def check_fits(cfg: PlannedPolicyConfig, chunk: int, dynamics: Dynamics) -> None
     the fix."""
     if dynamics.needs_history:
         check_frameskip(getattr(dynamics, "frameskip", chunk), chunk)
+    if cfg.requery_every > chunk:
+        raise PlanningError(f"--requery-every {cfg.requery_every} is longer than the WAM's {chunk}-step chunk; a "
+                            f"robot can run at most the {chunk} actions it was given before asking again")
     from wamplan.planning.dynamics import LearnedDynamics
 
     if cfg.disagreement_weight > 0 and isinstance(dynamics, LearnedDynamics) and not dynamics.spreads:
