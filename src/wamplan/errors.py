@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import tempfile
 from pathlib import Path
 from typing import Any, Callable, Iterable
@@ -82,29 +83,32 @@ def require_own_dir(path: str | Path, marks: Iterable[str], what: str, flag: str
                         f"up); pass a new or empty directory")
 
 
-def require_writable(path: str | Path, flag: str = "--out") -> None:
+def require_writable(path: str | Path, flag: str = "--out", fix: str = "pass a directory you can write to (or make "
+                     "it writable)", shown: str | Path | None = None) -> None:
     """One line unless files can be created in the directory ``path``, or, where it does not exist yet, in its
     nearest existing parent (where it will be created): a file in the way, a read-only filesystem or missing
     permissions. The check creates (and at once removes) a nameless file there, so it sees what the filesystem
-    allows, whoever runs it."""
+    allows, whoever runs it. Every writer runs it (directly, or through :func:`require_dir` and
+    :func:`require_file`) before its work starts; ``shown``: the path the line names (default ``path``)."""
     p = Path(path)
+    shown = p if shown is None else shown
     probe = p.absolute()
     while not probe.exists() and probe != probe.parent:
         probe = probe.parent
     if not probe.is_dir():
-        raise UserError(f"{flag} {p}: {probe} is a file, so no directory can be made under it; pass a path whose "
+        raise UserError(f"{flag} {shown}: {probe} is a file, so no directory can be made under it; pass a path whose "
                         f"parents are directories")
     try:
         with tempfile.TemporaryFile(dir=probe):
             pass
     except OSError as e:
-        raise UserError(f"{flag} {p} cannot be written ({e.strerror or reason(e)} in {probe}); pass a directory you can write "
-                        f"to (or make it writable)") from None
+        raise UserError(f"{flag} {shown} cannot be written ({e.strerror or reason(e)} in {probe}); {fix}") from None
 
 
 def require_file(path: str | Path | None, flag: str) -> Path | None:
-    """``path`` as a file to write (None: not asked for); one line, before any work, if it is a directory or its
-    folder is a file (a missing folder is the writer's to create)."""
+    """``path`` as a file to write (None: not asked for); one line, before any work, if it is a directory, its
+    folder is a file, or it cannot be written there (:func:`require_writable`; a missing folder is the writer's to
+    create)."""
     if path is None:
         return None
     p = Path(path)
@@ -113,6 +117,10 @@ def require_file(path: str | Path | None, flag: str) -> Path | None:
     if any(q.is_file() for q in p.parents):
         raise UserError(f"{flag} {p}: {next(q for q in p.parents if q.is_file())} is a file, not a folder; pass a "
                         f"path in a folder")
+    fix = "pass a file in a folder you can write to (or make it writable)"
+    require_writable(p.parent, flag, fix, shown=p)
+    if p.is_file() and not os.access(p, os.W_OK):
+        raise UserError(f"{flag} {p} cannot be written (the file is read-only); {fix}")
     return p
 
 

@@ -173,11 +173,28 @@ def saved_progress(run_dir: str | Path) -> dict[str, Any] | None:
 
 
 def read_metrics(run_dir: str | Path, event: str | None = None) -> list[dict[str, Any]]:
-    """The records of ``RUN/metrics.jsonl`` (only those of ``event`` if given)."""
+    """The records of ``RUN/metrics.jsonl`` (only those of ``event`` if given). A torn last line (a kill mid-write)
+    is skipped; any other line that is not a record (a JSON object with its ``global_step``) is one line naming
+    the file and the line."""
     path = Path(run_dir) / METRICS_FILE if Path(run_dir).is_dir() else Path(run_dir)
     if not path.is_file():
         return []
-    recs = [json.loads(x) for x in path.read_text().splitlines() if x.strip()]
+    raw = path.read_bytes()
+    lines = raw.split(b"\n")
+    recs = []
+    for n, line in enumerate(lines, 1):
+        if not line.strip():
+            continue
+        try:
+            rec = json.loads(line)
+        except ValueError:  # not JSON, or not UTF-8
+            if n == len(lines):  # the last line, without its newline: cut by a kill mid-write
+                break
+            rec = None
+        if not isinstance(rec, dict) or not isinstance(rec.get("global_step"), int):
+            raise UserError(f"{path} line {n} is not a training metrics record (a JSON object with its global_step); "
+                            f"pass a run directory of `wamplan wm train` or `wamplan wam train`, or its metrics.jsonl")
+        recs.append(rec)
     return [r for r in recs if event is None or r.get("event", "epoch") == event]
 
 

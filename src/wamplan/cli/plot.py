@@ -24,6 +24,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
     from wamplan.errors import require_file
     from wamplan.plot import plot_training_curves
 
-    require_file(args.out, "--out")
-    print(f"wrote {plot_training_curves(args.run, args.out)}")
+    out = args.out or (args.run if args.run.is_dir() else args.run.parent) / "curves.png"
+    require_file(out, "--out" if args.out else "the plot (default --out)")
+    print(f"wrote {plot_training_curves(args.run, out)}")
     return 0

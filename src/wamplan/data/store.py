@@ -259,6 +259,12 @@ class EpisodeStore:
         if m.get("schema_version") != SCHEMA_VERSION:
             raise StoreError(f"{path} has schema version {m.get('schema_version')}, this wamplan reads "
                              f"{SCHEMA_VERSION}; re-collect it or use a matching wamplan version")
+        every, env = m.get("image_every"), m.get("env")
+        bad = (f"image_every {every!r} is not a whole number of steps >= 1"
+               if not isinstance(every, int) or isinstance(every, bool) or every < 1
+               else None if isinstance(env, dict) else f"env {env!r} is not a JSON object of env settings")
+        if bad:
+            raise StoreError(f"{path} is damaged ({bad}); restore it or collect into a new directory")
         return m
 
     # ------------------------------------------------------------------ paths

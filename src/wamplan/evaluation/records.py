@@ -23,6 +23,25 @@ def no_records(out_dir: str | Path) -> str:
     return not_a(out, RECORDS, "an evaluation directory", f"wamplan eval --out {out}")
 
 
+def read_settings(out_dir: str | Path) -> dict[str, Any] | None:
+    """The settings an evaluation directory stored (``eval_config.json``), or None where it stores none; one line
+    naming the file if it is damaged (not JSON, or not a JSON object)."""
+    from wamplan.errors import UserError, reason
+
+    path = Path(out_dir) / CONFIG
+    if not path.is_file():
+        return None
+    try:
+        stored = json.loads(path.read_bytes())
+    except (OSError, ValueError) as e:  # not readable, not UTF-8, not JSON
+        raise UserError(f"{path} is damaged ({reason(e)}); restore it, or evaluate into a new --out (its records "
+                        f"were made with the settings it held)") from None
+    if not isinstance(stored, dict):
+        raise UserError(f"{path} is damaged (a JSON {type(stored).__name__}, not the object of settings `wamplan "
+                        f"eval` writes); restore it, or evaluate into a new --out")
+    return stored
+
+
 def record_key(rec: dict[str, Any]) -> tuple[int, int, str]:
     """(condition, seed, variant): what makes an episode's record unique in one output folder."""
     return int(rec["condition"]), int(rec["seed"]), str(rec.get("variant", "default"))

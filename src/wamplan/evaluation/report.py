@@ -9,7 +9,6 @@ columns need the stage :data:`ALIGNED`, the release table the ``align_xy_tol`` p
 from __future__ import annotations
 
 import csv
-import json
 import math
 from collections import Counter, defaultdict
 from pathlib import Path
@@ -20,7 +19,7 @@ import numpy as np
 from wamplan.envs.config import EnvConfig
 from wamplan.envs.spec import TaskSpec, get_task
 from wamplan.evaluation.conditions import CONDITIONS
-from wamplan.evaluation.records import CONFIG, RECORDS, no_records, read_records
+from wamplan.evaluation.records import RECORDS, no_records, read_records, read_settings
 
 REQUIRED_FIELDS = ("condition", "seed", "success", "outcome", "length")  # what every record must hold for a report
 ALIGNED = "aligned"  # the stage the insertion readings (paired table, Table 2) start from, where a task has it
@@ -49,8 +48,8 @@ def run_task(dirs: list[Path]) -> TaskSpec:
 
     found: dict[str, Path] = {}
     for d in dirs:
-        if (d / CONFIG).is_file():
-            found.setdefault(json.loads((d / CONFIG).read_text()).get("env.task", EnvConfig.task), d)
+        if (stored := read_settings(d)) is not None:
+            found.setdefault(stored.get("env.task", EnvConfig.task), d)
     if len(found) > 1:
         raise UserError("the runs evaluated different tasks (" + ", ".join(f"{t} in {d}" for t, d in found.items())
                         + "); report each task's runs apart")
@@ -331,10 +330,9 @@ def _settings_line(out: Path, task: TaskSpec, named: bool = False) -> list[str]:
     from wamplan.config import to_dict
     from wamplan.planning import PLANNERS
 
-    path = out / CONFIG
-    if not path.is_file():
+    s = read_settings(out)
+    if s is None:
         return []
-    s = json.loads(path.read_text())
     name = s.get("planner", "")
     size = f"{s.get('planner_config.num_candidates')} candidates × {s.get('planner_config.iterations')} iterations"
     changed = "?"
@@ -402,7 +400,7 @@ def write_report(out_dir: str | Path, more: list[str | Path] = ()) -> dict[str, 
     """Table 1, Figure 3, timings and the paired comparison, written into ``out_dir``; with ``more``, the
     records of those evaluation directories (``DIR`` or ``DIR:C[,C...]``) are merged with ``out_dir``'s (which
     may then be empty)."""
-    from wamplan.errors import UserError
+    from wamplan.errors import UserError, require_writable
 
     out = Path(out_dir)
     dirs = [out, *(run_spec(m)[0] for m in more)]
@@ -418,6 +416,8 @@ def write_report(out_dir: str | Path, more: list[str | Path] = ()) -> dict[str, 
     if not records:
         raise UserError(no_records(out))
     task = run_task(dirs)
+    require_writable(out, "DIR", f"the report is written into DIR: make it writable, or report into a new directory "
+                                 f"(`wamplan report NEW {' '.join(map(str, [out, *more]))}`)")
     out.mkdir(parents=True, exist_ok=True)
     rows = table1(records)
     paths = {"table1_md": out / "table1.md", "table1_csv": out / "table1.csv", "figure3": out / "figure3.png",

@@ -30,7 +30,7 @@ from wamplan.config import ensemble_members, to_dict
 from wamplan.envs.spec import check_same_task
 from wamplan.evaluation.conditions import CONDITIONS
 from wamplan.evaluation.config import EvalConfig
-from wamplan.evaluation.records import CONFIG, RECORDS, append_record, read_records, record_key
+from wamplan.evaluation.records import CONFIG, RECORDS, append_record, read_records, read_settings, record_key
 from wamplan.parallel import Backend, imap_workers
 from wamplan.planning.dynamics import task_name
 from wamplan.planning.gates import DISCARDED
@@ -204,10 +204,10 @@ def _settings_to_store(out: Path, cfg: EvalConfig, recorded: bool = True) -> dic
     Returns the settings to store (nothing is written)."""
     from wamplan.errors import UserError
 
-    path = out / CONFIG
     now = settings(cfg)
-    if path.is_file() and recorded:
-        before = _without_retired(out, json.loads(path.read_text()))
+    stored = read_settings(out) if recorded else None  # one line if damaged
+    if stored is not None:
+        before = _without_retired(out, stored)
         ran = before.get("planner", "cem")  # a directory that names no planner was written when cem was the default
         if ran != now["planner"]:
             raise UserError(f"{out} holds an evaluation with --planner {ran} (eval's default is {DEFAULT_PLANNER} "
