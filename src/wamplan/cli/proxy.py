@@ -51,6 +51,10 @@ def _serve(args: argparse.Namespace) -> int:
 
     resolve_device(cfg.device)
     planning = planning_from_args(args)
+    if cfg.record:  # an unwritable record directory is refused before anything loads
+        from wamplan.proxy.record import check_record_dir
+
+        check_record_dir(cfg.record)
     sock = bind_socket(args.host, args.port)  # a busy port fails here, before loading or announcing anything
     try:
         proxy = build_proxy(cfg, planning=planning)
@@ -64,6 +68,12 @@ def _serve(args: argparse.Namespace) -> int:
           f"({'shared secret required' if secret else 'no shared secret'}; "
           f"failures answered {errors}; {budget})", flush=True)
     print(proxy.describe(), flush=True)
+    if proxy.recorder is not None:
+        rec = proxy.recorder
+        for line in rec.recovered:
+            print(f"--record: {line}", flush=True)
+        print(f"recording every session into {cfg.record} (episodes of task {rec.task.name}, a frame every "
+              f"{rec.every} steps; `wamplan wm train --data {cfg.record}` trains on them)", flush=True)
     odd = ws_fields_warning(cfg.ws_fields, tuple(proxy.request_map))
     if odd:
         print(odd, file=sys.stderr, flush=True)

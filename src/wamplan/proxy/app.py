@@ -82,7 +82,16 @@ class Proxy:
         self.model_lock = threading.Lock()  # the world model and encoder are shared: one user at a time
         self.planner_pool = ThreadPoolExecutor(max_workers=4, thread_name_prefix="wamplan-plan")
         self._make_policy = make_policy
-        self.sessions = Sessions(self._session, cfg.idle_s, cfg.max_sessions)
+        self.recorder = None  # `serve --record DIR`: every session written as episodes (proxy.record)
+        if cfg.record:
+            from wamplan.proxy.record import Recorder
+
+            self.recorder = Recorder(cfg.record, task, tuple(request_map.values()), chunk_length, cfg.record_every)
+        self.sessions = Sessions(self._session, cfg.idle_s, cfg.max_sessions, on_forget=self._forgotten)
+
+    def _forgotten(self, session: Session, why: str) -> None:
+        if self.recorder is not None:
+            self.recorder.end(session, why)
 
     def _session(self, key: str) -> Session:
         wam = AnsweredWAM(self.task, self.chunk, self.cameras)
@@ -95,6 +104,8 @@ class Proxy:
     def close(self) -> None:
         self.planner_pool.shutdown(wait=False, cancel_futures=True)
         self.upstream.close()
+        if self.recorder is not None:
+            self.recorder.close()  # the episodes in progress written whole
 
     def reset(self, robot: str) -> int:
         """Forget the sessions of ``robot`` (with any session_id) -> how many there were."""
@@ -139,6 +150,8 @@ class Proxy:
         session, _ = self.sessions.get(key)
         with session.lock:
             self._settle(session)
+            if self.recorder is not None:
+                self.recorder.end(session, "reset")
             session.new_episode(seed or 0)
             session.announce = "reset"
 
@@ -173,6 +186,8 @@ class Proxy:
                     raise BadRequest(f"executed_actions has {acts.shape[1]} columns; send the task's "
                                      f"{len(self.columns)} or the upstream's")
                 acts = acts[:, list(self.columns)]  # (H, A)
+        if self.recorder is not None and ours.get("executed_actions") is not None:
+            self.recorder.ran(session, acts)
         history = session.policy.history
         if len(history.executed) == prev:  # not yet recorded (a request retried after a failure was)
             for a in acts:
@@ -184,6 +199,8 @@ class Proxy:
             if not str(off).isdigit() or not 0 < int(off) < H:
                 raise BadRequest(f"chunk_frames offset {off!r} is not in 1..{H - 1}")
             obs = self._observation(frames[off], prev + int(off), f"chunk_frames[{off}]")
+            if self.recorder is not None:
+                self.recorder.frame(session, obs)
             with self.model_lock:
                 history.observe(obs)
 
@@ -237,6 +254,8 @@ class Proxy:
         executed, open_loop, costs = self._decide(session, obs, out, notes)
         plan_s = time.perf_counter() - t1
         session.answered = np.clip(executed, -1.0, 1.0).astype(np.float32)  # (H, A) what the robot will run
+        if self.recorder is not None:
+            self.recorder.boundary(session, obs, session.answered, session.seed)
         session.step, session.chunks = t + H, session.chunks + 1
         actions = ans.actions.copy()  # (H, A_upstream): the upstream's own chunk when open loop
         if open_loop is None:

@@ -49,6 +49,11 @@ class ProxyConfig:
     wm_dtype: str = field("float32", "arithmetic of the world model's rollouts in the search: float32, or bfloat16 "
                                      "(faster on a GPU; benchmarks/planner.py --dtypes times both); the cost is "
                                      "computed in float32 either way", choices=WM_DTYPES)
+    record: str = field("", "record every session as episodes of an episode store in this directory (boundary views, "
+                            "proprio, the actions run; crash-safe), for `wamplan wm train --data DIR`; unset: none")
+    record_every: int | None = field(None, "steps between the frames --record keeps (the store's image_every); unset: "
+                                           "the chunk (boundary frames only); a divisor of it keeps the chunk_frames "
+                                           "a client sends on that grid")
 
     def __post_init__(self) -> None:
         check_numbers(self)
@@ -75,6 +80,8 @@ class ProxyConfig:
         require(self.history_spacing >= 1, f"--history-spacing must be >= 1, got {self.history_spacing}")
         parse_ws_fields(self.ws_fields)  # a malformed entry is refused here, in one line
         require(self.max_request_bytes >= 1, f"--max-request-bytes must be >= 1, got {self.max_request_bytes}")
+        require(self.record_every is None or self.record_every >= 1,
+                f"--record-every must be >= 1 (or unset: the chunk), got {self.record_every}")
 
     @property
     def upstream_is_url(self) -> bool:

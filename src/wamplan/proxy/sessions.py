@@ -62,16 +62,20 @@ class Session:
 
 
 class Sessions:
-    """Sessions by key, made by ``make(key)``; ``get`` says why a session starts a new episode."""
+    """Sessions by key, made by ``make(key)``; ``get`` says why a session starts a new episode. ``on_forget(session,
+    why)`` is told of each session dropped ("dropped") or evicted ("evicted")."""
 
-    def __init__(self, make: Callable[[str], Session], idle_s: float, max_sessions: int):
+    def __init__(self, make: Callable[[str], Session], idle_s: float, max_sessions: int,
+                 on_forget: Callable[[Session, str], None] | None = None):
         self.make, self.idle_s, self.max_sessions = make, idle_s, max_sessions
+        self.on_forget = on_forget
         self._table: OrderedDict[str, Session] = OrderedDict()
         self._lock = threading.Lock()
 
     def get(self, key: str) -> tuple[Session, str | None]:
         """The session ``key`` -> (session, why its episode is new: "first-request", "idle", or None)."""
         now = time.monotonic()
+        evicted = []
         with self._lock:
             s = self._table.get(key)
             why = None
@@ -79,17 +83,22 @@ class Sessions:
                 s, why = self.make(key), "first-request"
                 self._table[key] = s
                 while len(self._table) > self.max_sessions:
-                    self._table.popitem(last=False)  # the least recently used
+                    evicted.append(self._table.popitem(last=False)[1])  # the least recently used
             elif now - s.last_seen > self.idle_s:
                 why = "idle"
             self._table.move_to_end(key)
             s.last_seen = now
-            return s, why
+        for gone in evicted if self.on_forget else ():
+            self.on_forget(gone, "evicted")
+        return s, why
 
     def drop(self, key: str) -> bool:
         """Forget session ``key`` (its next request starts a new episode) -> whether it existed."""
         with self._lock:
-            return self._table.pop(key, None) is not None
+            gone = self._table.pop(key, None)
+        if gone is not None and self.on_forget:
+            self.on_forget(gone, "dropped")
+        return gone is not None
 
     def __len__(self) -> int:
         return len(self._table)
