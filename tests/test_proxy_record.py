@@ -15,12 +15,10 @@ from pathlib import Path
 
 import json_numpy
 import numpy as np
-import pytest
 import requests
 
 from wamplan.data.store import EpisodeStore
 from wamplan.envs.spec import Observation, get_task
-from wamplan.errors import UserError
 from wamplan.proxy.record import JOURNALS, Recorder
 from wamplan.wam import protocol
 
@@ -153,8 +151,16 @@ def test_the_recorder_keeps_in_chunk_frames_on_its_grid_and_cuts_an_episode_at_a
     np.testing.assert_array_equal(ep.proprio[6], observation(1, 6).proprio)
     np.testing.assert_array_equal(ep.proprio[7], observation(1, 6).proprio)
     assert list((tmp_path / "rec" / JOURNALS).iterdir()) == []
-    with pytest.raises(UserError, match="--record-every 5 does not divide the 16-step chunk"):
-        Recorder(tmp_path / "rec2", task, tuple(FIELDS.values()), H, every=5)
+
+    # a client that runs 5 steps of each chunk and asks again, recorded with --record-every 5: its boundaries
+    part = Recorder(tmp_path / "part", task, tuple(FIELDS.values()), H, every=5)
+    for k in range(4):
+        part.boundary(arm, observation(2, 5 * k), answered[k])
+    part.close()
+    store = EpisodeStore(tmp_path / "part")
+    ep = store.load(store.episode_paths()[0])
+    assert ep.length == 15 and ep.image_steps.tolist() == [0, 5, 10, 15]
+    np.testing.assert_array_equal(ep.actions, np.concatenate([a[:5] for a in answered[:3]]))  # what each ran
 
 
 def test_a_record_directory_that_cannot_be_written_is_refused_at_start_up(tmp_path, capsys):

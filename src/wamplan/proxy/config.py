@@ -52,8 +52,8 @@ class ProxyConfig:
     record: str = field("", "record every session as episodes of an episode store in this directory (boundary views, "
                             "proprio, the actions run; crash-safe), for `wamplan wm train --data DIR`; unset: none")
     record_every: int | None = field(None, "steps between the frames --record keeps (the store's image_every); unset: "
-                                           "the chunk (boundary frames only); a divisor of it keeps the chunk_frames "
-                                           "a client sends on that grid")
+                                           "the chunk (boundary frames only); shorter keeps the chunk_frames a "
+                                           "client sends on that grid; a client that runs k steps of each chunk: k")
 
     def __post_init__(self) -> None:
         check_numbers(self)

@@ -191,9 +191,6 @@ class Recorder:
         self.root, self.task, self.chunk = check_record_dir(root), task, chunk
         self.root.mkdir(parents=True, exist_ok=True)
         self.every = every or chunk
-        if chunk % self.every:
-            raise UserError(f"--record-every {self.every} does not divide the {chunk}-step chunk; give a divisor "
-                            f"of it (the chunk itself keeps boundary frames only)")
         lacking = [c for c in task.cameras if c not in cameras]
         if lacking:
             raise UserError(f"--record: the requests carry no view of camera(s) {lacking} of task {task.name}, "
