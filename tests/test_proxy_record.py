@@ -176,3 +176,20 @@ def test_a_record_directory_that_cannot_be_written_is_refused_at_start_up(tmp_pa
                      "--port", str(free_port()), "--record", str(bad)]) == 2
         err = capsys.readouterr().err.strip()
         assert f"--record {bad}" in err and said in err and "\n" not in err, err
+
+
+def test_a_running_proxys_journal_is_left_alone_and_a_damaged_boundary_ends_the_episode_before_it(tmp_path):
+    task, cams = get_task("cube-insertion"), tuple(FIELDS.values())
+    live = Recorder(tmp_path / "rec", task, cams, H)
+    arm = type("Session", (), {"key": "arm"})()
+    for k in range(3):
+        live.boundary(arm, observation(1, k * H), np.zeros((H, 5), np.float32))
+    second = Recorder(tmp_path / "rec", task, cams, H)  # a second proxy on the same directory
+    assert second.recovered == ["0000000-arm: recorded by a proxy that still runs; left alone"]
+    (journal,) = (tmp_path / "rec" / JOURNALS).iterdir()
+    (journal / "b0000032.npz").write_bytes(b"torn")  # as if damaged on disk
+    live._open.pop(arm).release()  # the first proxy dies without writing its episode: its lock goes with it
+    third = Recorder(tmp_path / "rec", task, cams, H)
+    assert third.recovered == ["0000000-arm -> episodes/proxy_arm-s0000000.h5 (interrupted: 16 steps, 2 frames; "
+                               "b0000032.npz is damaged (not a whole .npz), the episode ends before it)"]
+    assert [m["length"] for m in EpisodeStore(tmp_path / "rec").iter_meta()] == [H]

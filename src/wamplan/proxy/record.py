@@ -30,6 +30,7 @@ import re
 import shutil
 import threading
 import time
+import zipfile
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -77,9 +78,10 @@ class Journal:
         self.lock = threading.Lock()
         self.closed = False
         path.mkdir(parents=True)
-        (path / META).write_text(json.dumps({"number": number, "session": key, "start_step": start,
-                                             "episode_seed": seed, "chunk_length": chunk,
-                                             "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}) + "\n")
+        tmp = path / f".tmp-{META}"  # a journal without its meta.json was killed as it started: removed on recovery
+        tmp.write_text(json.dumps({"number": number, "session": key, "start_step": start, "episode_seed": seed,
+                                   "chunk_length": chunk, "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}) + "\n")
+        os.replace(tmp, path / META)
         self._lock_fd = os.open(path / LOCK, os.O_CREAT | os.O_RDWR, 0o644)
         fcntl.flock(self._lock_fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # held while this process records it
 
@@ -140,8 +142,8 @@ def build_episode(path: Path, task: TaskSpec, every: int, outcome: str,
         try:
             with np.load(f, allow_pickle=False) as z:
                 z = {k: z[k] for k in z.files}
-        except (OSError, ValueError, EOFError) as e:
-            note = f"; {f.name} unreadable ({reason(e)}), the episode ends before it"
+        except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile):
+            note = f"; {f.name} is damaged (not a whole .npz), the episode ends before it"
             break
         t = int(z["step"]) - start
         add = {t: ({c: z[f"img_{c}"] for c in task.cameras}, z["proprio"])}
