@@ -122,3 +122,73 @@ def test_damaged_inputs_are_one_line_naming_the_file(tmp_path, capsys):
     assert (ev / "eval_config.json").read_text() == "{not json" and not (ev / "table1.md").exists()
     (ev / "eval_config.json").write_text("[1, 2]")
     one_line(capsys, ["report", ev], ev / "eval_config.json", "a JSON list")
+
+
+# ------------------------------------------------------------------------------ one writer an output directory
+def test_eval_holds_its_directory_until_the_last_record(tmp_path, capsys):
+    import subprocess
+    import sys
+
+    from wamplan.cli.eval_options import eval_config_from_args  # noqa: F401 (the parser's config, as eval builds it)
+    from wamplan.evaluation.config import EvalConfig
+    from wamplan.evaluation.runner import run_evaluation
+    from wamplan.locks import dir_lock
+
+    ev = _records(tmp_path / "eval")  # seeds 0 and 1 of condition 1 recorded: nothing left to run
+    records = (ev / "records.jsonl").read_text()
+    argv = ["eval", "--conditions", "1", "--episodes", "2", "--wam", MINI / "tinywam", "--out", ev]
+    with dir_lock(ev, "evaluated into"):  # as another `wamplan eval` into it would hold it
+        one_line(capsys, argv, ev, "is being evaluated into by another process now", "another --out")
+    assert (ev / "records.jsonl").read_text() == records and not (ev / "eval_config.json").exists()
+    assert main([str(a) for a in argv]) == 0  # free again
+    capsys.readouterr()
+    # a run killed while it held the directory leaves no stale lock behind
+    held = f"import os; from wamplan.locks import dir_lock\nwith dir_lock({str(ev)!r}): os.kill(os.getpid(), 9)"
+    assert subprocess.run([sys.executable, "-c", held]).returncode == -9
+    assert main([str(a) for a in argv]) == 0
+    capsys.readouterr()
+    # held from the call (the checks) until its records are all written, in the process that writes them
+    gen = run_evaluation(EvalConfig(wam=str(MINI / "tinywam")), [1], [0, 1], ev)
+    with pytest.raises(Exception, match="is being evaluated into"), dir_lock(ev, "evaluated into"):
+        pass
+    assert list(gen) == []
+    with dir_lock(ev, "evaluated into"):
+        pass
+
+
+def test_collect_holds_its_store(tmp_path, capsys):
+    from wamplan.data.store import EpisodeStore
+    from wamplan.envs.config import EnvConfig
+    from wamplan.locks import LOCK_FILE, dir_lock
+
+    env = EnvConfig(camera_size=64)
+    store = EpisodeStore(tmp_path / "store", create=True, env=env.task_kwargs(), image_every=4, task=env.spec).root
+    with dir_lock(store, "collected into"):  # as another `wamplan collect` into it would hold it
+        one_line(capsys, ["collect", "--source", "expert", "--episodes", "1", "--camera-size", "64", "--out", store],
+                 store, "is being collected into by another process now")
+    assert sorted(p.name for p in (store / "episodes").iterdir()) == []
+    # a directory holding only a lock a finished collector left is still new: a store is made in it
+    fresh = tmp_path / "fresh"
+    fresh.mkdir()
+    (fresh / LOCK_FILE).touch()
+    EpisodeStore(fresh, create=True, env=env.task_kwargs(), image_every=4, task=env.spec)
+    assert (fresh / "store.json").is_file()
+
+
+def test_report_counts_a_seed_once(tmp_path, capsys):
+    from wamplan.evaluation.report import merged_records, table1
+
+    ev = _records(tmp_path / "eval")
+    first = (ev / "records.jsonl").read_text()
+    rec = json.loads(first.splitlines()[0])
+    with open(ev / "records.jsonl", "a") as f:  # the same episodes, recorded again by a second run at once
+        f.write(first.replace('"length": 100', '"length": 100, "wall_time_s": 9.5'))
+    rows = table1(merged_records([ev]))
+    assert [(r["episodes"], r["successes"]) for r in rows] == [(2, 2)]
+    assert main(["report", str(ev)]) == 0 and "| 2 | 100% " in (ev / "table1.md").read_text()
+    capsys.readouterr()
+    with open(ev / "records.jsonl", "a") as f:  # seed 0 once more with another outcome, seed 7 twice, apart
+        for s, success, length in ((0, False, 300), (7, True, 120), (7, True, 140)):
+            f.write(json.dumps(dict(rec, seed=s, success=success, outcome="success" if success else "never_lifted",
+                                    length=length)) + "\n")
+    one_line(capsys, ["report", ev], "condition 1 (open-loop) seeds 0, 7", "recorded twice with different outcomes")

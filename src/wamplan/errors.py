@@ -45,7 +45,7 @@ def not_a(path: str | Path, marker: str, what: str, make: str, also: tuple[str, 
         return f"{p} does not exist; {use}"
     if not p.is_dir():
         return f"{p} is a file, not {what}; {use}"
-    if not any(p.iterdir()):
+    if not any(e.name != ".lock" for e in p.iterdir()):  # a run's write lock alone (wamplan.locks) holds nothing
         return f"{p} is empty; run `{make}` first"
     kind = checkpoint_kind(p)
     holds = f"a '{kind}' checkpoint" if kind else f"no {marker}"

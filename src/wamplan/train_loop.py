@@ -24,7 +24,6 @@ dropout masks.)
 from __future__ import annotations
 
 import dataclasses
-import fcntl
 import json
 import time
 from contextlib import ExitStack, contextmanager
@@ -40,11 +39,11 @@ from wamplan.checkpoint import (CKPT_DIR, CONFIG_FILE, STATE_DIR, has_training_s
                                 load_weights, read_config, save_checkpoint)
 from wamplan.config import check_numbers, field, require
 from wamplan.errors import SEED_LIMIT, UserError, checkpoint_kind, require_own_dir
+from wamplan.locks import dir_lock
 from wamplan.optim import make_adamw, optimizer_step, warmup_cosine
 from wamplan.progress import progress_bar
 
 METRICS_FILE = "metrics.jsonl"
-LOCK_FILE = ".lock"  # a run's write lock (run_lock)
 # fields of a config's "train" section that may change when a run is resumed (everything else must match)
 RUN_ONLY_FIELDS = ("epochs", "num_workers", "device", "save_every_steps", "log_every_steps", "precision")
 
@@ -260,20 +259,10 @@ def _to_device(batch: Any, device: torch.device) -> Any:
 # ------------------------------------------------------------------------------------------------ the loop
 @contextmanager
 def run_lock(run: Path) -> Iterator[None]:
-    """Hold ``run``'s write lock (``run/.lock``, an flock) while the block runs: one line if another process holds
-    it, so two trainings never write one run (its metrics and checkpoint) at once."""
-    f = open(run / LOCK_FILE, "a")
-    try:
-        try:
-            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise UserError(f"{run} is being trained by another process now; wait for it to end (then re-run to "
-                            f"resume) or pass another --out") from None
-        except OSError as e:  # a filesystem without flock (some NFS, Lustre, FUSE mounts): train unguarded
-            print(f"note: {run}'s filesystem takes no lock ({e.strerror or e}); do not train into it twice at once")
+    """Hold ``run``'s write lock (``run/.lock``, :func:`wamplan.locks.dir_lock`) while the block runs: one line if
+    another process holds it, so two trainings never write one run (its metrics and checkpoint) at once."""
+    with dir_lock(run, "trained"):
         yield
-    finally:
-        f.close()  # releases the lock
 
 
 def fit(*args: Any, **kwargs: Any) -> FitResult:

@@ -26,6 +26,7 @@ from wamplan.data.store import MANIFEST, EpisodeData, EpisodeStore
 from wamplan.envs.config import EnvConfig
 from wamplan.envs.core import TaskEnv
 from wamplan.errors import UserError, require_paths, require_seeds
+from wamplan.locks import dir_lock
 from wamplan.parallel import Backend, imap_workers
 from wamplan.policies.base import Policy, make_policy
 from wamplan.provenance import provenance
@@ -183,23 +184,25 @@ def collect(source: str, episodes: int, out: str | Path, *, seed_start: int = 0,
         checked = True
     store = EpisodeStore(out, create=True, env=env.task_kwargs(), image_every=image_every, provenance=provenance(),
                          task=env.spec)
-    if (n := store.clean_partial()):
-        log(f"removed {n} partial episode file(s) left by an interrupted run")
-    store.check_source(tag)
-    have = store.finished_seeds(tag) & set(seeds)
-    check_done(store, [store.episode_path(tag, seed) for seed in sorted(have)], progress)
-    if have:
-        log(f"resuming: {len(have)} of {len(seeds)} episodes already in {out}")
-    if len(have) < len(seeds) and not checked:
-        loader(spec, task=env.spec, **job.policy_kwargs)
-    counts: Counter = Counter()
-    start, n = time.perf_counter(), 0
-    bar = progress_bar(total=len(seeds), initial=len(have), desc=f"collect {tag}", unit="ep", disable=not progress)
-    for rec in run_collection(job, seeds, workers=workers, backend=backend):
-        n += 1
-        counts[rec["outcome"]] += 1
-        bar.update(1)
-        bar.set_postfix(ep_per_min=f"{throughput(start, n):.1f}", success=f"{counts['success']}/{n}")
-    bar.close()
+    with dir_lock(store.root, "collected into"):  # one collector a store (workers write, the parent holds it)
+        if (n := store.clean_partial()):
+            log(f"removed {n} partial episode file(s) left by an interrupted run")
+        store.check_source(tag)
+        have = store.finished_seeds(tag) & set(seeds)
+        check_done(store, [store.episode_path(tag, seed) for seed in sorted(have)], progress)
+        if have:
+            log(f"resuming: {len(have)} of {len(seeds)} episodes already in {out}")
+        if len(have) < len(seeds) and not checked:
+            loader(spec, task=env.spec, **job.policy_kwargs)
+        counts: Counter = Counter()
+        start, n = time.perf_counter(), 0
+        bar = progress_bar(total=len(seeds), initial=len(have), desc=f"collect {tag}", unit="ep",
+                           disable=not progress)
+        for rec in run_collection(job, seeds, workers=workers, backend=backend):
+            n += 1
+            counts[rec["outcome"]] += 1
+            bar.update(1)
+            bar.set_postfix(ep_per_min=f"{throughput(start, n):.1f}", success=f"{counts['success']}/{n}")
+        bar.close()
     return dict(source=tag, collected=n, skipped=len(have), seconds=round(time.perf_counter() - start, 1),
                 episodes_per_min=round(throughput(start, n), 2) if n else None, outcomes=dict(counts))

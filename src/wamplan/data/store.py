@@ -59,6 +59,7 @@ import numpy as np
 
 from wamplan.envs.spec import TaskSpec, check_same_task, get_task
 from wamplan.errors import UserError, not_a, reason
+from wamplan.locks import LOCK_FILE
 
 SCHEMA_VERSION = 1
 MANIFEST = "store.json"
@@ -229,7 +230,8 @@ class EpisodeStore:
                 raise StoreError(f"{self.root} stores images every {self.manifest['image_every']} steps, not "
                                  f"{image_every}; use another --out directory or --image-every {self.manifest['image_every']}")
         elif create:
-            if self.root.exists() and any(p.name != EPISODES for p in self.root.iterdir()):
+            there = [p.name for p in self.root.iterdir()] if self.root.exists() else []
+            if any(name not in (EPISODES, LOCK_FILE) for name in there):  # a collector's lock alone: still empty
                 raise StoreError(f"{self.root} exists and is not a wamplan episode store; choose an empty or new --out")
             if env is None or image_every is None:
                 raise ValueError("creating a store needs env and image_every")

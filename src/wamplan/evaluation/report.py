@@ -366,11 +366,14 @@ def run_spec(spec: str | Path) -> tuple[Path, set[int] | None]:
 def merged_records(specs: list[str | Path]) -> list[dict[str, Any]]:
     """The records of several evaluation directories as one run (e.g. condition 1 and condition 7 run
     apart on the same seeds), each ``DIR`` or ``DIR:C[,C...]``. A (condition, variant, seed) found in two
-    directories is refused."""
+    directories is refused; found twice in one directory, it counts once where both records agree on
+    :data:`OUTCOME_FIELDS`, and is refused (naming the seeds) where they do not."""
     from wamplan.errors import UserError
 
     seen: dict[tuple, Path] = {}
     records = []
+    kept: dict[tuple, dict[str, Any]] = {}
+    twice: dict[tuple, list[int]] = {}  # (directory, condition, variant) -> seeds recorded twice, outcomes differing
     for spec in specs:
         d, conditions = run_spec(spec)
         recs = read_records(d)
@@ -391,9 +394,26 @@ def merged_records(specs: list[str | Path]) -> list[dict[str, Any]]:
             if key in seen and seen[key] != d:
                 raise UserError(f"condition {key[0]} ({key[1]}) seed {key[2]} is in both {seen[key]} and {d}; "
                                 f"keep one, e.g. {d}:<other conditions>")
-            seen[key] = d
+            if key in kept:  # recorded twice in one directory (two runs into it at once, before eval held it)
+                if _outcome(kept[key]) != _outcome(r):
+                    twice.setdefault((d, *key[:2]), []).append(key[2])
+                continue  # an identical duplicate counts once
+            seen[key], kept[key] = d, r
             records.append(r)
+    if twice:
+        which = "; ".join(f"{d / RECORDS}: condition {c} ({v}) seed{'s' * (len(set(s)) > 1)} "
+                          f"{', '.join(map(str, sorted(set(s))))}" for (d, c, v), s in twice.items())
+        raise UserError(f"{which} recorded twice with different outcomes ({'/'.join(OUTCOME_FIELDS)}); delete one "
+                        f"line of each, or evaluate those seeds again into a new --out")
     return records
+
+
+OUTCOME_FIELDS = ("success", "outcome", "length")  # what the report counts of a record; the rest (times) may differ
+
+
+def _outcome(rec: dict[str, Any]) -> tuple:
+    """What two records of one episode must agree on to count as one (timings of two runs never agree)."""
+    return tuple(rec.get(k) for k in OUTCOME_FIELDS)
 
 
 def write_report(out_dir: str | Path, more: list[str | Path] = ()) -> dict[str, Path]:

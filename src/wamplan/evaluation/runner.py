@@ -20,6 +20,7 @@ import json
 import math
 import os
 import time
+from contextlib import ExitStack
 from functools import partial
 from pathlib import Path
 from typing import Any, Callable, Iterator
@@ -31,6 +32,7 @@ from wamplan.envs.spec import check_same_task
 from wamplan.evaluation.conditions import CONDITIONS
 from wamplan.evaluation.config import EvalConfig
 from wamplan.evaluation.records import CONFIG, RECORDS, append_record, read_records, read_settings, record_key
+from wamplan.locks import dir_lock
 from wamplan.parallel import Backend, imap_workers
 from wamplan.planning.dynamics import task_name
 from wamplan.planning.gates import DISCARDED
@@ -280,26 +282,45 @@ def run_evaluation(cfg: EvalConfig, conditions: list[int], seeds: list[int], out
                    workers: int = 1, backend: Backend = Backend()) -> Iterator[dict[str, Any]]:
     """Run the missing (condition, seed) jobs on ``backend``, appending each record as it finishes (here, in the
     driver, whatever runs the episodes); yields the records. The checks (settings, inputs) run when this is
-    called, before the first record is asked for."""
+    called, before the first record is asked for. The directory is held (``.lock``, :func:`wamplan.locks.dir_lock`)
+    from then until the last record is written: a second evaluation into it is refused in one line."""
     from wamplan.errors import require_dir, require_own_dir
 
     backend.check()
     out = require_dir(out_dir)
     require_own_dir(out, (RECORDS, CONFIG), "an evaluation directory")  # not a store or a training run
+    held, locked = ExitStack(), out.is_dir()
+    try:
+        if locked:  # held from here: a second evaluation into it is refused before it loads anything
+            held.enter_context(dir_lock(out, "evaluated into"))
+        now, jobs = _todo(out, cfg, conditions, seeds)
+        if jobs:
+            _check_inputs(cfg, conditions)
+        if not locked:  # a new directory, made only now that the inputs loaded: a failed start leaves none
+            out.mkdir(parents=True, exist_ok=True)
+            held.enter_context(dir_lock(out, "evaluated into"))
+            now, jobs = _todo(out, cfg, conditions, seeds)  # what another run recorded there meanwhile counts
+        _store_settings(out, now)  # and a directory that held a run stays free for it
+    except BaseException:
+        held.close()
+        raise
+    return _run_jobs(cfg, jobs, out, workers, backend, held)
+
+
+def _todo(out: Path, cfg: EvalConfig, conditions: list[int], seeds: list[int]
+          ) -> tuple[dict[str, Any], list[tuple[int, int]]]:
+    """(the settings to store, the (condition, seed) jobs ``out`` has not recorded); read under ``out``'s lock, so a
+    torn last record (a kill mid-write) is cut off."""
     done = {record_key(r) for r in read_records(out, repair=True)}
     # Seed-major order: a run stopped early (or fanned out and cut short) has every condition on the same
     # seeds, so its partial table still compares like with like.
     jobs = [(c, s) for s in seeds for c in conditions if (c, s, cfg.policy.first_chunk) not in done]
-    now = _settings_to_store(out, cfg, recorded=bool(done))
-    if jobs:
-        _check_inputs(cfg, conditions)
-    out.mkdir(parents=True, exist_ok=True)  # only now that the inputs loaded: a failed start leaves no directory
-    _store_settings(out, now)  # and a directory that held a run stays free for it
-    return _run_jobs(cfg, jobs, out, workers, backend)
+    return _settings_to_store(out, cfg, recorded=bool(done)), jobs
 
 
-def _run_jobs(cfg: EvalConfig, jobs: list[tuple[int, int]], out: Path, workers: int,
-              backend: Backend) -> Iterator[dict[str, Any]]:
-    for rec in imap_workers(partial(EvalWorker, cfg), jobs, workers, backend):
-        append_record(out, rec)
-        yield rec
+def _run_jobs(cfg: EvalConfig, jobs: list[tuple[int, int]], out: Path, workers: int, backend: Backend,
+              held: ExitStack) -> Iterator[dict[str, Any]]:
+    with held:  # the directory's lock, released with the last record (or when the caller stops asking)
+        for rec in imap_workers(partial(EvalWorker, cfg), jobs, workers, backend):
+            append_record(out, rec)
+            yield rec
