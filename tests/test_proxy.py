@@ -26,7 +26,7 @@ from wamplan.errors import UserError
 from wamplan.proxy.app import create_proxy_app
 from wamplan.proxy.build import build_proxy
 from wamplan.proxy.config import ProxyConfig
-from wamplan.proxy.upstream import Upstream, UpstreamShape
+from wamplan.proxy.upstream import Upstream, UpstreamError, UpstreamShape
 from wamplan.serving.runner import BackgroundServer
 from wamplan.wam import protocol
 from wamplan.wam.base import load_wam
@@ -203,8 +203,8 @@ class Shaped(Upstream):
         self.shape = UpstreamShape(**{**dict(chunk_length=16, action_dim=5, cameras=("front", "side", "wrist"),
                                              image_size=64, task="cube-insertion"), **shape})
 
-    def ask(self, req, obs):
-        raise AssertionError("not reached")
+    def ask(self, req, obs):  # the start-up probe: an upstream that does not answer (its fit is checked later)
+        raise UpstreamError(502, "the test upstream does not answer")
 
 
 @pytest.mark.parametrize("shape, said", [
@@ -245,7 +245,7 @@ def test_bad_proxy_fields_are_4xx(proxy):
     srv, _ = proxy
     url = f"{srv.url}/s/bad/act"
     post(url, request(observation(1, 0)))
-    for extra in (dict(chunk_frames={"40": fields(observation(1, 4))}), dict(executed_actions=np.zeros((3, 5))),
+    for extra in (dict(chunk_frames={"40": fields(observation(1, 4))}), dict(executed_actions=np.zeros((17, 5))),
                   dict(chunk_frames={"4": {"proprio": np.zeros(10)}}), dict(seed="x")):
         r = requests.post(url, data=request(observation(1, 16), **extra), timeout=60)
         assert r.status_code == 400 and r.json()["error"].startswith("bad /act request"), r.text

@@ -45,7 +45,7 @@ def _serve(args: argparse.Namespace) -> int:
     from wamplan.cli.eval_options import planning_from_args
     from wamplan.device import resolve_device
     from wamplan.proxy.app import create_proxy_app
-    from wamplan.proxy.build import build_proxy
+    from wamplan.proxy.build import build_proxy, unchecked
     from wamplan.proxy.openpi import ws_fields_warning
     from wamplan.serving.runner import bind_socket, run_app
 
@@ -77,10 +77,9 @@ def _serve(args: argparse.Namespace) -> int:
     odd = ws_fields_warning(cfg.ws_fields, tuple(proxy.request_map))
     if odd:
         print(odd, file=sys.stderr, flush=True)
-    if getattr(proxy.upstream, "unreachable", None):
-        print(f"warning: {proxy.upstream.where} did not answer at start-up ({proxy.upstream.unreachable}), so its "
-              f"chunk length, views and task were neither read nor checked, and requests fail until it answers: "
-              f"start it (or fix --upstream's host and port), then restart serve", file=sys.stderr, flush=True)
+    waiting = unchecked(proxy)  # the fit checks the start-up probe could not run, and why
+    if waiting:
+        print(waiting, file=sys.stderr, flush=True)
     try:
         run_app(create_proxy_app(proxy, secret), args.host, args.port, secret, args.log_level, sock=sock,
                 ws_max_bytes=cfg.max_request_bytes)

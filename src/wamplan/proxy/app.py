@@ -35,7 +35,7 @@ import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from concurrent.futures import TimeoutError as FutureTimeout
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 from fastapi import FastAPI, Request
@@ -47,7 +47,8 @@ from wamplan.errors import UserError, reason
 from wamplan.proxy.config import DEFAULT_ROBOT, PROXY_FIELDS, ProxyConfig
 from wamplan.proxy.openpi import add_openpi_routes
 from wamplan.proxy.sessions import BadRequest, Session, Sessions, session_name
-from wamplan.proxy.upstream import AnsweredWAM, Upstream, UpstreamError, to_output
+from wamplan.proxy.health import UpstreamHealth
+from wamplan.proxy.upstream import AnsweredWAM, Upstream, UpstreamError, UpstreamShape, answer_shape, to_output
 from wamplan.serving import HEALTH_ROUTE
 from wamplan.serving.refusals import Refused, check_secret, error_answer, read_body
 from wamplan.wam import protocol
@@ -68,17 +69,36 @@ def _finite(x: float | None) -> float | None:
     return None if x is None or not math.isfinite(x) else float(x)
 
 
+def planning_grid(requery: int, dynamics: Any) -> int:
+    """The steps apart that a session's requests can be planned from: a client asks every ``requery`` steps, a
+    learned world model's frames are its frameskip apart (their gcd); any step for dynamics without history."""
+    if not getattr(dynamics, "needs_history", False):
+        return 1
+    return math.gcd(requery, getattr(dynamics, "frameskip", requery))
+
+
 class Proxy:
     """The proxy's state: the upstream, the shared world model, the sessions. ``handle`` answers one request."""
 
     def __init__(self, cfg: ProxyConfig, upstream: Upstream, dynamics: Any, encoder: Any, task: TaskSpec,
                  make_policy: Any, request_map: dict[str, str], response_map: dict[str, str],
-                 columns: tuple[int, ...], chunk_length: int):
+                 columns: tuple[int, ...], chunk_length: int, requery: int | None = None,
+                 probe: tuple[protocol.ActRequest, Observation] | None = None,
+                 fit: Callable[[UpstreamShape], None] | None = None):
+        """``requery``: the steps a client that sends no ``executed_actions`` runs of each chunk (default: all);
+        ``probe``: the rest observation the start-up check and ``/health`` send the upstream; ``fit``: the check
+        that refuses an upstream the world model cannot plan for (UserError), run on its first answer where the
+        start-up probe got none."""
         self.cfg, self.upstream, self.dynamics, self.encoder, self.task = cfg, upstream, dynamics, encoder, task
         self.request_map, self.response_map, self.columns = request_map, response_map, columns
         self.chunk = chunk_length
         self.cameras = tuple(response_map)
         self.frameskip = getattr(dynamics, "frameskip", chunk_length)
+        self.requery = requery or chunk_length  # K: what a client that says nothing runs of a chunk
+        self.grid = planning_grid(self.requery, dynamics)
+        self._probe, self._fit = probe, fit
+        self.fit_checked = fit is None  # whether the fit check has seen an answer of the upstream
+        self.health = UpstreamHealth(upstream, self.probe)
         self.model_lock = threading.Lock()  # the world model and encoder are shared: one user at a time
         self.planner_pool = ThreadPoolExecutor(max_workers=4, thread_name_prefix="wamplan-plan")
         self._make_policy = make_policy
@@ -98,8 +118,45 @@ class Proxy:
         return Session(key, self._make_policy(wam), wam)
 
     def describe(self) -> str:
-        return (f"{protocol.field_map(self.request_map, self.response_map)}; chunks of {self.chunk}, task "
-                f"{self.task.name} action columns {list(self.columns)}; world model frameskip {self.frameskip}")
+        """What the proxy plans for, in three lines: the fields and sizes, the history its world model needs, and
+        how it follows a client that runs part of each chunk."""
+        H, d, K = self.chunk, self.frameskip, self.requery
+        if not getattr(self.dynamics, "needs_history", False):
+            history = "history: none (the dynamics need no frames)"
+        elif d == H:
+            history = (f"history: chunk boundaries only (the world model's frameskip {d} is the chunk): the "
+                       f"observations a client posts are its frames")
+        else:
+            offsets = ", ".join(str(o) for o in range(d, H, d)) or "-"
+            history = (f"history: in-chunk frames every {d} steps (the world model's frameskip {d}, not the {H}-step "
+                       f"chunk): send the frames seen during a chunk in chunk_frames (offsets {offsets}), else its "
+                       f"chunks run open loop (no-history)")
+        partial = (f"partial chunks: a client that runs k < {H} steps before asking again is followed (executed_"
+                   f"actions of k rows; one that sends none runs {K}, --requery-every); a chunk is planned when the "
+                   f"request falls on the world model's grid of {self.grid} steps, else answered open loop "
+                   f"(off-grid)")
+        return (f"{protocol.field_map(self.request_map, self.response_map)}; chunks of {H}, task "
+                f"{self.task.name} action columns {list(self.columns)}; world model frameskip {d}\n{history}\n"
+                f"{partial}")
+
+    def probe(self) -> None:
+        """Send the upstream the rest observation and check its answer (UpstreamError: no answer, or one the world
+        model cannot plan for)."""
+        if self._probe is None:
+            return
+        req, obs = self._probe
+        self._checked(self.upstream.ask(req, obs))
+
+    def _checked(self, ans: protocol.ActResponse) -> protocol.ActResponse:
+        """``ans`` once the fit check has seen an answer (the first time: this one; a misfit is an UpstreamError
+        every request and ``/health`` report)."""
+        if not self.fit_checked and self._fit is not None:
+            try:
+                self._fit(answer_shape(ans))
+            except UserError as e:
+                raise UpstreamError(502, str(e)) from e
+            self.fit_checked = True
+        return ans
 
     def close(self) -> None:
         self.planner_pool.shutdown(wait=False, cancel_futures=True)
@@ -171,33 +228,37 @@ class Proxy:
             session.pending = None
 
     def _catch_up(self, session: Session, ours: dict[str, Any], notes: list[str]) -> None:
-        """Record what the robot ran of the chunk answered last, and the frames it saw during it."""
-        H, prev = self.chunk, session.step - self.chunk
+        """Record what the robot ran of the chunk answered last (``executed_actions``: k <= H rows; none sent: the
+        first ``requery`` actions answered), and the frames it saw meanwhile; the session's next step is k on."""
+        H, prev = self.chunk, session.last
         acts = ours.get("executed_actions")
         if acts is None:
-            acts = session.answered  # (H, A)
+            acts = session.answered[:self.requery]  # (K, A)
         else:
             acts = np.asarray(acts, dtype=np.float32)
-            if acts.ndim != 2 or acts.shape[0] != H or not np.isfinite(acts).all():
-                raise BadRequest(f"executed_actions has shape {acts.shape} or non-finite values; send the {H} "
-                                 f"actions the robot ran of the last chunk (the proxy plans whole chunks)")
+            if acts.ndim != 2 or not 1 <= acts.shape[0] <= H or not np.isfinite(acts).all():
+                raise BadRequest(f"executed_actions has shape {acts.shape} or non-finite values; send the k actions "
+                                 f"(1 <= k <= {H}) the robot ran of the last chunk, one row each")
             if acts.shape[1] != len(self.columns):
                 if acts.shape[1] <= max(self.columns):
                     raise BadRequest(f"executed_actions has {acts.shape[1]} columns; send the task's "
                                      f"{len(self.columns)} or the upstream's")
-                acts = acts[:, list(self.columns)]  # (H, A)
+                acts = acts[:, list(self.columns)]  # (k, A)
+        H = len(acts)  # the steps run since the last answer: chunk_frames' offsets are 1..k-1
+        session.step = prev + H
         if self.recorder is not None and ours.get("executed_actions") is not None:
             self.recorder.ran(session, acts)
         history = session.policy.history
-        if len(history.executed) == prev:  # not yet recorded (a request retried after a failure was)
-            for a in acts:
-                history.record_action(a)
+        del history.executed[prev:]  # a request retried after a failure recorded them already
+        for a in acts:
+            history.record_action(a)
         frames = ours.get("chunk_frames") or {}
         if not isinstance(frames, dict):
             raise BadRequest("chunk_frames must map step offsets ('1'..) to frames {<image fields>, 'proprio'}")
         for off in sorted(frames, key=lambda k: int(k) if str(k).isdigit() else -1):
             if not str(off).isdigit() or not 0 < int(off) < H:
-                raise BadRequest(f"chunk_frames offset {off!r} is not in 1..{H - 1}")
+                raise BadRequest(f"chunk_frames offset {off!r} is not in 1..{H - 1} (the robot ran {H} steps since "
+                                 f"the last answer)")
             obs = self._observation(frames[off], prev + int(off), f"chunk_frames[{off}]")
             if self.recorder is not None:
                 self.recorder.frame(session, obs)
@@ -225,6 +286,16 @@ class Proxy:
             with self.model_lock:
                 history.observe(obs)
 
+    def _check_views(self, req: protocol.ActRequest) -> None:
+        """Refuse request views far smaller than the world model reads (less than half its side): it would plan
+        from a blur."""
+        size = getattr(self.encoder, "input_size", None)
+        for name, img in req.images.items():
+            h, w = img.shape[:2]
+            if size and min(h, w) < size / 2:
+                raise BadRequest(f"request field '{name}' is a {h}x{w}-px view; the world model reads {size}-px "
+                                 f"views: send the camera's image at {size} px or more")
+
     def _observation(self, frame: Any, step: int, what: str) -> Observation:
         if not isinstance(frame, dict):
             raise BadRequest(f"{what} is a {type(frame).__name__}, expected {{<image fields>, 'proprio'}}")
@@ -238,17 +309,23 @@ class Proxy:
     def _answer(self, session: Session, req: protocol.ActRequest, why: str | None, notes: list[str],
                 t_in: float) -> protocol.ActResponse:
         t, H = session.step, self.chunk
+        self._check_views(req)
         proprio, note = protocol.fit_proprio(req.proprio, self.task.proprio_dim)  # (P,) what the world model reads
         notes += [f"world model: {note}"] if note else []
         obs = Observation(step=t, proprio=proprio, images={cam: req.images[f] for f, cam in self.request_map.items()})
         forward = dataclasses.replace(req, encoded=False)  # the proxy decodes the answer itself
         t0 = time.perf_counter()
-        ans = self.upstream.ask(forward, obs)
+        try:
+            ans = self._checked(self.upstream.ask(forward, obs))
+            if ans.actions.shape[0] != H:
+                raise UpstreamError(502, f"{self.upstream.where} returned a {ans.actions.shape[0]}-step chunk; the "
+                                         f"proxy was started for {H}-step chunks")
+            out, more = to_output(ans, self.task, self.response_map, self.columns)
+        except UpstreamError as e:
+            self.health.failed(e, "/act")
+            raise
+        self.health.record(True, "it answered /act", "/act")
         upstream_s = time.perf_counter() - t0
-        if ans.actions.shape[0] != H:
-            raise UpstreamError(502, f"{self.upstream.where} returned a {ans.actions.shape[0]}-step chunk; the "
-                                     f"proxy was started for {H}-step chunks")
-        out, more = to_output(ans, self.task, self.response_map, self.columns)
         notes += more
         t1 = time.perf_counter()
         executed, open_loop, costs = self._decide(session, obs, out, notes)
@@ -256,7 +333,7 @@ class Proxy:
         session.answered = np.clip(executed, -1.0, 1.0).astype(np.float32)  # (H, A) what the robot will run
         if self.recorder is not None:
             self.recorder.boundary(session, obs, session.answered, session.seed)
-        session.step, session.chunks = t + H, session.chunks + 1
+        session.last, session.step, session.chunks = t, t + self.requery, session.chunks + 1
         actions = ans.actions.copy()  # (H, A_upstream): the upstream's own chunk when open loop
         if open_loop is None:
             actions[:, list(self.columns)] = executed
@@ -275,6 +352,12 @@ class Proxy:
         """-> (the (H, A) chunk to run, why it is the upstream's own (None: planned), costs)."""
         policy, t = session.policy, obs.step
         history = policy.history
+        if t % self.grid:  # the robot ran a part of the chunk that leaves it between the world model's frames
+            notes.append(f"the robot ran {t - session.last} steps of the last chunk, so this request (step {t}) falls "
+                         f"off the steps the world model plans from (every {self.grid}: its frames {self.frameskip} "
+                         f"apart, clients asking every {self.requery}); start serve with --requery-every "
+                         f"{t - session.last} if the robot always runs that many")
+            return out.actions, "off-grid", {}
         if history.keeps_frames and t > 0 and (history.real(t) or history.rest_state):
             missing = [s for s in history.steps(t) if 0 <= s < t and s not in history.frames]
             if missing:
@@ -364,7 +447,12 @@ def create_proxy_app(proxy: Proxy, secret: str | None = None) -> FastAPI:
     add_openpi_routes(app, proxy, secret)
 
     @app.get(HEALTH_ROUTE)
-    async def health() -> dict:
-        return {"ok": True, "proxy": True, **proxy.summary(), "sessions": len(proxy.sessions)}
+    async def health() -> Response:
+        """200 while the upstream answers (as last seen by the start-up probe, an /act or a refresh at most every
+        few seconds), else 503 with the reason; no poll waits on the upstream."""
+        state = proxy.health.read()
+        body = {**state, "proxy": True, **proxy.summary(), "sessions": len(proxy.sessions)}
+        return Response(content=json.dumps(body), status_code=200 if state["ok"] else 503,
+                        media_type="application/json")
 
     return app

@@ -37,7 +37,7 @@ class ProxyConfig:
     max_sessions: int = field(64, "sessions kept at most; the least recently used one is dropped beyond it")
     upstream_timeout_s: float = field(60.0, "seconds to wait for the upstream's answer")
     chunk_length: int | None = field(None, "actions per chunk the upstream returns; unset: its /health's (a wamplan "
-                                           "server) or the world model's task's")
+                                           "server), its --profile's, or its answer to the start-up probe's")
     ws_fields: str = field("", "openpi WebSocket clients: renames of an observation's keys to the /act fields, "
                                "FROM=TO comma-separated (nested keys joined with /; A+B=proprio joins vectors), e.g. "
                                "images/cam_high=primary_image,state=proprio")

@@ -43,8 +43,9 @@ def session_name(sid: Any) -> str | None:
 
 
 class Session:
-    """The planned policy of one robot's episode and where that episode stands (``step``: the next chunk
-    boundary; ``answered``: the (H, A) chunk answered last, the task's columns). ``lock`` serialises its requests;
+    """The planned policy of one robot's episode and where that episode stands (``step``: the step of its next
+    request, as far as known: ``last`` plus what the robot runs of a chunk; ``last``: the step of the chunk answered
+    last; ``answered``: the (H, A) chunk answered last, the task's columns). ``lock`` serialises its requests;
     ``pending`` is a plan still running after its budget ran out (the next request waits for it)."""
 
     def __init__(self, key: str, policy: Any, wam: Any, seed: int = 0):
@@ -57,6 +58,7 @@ class Session:
     def new_episode(self, seed: int = 0) -> None:
         self.policy.reset(seed=seed)
         self.seed, self.step, self.chunks = seed, 0, 0
+        self.last = 0  # the step of the chunk answered last
         self.answered: np.ndarray | None = None  # (H, A) the chunk the robot was told to run
         self.announce: str | None = None  # why the episode is new, for the next answer when a request did not say
 

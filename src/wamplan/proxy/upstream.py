@@ -40,8 +40,17 @@ class UpstreamShape:
     chunk_length: int | None
     action_dim: int | None  # columns of its actions
     cameras: tuple[str, ...] | None  # the cameras it predicts
-    image_size: int | None  # side of its predicted views
+    image_size: int | None  # side of its predicted views (the smallest)
     task: str | None
+    view_fields: tuple[str, ...] | None = None  # the answer fields of the views it predicts
+
+
+def answer_shape(ans: protocol.ActResponse) -> UpstreamShape:
+    """What one answer of the upstream shows of it: its chunk length, action size, predicted views and their size."""
+    H, A = ans.actions.shape
+    sides = [min(img.shape[:2]) for img in ans.future_images.values()]
+    return UpstreamShape(chunk_length=int(H), action_dim=int(A), cameras=None, image_size=min(sides) if sides else None,
+                         task=None, view_fields=tuple(sorted(ans.future_images)))
 
 
 class Upstream(abc.ABC):
@@ -51,6 +60,10 @@ class Upstream(abc.ABC):
     @abc.abstractmethod
     def ask(self, req: protocol.ActRequest, obs: Observation) -> protocol.ActResponse:
         """The upstream's answer to ``req`` (``obs``: the same request as wamplan's observation)."""
+
+    def alive(self) -> str | None:
+        """A check that costs the upstream no inference: None if it still answers at all, else why not."""
+        return None
 
     def close(self) -> None:
         pass
@@ -110,6 +123,17 @@ class HttpUpstream(Upstream):
             raise UpstreamError(502, f'{self.where} answered "error" (its log has the reason)') from e
         except protocol.ProtocolError as e:
             raise UpstreamError(502, f"{self.where} sent a malformed answer: {e}") from e
+
+    def alive(self) -> str | None:
+        """``GET`` on the ``/act`` route: any HTTP answer (Cosmos Policy's server: 405) means its server runs."""
+        timeout = min(self.timeout_s, 3.0)
+        try:
+            self._session.get(self.url, timeout=timeout)
+        except requests.exceptions.Timeout:
+            return f"{self.where} did not answer within {timeout:g} s"
+        except requests.exceptions.RequestException as e:
+            return f"{self.where} is not reachable ({type(e).__name__})"
+        return None
 
     def close(self) -> None:
         self._session.close()
