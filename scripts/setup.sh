@@ -49,10 +49,11 @@ install_python() {
   if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
     log "installing wamplan and its dependencies"; $pip install -q -e '.[dev]'; touch "$stamp"
   fi
-  if ! "$VENV/bin/python" -c 'import openpi_client' 2>/dev/null; then
-    # openpi's own robot client, for the tests that drive the proxy with it: without its numpy<2 pin (the two
-    # modules used need only msgpack, numpy and websockets, which wamplan installs)
+  if ! "$VENV/bin/python" -c 'import openpi_client.action_chunk_broker' 2>/dev/null; then
+    # openpi's own robot client, for the tests that drive the proxy with it: without its numpy<2 pin (the modules
+    # used need only msgpack, numpy and websockets, which wamplan installs, and dm-tree for its ActionChunkBroker)
     log "installing openpi-client (tests)"; $pip install -q --no-deps openpi-client==0.1.2
+    $pip install -q dm-tree==0.1.10
   fi
 }
 

@@ -161,3 +161,30 @@ def test_ws_fields_are_checked_when_the_proxy_is_configured():
     assert ws_fields_warning(f"{WS_FIELDS},state+grip=proprio,prompt=task_description", tuple(ALOHA)) is None
     line = ws_fields_warning(f"{WS_FIELDS},joints=propiro", tuple(ALOHA))
     assert line.startswith("warning: --ws-fields maps to ['propiro'], which the proxy does not read") and "'proprio'" in line
+
+
+def test_roboarenas_evaluator_reads_the_world_models_cameras_and_the_tasks_action_space(proxy):
+    """RoboArena's evaluation client (roboarena_evaluator evaluation_client/main.py) reads these keys of the metadata,
+    with these defaults; the proxy's world model reads front, side and wrist; the cube's 5-D end-effector space has no
+    RoboArena name, so action_space says what it is (and RoboArena's RobotEnv refuses it rather than drive joints)."""
+    import dataclasses
+
+    from wamplan.envs.spec import get_task
+    from wamplan.proxy.openpi import roboarena_config
+
+    srv, _ = proxy
+    server_cfg = connect(srv).get_server_metadata()
+    img_res = tuple(server_cfg["image_resolution"]) if server_cfg.get("image_resolution") else None
+    needs_wrist = bool(server_cfg.get("needs_wrist_camera", True))
+    n_external = int(server_cfg.get("n_external_cameras", 1))
+    needs_stereo = bool(server_cfg.get("needs_stereo_camera", False))
+    include_sid = bool(server_cfg.get("needs_session_id", False))
+    action_space = server_cfg.get("action_space", "joint_position")
+    assert (img_res, n_external, needs_wrist, needs_stereo, include_sid) == ((64, 64), 2, True, False, False)
+    assert action_space == ("pd_ee_delta_xyzyaw (5-D, task cube-insertion; not a RoboArena action space: "
+                            "joint_position, joint_velocity)")
+    joints = dataclasses.replace(get_task("cube-insertion"), control_mode="pd_joint_pos")
+    assert roboarena_config(("base_camera", "hand_camera"), joints) == {
+        "n_external_cameras": 1, "needs_wrist_camera": True, "needs_stereo_camera": False,
+        "action_space": "joint_position"}
+    assert roboarena_config(("left", "right"), joints)["needs_wrist_camera"] is False

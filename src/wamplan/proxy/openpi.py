@@ -183,14 +183,33 @@ def _short(x: Any, n: int = 300) -> str:
     return text if len(text) <= n else text[:n - 3] + "..."
 
 
+ROBOARENA_ACTION_SPACES = {"pd_joint_pos": "joint_position", "pd_joint_vel": "joint_velocity"}  # ManiSkill's names
+
+
+def roboarena_config(cameras: tuple[str, ...], task: Any) -> dict[str, Any]:
+    """RoboArena's ``PolicyServerConfig`` keys for a world model reading ``cameras`` of ``task`` (a TaskSpec): its
+    exterior cameras (those whose name does not say wrist or hand) and whether one is a wrist camera; no stereo;
+    the task's action space under RoboArena's name (``joint_position``, ``joint_velocity``), or, where it has none,
+    what it is (RoboArena's evaluator then refuses to run it rather than run it as joint positions)."""
+    wrist = [c for c in cameras if any(w in c.lower() for w in ("wrist", "hand", "gripper"))]
+    space = ROBOARENA_ACTION_SPACES.get(task.control_mode)
+    if space is None:
+        space = (f"{task.control_mode} ({task.action_dim}-D, task {task.name}; not a RoboArena action space: "
+                 f"{', '.join(ROBOARENA_ACTION_SPACES.values())})")
+    return {"n_external_cameras": len(cameras) - len(wrist), "needs_wrist_camera": bool(wrist),
+            "needs_stereo_camera": False, "action_space": space}
+
+
 def metadata(proxy: Any) -> dict[str, Any]:
     """What ``proxy`` (a ``proxy.app.Proxy``) sends first on every connection: ``Proxy.summary`` (as ``GET /health``),
-    the image fields it reads, and RoboArena's ``needs_session_id`` and ``image_resolution`` (the upstream's view size
-    where known)."""
+    the image fields it reads, and RoboArena's ``PolicyServerConfig`` keys: ``needs_session_id``,
+    ``image_resolution`` (the upstream's view size where known) and :func:`roboarena_config`'s cameras and action
+    space."""
     size = proxy.upstream.shape.image_size
     return {"server": "wamplan-proxy", **proxy.summary(), "image_fields": dict(proxy.request_map),
             "ws_fields": proxy.cfg.ws_fields, "needs_session_id": False,
-            "image_resolution": None if size is None else [size, size]}
+            "image_resolution": None if size is None else [size, size],
+            **roboarena_config(tuple(proxy.cameras), proxy.task)}
 
 
 def ws_fields_warning(ws_fields: str, image_fields: tuple[str, ...]) -> str | None:
@@ -280,7 +299,10 @@ def add_openpi_routes(app: FastAPI, proxy: Any, secret: str | None) -> None:
 
     @app.get(HEALTHZ_ROUTE)
     async def healthz() -> PlainTextResponse:
-        return PlainTextResponse("OK\n")
+        state = proxy.health.read()  # as GET /health: 503 with the reason while the upstream does not answer
+        if state["ok"]:
+            return PlainTextResponse("OK\n")
+        return PlainTextResponse(f"upstream down: {state['reason']}\n", status_code=503)
 
 
 class Connection:
