@@ -9,8 +9,8 @@
 #                    200 (60200-60399). Level L is every store up to L, so each level adds to the one below.
 #
 # Every store keeps the views every 16 steps (--image-every 16: a Δ = 16 model reads nothing else) and branches
-# keep 48 steps of the parent's past (--branch-context 48). Two collectors at once, one thread each, niced; every
-# collection resumes where it stopped when re-run.
+# keep 48 steps of the parent's past (--branch-context 48). Two collectors at once, one thread each, niced
+# (WORKERS=N: N processes each); every collection resumes where it stopped when re-run, with any WORKERS.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 LEVEL=${1:-1}
@@ -19,7 +19,7 @@ case $LEVEL in 1|2|4|8) ;; *) echo "boundary_data.sh: LEVEL must be 1, 2, 4 or 8
 WAM=checkpoints/mini/tinywam
 export OMP_NUM_THREADS=1
 W="nice -n 19 .venv/bin/wamplan"
-C="--image-every 16 --workers 1"
+C="--image-every 16 --workers ${WORKERS:-1}"
 killtree() { local c; for c in $(pgrep -P "$1"); do killtree "$c"; done; kill "$1" 2>/dev/null || true; }
 trap 'for j in $(jobs -p); do killtree "$j"; done' EXIT  # a stopped script leaves no collector writing behind it
 parents() {  # level first-seed count
@@ -32,12 +32,13 @@ parents() {  # level first-seed count
   [[ $LEVEL -ge 4 ]] && parents 4 60100 100
   [[ $LEVEL -ge 8 ]] && parents 8 60200 200
   true
-) &
+) & PARENTS=$!
 (
   $W collect --source expert --episodes 100 --seed-start 1000 --out "$OUT/expert" $C
   $W collect --source noisy-expert --episodes 100 --seed-start 2000 --out "$OUT/expert" $C
-) &
-wait -n && wait -n
+) & EXPERT=$!
+wait $PARENTS || { echo "boundary_data.sh: the parents' collection stopped; re-run to resume" >&2; exit 1; }
+wait $EXPERT || { echo "boundary_data.sh: the expert collection stopped; re-run to resume" >&2; exit 1; }
 trap - EXIT
 echo "$OUT: level $LEVEL complete"
 du -sh "$OUT"/*
