@@ -33,8 +33,10 @@ from wamplan.planning.configs import DEFAULT_PLANNER
 from wamplan.planning.decision import ChunkDecision
 from wamplan.planning.policy import PlannedPolicy
 from wamplan.planning.policy_config import PlannedPolicyConfig
-from wamplan.policies.rollout import EpisodeResult, run_episode
-from wamplan.wam.base import WAM, WAMOutput, load_wam
+from wamplan.policies.base import Policy
+from wamplan.policies.rollout import EpisodeResult
+from wamplan.policies.rollout import run_episode as _run_episode
+from wamplan.wam.base import WAM, WAMOutput, WAMPolicy, load_wam
 
 __all__ = ["ChunkDecision", "CostConfig", "EpisodeResult", "Observation", "PlannedPolicy", "PlannedPolicyConfig", "TaskSpec", "WAM",
            "WAMOutput", "get_task", "load_wam", "make_env", "planned_policy", "register_task", "run_episode", "tasks"]
@@ -80,6 +82,16 @@ def make_env(task: str = "cube-insertion", **settings: Any) -> TaskEnv:
     ``env.reset(seed, with_images=True)`` -> :class:`Observation` (proprio (P,), images camera -> (S, S, 3)
     uint8); ``env.step(action (A,))`` -> (observation, info)."""
     return TaskEnv(from_dict(EnvConfig, dict(settings, task=task)))
+
+
+def run_episode(env: TaskEnv, policy: Policy | WAM, seed: int, **options: Any) -> EpisodeResult:
+    """Roll ``policy`` out from ``env.reset(seed)`` to success or the step limit -> :class:`EpisodeResult`; a
+    :class:`WAM` runs open loop, each chunk executed whole (``WAMPolicy``). ``options``: ``max_steps``,
+    ``images_at``, ``on_obs``, ``stop_on_success`` (``wamplan.policies.rollout.run_episode``). A policy that is
+    none, or a seed outside 0 .. 2**32 - 1, is one TypeError or ValueError naming it."""
+    if isinstance(policy, WAM):
+        policy = WAMPolicy(policy, task=env.task)
+    return _run_episode(env, policy, seed, **options)
 
 
 def tasks() -> list[str]:

@@ -15,6 +15,7 @@ import dataclasses
 import json
 import math
 import numbers
+import os
 import re
 import types
 import typing
@@ -61,7 +62,8 @@ def require(cond: bool, message: str) -> None:
 
 def check_numbers(cfg: Any, infinite: tuple[str, ...] = ()) -> None:
     """Refuse, in one ConfigError naming the field, a value of a number field (``int`` or ``float``, optional or a
-    tuple of them) of the dataclass ``cfg`` that is not a finite number: a string, ``nan`` or ``inf`` (``infinite``
+    tuple of them) of the dataclass ``cfg`` that is not a finite number: a string, ``nan`` or ``inf``, and a value of
+    a text field (``str``, optional or a tuple of them) that is not a str or a path (``infinite``
     names the fields where ±inf means something, e.g. a gate every cost passes). Configs call it first in
     ``__post_init__``; their own checks (ranges, relations) follow."""
     try:
@@ -70,6 +72,12 @@ def check_numbers(cfg: Any, infinite: tuple[str, ...] = ()) -> None:
         return
     for f in dataclasses.fields(cfg):
         st = _scalar_type(hints[f.name])
+        if st is str and _only(hints[f.name], str):  # text: a str (or a path), never a number, e.g. url=8777
+            value = getattr(cfg, f.name)
+            for v in value if isinstance(value, (tuple, list)) else (value,):
+                require(v is None or isinstance(v, (str, os.PathLike)),
+                        f"{type(cfg).__name__}.{f.name} must be text (a str), got {type(v).__name__} {v!r}")
+            continue
         if st not in (int, float):
             continue
         value = getattr(cfg, f.name)
@@ -145,6 +153,17 @@ def save_json(cfg: Any, path: str | Path) -> None:
 
 def load_json(cls: type[T], path: str | Path) -> T:
     return from_dict(cls, json.loads(Path(path).read_text()))
+
+
+def _only(t: Any, kind: type) -> bool:
+    """Whether the annotation ``t`` admits ``kind`` alone (or None, or a tuple of it): ``str``, ``str | None`` and
+    ``tuple[str, ...]`` do, ``str | int`` does not."""
+    origin = typing.get_origin(t)
+    if origin in (typing.Union, types.UnionType):
+        return all(a is type(None) or _only(a, kind) for a in typing.get_args(t))
+    if origin is tuple:
+        return all(a is Ellipsis or _only(a, kind) for a in typing.get_args(t))
+    return t is kind
 
 
 def _scalar_type(t: Any) -> Any:

@@ -169,6 +169,11 @@ class EpisodeData:
             problems.append(f"actions are {actions.shape}, want (T, {task.action_dim})")
         if proprio.shape != (t + 1, task.proprio_dim):
             problems.append(f"proprio is {proprio.shape}, want (T+1, {task.proprio_dim}) = ({t + 1}, {task.proprio_dim})")
+        for name, arr in (("actions", actions), ("proprio", proprio)):
+            bad = np.flatnonzero(~np.isfinite(arr).reshape(len(arr), -1).all(axis=1)) if arr.ndim >= 1 and arr.size else []
+            if len(bad):
+                problems.append(f"{name} hold NaN or inf at step(s) {bad[:5].tolist()}{' ...' * (len(bad) > 5)}, "
+                                f"want finite numbers")
         if sorted(images) != sorted(task.cameras):
             problems.append(f"images are of cameras {sorted(images)}, want {sorted(task.cameras)}")
         want = list(range(0, t + 1, image_every)) + ([t] if t % image_every else [])

@@ -128,6 +128,10 @@ class TaskSpec:
 def register_task(spec: TaskSpec) -> TaskSpec:
     """Add ``spec`` to ``TASKS`` under its name (a plug-in's module calls this when imported; an installed
     distribution names that module in the entry-point group ``wamplan.tasks``)."""
+    if not isinstance(spec, TaskSpec):
+        hint = f"; a registered task's spec is get_task({spec!r})" if isinstance(spec, str) else ""
+        raise TypeError(f"register_task takes a TaskSpec (TaskSpec(name=..., cameras=..., ...)), got "
+                        f"{type(spec).__name__} {spec!r}{hint}")
     TASKS.register(spec.name)(spec)
     return spec
 
@@ -153,7 +157,8 @@ class ObservationError(UserError, ValueError):
 
 def require_images(obs: Observation, cameras: Any, where: str) -> None:
     """An :class:`ObservationError` in one line unless ``obs.images`` holds an (H, W, 3) uint8 array for every camera
-    of ``cameras`` (floats in [0, 1] or wider integers would otherwise be cast to bytes silently)."""
+    of ``cameras`` (floats in [0, 1] or wider integers would otherwise be cast to bytes silently), all of one size
+    (H, W) (they are stacked into one batch)."""
     images = obs.images or {}
     missing = [c for c in cameras if c not in images]
     if missing:
@@ -165,6 +170,13 @@ def require_images(obs: Observation, cameras: Any, where: str) -> None:
             kind = (f"{img.dtype} of shape {img.shape}" if isinstance(img, np.ndarray) else type(img).__name__)
             raise ObservationError(f"{where}: the '{cam}' image is {kind}; give (H, W, 3) uint8 pixels 0-255 (floats "
                                    f"in [0, 1]: (img * 255).round().astype(np.uint8))")
+    sizes = {cam: images[cam].shape[:2] for cam in cameras}
+    first = next(iter(sizes), None)
+    odd = next((cam for cam, hw in sizes.items() if hw != sizes[first]), None)
+    if odd is not None:  # the views are stacked into one batch: one size for all
+        raise ObservationError(f"{where}: the '{odd}' image is {'x'.join(map(str, sizes[odd]))} pixels but the "
+                               f"'{first}' image is {'x'.join(map(str, sizes[first]))}; give every camera's image the "
+                               f"same size (H, W)")
 
 
 def require_observation(obs: Any, where: str) -> None:

@@ -52,7 +52,8 @@ def planned_policy(wam: WAM, dynamics: Dynamics, encoder: Any, planning: Plannin
     from wamplan.planning.policy import PlannedPolicy
 
     planning = planning or PlanningConfig()
-    weigh = None
+    planning.cost.check_cameras(wam.task.name, getattr(dynamics, "cameras", None) or wam.task.cameras)  # at build,
+    weigh = None  # not at the first plan
     if planning.cost.foreground:  # the readout reads the target's tokens: it must be fit on this encoder
         from wamplan.encoders.foreground import foreground_weigher
 

@@ -42,12 +42,14 @@ def run_episode(env: TaskEnv, policy: Policy, seed: int, *, images_at: Callable[
     A policy that names its task (``policy.task``, as WAM, planned and scripted policies do) must act in an env of
     that task: another task is one line (:class:`~wamplan.errors.TaskMismatch`) before the episode starts.
     """
+    if max_steps is not None and max_steps < 1:
+        raise ValueError(f"max_steps must be >= 1 (or None: the env's limit), got {max_steps}")
+    check_policy(policy, "run_episode")
+    check_seed(seed, "run_episode")
     task = getattr(policy, "task", None)
     if isinstance(task, TaskSpec):
         check_same_task(env.task.name, task.name, f"the policy ({type(policy).__name__})",
                         f"run it in make_env(task='{task.name}') or use a policy made for '{env.task.name}'")
-    if max_steps is not None and max_steps < 1:
-        raise ValueError(f"max_steps must be >= 1 (or None: the env's limit), got {max_steps}")
     limit = env.max_episode_steps if max_steps is None else min(max_steps, env.max_episode_steps)
     t0 = time.perf_counter()
     want = (lambda t: policy.wants_images(t) or (images_at is not None and images_at(t)))
@@ -67,3 +69,33 @@ def run_episode(env: TaskEnv, policy: Policy, seed: int, *, images_at: Callable[
             break
     return EpisodeResult(seed=seed, success=env.success, outcome=env.outcome(), length=steps,
                          reached=dict(env.reached), wall_time=time.perf_counter() - t0, policy_info=policy.info())
+
+
+POLICY_METHODS = ("reset", "act", "wants_images", "info")  # what run_episode calls of a policy
+
+
+def check_policy(policy: Any, where: str) -> None:
+    """A TypeError in one line unless ``policy`` acts as a :class:`Policy` does (:data:`POLICY_METHODS`); a WAM
+    (which predicts chunks, not actions) or a policy's name is told how to make one."""
+    if isinstance(policy, Policy) or all(callable(getattr(policy, m, None)) for m in POLICY_METHODS):
+        return
+    if callable(getattr(policy, "predict", None)):
+        fix = ("a WAM predicts chunks: run it open loop as WAMPolicy(wam) (wamplan.wam.base), or planned as "
+               "wamplan.planned_policy(wam, world_model=...)")
+    elif isinstance(policy, str):
+        fix = f"build it first: wamplan.policies.make_policy({policy!r}, task=env.task)"
+    else:
+        fix = "pass a wamplan.policies.Policy (reset(seed), act(obs) -> (A,) action)"
+    raise TypeError(f"{where}'s policy takes a wamplan Policy, got {type(policy).__name__} "
+                    f"{policy!r:.60}; {fix}")
+
+
+def check_seed(seed: Any, where: str) -> None:
+    """A TypeError (not an integer) or ValueError (outside 0 .. 2**32 - 1, what NumPy and ManiSkill take) in one line
+    naming ``where``'s seed."""
+    from wamplan.errors import SEED_LIMIT
+
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
+        raise TypeError(f"{where}'s seed takes an int in 0 .. {SEED_LIMIT - 1}, got {type(seed).__name__} {seed!r}")
+    if not 0 <= seed < SEED_LIMIT:
+        raise ValueError(f"{where}'s seed must lie in 0 .. {SEED_LIMIT - 1}, got {seed}")

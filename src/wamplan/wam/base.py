@@ -192,8 +192,13 @@ def make_wam(name: str, **kwargs: Any) -> WAM:
 def load_wam(path: str | Path, device: str | Any = "auto") -> WAM:
     """Load a WAM checkpoint directory (or a training run holding one in ``checkpoint/``) onto ``device``
     ('auto', 'cpu', 'cuda', a torch.device), dispatching on its kind (see ``register_wam_loader``)."""
+    import os
+
     from wamplan.checkpoint import CheckpointError, checkpoint_dir, read_meta  # imports torch
 
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"load_wam's path takes a WAM checkpoint directory (a str or Path), got {type(path).__name__} "
+                        f"{path!r}; e.g. load_wam('checkpoints/mini/tinywam')")
     p = checkpoint_dir(path)
     kind = read_meta(p).get("kind")  # one line for a missing, damaged or foreign config.json
     if kind not in WAM_LOADERS:
