@@ -55,12 +55,37 @@ def not_a(path: str | Path, marker: str, what: str, make: str, also: tuple[str, 
 SEED_LIMIT = 2**32  # episode seeds seed NumPy and ManiSkill, which take 32-bit unsigned seeds
 
 
-def require_seeds(first: int, count: int = 1, flag: str = "--seed-start") -> None:
-    """One line unless the episode seeds ``first .. first + count - 1`` all lie in [0, 2**32)."""
-    if first < 0 or first + max(count, 1) - 1 >= SEED_LIMIT:
-        last = f" .. {first + count - 1}" if count > 1 else ""
+def require_seeds(first: int, count: int = 1, flag: str = "--seed-start", count_flag: str = "--episodes") -> None:
+    """One line unless the episode seeds ``first .. first + count - 1`` all lie in [0, 2**32): a first seed outside
+    blames ``flag``, a count that runs past the last seed ``count_flag``."""
+    last = f" .. {first + count - 1}" if count > 1 else ""
+    if first < 0 or first >= SEED_LIMIT:
         raise UserError(f"{flag} {first}: episode seeds must lie in 0 .. {SEED_LIMIT - 1} (got {first}{last}); "
                         f"pass a seed in that range")
+    if first + max(count, 1) - 1 >= SEED_LIMIT:
+        most = SEED_LIMIT - first
+        raise UserError(f"{count_flag} {count}: the seeds {first} .. {first + count - 1} (from {flag} {first}) run "
+                        f"past the last one, and episode seeds must lie in 0 .. {SEED_LIMIT - 1}; pass at most "
+                        f"{most} episode{'s' * (most > 1)} from there")
+
+
+def require_distinct(paths: Iterable[str | Path], flag: str, what: str) -> None:
+    """One line if two of ``paths`` are one file or directory (however spelled): it would be read twice."""
+    seen: dict[Path, str] = {}
+    for path in map(str, paths):
+        key = Path(path).resolve()
+        if key in seen:
+            same = f"{path} twice" if seen[key] == path else f"{seen[key]} and {path}, one {what}"
+            raise UserError(f"{flag} names {same}; name each {what} once")
+        seen[key] = path
+
+
+def require_positive(*given: tuple[str, Any]) -> None:
+    """One line for the first ``(flag, value)`` of ``given`` whose value is below 1 (None: not given), naming that
+    flag and the value typed: "--workers 0 must be at least 1"."""
+    for flag, value in given:
+        if value is not None and value < 1:
+            raise UserError(f"{flag} {value} must be at least 1")
 
 
 def require_dir(path: str | Path, flag: str = "--out") -> Path:

@@ -86,7 +86,10 @@ class Registry(dict):
     def lookup(self, name: str):
         if name not in self:
             left_out = "".join(f"; {p}" for p in self.problems)
-            raise self.error(f"unknown {self.kind} '{name}'; choose one of {sorted(self)}{left_out}")
+            plug = (f"; a {self.kind} of your own must be registered where every command sees it: in a module an "
+                    f"installed package names in the entry-point group '{self.group}' (README, \"Other tasks\")"
+                    if self.group and not left_out else "")
+            raise self.error(f"unknown {self.kind} '{name}'; choose one of {sorted(self)}{left_out}{plug}")
         return self[name]
 
     # reading the registry loads it first

@@ -343,6 +343,9 @@ def train(model: nn.Module, batches: Batches, step_fn: StepFn, cfg: LoopConfig, 
 
     if state["epoch"] >= cfg.epochs:
         history = read_metrics(run, "epoch")
+        if log is not None:  # a re-run of a finished command: say it was done, not only the last epoch's figures
+            log(f"{run} has already finished {state['epoch']} epochs ({state['global_step']} steps); nothing to do. "
+                f"Pass --epochs > {state['epoch']} to train longer, or a new --out.")
         return FitResult(dict(state), history[-1] if history else dict(state), history, finished_before=True)
     metrics: dict[str, Any] = {"epoch": state["epoch"], "global_step": state["global_step"]}
     model.train()

@@ -8,7 +8,7 @@ from collections import Counter, defaultdict
 from pathlib import Path
 
 from wamplan.config import add_arguments, from_args
-from wamplan.errors import UserError, require_dir, require_file, require_seeds
+from wamplan.errors import UserError, require_dir, require_file, require_positive, require_seeds
 from wamplan.cli.main import add_command, add_group, register_command
 
 SOURCES = ("expert", "noisy-expert", "pink", "policy")
@@ -170,8 +170,7 @@ def cmd_import(args: argparse.Namespace) -> int:
     if args.key_map or args.lerobot_source:
         raise UserError("--key-map and --lerobot-source are for --format lerobot; drop them")
     args.image_every = 4 if args.image_every is None else args.image_every
-    if args.workers <= 0 or args.image_every <= 0 or (args.episodes is not None and args.episodes <= 0):
-        raise UserError("--workers, --image-every and --episodes must be positive")
+    require_positive(("--workers", args.workers), ("--image-every", args.image_every), ("--episodes", args.episodes))
     task, args.task = args.task, args.task or DEFAULT_TASK
     report = import_maniskill(args.trajectory, args.out, task=task, env=from_args(EnvConfig, args),
                               workers=args.workers, image_every=args.image_every, noise_std=args.noise_std,
@@ -226,8 +225,11 @@ def cmd_collect(args: argparse.Namespace) -> int:
     if args.branches:
         from wamplan.data.branch import BranchSpec
 
-        if args.branches < 0 or min(args.branch_sigmas) <= 0 or args.branch_context < 0:
-            raise UserError("--branches, --branch-sigmas and --branch-context must be positive")
+        require_positive(("--branches", args.branches))
+        if min(args.branch_sigmas) <= 0 or args.branch_context < 0:
+            bad = (f"--branch-sigmas {min(args.branch_sigmas):g} must be > 0" if min(args.branch_sigmas) <= 0
+                   else f"--branch-context {args.branch_context} must be >= 0")
+            raise UserError(bad)
         steps = tuple(args.branch_steps) if args.branch_steps else None
         if steps and not 0 <= steps[0] <= steps[1]:
             raise UserError(f"--branch-steps {steps[0]} {steps[1]}: give two steps LO <= HI, both >= 0")

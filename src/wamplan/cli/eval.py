@@ -136,7 +136,7 @@ def cmd_explain(args: argparse.Namespace) -> int:
 
 def cmd_eval(args: argparse.Namespace) -> int:
     from wamplan.cli.eval_options import eval_config_from_args
-    from wamplan.errors import UserError, require_dir, require_seeds
+    from wamplan.errors import require_dir, require_positive, require_seeds
     from wamplan.evaluation.conditions import parse_conditions
     from wamplan.evaluation.records import read_records, record_key
     from wamplan.parallel import Backend
@@ -145,8 +145,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     # every check that needs no torch first: a mistyped option is answered before torch loads
     backend = Backend.from_option(args.ray)
     conds = parse_conditions(args.conditions)
-    if args.episodes <= 0 or args.workers <= 0:
-        raise UserError("--episodes and --workers must be positive")
+    require_positive(("--episodes", args.episodes), ("--workers", args.workers))
     require_seeds(args.seed_start, args.episodes)
     require_dir(args.out)
     cfg = eval_config_from_args(args)  # the env's settings (backends) are checked here, before any work

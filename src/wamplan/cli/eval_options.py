@@ -36,12 +36,21 @@ def add_eval_arguments(p: argparse.ArgumentParser) -> None:
     add_arguments(p, EvalConfig)  # checkpoints, device; --planner comes with the planner options
     env = p.add_argument_group("task")
     add_arguments(env, EnvConfig)
-    env.add_argument("--max-steps", dest="max_episode_steps", type=int, default=None,
+    env.add_argument("--max-steps", dest="max_steps_alias", type=int, default=None,
                      help="the same as --max-episode-steps")
     add_planning_arguments(p)
 
 
 def eval_config_from_args(args: argparse.Namespace) -> EvalConfig:
     """The nested :class:`EvalConfig` from the options (unset options keep the defaults)."""
+    from wamplan.errors import UserError, require_positive
+
+    alias = getattr(args, "max_steps_alias", None)  # --max-steps: checked under the name typed
+    if alias is not None:
+        require_positive(("--max-steps", alias))
+        if args.max_episode_steps not in (None, alias):
+            raise UserError(f"--max-steps {alias} and --max-episode-steps {args.max_episode_steps} say the same "
+                            f"thing differently; give one")
+        args.max_episode_steps = alias
     return dataclasses.replace(from_args(EvalConfig, args), env=from_args(EnvConfig, args),
                                **planning_from_args(args))

@@ -117,12 +117,13 @@ def _train(args: argparse.Namespace) -> int:
     from wamplan.wam.tinywam import TinyWAMConfig
     from wamplan.wam.train import WAMTrainConfig, saved_configs, train_tinywam
 
-    from wamplan.errors import require_dir
+    from wamplan.errors import require_dir, require_distinct
 
     require_dir(args.out)
     stores = [s.strip() for s in args.data.split(",") if s.strip()]
     if not stores:
         raise UserError("--data is empty; pass an episode store directory (several: DIR1,DIR2)")
+    require_distinct(stores, "--data", "store")  # read twice, its episodes would weigh double
     for s in stores:
         if not (Path(s) / MANIFEST).is_file():
             raise UserError(f"--data {s} is not an episode store (no {MANIFEST}); collect one with "

@@ -8,7 +8,8 @@ from collections import Counter
 from pathlib import Path
 
 from wamplan.config import ConfigError, Once, add_arguments, as_options, ensemble_members, from_args, int_list
-from wamplan.errors import UserError, require_dir, require_file, require_paths, require_seeds
+from wamplan.errors import (UserError, require_dir, require_distinct, require_file, require_paths,
+                            require_seeds)
 from wamplan.cli.foreground import foreground_options, masks_options
 from wamplan.cli.main import add_command, add_group, register_command
 
@@ -32,6 +33,7 @@ def _stores(spec: str) -> list[Path]:
     stores = [Path(s) for s in spec.split(",") if s]
     if not stores:
         raise UserError("--data needs at least one episode store directory")
+    require_distinct(stores, "--data", "store")  # read twice, its episodes would weigh double
     return stores
 
 

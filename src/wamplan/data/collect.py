@@ -25,7 +25,7 @@ from wamplan.data.record import collect_one
 from wamplan.data.store import MANIFEST, EpisodeData, EpisodeStore
 from wamplan.envs.config import EnvConfig
 from wamplan.envs.core import TaskEnv
-from wamplan.errors import UserError, require_paths, require_seeds
+from wamplan.errors import UserError, require_paths, require_positive, require_seeds
 from wamplan.locks import dir_lock
 from wamplan.parallel import Backend, imap_workers
 from wamplan.policies.base import Policy, make_policy
@@ -139,8 +139,8 @@ def collect(source: str, episodes: int, out: str | Path, *, seed_start: int = 0,
     from wamplan.progress import progress_bar
 
     backend.check()
-    if workers <= 0 or image_every <= 0 or (seeds is None and episodes <= 0):
-        raise UserError("--episodes, --workers and --image-every must be positive")
+    require_positive(("--episodes", episodes if seeds is None else None), ("--workers", workers),
+                     ("--image-every", image_every))
     if seeds is None:
         require_seeds(seed_start, episodes)
         seeds = list(range(seed_start, seed_start + episodes))
@@ -148,8 +148,8 @@ def collect(source: str, episodes: int, out: str | Path, *, seed_start: int = 0,
         seeds = list(dict.fromkeys(int(s) for s in seeds))
         if len(seeds) != episodes:
             raise ValueError(f"episodes={episodes} but {len(seeds)} distinct seeds were given")
-        if seeds:
-            require_seeds(min(seeds), max(seeds) - min(seeds) + 1, "seeds")
+        for s in (min(seeds), max(seeds)) if seeds else ():
+            require_seeds(s, flag="seeds")
     if source == "policy":
         if not policy:
             raise UserError("--source policy needs --policy CKPT (a WAM checkpoint directory)")
