@@ -124,7 +124,7 @@ def test_report_tables_and_figure(tmp_path):
     assert "| 1 | None (open loop) | WAM | — | 5 | 60% (23–88) | 110 | 110 |" in md
     assert "Table 2" in md and "| 7 | planned | 5 | 0% | 100% | 0% |" in md
     # every chunk is accounted for: 35 planned, 5 first chunks and 2 warm-up chunks open loop, none gated
-    assert "| 7 | 0.010 | 0.002 | 0.500 | 35 | 5 / 2 / 0 / 0 / 0 / 0 |" in md
+    assert "| 7 | 0.010 | 0.002 | 0.500 | 35 | 5 / 2 / 0 / 0 |" in md
     import imageio.v3 as iio
 
     assert iio.imread(tmp_path / "figure3.png").shape[2] in (3, 4)
