@@ -762,7 +762,7 @@ def test_training_help_shows_each_presets_default_and_a_held_out_share_outside_0
     refused(capsys, ["wm", "probe", "--data", expert_store, "--near-mm", "-5"], "--near-mm must be > 0")
 
 def test_help_is_cached_and_matches_argparse(tmp_path, monkeypatch, capsys):
-    """`wamplan eval --help` is built once (imports torch and the planners) and then read from the cache."""
+    """`wamplan eval --help` (and --help-all) is built once (imports the planners) and then read from the cache."""
     from wamplan.cli import build_parser
 
     monkeypatch.setenv("WAMPLAN_CACHE_DIR", str(tmp_path))
@@ -772,6 +772,10 @@ def test_help_is_cached_and_matches_argparse(tmp_path, monkeypatch, capsys):
             main(["eval", "--help"])
         text = capsys.readouterr().out
         assert list(tmp_path.glob("help/*.json"))
+        assert "--wm-augmented WM_AUGMENTED" in text and "--render-backend" not in text
+        with pytest.raises(SystemExit):
+            main(["eval", "--help-all"])
+        text = capsys.readouterr().out
         assert "--first-chunk {open-loop,rest-history}" in text and "--render-backend" in text
     with pytest.raises(SystemExit):
         build_parser().parse_args(["report", "--help"])

@@ -54,7 +54,7 @@ def test_a_registered_planner_appears_in_eval_with_its_options(toy_planner, caps
     cfg = _cfg("--planner", "toy", "--shift", "0.25", "--toy-temperature", "7")
     assert cfg.planner == "toy" and cfg.planner_config == ToyConfig(shift=0.25, temperature=7)
     with pytest.raises(SystemExit):
-        build_parser().parse_args(["eval", "--help"])
+        build_parser().parse_args(["eval", "--help-all"])
     out = capsys.readouterr().out
     assert "--planner {cem,cem-gripper,mppi,toy,wamplan}" in out and "--shift SHIFT" in out and "[toy]" in out
     assert "--toy-temperature" in out and "--mppi-temperature" in out  # the clash is spelled per planner

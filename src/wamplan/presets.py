@@ -31,8 +31,8 @@ from typing import Any
 
 from wamplan.config import check_numbers
 from wamplan.errors import UserError
-from wamplan.wam.tinywam import TinyWAMConfig
-from wamplan.wam.train import WAMTrainConfig
+from wamplan.wam.tinywam_config import TinyWAMConfig
+from wamplan.wam.train_config import WAMTrainConfig
 from wamplan.worldmodel.config import DecoderConfig, DecoderTrainConfig, PredictorConfig, TrainConfig
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from wamplan.config import add_arguments, from_args
 from wamplan.errors import UserError, require_dir, require_file, require_positive, require_seeds
-from wamplan.cli.main import add_command, add_group, register_command
+from wamplan.cli.main import add_command, add_group, first_screen, register_command
 
 SOURCES = ("expert", "noisy-expert", "pink", "policy")
 EXPERT_PREFIX, NOISY_PREFIX = "expert_", "noisy_"  # collect's --expert-<field> and --noisy-<field> options
@@ -53,11 +53,12 @@ def _collect_options(p: argparse.ArgumentParser) -> None:
                         "data at one phase of the task, e.g. 96 128 for the descent onto the mount")
     p.add_argument("--branch-context", type=int, default=8,
                    help="steps of the parent's history each branch episode keeps: (H_ctx - 1) x frameskip")
-    add_arguments(p, EnvConfig)
+    add_arguments(p.add_argument_group("task"), EnvConfig)
     g = p.add_argument_group("expert", "the scripted expert's settings (--source expert or noisy-expert)")
     add_arguments(g, ExpertConfig, prefix=EXPERT_PREFIX)
     g = p.add_argument_group("noisy expert", "the noise's settings (--source noisy-expert)")
     add_arguments(g, NoisyExpertConfig, prefix=NOISY_PREFIX)
+    first_screen(p, "--seed-start", "--workers", "--policy", "--image-every", "--max-steps", "--task", "--camera-size")
     p.set_defaults(func=cmd_collect)
 
 

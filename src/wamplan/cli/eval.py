@@ -8,7 +8,7 @@ import sys
 from collections import Counter
 from pathlib import Path
 
-from wamplan.cli.main import add_command, register_command
+from wamplan.cli.main import add_command, first_screen, register_command
 from wamplan.config import choices_metavar
 
 
@@ -41,6 +41,8 @@ def _eval_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=int, default=1, help="worker processes, or Ray actors with --ray (default: 1)")
     add_backend_argument(p)
     add_eval_arguments(p)
+    first_screen(p, "--conditions", "--episodes", "--seed-start", "--workers", "--wam", "--wam-url", "--wm-plain",
+                 "--wm-augmented", "--device", "--planner", "--task", "--camera-size")
     p.set_defaults(func=cmd_eval)
 
 

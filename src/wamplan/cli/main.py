@@ -11,6 +11,11 @@ options (generated from config classes that may import torch or ManiSkill) are b
 chosen. The help of such a command is kept in a cache (``$XDG_CACHE_HOME/wamplan/help``, or
 ``$WAMPLAN_CACHE_DIR/help``; one file per checkout, refreshed when its sources or the installed plug-ins, the
 entry points of the groups ``wamplan.*``, change) once built, so asking again needs none of those imports.
+
+A long command's ``--help`` is its first screen (:func:`first_screen`): the options most runs need and the names of
+the groups the others sit in; ``--help-all`` lists them all. Config classes that options are generated from live in
+light modules (``train_config``, ``wam/tinywam_config``, ``wam/train_config``), apart from the torch code that uses
+them, so that a parser builds without torch.
 """
 
 from __future__ import annotations
@@ -39,6 +44,7 @@ COMMANDS = Registry("command", modules=(
 register_command = COMMANDS.register  # decorator on a command module's ``register(subparsers)``
 
 HELP_FLAGS = ("-h", "--help")
+HELP_ALL = "--help-all"  # a command with a first screen (:func:`first_screen`): every option, in its groups
 
 
 class Parser(argparse.ArgumentParser):
@@ -48,6 +54,27 @@ class Parser(argparse.ArgumentParser):
     def __init__(self, *args: Any, **kwargs: Any):
         super().__init__(*args, **kwargs)
         self.register("action", "parsers", _LazySubParsers)
+
+    def format_help(self, full: bool = False) -> str:  # type: ignore[override]
+        """The help; for a command with a first screen (:func:`first_screen`) only its options most runs need and
+        the names of the groups the rest sit in, unless ``full`` (``--help-all``)."""
+        first = getattr(self, "first_screen", None)
+        if full or not first:
+            return super().format_help()
+        shown = [a for a in self._actions if not a.option_strings or a.required or set(a.option_strings) & first]
+        formatter = self._get_formatter()
+        formatter.add_usage(None, shown, [], prefix="usage: ")
+        formatter.add_text(self.description)
+        formatter.start_section("the options most runs need")
+        formatter.add_arguments(shown)
+        formatter.end_section()
+        rest = []
+        for group in self._action_groups:
+            n = sum(a not in shown and a.help is not argparse.SUPPRESS for a in group._group_actions)
+            if n:
+                rest.append(f"{'other options' if group.title == 'options' else group.title} ({n})")
+        formatter.add_text(f"More options, in groups: {', '.join(rest)}. `{self.prog} {HELP_ALL}` lists them all.")
+        return formatter.format_help()
 
     def error(self, message: str):  # type: ignore[override]
         self.exit(2, f"{self.short_usage()}\n{self.prog}: error: {message}\n")
@@ -72,18 +99,20 @@ class _LazySubParsers(argparse._SubParsersAction):
         self._builders[name] = (build, cache_help)
         return p
 
-    def build(self, name: str, asks_help: bool = False) -> argparse.ArgumentParser:
-        """The parser of sub-command ``name``, its options added (once). ``asks_help``: the command line asks for
-        this command's help, which a cached copy answers (and exits) without building; once built, it is cached."""
+    def build(self, name: str, asks_help: str | None = None) -> argparse.ArgumentParser:
+        """The parser of sub-command ``name``, its options added (once). ``asks_help``: the help flag the command
+        line gives this command (``--help`` or ``--help-all``), which a cached copy answers (and exits) without
+        building; once built, both helps are cached."""
         sub = self._name_parser_map[name]
         if name in self._builders:
             build, cache_help = self._builders.pop(name)
-            asks_help = cache_help and asks_help
-            if asks_help and _print_cached_help(sub.prog):
+            asks_help = asks_help if cache_help else None
+            if asks_help and _print_cached_help(_help_name(sub.prog, asks_help)):
                 sub.exit(0)
             build(sub)
             if asks_help:
-                _cache_help(sub.prog, sub.format_help())
+                _cache_help({_help_name(sub.prog, "--help"): sub.format_help(),
+                             _help_name(sub.prog, HELP_ALL): sub.format_help(full=True)})
         return sub
 
     def __call__(self, parser, namespace, values, option_string=None):
@@ -180,14 +209,42 @@ def _add(sub: argparse._SubParsersAction, name: str, build: Callable[[argparse.A
     return p
 
 
-def _asks_help(args: list[str]) -> bool:
-    """Help is asked of this command (not of a sub-command below it, and not after ``--``)."""
+def _asks_help(args: list[str]) -> str | None:
+    """The help flag given to this command (``--help`` for ``-h`` too, or ``--help-all``; not to a sub-command below
+    it, and not after ``--``), or None."""
     for a in args:
         if a == "--":
-            return False
+            return None
         if a in HELP_FLAGS:
-            return True
-    return False
+            return "--help"
+        if a == HELP_ALL:
+            return HELP_ALL
+    return None
+
+
+def _help_name(prog: str, flag: str) -> str:
+    return prog if flag != HELP_ALL else f"{prog} {HELP_ALL}"
+
+
+class _HelpAll(argparse.Action):
+    """``--help-all``: every option of the command, in its groups."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        parser._print_message(parser.format_help(full=True), sys.stdout)
+        parser.exit(0)
+
+
+def first_screen(parser: argparse.ArgumentParser, *flags: str) -> None:
+    """Show only ``flags`` (and the positionals, required options and ``-h``) under ``--help``, with the names of the
+    groups the other options sit in; ``--help-all`` (added here) lists every option. Call it after adding them."""
+    parser.first_screen = {"-h", "--help", HELP_ALL, *flags}  # type: ignore[attr-defined]
+    missing = [f for f in flags if f not in parser._option_string_actions]
+    if missing:
+        raise ValueError(f"{parser.prog}: first_screen names options it lacks: {missing}")
+    parser.add_argument(HELP_ALL, action=_HelpAll, help="list every option, in its groups, and exit")
 
 
 # ---------------------------------------------------------------------------------------------- help cache
@@ -243,11 +300,12 @@ def _print_cached_help(prog: str) -> bool:
     return True
 
 
-def _cache_help(prog: str, text: str) -> None:
-    """Remember ``prog``'s help for this version of the sources; a cache that cannot be written is skipped."""
+def _cache_help(texts: dict[str, str]) -> None:
+    """Remember the helps ``texts`` (name -> text) for this version of the sources; a cache that cannot be written
+    is skipped."""
     path, stamp = _help_cache()
     cached = _cached_help(path, stamp)  # the help of older sources is dropped
-    cached[_help_key(prog)] = text
+    cached.update({_help_key(name): text for name, text in texts.items()})
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(f".{path.name}.{os.getpid()}")

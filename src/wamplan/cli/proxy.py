@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from wamplan.cli.main import add_command, register_command
+from wamplan.cli.main import add_command, first_screen, register_command
 from wamplan.cli.server_options import add_listen_options, listen_secret
 
 
@@ -30,6 +30,8 @@ def _options(p: argparse.ArgumentParser) -> None:
     add_listen_options(p, 8778, "shared secret every request must carry (X-WAMplan-Secret header, Authorization: "
                                 "Bearer or Api-Key, or ?token=SECRET in the URL); default: $WAMPLAN_ACT_SECRET, none if unset. "
                                 "The upstream's own secret, if any, is read from $WAMPLAN_UPSTREAM_SECRET")
+    first_screen(p, "--upstream", "--world-model", "--profile", "--errors", "--budget-ms", "--device", "--record",
+                 "--planner", "--host", "--port", "--secret")
     p.set_defaults(func=_serve)
 
 

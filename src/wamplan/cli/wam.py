@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from wamplan.errors import UserError
-from wamplan.cli.main import add_command, add_group, register_command
+from wamplan.cli.main import add_command, add_group, first_screen, register_command
 from wamplan.cli.server_options import add_listen_options, listen_secret
 
 
@@ -60,8 +60,8 @@ def _viz_options(viz: argparse.ArgumentParser) -> None:
 
 def _train_options(train: argparse.ArgumentParser) -> None:
     from wamplan.config import add_arguments
-    from wamplan.wam.tinywam import TinyWAMConfig
-    from wamplan.wam.train import WAMTrainConfig
+    from wamplan.wam.tinywam_config import TinyWAMConfig
+    from wamplan.wam.train_config import WAMTrainConfig
 
     train.add_argument("--data", required=True, help="episode store directory, or several separated by commas")
     train.add_argument("--out", type=Path, required=True,
@@ -71,8 +71,10 @@ def _train_options(train: argparse.ArgumentParser) -> None:
     train.add_argument("--max-steps", type=int, default=None,
                        help="stop after this many optimisation steps in all (checkpointed; re-run to continue)")
     train.add_argument("--no-progress", action="store_true", help="no progress bar (logs only)")
-    add_arguments(train, WAMTrainConfig)
-    add_arguments(train, TinyWAMConfig)
+    add_arguments(train.add_argument_group("training", "the optimisation, loss and augmentation"), WAMTrainConfig)
+    add_arguments(train.add_argument_group("model", "TinyWAM's architecture (a resumed run keeps its own)"),
+                  TinyWAMConfig)
+    first_screen(train, "--sources", "--max-steps", "--epochs", "--batch-size", "--lr", "--device")
     train.set_defaults(func=_train)
 
 

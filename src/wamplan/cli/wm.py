@@ -11,7 +11,7 @@ from wamplan.config import ConfigError, Once, add_arguments, as_options, ensembl
 from wamplan.errors import (UserError, require_dir, require_distinct, require_file, require_paths,
                             require_seeds)
 from wamplan.cli.foreground import foreground_options, masks_options
-from wamplan.cli.main import add_command, add_group, register_command
+from wamplan.cli.main import add_command, add_group, first_screen, register_command
 
 
 def write_json(path: Path, obj) -> Path:
@@ -119,8 +119,10 @@ def _train_options(name: str):
             add_architecture_arguments(p.add_argument_group("predictor", "the preset's predictor, overridden"),
                                        {k: v.world_model.predictor for k, v in sorted(PRESETS.items())})
         cls, part = (TrainConfig, "train") if name == "train" else (DecoderTrainConfig, "decoder_train")
-        add_arguments(p, cls, presets={k: getattr(v.world_model, part)
-                                                for k, v in sorted(PRESETS.items())})
+        add_arguments(p.add_argument_group("training", "the preset's training, overridden"), cls,
+                      presets={k: getattr(v.world_model, part) for k, v in sorted(PRESETS.items())})
+        first_screen(p, "--preset", "--encoder", "--max-steps", "--device", "--epochs", "--batch-size", "--lr",
+                     *(("--init",) if name == "train" else ()))
         p.set_defaults(func=cmd_train if name == "train" else cmd_train_decoder)
 
     return build

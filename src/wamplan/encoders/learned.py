@@ -35,7 +35,7 @@ from wamplan.checkpoint import MODEL_FILE, checkpoint_dir, load_tensors, read_co
 from wamplan.config import check_numbers, field, require, to_dict, with_default
 from wamplan.encoders.base import ENCODERS, FrozenEncoder, encoder_settings, register_encoder
 from wamplan.errors import UserError
-from wamplan.train_loop import AdamWConfig
+from wamplan.train_config import AdamWConfig
 
 KIND = "encoder-task-cnn"
 NET_PREFIX = "net."  # the CNN's weights inside a training checkpoint (read-out and decoder are dropped)

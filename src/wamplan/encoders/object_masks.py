@@ -32,7 +32,7 @@ from wamplan.encoders.base import FrozenEncoder, register_encoder
 from wamplan.encoders.foreground import draw_frame_maps, episode_frames
 from wamplan.encoders.learned import load_trained
 from wamplan.errors import UserError
-from wamplan.train_loop import AdamWConfig
+from wamplan.train_config import AdamWConfig
 
 KIND = "encoder-object-masks"
 GRID, SUB = 4, 4  # a 4 x 4 token grid, each token 4 x 4 cells: a 16 x 16 class map of a 64 px picture

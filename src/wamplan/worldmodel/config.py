@@ -13,7 +13,7 @@ from typing import Any
 
 from wamplan.config import (ConfigError, add_field_argument, as_options, check_numbers, field, preset_default_text,
                             require)
-from wamplan.train_loop import AdamWConfig
+from wamplan.train_config import AdamWConfig
 
 ACTION_CONDITIONING = ("input", "adaln")  # PredictorConfig.action_conditioning
 STATE_HEADS = ("mlp", "ridge")  # PredictorConfig.state_head
