@@ -6,7 +6,13 @@ A ```python block followed directly (blank lines only between) by a ```text bloc
 for line, every token exactly except decimal numbers (a '.' and digits), which may differ by a relative
 FLOAT_RTOL (or by one unit in the last shown digit), since the same checkpoints give slightly different numbers
 on another machine. Show only what holds on every machine: an episode's outcome for a seed does not (seed 0 of
-the README's example succeeded at step 165 on the machine that wrote it and fails at step 300 on others)."""
+the README's example succeeded at step 165 on the machine that wrote it and fails at step 300 on others).
+
+A block that calls ``run_episode`` runs with its episodes cut at EPISODE_STEPS (``run_episode``'s own ``max_steps``
+option, which ``CAP_EPISODES`` sets as the default before the block runs; a block that passes ``max_steps`` keeps
+its own): the text stays what a user runs, every call in it still runs and prints what is shown, and the test does
+not plan a 300-step episode (which outcome it reaches is not shown, see above). EPISODE_STEPS = 48 is the paper's
+open-loop first chunk and two planned ones."""
 
 from __future__ import annotations
 
@@ -23,6 +29,12 @@ FENCE = re.compile(r"^```python[ \t]*\n(.*?)^```[ \t]*$", re.MULTILINE | re.DOTA
 SHOWN = re.compile(r"\n(?:[ \t]*\n)*```text[ \t]*\n(.*?)^```[ \t]*$", re.MULTILINE | re.DOTALL)  # right after a block
 DECIMAL = re.compile(r"(?<![\w.])([-+]?\d+\.\d+(?:[eE][-+]?\d+)?)(?![\w.])")
 FLOAT_RTOL = 0.10
+EPISODE_STEPS = 48
+CAP_EPISODES = ("import wamplan as _wamplan, wamplan.api as _api\n"
+                "def _capped(env, policy, seed, _run=_api.run_episode, **options):\n"
+                f"    return _run(env, policy, seed, **{{'max_steps': {EPISODE_STEPS}, **options}})\n"
+                "_wamplan.run_episode = _api.run_episode = _capped\n"
+                "del _wamplan, _api, _capped\n")
 
 
 def python_blocks(path: Path) -> list[tuple[int, str]]:
@@ -110,15 +122,32 @@ def test_output_mismatches(shown, printed, why):
                          ids=[f"{p.relative_to(ROOT)}:{line}" for p, line, _, _ in BLOCKS])
 def test_python_block_runs(path: Path, line: int, code: str, shown: str | None):
     env = dict(os.environ, OMP_NUM_THREADS=os.environ.get("OMP_NUM_THREADS", "1"))
-    run = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True,
+    prelude = CAP_EPISODES if "run_episode(" in code else ""  # (its lines come first in a traceback's numbers)
+    run = subprocess.run([sys.executable, "-c", prelude + code], cwd=ROOT, env=env, capture_output=True, text=True,
                          timeout=600)
     where = path.relative_to(ROOT)
-    assert run.returncode == 0, (f"the ```python block at {where}:{line} failed:\n{code}\n"
+    assert run.returncode == 0, (f"the ```python block at {where}:{line} failed:\n{prelude}{code}\n"
                                  f"--- stderr ---\n{run.stderr[-3000:]}")
     if shown is not None:
         why = output_mismatch(shown, run.stdout)
         assert why is None, (f"the ```python block at {where}:{line} does not print the ```text block after it "
                              f"({why}):\n--- printed ---\n{run.stdout}--- shown ---\n{shown}")
+
+
+def test_a_block_that_runs_an_episode_stops_at_the_cap_and_keeps_its_own_max_steps(monkeypatch):
+    """CAP_EPISODES cuts ``wamplan.run_episode`` (and ``wamplan.api.run_episode``) at EPISODE_STEPS unless the block
+    gives ``max_steps``; the env, policy, seed and other options reach the real function unchanged."""
+    import wamplan
+    from wamplan import api
+
+    seen = []
+    monkeypatch.setattr(api, "_run_episode", lambda env, policy, seed, **options: seen.append((seed, options)))
+    monkeypatch.setattr(api, "run_episode", api.run_episode)  # both put back after the test
+    monkeypatch.setattr(wamplan, "run_episode", api.run_episode, raising=False)
+    exec(CAP_EPISODES, {})
+    wamplan.run_episode("env", "policy", 3)
+    api.run_episode("env", "policy", 4, max_steps=7, stop_on_success=False)
+    assert seen == [(3, {"max_steps": EPISODE_STEPS}), (4, {"max_steps": 7, "stop_on_success": False})]
 
 
 def test_the_task_list_shown_is_what_wamplan_tasks_prints(capsys):
