@@ -55,9 +55,11 @@ def _boundary(env, seed: int, steps: int, n: int = 3):
     return snap, np.stack([chunk, *noisy]).astype(np.float32)  # (n, 16, 5)
 
 
-@pytest.mark.parametrize("seed,steps", [(0, 32), (1, 48), (7, 96)])  # approach/grasp, grasped, carrying
+# grasped, carrying: the cube in the fingers at the boundary (the approach before it, nothing touched, is the easier
+# case); at each, the expert's next chunk and one noisy copy of it
+@pytest.mark.parametrize("seed,steps", [(1, 48), (7, 96)])
 def test_simulate_reaches_the_full_steps_terminal_state_bit_for_bit(env, seed, steps):
-    snap, cands = _boundary(env, seed, steps)
+    snap, cands = _boundary(env, seed, steps, n=2)
     for cand in cands:
         _full(env, snap, cand)  # warm-up: both rollouts below follow this candidate's end
         views = env.simulate(snap, cand[None])  # (1, V, H, W, 3)
