@@ -115,12 +115,12 @@ def test_fidelity_cli_refuses_labels_that_collide_before_loading_anything(capsys
 
 @pytest.fixture(scope="module")
 def short_env():
-    """The cube task cut at 96 steps: an executed closed loop ends there whatever its outcome (a failing one would
-    otherwise plan every chunk to step 300)."""
+    """The cube task cut at 64 steps, one chunk past the last scored boundary's: an executed closed loop ends there
+    whatever its outcome (a failing one would otherwise plan every chunk to step 300)."""
     from wamplan.envs.config import EnvConfig
     from wamplan.envs.core import TaskEnv
 
-    e = TaskEnv(EnvConfig(max_episode_steps=96))
+    e = TaskEnv(EnvConfig(max_episode_steps=64))
     yield e
     e.close()
 
