@@ -17,8 +17,8 @@ from wamplan.evaluation.records import read_records, record_key
 from wamplan.parallel import Backend, imap_workers
 
 MINI = "checkpoints/mini/tinywam"
-EVAL = ["eval", "--conditions", "1", "--episodes", "2", "--seed-start", "900", "--wam", MINI, "--max-steps", "32",
-        "--camera-size", "64"]
+EVAL = ["eval", "--conditions", "1", "--episodes", "2", "--seed-start", "900", "--wam", MINI, "--max-steps", "16",
+        "--camera-size", "64"]  # one chunk per episode: the records compared, not what an episode reaches
 TIMING = {"wall_time_s", "finished", "chunk_timing_s", "created"}
 
 
@@ -45,22 +45,30 @@ def test_eval_on_ray_equals_local_and_resumes(ray_cluster, tmp_path, capsys):
     from wamplan.cli import build_parser
 
     # An episode's record depends on what its worker's env ran before (pre-existing, with worker processes too),
-    # so every episode compared here is the first of a fresh worker: one local process per seed, one thread each
-    # like a Ray actor, and on Ray one job per actor (2 actors, 2 jobs; the resumed run starts fresh actors).
-    for seed in ("900", "901"):
-        run = [sys.executable, "-m", "wamplan.cli", *EVAL, "--seed-start", seed, "--episodes", "1",
-               "--out", str(tmp_path / "local")]
-        subprocess.run(run, check=True, capture_output=True, env=dict(os.environ, OMP_NUM_THREADS="1"))
-    local = {record_key(r): untimed(r) for r in read_records(tmp_path / "local")}
+    # so every episode compared here is the first of a fresh worker: one local process per seed (the two side by
+    # side), one thread each like a Ray actor; on Ray the cut-short run's one actor records seed 900 first and the
+    # resumed run starts a fresh actor for seed 901.
+    logs = {seed: tmp_path / f"local{seed}.log" for seed in ("900", "901")}
+    runs = []
+    for seed, log in logs.items():
+        with log.open("w") as f:
+            runs.append(subprocess.Popen([sys.executable, "-m", "wamplan.cli", *EVAL, "--seed-start", seed,
+                                          "--episodes", "1", "--out", str(tmp_path / f"local{seed}")], stdout=f,
+                                         stderr=subprocess.STDOUT, env=dict(os.environ, OMP_NUM_THREADS="1")))
+    for p, log in zip(runs, logs.values()):
+        assert p.wait() == 0, log.read_text()[-3000:]
+    local = {record_key(r): untimed(r) for seed in ("900", "901") for r in read_records(tmp_path / f"local{seed}")}
     assert sorted(local) == [(1, 900, "open-loop"), (1, 901, "open-loop")]
 
-    # a driver that stops after its first record (the other episode in flight is lost, not half-recorded)
+    # a driver that stops after its first record (seed 901, in flight on the actor by then, is lost, not
+    # half-recorded)
     out = tmp_path / "ray"
     cfg = eval_config_from_args(build_parser().parse_args([*EVAL, "--out", str(out)]))
-    run = run_evaluation(cfg, [1], [900, 901], out, workers=2, backend=Backend("ray"))
+    run = run_evaluation(cfg, [1], [900, 901], out, workers=1, backend=Backend("ray"))
     first = list(itertools.islice(run, 1))
     run.close()
     assert len(first) == 1 and len(read_records(out)) == 1
+    assert [record_key(r) for r in read_records(out)] == [(1, 900, "open-loop")]
 
     assert main([*EVAL, "--out", str(out), "--ray", "--workers", "2"]) == 0  # the re-run resumes
     assert "resuming: 1 of 2 episodes already recorded" in capsys.readouterr().out
