@@ -17,11 +17,12 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")
-def stores(tmp_path_factory):
-    """An expert store of 2 episodes and a copy of it elsewhere with one episode less (other data)."""
+def stores(tmp_path_factory, expert_store):
+    """The session's expert store of 2 episodes (copied: training writes beside it) and a copy of it elsewhere with
+    one episode less (other data)."""
     root = tmp_path_factory.mktemp("loop")
     store = root / "expert"
-    assert main(["collect", "--source", "expert", "--episodes", "2", "--out", str(store), "--camera-size", "64"]) == 0
+    shutil.copytree(expert_store, store)
     other = root / "other"
     shutil.copytree(store, other)
     sorted((other / "episodes").glob("*.h5"))[-1].unlink()
