@@ -16,25 +16,10 @@ from pathlib import Path
 
 import pytest
 
+from test_errors import refused as one_line  # run a command: exit 2, one error line naming each given part
 from wamplan.cli import main
 
 MINI = Path(__file__).resolve().parents[1] / "checkpoints" / "mini"
-
-
-def one_line(capsys, argv: list, *named: object) -> str:
-    """Run ``wamplan argv``: exit status 2, no traceback, one error line naming each of ``named``."""
-    try:
-        code = main([str(a) for a in argv])
-    except SystemExit as e:
-        code = e.code
-    err = capsys.readouterr().err
-    assert code == 2, err
-    assert "Traceback" not in err
-    lines = [line for line in err.splitlines() if re.match(r"wamplan( [\w-]+)*: error: ", line)]
-    assert len(lines) == 1, err
-    for n in named:
-        assert str(n) in lines[0], (n, lines[0])
-    return lines[0]
 
 
 @pytest.fixture
