@@ -206,7 +206,7 @@ def upstream_get_action(url: str, observation: dict, return_all: bool = False, e
 @pytest.fixture(scope="module")
 def shipped():
     wam = load_wam(SHIPPED_TINYWAM, device="cpu")
-    with BackgroundServer(create_app(wam, secret=SECRET)) as srv:
+    with BackgroundServer(create_app(wam, secret=SECRET, fit_proprio=True)) as srv:  # ALOHA's 14-D qpos
         yield srv, wam
 
 
@@ -246,6 +246,17 @@ def test_a_short_proprio_is_padded(shipped):
     obs = dict(aloha_observation(4), proprio=np.ones(7))
     got = upstream_get_action(f"{srv.url}{protocol.ROUTE}?token={requests.utils.quote(SECRET)}", obs)
     assert any("proprio of 7 entries padded with zeros to 10" in n for n in got["raw"]["wamplan"]["notes"])
+
+
+def test_a_proprio_of_another_length_is_refused_without_fit_proprio(shipped):
+    _, wam = shipped
+    with BackgroundServer(create_app(wam)) as srv:
+        for n in (14, 7):
+            r = requests.post(srv.url + protocol.ROUTE, data=json_numpy.dumps(dict(aloha_observation(4),
+                                                                                  proprio=np.ones(n))))
+            assert r.status_code == 400
+            assert r.json()["error"].endswith(f"proprio has {n} entries; the model reads 10: send 10, or start the "
+                                              f"server with --fit-proprio to pad it with zeros or truncate it")
 
 
 def _bad_requests() -> dict[str, bytes]:
@@ -303,7 +314,7 @@ class Overshooting(WAM):
 
 
 def test_clipped_actions_are_said_once_per_answer(caplog):
-    with BackgroundServer(create_app(Overshooting())) as srv:
+    with BackgroundServer(create_app(Overshooting(), fit_proprio=True)) as srv:  # ALOHA's 14-D qpos
         caplog.set_level(logging.WARNING, logger="wamplan.wam.server")
         got = upstream_get_action(srv.url + protocol.ROUTE, aloha_observation(1, size=16))
     actions = np.stack(got["actions"])
@@ -325,4 +336,7 @@ def test_serve_prints_the_field_map(tiny_ckpt, capsys, monkeypatch):
     assert 'failures answered HTTP 200 "error" (upstream error mode)' in out
     assert "request fields: primary_image -> front, left_wrist_image -> side, right_wrist_image -> wrist; " \
            "predictions: front -> future_image, side -> future_wrist_image, wrist -> future_wrist_image2; " \
-           "proprio padded or truncated to 10; 16 x 5 actions" in out
+           "proprio of another length than 10 refused (--fit-proprio pads or truncates it); 16 x 5 actions" in out
+    assert main(["wam", "serve", "--ckpt", str(tiny_ckpt), "--fit-proprio"]) == 0
+    assert "; proprio of another length than 10 padded with zeros or truncated (--fit-proprio); 16 x 5 actions" \
+        in capsys.readouterr().out

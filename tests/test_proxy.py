@@ -157,8 +157,8 @@ def test_a_plan_over_budget_answers_the_wams_chunk(tmp_path):
 
 
 def test_an_upstream_server_behind_the_proxy_passes_its_fields_through():
-    up = BackgroundServer(create_app(load_wam(WAM_CKPT, device="cpu"))).start()
-    p = build_proxy(ProxyConfig(upstream=up.url + protocol.ROUTE, world_model=WM_CKPT, device="cpu"))
+    up = BackgroundServer(create_app(load_wam(WAM_CKPT, device="cpu"), fit_proprio=True)).start()  # ALOHA's 14-D
+    p = build_proxy(ProxyConfig(upstream=up.url + protocol.ROUTE, world_model=WM_CKPT, device="cpu", fit_proprio=True))
     assert p.upstream.unreachable is None  # its /health answered
     try:
         with BackgroundServer(create_proxy_app(p, secret="s")) as srv:

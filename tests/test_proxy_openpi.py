@@ -47,7 +47,8 @@ def aloha(client: int, step: int) -> dict:
 
 @pytest.fixture(scope="module")
 def proxy():
-    p = build_proxy(ProxyConfig(upstream=WAM_CKPT, world_model=WM_CKPT, device="cpu", ws_fields=WS_FIELDS))
+    p = build_proxy(ProxyConfig(upstream=WAM_CKPT, world_model=WM_CKPT, device="cpu", ws_fields=WS_FIELDS,
+                                fit_proprio=True))  # ALOHA's 14-D state
     with BackgroundServer(create_proxy_app(p, secret="s3cret")) as srv:
         yield srv, p
     p.close()

@@ -41,7 +41,7 @@ def test_openpis_client_replanning_every_5_steps_takes_the_in_process_requery_re
     """A world model whose frames are 5 steps apart: the observations a client posts every 5 steps are its history,
     so the proxy (serve --requery-every 5) plans from step 10 on without chunk_frames."""
     wm, K, c, steps = boundary_world_model(tmp_path / "wm5", frameskip=5), 5, 3, 20
-    p = build_proxy(ProxyConfig(upstream=WAM_CKPT, world_model=wm, device="cpu", ws_fields=WS_FIELDS),
+    p = build_proxy(ProxyConfig(upstream=WAM_CKPT, world_model=wm, device="cpu", ws_fields=WS_FIELDS, fit_proprio=True),
                     planning=dict(policy=PlannedPolicyConfig(requery_every=K)))
     try:
         assert "one that sends none runs 5, --requery-every" in p.describe()

@@ -166,11 +166,14 @@ def test_a_plan_past_its_budget_finishes_before_the_sessions_next_request_is_rea
 
 
 def test_a_short_proprio_is_padded_with_zeros_at_its_end_and_a_long_one_keeps_its_first_entries():
-    short, note = protocol.fit_proprio(np.arange(1, 8, dtype=np.float32), 10)
+    short, note = protocol.fit_proprio(np.arange(1, 8, dtype=np.float32), 10, fit=True)
     np.testing.assert_array_equal(short, [1, 2, 3, 4, 5, 6, 7, 0, 0, 0])
     assert note == "proprio of 7 entries padded with zeros to 10, the model's size"
-    long, _ = protocol.fit_proprio(np.arange(1, 15, dtype=np.float32), 10)
+    long, _ = protocol.fit_proprio(np.arange(1, 15, dtype=np.float32), 10, fit=True)
     np.testing.assert_array_equal(long, np.arange(1, 11))
+    with pytest.raises(protocol.ProtocolError, match="^proprio has 14 entries; the model reads 10: send 10, or start "
+                                                     "the server with --fit-proprio"):
+        protocol.fit_proprio(np.arange(1, 15, dtype=np.float32), 10)
 
 
 def test_an_upstream_that_does_not_answer_in_time_is_504():

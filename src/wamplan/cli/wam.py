@@ -44,6 +44,9 @@ def _serve_options(serve: argparse.ArgumentParser) -> None:
                             "clients) HTTP 200 and the JSON string \"error\", as its reference server answers, the "
                             "reason in this server's log")
     serve.add_argument("--bare-errors", action="store_true", help="the same as --errors upstream")
+    serve.add_argument("--fit-proprio", action="store_true",
+                       help="pad with zeros or truncate a proprio of another length than the WAM's (e.g. ALOHA's 14-D "
+                            "qpos), said in each answer's wamplan field; default: refuse it (HTTP 400)")
     serve.add_argument("--device", default="auto", help="torch device for the WAM: auto, cpu, cuda, cuda:1, ... "
                                                         "(default: auto)")
     serve.set_defaults(func=_serve)
@@ -87,7 +90,7 @@ def _serve(args: argparse.Namespace) -> int:
     from wamplan.device import resolve_device
     from wamplan.wam.base import load_wam
     from wamplan.serving.runner import bind_socket
-    from wamplan.wam.protocol import field_map, resolve_maps
+    from wamplan.wam.protocol import field_map, proprio_rule, resolve_maps
     from wamplan.wam.server import serve
 
     resolve_device(args.device)  # before loading anything
@@ -103,11 +106,12 @@ def _serve(args: argparse.Namespace) -> int:
         "failures answered 4xx/5xx with a reason"
     print(f"serving WAM '{wam.name}' from {args.ckpt} at http://{args.host}:{args.port}/act "
           f"({'shared secret required' if secret else 'no shared secret'}; {failures}; health: /health)", flush=True)
-    print(f"{field_map(*resolve_maps(tuple(wam.cameras)))}; proprio padded or truncated to "
-          f"{wam.task.proprio_dim}; {wam.chunk_length} x {wam.action_dim} actions", flush=True)
+    print(f"{field_map(*resolve_maps(tuple(wam.cameras)))}; {proprio_rule(wam.task.proprio_dim, args.fit_proprio)}; "
+          f"{wam.chunk_length} x {wam.action_dim} actions", flush=True)
     try:
         serve(wam, host=args.host, port=args.port, instruction_default=args.instruction, log_level=args.log_level,
-              secret=secret, max_request_bytes=int(args.max_request_mb * 2**20), errors=errors, sock=sock)
+              secret=secret, max_request_bytes=int(args.max_request_mb * 2**20), errors=errors, sock=sock,
+              fit_proprio=args.fit_proprio)
     finally:
         wam.close()
     return 0
@@ -137,6 +141,9 @@ def _train(args: argparse.Namespace) -> int:
     model_cfg = from_args(TinyWAMConfig, args, base=saved[0] if saved else None)
     train_cfg = from_args(WAMTrainConfig, args, base=saved[1] if saved else None)
     from wamplan.device import resolve_device
+    from wamplan.train_log import require_backends
+
+    require_backends(train_cfg.log)  # before reading any data
 
     resolve_device(train_cfg.device)  # before reading any data
     result = train_tinywam(stores, args.out, model_cfg, train_cfg, sources=sources, max_steps=args.max_steps,

@@ -136,8 +136,8 @@ class Proxy:
                    f"request falls on the world model's grid of {self.grid} steps, else answered open loop "
                    f"(off-grid)")
         return (f"{protocol.field_map(self.request_map, self.response_map)}; chunks of {H}, task "
-                f"{self.task.name} action columns {list(self.columns)}; world model frameskip {d}\n{history}\n"
-                f"{partial}")
+                f"{self.task.name} action columns {list(self.columns)}; world model frameskip {d}; "
+                f"{protocol.proprio_rule(self.task.proprio_dim, self.cfg.fit_proprio)}\n{history}\n{partial}")
 
     def probe(self) -> None:
         """Send the upstream the rest observation and check its answer (UpstreamError: no answer, or one the world
@@ -296,6 +296,13 @@ class Proxy:
                 raise BadRequest(f"request field '{name}' is a {h}x{w}-px view; the world model reads {size}-px "
                                  f"views: send the camera's image at {size} px or more")
 
+    def _proprio(self, proprio: np.ndarray) -> tuple[np.ndarray, str | None]:
+        """(P,) -> (the world model's P,) and a note: refused (BadRequest) unless --fit-proprio."""
+        try:
+            return protocol.fit_proprio(proprio, self.task.proprio_dim, self.cfg.fit_proprio)
+        except protocol.ProtocolError as e:
+            raise BadRequest(f"world model: {e}") from None
+
     def _observation(self, frame: Any, step: int, what: str) -> Observation:
         if not isinstance(frame, dict):
             raise BadRequest(f"{what} is a {type(frame).__name__}, expected {{<image fields>, 'proprio'}}")
@@ -304,13 +311,13 @@ class Proxy:
             raise BadRequest(f"{what} lacks {missing}")
         images = {cam: protocol.as_image(frame[name], f"{what}['{name}']") for name, cam in self.request_map.items()}
         q = protocol.as_numbers(frame["proprio"], f"{what}['proprio']", ndim=1)  # (P,)
-        return Observation(step=step, proprio=protocol.fit_proprio(q, self.task.proprio_dim)[0], images=images)
+        return Observation(step=step, proprio=self._proprio(q)[0], images=images)
 
     def _answer(self, session: Session, req: protocol.ActRequest, why: str | None, notes: list[str],
                 t_in: float) -> protocol.ActResponse:
         t, H = session.step, self.chunk
         self._check_views(req)
-        proprio, note = protocol.fit_proprio(req.proprio, self.task.proprio_dim)  # (P,) what the world model reads
+        proprio, note = self._proprio(req.proprio)  # (P,) what the world model reads
         notes += [f"world model: {note}"] if note else []
         obs = Observation(step=t, proprio=proprio, images={cam: req.images[f] for f, cam in self.request_map.items()})
         forward = dataclasses.replace(req, encoded=False)  # the proxy decodes the answer itself

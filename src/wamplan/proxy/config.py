@@ -45,6 +45,9 @@ class ProxyConfig:
                                      "images_history (its history_spacing_factor)")
     max_request_bytes: int = field(DEFAULT_MAX_REQUEST_BYTES, "refuse larger /act bodies (HTTP 413) and WebSocket "
                                                               "messages (the connection is closed with code 1009)")
+    fit_proprio: bool = field(False, "pad with zeros or truncate a proprio of another length than the world model's "
+                                     "(e.g. ALOHA's 14-D qpos), said in each answer's wamplan field; unset: refuse it "
+                                     "(HTTP 400; \"error\" in the upstream error mode)")
     device: str = field("auto", "torch device for the world model (and a local upstream)")
     wm_dtype: str = field("float32", "arithmetic of the world model's rollouts in the search: float32, or bfloat16 "
                                      "(faster on a GPU; benchmarks/planner.py --dtypes times both); the cost is "

@@ -26,8 +26,8 @@ wamplan's servers add what a real deployment needs, outside the protocol (:mod:`
 shared secret, a request size limit (HTTP 413) and ``GET /health``; those refusals are HTTP 401 / 413 with a
 one-line ``{"error": ...}``, and so are its failures (400 a malformed request, 422 one the WAM refuses, 500 a
 failure of the WAM), unless started in the ``upstream`` error mode, which answers every failure as upstream does.
-A server maps request fields to cameras and cameras to response fields (:func:`resolve_maps`), fits the proprio
-to its model's size (:func:`fit_proprio`) and clips actions into [-1, 1] (:func:`clip_actions`).
+A server maps request fields to cameras and cameras to response fields (:func:`resolve_maps`), checks the proprio
+against its model's size (:func:`fit_proprio`) and clips actions into [-1, 1] (:func:`clip_actions`).
 
 Decoders raise :class:`ProtocolError` (malformed message) or :class:`ErrorReply` (the ``"error"`` answer);
 callers turn those into errors for people, naming the server.
@@ -311,16 +311,26 @@ def field_map(request_map: dict[str, str], response_map: dict[str, str]) -> str:
     return f"request fields: {req}; predictions: {resp}"
 
 
-def fit_proprio(proprio: np.ndarray, size: int) -> tuple[np.ndarray, str | None]:
-    """(P,) -> (size,) float32: zero-padded or truncated to the model's size, with the note that says so
-    (None when it already fits)."""
+def fit_proprio(proprio: np.ndarray, size: int, fit: bool = False) -> tuple[np.ndarray, str | None]:
+    """(P,) -> (size,) float32 with the note that says what was done (None when it already fits). A proprio of
+    another length is refused (ProtocolError) unless ``fit``: then zero-padded or truncated to the model's size."""
     n = proprio.shape[0]
     if n == size:
         return proprio, None
+    if not fit:
+        raise ProtocolError(f"proprio has {n} entries; the model reads {size}: send {size}, or start the server "
+                            f"with --fit-proprio to pad it with zeros or truncate it")
     out = np.zeros(size, dtype=np.float32)  # (size,)
     out[:min(n, size)] = proprio[:min(n, size)]
     how = f"truncated to its first {size}" if n > size else f"padded with zeros to {size}"
     return out, f"proprio of {n} entries {how}, the model's size"
+
+
+def proprio_rule(size: int, fit: bool) -> str:
+    """The servers' start-up line on a proprio of another length than the model's ``size``."""
+    if fit:
+        return f"proprio of another length than {size} padded with zeros or truncated (--fit-proprio)"
+    return f"proprio of another length than {size} refused (--fit-proprio pads or truncates it)"
 
 
 def clip_actions(actions: np.ndarray) -> tuple[np.ndarray, str | None]:

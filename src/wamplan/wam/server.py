@@ -4,8 +4,9 @@ The server speaks Cosmos Policy's ``deploy.py`` protocol: ``POST /act`` with jso
 :class:`~wamplan.wam.cosmos_client.CosmosPolicyClient` and upstream's own robot client (``run_aloha_eval.py``,
 ``get_action_from_server``) both parse every answer:
 
-* a proprio of another length than the model's (ALOHA's 14-D qpos) is padded with zeros or truncated to the
-  model's size, and the answer's ``wamplan`` field says so;
+* a proprio of another length than the model's (ALOHA's 14-D qpos) is refused (HTTP 400, one line), unless the
+  server runs with ``fit_proprio`` (``--fit-proprio``): then it is padded with zeros or truncated to the model's size,
+  and the answer's ``wamplan`` field says so;
 * the value goes out as ``value_prediction`` and ``value_predictions`` (``VALUE_STANDIN`` where the model has
   none, said in the ``wamplan`` field); ``return_all_query_results`` adds upstream's ``all_*`` lists;
 * an ``{"encoded": ...}`` request is answered double-encoded, as upstream answers it;
@@ -58,7 +59,7 @@ log = logging.getLogger(__name__)
 def create_app(wam: WAM, instruction_default: str | None = None, request_map: dict[str, str] | None = None,
                response_map: dict[str, str] | None = None, secret: str | None = None,
                max_request_bytes: int = DEFAULT_MAX_REQUEST_BYTES, bare_errors: bool = False,
-               errors: str = "http") -> FastAPI:
+               errors: str = "http", fit_proprio: bool = False) -> FastAPI:
     """A FastAPI app answering ``POST /act`` with ``wam``'s predictions, and ``GET /health``.
 
     ``instruction_default`` (default: the WAM's ``default_instruction``) is used when a request's
@@ -66,7 +67,8 @@ def create_app(wam: WAM, instruction_default: str | None = None, request_map: di
     of the WAM's cameras. ``secret`` (None or empty: none) must come with every ``/act`` request;
     bodies over ``max_request_bytes`` are refused (413). Queries are serialised (one at a time), since a WAM
     may keep state and hold a single model. ``errors``: the error mode (``wamplan.serving.ERROR_MODES``, module
-    docstring); ``bare_errors`` is the same as ``errors="upstream"``.
+    docstring); ``bare_errors`` is the same as ``errors="upstream"``. A proprio of another length than the
+    model's is refused (400) unless ``fit_proprio`` (then padded with zeros or truncated, said in the answer).
     """
     if max_request_bytes < 1:
         raise UserError(f"the request size limit must be >= 1 byte, got {max_request_bytes}")
@@ -87,7 +89,7 @@ def create_app(wam: WAM, instruction_default: str | None = None, request_map: di
     def handle(body: bytes) -> str:
         req = protocol.decode_request(body, tuple(request_map))
         notes = []
-        proprio, note = protocol.fit_proprio(req.proprio, proprio_dim)  # (P,)
+        proprio, note = protocol.fit_proprio(req.proprio, proprio_dim, fit_proprio)  # (P,)
         notes += [note] if note else []
         images = {cam: req.images[name] for name, cam in request_map.items()}  # camera -> (H, W, 3)
         # The protocol carries no control step; a WAM must not depend on obs.step.
@@ -142,9 +144,9 @@ def create_app(wam: WAM, instruction_default: str | None = None, request_map: di
 def serve(wam: WAM, host: str = DEFAULT_HOST, port: int = protocol.DEFAULT_PORT,
           instruction_default: str | None = None, log_level: str = "info", secret: str | None = None,
           max_request_bytes: int = DEFAULT_MAX_REQUEST_BYTES, bare_errors: bool = False,
-          errors: str = "http", sock: socket.socket | None = None) -> None:
+          errors: str = "http", sock: socket.socket | None = None, fit_proprio: bool = False) -> None:
     """Serve ``wam`` until interrupted (blocking), on ``sock`` (from :func:`wamplan.serving.runner.bind_socket`) or
     a socket bound to ``host:port`` here."""
     app = create_app(wam, instruction_default, secret=secret, max_request_bytes=max_request_bytes,
-                     bare_errors=bare_errors, errors=errors)
+                     bare_errors=bare_errors, errors=errors, fit_proprio=fit_proprio)
     run_app(app, host, port, secret, log_level, sock)
