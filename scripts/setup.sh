@@ -47,7 +47,8 @@ install_python() {
   fi
   local stamp="$VENV/.wamplan-installed"
   if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
-    log "installing wamplan and its dependencies"; $pip install -q -e '.[dev]'; touch "$stamp"
+    # with the logging extras, so that tests/test_train_log.py reads TensorBoard and W&B files back
+    log "installing wamplan and its dependencies"; $pip install -q -e '.[dev,tensorboard,wandb]'; touch "$stamp"
   fi
   if ! "$VENV/bin/python" -c 'import openpi_client.action_chunk_broker' 2>/dev/null; then
     # openpi's own robot client, for the tests that drive the proxy with it: without its numpy<2 pin (the modules

@@ -19,8 +19,8 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "wamplan"
 # the HTTP plumbing of both servers)
 FOUNDATION = {"wamplan", "wamplan.errors", "wamplan.config", "wamplan.registry", "wamplan.device", "wamplan.optim",
               "wamplan.parallel", "wamplan.provenance", "wamplan.checkpoint", "wamplan.train_loop",
-              "wamplan.train_config", "wamplan.plot", "wamplan.progress", "wamplan.locks", "wamplan.serving",
-              "wamplan.serving.refusals", "wamplan.serving.runner"}
+              "wamplan.train_config", "wamplan.train_log", "wamplan.plot", "wamplan.progress", "wamplan.locks",
+              "wamplan.serving", "wamplan.serving.refusals", "wamplan.serving.runner"}
 LAYERS = {"envs": 1, "policies": 2, "data": 3, "encoders": 4, "worldmodel": 4, "wam": 4, "planning": 5,
           "evaluation": 6, "presets": 6, "proxy": 6, "api": 7, "cli": 8}
 NAMES = {0: "foundation", 1: "envs", 2: "policies", 3: "data", 4: "encoders/worldmodel/wam", 5: "planning",

@@ -9,9 +9,10 @@ from wamplan.config import check_numbers, field, require
 from wamplan.errors import SEED_LIMIT
 
 # fields of a config's "train" section that may change when a run is resumed (everything else must match)
-RUN_ONLY_FIELDS = ("epochs", "num_workers", "device", "save_every_steps", "log_every_steps", "precision")
+RUN_ONLY_FIELDS = ("epochs", "num_workers", "device", "save_every_steps", "log_every_steps", "precision", "log")
 
 PRECISIONS = ("float32", "bfloat16")
+LOGGERS = ("tensorboard", "wandb")  # where ``log`` also sends the curves (``wamplan.train_log``)
 
 
 @dataclass(frozen=True)
@@ -35,6 +36,11 @@ class LoopConfig:
     precision: str = field("float32", "arithmetic of the forward pass and the loss: 'float32', or 'bfloat16' "
                                       "(autocast: matrix products in bfloat16; weights, gradients and the "
                                       "optimiser stay float32), on a CPU or a GPU")
+    log: tuple[str, ...] = field((), "also log the metrics.jsonl scalars (same names, at their global_step) and, where "
+                                     "the model draws pictures, predicted views beside their targets at each "
+                                     "epoch's validation, to TensorBoard (RUN/tensorboard) and/or W&B (offline "
+                                     "run in RUN/wandb; no account); each needs its extra: "
+                                     "pip install 'wamplan[tensorboard]'", choices=LOGGERS)
 
     def __post_init__(self) -> None:
         check_numbers(self)
@@ -52,6 +58,8 @@ class LoopConfig:
                                              f"one in that range")
         for k in ("num_workers", "save_every_steps", "log_every_steps"):
             require(getattr(self, k) >= 0, f"{name}.{k} must be >= 0, got {getattr(self, k)}")
+        require(all(x in LOGGERS for x in self.log) and len(set(self.log)) == len(self.log),
+                f"{name}.log must name each of {', '.join(LOGGERS)} at most once, got {list(self.log)}")
         require(self.precision in PRECISIONS, f"{name}.precision must be one of {', '.join(PRECISIONS)}, got "
                                               f"{self.precision!r}; pass --precision float32 or bfloat16")
 

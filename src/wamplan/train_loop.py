@@ -9,8 +9,9 @@ A training run is a directory::
 Every trainer hands :func:`fit` its model, a :class:`Batches` source, a ``step_fn(model, batch) ->
 (loss, logs)``, an optimisation config (:class:`LoopConfig`), the config to store and the identity of
 its data. The loop owns AdamW (decay on matrices only), warm-up + cosine per step, gradient clipping,
-the progress bar, validation and logging at epoch ends, and saving (at every epoch end, every
-``save_every_steps``, on ``max_steps`` and on Ctrl-C).
+the progress bar, validation and logging at epoch ends (to metrics.jsonl, and through one
+:class:`~wamplan.train_log.RunLog` to TensorBoard / W&B where the config's ``log`` names them), and saving (at
+every epoch end, every ``save_every_steps``, on ``max_steps`` and on Ctrl-C).
 
 One resume rule: a run is resumed only with the same data (the ``data`` identity: stores, episodes,
 split) and the same config (except :data:`RUN_ONLY_FIELDS` of its ``train`` section and the keys a
@@ -41,11 +42,13 @@ from wamplan.errors import UserError, checkpoint_kind, require_own_dir
 from wamplan.locks import dir_lock
 from wamplan.optim import make_adamw, optimizer_step, warmup_cosine
 from wamplan.progress import progress_bar
+from wamplan.train_log import RunLog, require_backends
 from wamplan.train_config import PRECISIONS, RUN_ONLY_FIELDS, AdamWConfig, LoopConfig  # noqa: F401  (their home)
 
 METRICS_FILE = "metrics.jsonl"
 
 StepFn = Callable[[nn.Module, Any], tuple[torch.Tensor, dict[str, float]]]
+Pictures = Callable[[nn.Module], dict[str, Any]]  # model -> {name: (H, W, 3) uint8 image}, e.g. prediction | target
 
 
 class Batches(Protocol):
@@ -216,7 +219,8 @@ def train(model: nn.Module, batches: Batches, step_fn: StepFn, cfg: LoopConfig, 
           evaluate: Callable[[nn.Module], dict[str, float]] | None = None,
           on_fresh_start: Callable[[], None] | None = None, resume: bool = False, max_steps: int | None = None,
           progress: bool = True, desc: str = "train", log: Callable[[str], None] | None = print,
-          retired: Sequence[str] = (), hold: Callable[[Path], None] = lambda run: None) -> FitResult:
+          retired: Sequence[str] = (), hold: Callable[[Path], None] = lambda run: None,
+          pictures: Pictures | None = None) -> FitResult:
     """Train ``model`` (already on ``device``) into ``run_dir`` with ``step_fn(model, batch) -> (loss, logs)``.
 
     ``config`` is stored in the checkpoint (``kind`` names the model family) with ``data`` (the identity
@@ -226,6 +230,7 @@ def train(model: nn.Module, batches: Batches, step_fn: StepFn, cfg: LoopConfig, 
     one exists). ``max_steps`` stops after that many optimisation steps in all (saved; resumable).
     ``retired``: ``train`` keys that older runs of ``kind`` stored and this version no longer has (see
     :func:`check_resume`). ``hold(run)`` is called before the run is first written (``fit`` takes its lock there).
+    ``pictures(model)``: images logged (to the backends of ``cfg.log`` only) after each epoch's ``evaluate``.
     """
     run = Path(run_dir)
     ckpt, metrics_path = run_paths(run)
@@ -235,6 +240,7 @@ def train(model: nn.Module, batches: Batches, step_fn: StepFn, cfg: LoopConfig, 
         raise UserError(f"--max-steps {max_steps} must be at least 1 (optimisation steps in all); drop it to train "
                         f"every epoch")
     check_run_dir(run)
+    require_backends(cfg.log)  # a missing logger package: one line before anything is trained
     bs, n = cfg.batch_size, len(batches)
     steps_per_epoch = n // bs
     if steps_per_epoch < 1:
@@ -280,6 +286,7 @@ def train(model: nn.Module, batches: Batches, step_fn: StepFn, cfg: LoopConfig, 
     def write(record: dict[str, Any]) -> None:
         with open(metrics_path, "a") as f:
             f.write(json.dumps(record) + "\n")
+        curves.scalars(record)
 
     if state["epoch"] >= cfg.epochs:
         history = read_metrics(run, "epoch")
@@ -288,6 +295,7 @@ def train(model: nn.Module, batches: Batches, step_fn: StepFn, cfg: LoopConfig, 
                 f"Pass --epochs > {state['epoch']} to train longer, or a new --out.")
         return FitResult(dict(state), history[-1] if history else dict(state), history, finished_before=True)
     metrics: dict[str, Any] = {"epoch": state["epoch"], "global_step": state["global_step"]}
+    curves = RunLog(cfg.log, run, kind, config, resume_step=state["global_step"])
     model.train()
     try:
         while state["epoch"] < cfg.epochs:
@@ -335,6 +343,9 @@ def train(model: nn.Module, batches: Batches, step_fn: StepFn, cfg: LoopConfig, 
                 with evaluating(model), torch.no_grad():
                     metrics.update({f"val/{k}": v for k, v in evaluate(model).items()})
             write(metrics)
+            if pictures is not None and cfg.log:
+                with evaluating(model), torch.no_grad():
+                    curves.images(pictures(model), state["global_step"])
             save()
             say(f"{desc} epoch {epoch + 1}: " + " ".join(f"{k}={v:.4g}" for k, v in metrics.items()
                                                          if isinstance(v, float) and k != "lr"))
@@ -344,6 +355,8 @@ def train(model: nn.Module, batches: Batches, step_fn: StepFn, cfg: LoopConfig, 
         save()
         say(f"interrupted: checkpoint saved at step {state['global_step']}; re-run the same command to resume")
         raise
+    finally:
+        curves.close()
     return FitResult(dict(state), metrics, read_metrics(run, "epoch"))
 
 

@@ -12,6 +12,7 @@ from wamplan.errors import (UserError, require_dir, require_distinct, require_fi
                             require_seeds)
 from wamplan.cli.foreground import foreground_options, masks_options
 from wamplan.cli.main import add_command, add_group, first_screen, register_command
+from wamplan.train_log import require_backends
 
 
 def write_json(path: Path, obj) -> Path:
@@ -290,6 +291,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     p = get_world_model_preset(args.preset)
     encoder, encoder_kwargs = _encoder(args, p)
     architecture, train = architecture_from_args(args, p.predictor), from_args(TrainConfig, args, p.train)
+    require_backends(train.log)  # before the stores are encoded
     stores = _stores(args.data)
     metrics = train_predictor_on_stores(stores, args.out, architecture, train,
                                         encoder=encoder, encoder_kwargs=encoder_kwargs,
@@ -337,8 +339,9 @@ def cmd_train_decoder(args: argparse.Namespace) -> int:
     resolve_device(args.device)
     p = get_world_model_preset(args.preset)
     encoder, encoder_kwargs = _encoder(args, p)
-    metrics = train_decoder_on_stores(_stores(args.data), args.out, p.decoder,
-                                      from_args(DecoderTrainConfig, args, p.decoder_train),
+    train = from_args(DecoderTrainConfig, args, p.decoder_train)
+    require_backends(train.log)  # before the stores are encoded
+    metrics = train_decoder_on_stores(_stores(args.data), args.out, p.decoder, train,
                                       encoder=encoder, encoder_kwargs=encoder_kwargs,
                                       encoder_path=args.encoder_path,
                                       val_fraction=args.val_fraction, device=args.device, max_steps=args.max_steps)

@@ -151,6 +151,18 @@ def evaluate(net: TinyWAMNet, items: WAMItems, batch_size: int = 64, gripper: in
     return {k: v / max(1, len(items)) for k, v in sums.items()}
 
 
+@torch.no_grad()
+def predicted_beside_future(net: TinyWAMNet, items: WAMItems, n: int = 4) -> Any:
+    """The first view of ``n`` items spread over ``items``: TinyWAM's predicted view at the chunk's end beside the
+    real one, (n * S, 2 * S, 3) uint8 (``train_log.side_by_side``)."""
+    from wamplan.train_log import side_by_side
+
+    idx = torch.linspace(0, len(items) - 1, min(n, len(items))).long()  # (n,)
+    b = make_batch(items, idx, next(net.parameters()).device)
+    _, future = net(b["images"], b["proprio"])  # (n, V, 3, S, S)
+    return side_by_side(*(x[:, 0].permute(0, 2, 3, 1).float().cpu().numpy() for x in (future, b["future"])))
+
+
 # ----------------------------------------------------------------------------------------------- training
 class ItemBatches:
     """The :class:`~wamplan.train_loop.Batches` of in-memory items: the augmentation of global step s is
@@ -243,11 +255,14 @@ def train_tinywam(stores: Sequence[str | Path], out: str | Path, model_cfg: Tiny
     def validate(m: TinyWAMNet) -> dict[str, float]:
         return evaluate(m, val_items, 2 * bs, task.gripper_index)
 
+    def pictures(m: TinyWAMNet) -> dict[str, Any]:
+        return {"val/predicted_vs_future": predicted_beside_future(m, val_items)}
+
     result = fit(net, ItemBatches(train_items, device, train_cfg.shift_pixels, train_cfg.seed),
                  lambda m, b: wam_loss(m, b, train_cfg), train_cfg, run_dir=out, kind=KIND, config=config, data=data,
                  device=device, evaluate=validate if len(val_items) else None,
                  on_fresh_start=fresh_stats, resume=progress_saved is not None, max_steps=max_steps,
-                 progress=progress, desc="tinywam", log=log)
+                 progress=progress, desc="tinywam", log=log, pictures=pictures if len(val_items) else None)
     return TrainResult(net.eval(), dict(result.state, history=result.history), finished_before=False)
 
 

@@ -97,6 +97,18 @@ def evaluate_decoder(model: Decoder, dataset: Dataset, batch_size: int = 64,
     return {"pixel_mse": mse, "psnr": 10 * math.log10(1.0 / max(mse, 1e-12))}
 
 
+@torch.no_grad()
+def decoded_beside_target(model: Decoder, dataset: Dataset, device: torch.device, n: int = 4) -> Any:
+    """The first ``n`` items of ``dataset`` decoded, each beside the image it was encoded from: (n * S, 2 * S, 3)
+    uint8 (``train_log.side_by_side``)."""
+    from wamplan.train_log import side_by_side
+
+    batch = next(iter(DataLoader(dataset, batch_size=n, shuffle=False)))
+    pred = model(batch["z"].to(device))  # (n, 3, S, S)
+    target = _target(batch["image"].to(device), model.cfg.image_size)  # (n, 3, S, S)
+    return side_by_side(*(x.permute(0, 2, 3, 1).float().cpu().numpy() for x in (pred, target)))
+
+
 def train_decoder(train_set: Dataset, cfg: DecoderConfig, train: DecoderTrainConfig, out_dir: str | Path, *,
                   val_set: Dataset | None = None, device: str | torch.device = "auto", resume: bool = False,
                   max_steps: int | None = None, progress: bool = True,
@@ -118,11 +130,14 @@ def train_decoder(train_set: Dataset, cfg: DecoderConfig, train: DecoderTrainCon
     def evaluate(m: torch.nn.Module) -> dict[str, float]:
         return evaluate_decoder(m, val_set, 2 * train.batch_size, dev)  # type: ignore[arg-type]
 
+    def pictures(m: torch.nn.Module) -> dict[str, Any]:
+        return {"val/decoded_vs_target": decoded_beside_target(m, val_set, dev)}  # type: ignore[arg-type]
+
     result = fit(model, DatasetBatches(train_set, train.num_workers, dev.type != "cpu"), decoder_loss, train,
                  run_dir=out_dir, kind=KIND, config=config, data=data, device=dev,
                  evaluate=evaluate if val_set is not None else None, resume=resume, max_steps=max_steps,
                  progress=progress, desc="decoder", log=print if progress else None,
-                 retired=PREDICTOR_ONLY_TRAIN_KEYS)
+                 retired=PREDICTOR_ONLY_TRAIN_KEYS, pictures=pictures if val_set is not None else None)
     return model.eval(), result.metrics
 
 
