@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Idempotent set-up for a fresh Debian bookworm machine (CPU) or a GPU machine.
 #  1. the Vulkan software renderer (Mesa >= 24.3 lavapipe from bookworm-backports) unless Vulkan already works;
-#  2. a virtual environment in .venv with a CPU build of torch (only where no torch is present) and wamplan.
+#  2. a virtual environment in .venv with a CPU build of torch (only where no torch is present) and wamplan;
+#  3. headless Chromium from Debian's packages (the report page's browser test) unless a chromium is present.
 # The backports source is derived from the mirror already configured in apt; no host is written here.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -38,6 +39,18 @@ install_renderer() {
   log "installed mesa-vulkan-drivers $(dpkg-query -W -f='${Version}' mesa-vulkan-drivers)"
 }
 
+install_browser() {
+  # `wamplan report` writes report.html; tests/test_report_page.py loads it in this browser (skipped without one).
+  if command -v chromium >/dev/null || command -v chromium-browser >/dev/null; then log "Chromium present"; return; fi
+  if ! command -v apt-get >/dev/null || [ "$(id -u)" != 0 ]; then
+    log "cannot install Chromium (need root and apt); the report page's browser test will be skipped"; return
+  fi
+  local t0=$SECONDS
+  DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends chromium >/dev/null \
+    || { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends chromium >/dev/null; }
+  log "installed chromium $(dpkg-query -W -f='${Version}' chromium) in $((SECONDS - t0)) s"
+}
+
 install_python() {
   [ -x "$VENV/bin/python" ] || { log "creating $VENV"; "$PY" -m venv "$VENV"; }
   local pip="$VENV/bin/python -m pip"
@@ -59,5 +72,6 @@ install_python() {
 }
 
 install_renderer
+install_browser
 install_python
 log "done"

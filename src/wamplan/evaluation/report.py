@@ -20,6 +20,7 @@ from wamplan.envs.config import EnvConfig
 from wamplan.envs.spec import TaskSpec, get_task
 from wamplan.evaluation.conditions import CONDITIONS
 from wamplan.evaluation.records import RECORDS, no_records, read_records, read_settings
+from wamplan.evaluation.report_page import write_page
 
 REQUIRED_FIELDS = ("condition", "seed", "success", "outcome", "length")  # what every record must hold for a report
 ALIGNED = "aligned"  # the stage the insertion readings (paired table, Table 2) start from, where a task has it
@@ -417,7 +418,8 @@ def _outcome(rec: dict[str, Any]) -> tuple:
 
 
 def write_report(out_dir: str | Path, more: list[str | Path] = ()) -> dict[str, Path]:
-    """Table 1, Figure 3, timings and the paired comparison, written into ``out_dir``; with ``more``, the
+    """Table 1, Figure 3, timings and the paired comparison, written into ``out_dir`` (report.md, and report.html:
+    the same as one page with a grid of seeds x conditions linking to the videos); with ``more``, the
     records of those evaluation directories (``DIR`` or ``DIR:C[,C...]``) are merged with ``out_dir``'s (which
     may then be empty)."""
     from wamplan.errors import UserError, require_writable
@@ -455,19 +457,19 @@ def write_report(out_dir: str | Path, more: list[str | Path] = ()) -> dict[str, 
     sources = ["Runs merged: " + ", ".join(f"`{m}`" for m in ([out] if (out / RECORDS).is_file() else []) + list(more)),
                ""] if more else []
     parts = ["# Evaluation report", "", *sources, *settings,
-             "## Table 1: success rate and length of successful episodes", "", md1, "",
-             "![Figure 3](figure3.png)", "", "## Per-chunk timing (planned chunks)", "", markdown_timing(rows)]
+             "## Table 1: success rate and length of successful episodes", "", md1, "", "![Figure 3](figure3.png)"]
     paired = markdown_paired(records, task=task)
-    if paired:
-        parts += ["", "## Episode by episode against condition 1", "", paired]
-    gap = markdown_gap(records)
-    if gap:
-        parts += ["", "## The gap to the simulator oracle", "", gap]
-    released = markdown_release(records, task)
-    if released:
-        parts += ["", "## Where the cube was let go (privileged)", "", released]
-    t2 = markdown_table2(records, task)
-    if t2:
-        parts += ["", "## Table 2: first chunk skipped vs planned", "", t2]
+    sections = [(h, t) for h, t in (("Per-chunk timing (planned chunks)", markdown_timing(rows)),
+                                    ("Episode by episode against condition 1", paired),
+                                    ("The gap to the simulator oracle", markdown_gap(records)),
+                                    ("Where the cube was let go (privileged)", markdown_release(records, task)),
+                                    ("Table 2: first chunk skipped vs planned", markdown_table2(records, task))) if t]
+    for heading, text in sections:
+        parts += ["", f"## {heading}", "", text]
     paths["report"].write_text("\n".join(parts) + "\n")
+    # the same tables as one static page, with the grid of seeds x conditions linking to the episodes' videos
+    paths["page"] = write_page(out / "report.html", title=f"Evaluation report: {out}", notes=sources + settings,
+                               rows=rows, task=task, colors=outcome_colors(task), by=open_loop_by_seed(records),
+                               paired=sections[1] if paired else None, figure=paths["figure3"].name, dirs=dirs,
+                               sections=[x for x in sections if x[1] is not paired])
     return paths
