@@ -64,26 +64,35 @@ def _wandb_rows(run: Path) -> list[dict]:
     return rows
 
 
-def test_fit_sends_every_metrics_scalar_to_tensorboard_and_wandb(tmp_path):
+class Toy:
+    """16 random items of 3 numbers."""
+
+    def __len__(self):
+        return 16
+
+    def epoch(self, indices, batch_size, first_step):
+        g = torch.Generator().manual_seed(first_step)
+        return [torch.randn(batch_size, 3, generator=g) for _ in range(len(indices) // batch_size)]
+
+
+PICTURE = np.arange(8 * 16 * 3, dtype=np.uint8).reshape(8, 16, 3)
+
+
+def _fit_toy(run: Path, epochs: int, log: tuple[str, ...], resume: bool = False) -> None:
+    """A linear model fitted by the loop into ``run``: 4 steps an epoch, a step record every 2, a picture an epoch."""
     from wamplan.train_config import LoopConfig
     from wamplan.train_loop import fit
 
-    class Toy:
-        def __len__(self):
-            return 16
-
-        def epoch(self, indices, batch_size, first_step):
-            g = torch.Generator().manual_seed(first_step)
-            return [torch.randn(batch_size, 3, generator=g) for _ in range(len(indices) // batch_size)]
-
     torch.manual_seed(0)
-    run = tmp_path / "run"
-    cfg = LoopConfig(epochs=2, batch_size=4, lr=1e-2, log_every_steps=2, log=("tensorboard", "wandb"))
-    picture = np.arange(8 * 16 * 3, dtype=np.uint8).reshape(8, 16, 3)
+    cfg = LoopConfig(epochs=epochs, batch_size=4, lr=1e-2, log_every_steps=2, log=log)
     step = lambda m, b: (m(b).square().mean(), {"abs": float(m(b).detach().abs().mean())})  # noqa: E731
-    fit(torch.nn.Linear(3, 1), Toy(), step, cfg,
-        run_dir=run, kind="toy", config={"train": {}}, evaluate=lambda m: {"err": 0.5}, progress=False, log=None,
-        pictures=lambda m: {"val/picture": picture})
+    fit(torch.nn.Linear(3, 1), Toy(), step, cfg, run_dir=run, kind="toy", config={"train": {}}, resume=resume,
+        evaluate=lambda m: {"err": 0.5}, progress=False, log=None, pictures=lambda m: {"val/picture": PICTURE})
+
+
+def test_fit_sends_every_metrics_scalar_to_tensorboard_and_wandb(tmp_path):
+    run = tmp_path / "run"
+    _fit_toy(run, 2, ("tensorboard", "wandb"))
     records = _metrics(run)
     names = _names(records)
     assert names == {"epoch", "lr", "train/loss", "train/abs", "samples_per_s", "val/err"}
@@ -103,6 +112,17 @@ def test_fit_sends_every_metrics_scalar_to_tensorboard_and_wandb(tmp_path):
     assert scalar_rows == [{k: v for k, v in r.items() if k != "event"} for r in records]  # one row a record
     assert [r["global_step"] for r in drawn] == [4, 8] and drawn[0]["val/picture/width"] == 16
     assert len(list((run / "wandb").glob("offline-run-*/files/media/images/val/picture_*.png"))) == 2
+
+
+def test_a_resumed_run_keeps_its_tensorboard_curves_up_to_the_checkpoint(tmp_path):
+    """Resuming drops only the events logged after the checkpoint (none here): the saved epoch's end stays."""
+    run = tmp_path / "run"
+    _fit_toy(run, 1, ("tensorboard",))
+    _fit_toy(run, 2, ("tensorboard",), resume=True)
+    records, tb = _metrics(run), _tensorboard(run)
+    assert [r["global_step"] for r in records] == [2, 4, 4, 6, 8, 8]
+    assert [e.step for e in tb.Scalars("train/loss")] == [2, 4, 4, 6, 8, 8]
+    assert [e.step for e in tb.Images("val/picture")] == [4, 8]
 
 
 @pytest.fixture(scope="module")

@@ -57,7 +57,7 @@ class RunLog:
         if "tensorboard" in names:
             from torch.utils.tensorboard import SummaryWriter
 
-            self.tb = SummaryWriter(str(run / TB_DIR), purge_step=resume_step or None)
+            self.tb = SummaryWriter(str(run / TB_DIR), purge_step=resume_step + 1 if resume_step else None)
         if "wandb" in names:
             import wandb
 
