@@ -35,7 +35,7 @@ th { background: #f3f3f3; } td.num { text-align: right; font-variant-numeric: ta
 .ci i { position: absolute; top: -2px; width: 2px; height: 14px; background: #1b5e20; }
 .grid td { text-align: center; min-width: 64px; font-size: 12px; } .grid a { color: inherit; margin: 0 2px; }
 .swatch { display: inline-block; width: 12px; height: 12px; margin: 0 4px 0 12px; vertical-align: middle; }
-img { max-width: 100%; } code { background: #f3f3f3; padding: 0 3px; } .note { color: #555; }
+img { max-width: min(100%, 720px); display: block; } code { background: #f3f3f3; padding: 0 3px; } .note { color: #555; }
 """
 
 
@@ -126,7 +126,8 @@ def grid_html(by: dict[int, dict[int, dict[str, Any]]], colors: dict[str, str], 
                      for o, c in colors.items())
     out_rows = [f'<p class="note">Outcome:{legend}. Each cell: the episode\'s length in steps; ▶ its video, '
                 "plan: the plan beside the real outcome, a vs b: the two conditions side by side.</p>",
-                '<table class="grid"><tr><th>Seed</th>' + "".join(f"<th>{c}</th>" for c in conditions) + "</tr>"]
+                '<table class="grid"><tr><th>Seed \\ condition</th>' + "".join(f"<th>{c}</th>" for c in conditions)
+                + "</tr>"]
     for s in seeds:
         cells = []
         for c in conditions:
