@@ -12,7 +12,6 @@ from wamplan.errors import (UserError, require_dir, require_distinct, require_fi
                             require_seeds)
 from wamplan.cli.foreground import foreground_options, masks_options
 from wamplan.cli.main import add_command, add_group, first_screen, register_command
-from wamplan.train_log import require_backends
 
 
 def write_json(path: Path, obj) -> Path:
@@ -276,6 +275,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     from wamplan.worldmodel.config import TrainConfig, architecture_from_args
     from wamplan.checkpoint import CheckpointError, checkpoint_dir, read_config
     from wamplan.train_loop import check_run_dir
+    from wamplan.train_log import require_backends
     from wamplan.worldmodel.stores import train_predictor_on_stores
     from wamplan.worldmodel.load import KIND
 
@@ -332,6 +332,7 @@ def _rank_targets(train, stores: list[str], frameskip: int):
 
 def cmd_train_decoder(args: argparse.Namespace) -> int:
     from wamplan.presets import get_world_model_preset
+    from wamplan.train_log import require_backends
     from wamplan.worldmodel.config import DecoderTrainConfig
     from wamplan.worldmodel.stores import train_decoder_on_stores
 
