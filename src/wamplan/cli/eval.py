@@ -23,6 +23,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_command(sub, "explain", _explain_options,
                 help="one planned chunk in pictures: the WAM's target, the world model's prediction under the WAM's "
                      "chunk and under the plan, and the real frames after each")
+    add_command(sub, "film", _film_options,
+                help="two conditions of an evaluation on the same seed in one video, for the seeds one solved and the "
+                     "other did not (re-running episodes the evaluation did not film)")
     add_command(sub, "report", _report_options,
                 help="Table 1, Figure 3 (and Table 2, timings) from an evaluation directory")
 
@@ -41,9 +44,18 @@ def _eval_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=int, default=1, help="worker processes, or Ray actors with --ray (default: 1)")
     add_backend_argument(p)
     add_eval_arguments(p)
+    add_video_arguments(p)
     first_screen(p, "--conditions", "--episodes", "--seed-start", "--workers", "--wam", "--wam-url", "--wm-plain",
                  "--wm-augmented", "--device", "--planner", "--task", "--camera-size")
     p.set_defaults(func=cmd_eval)
+
+
+def add_video_arguments(p: argparse.ArgumentParser) -> None:
+    """``--videos``, ``--video-every``, ``--video-size``, ``--decoder``: what is filmed into OUT/videos, and how."""
+    from wamplan.config import add_arguments
+    from wamplan.evaluation.videos import VideoConfig
+
+    add_arguments(p.add_argument_group("videos"), VideoConfig)
 
 
 def _reproduce_options(p: argparse.ArgumentParser) -> None:
@@ -86,6 +98,70 @@ def _explain_options(p: argparse.ArgumentParser) -> None:
     p.set_defaults(func=cmd_explain)
 
 
+def _film_options(p: argparse.ArgumentParser) -> None:
+    from wamplan.evaluation.videos import VideoConfig
+
+    p.add_argument("run", type=Path, help="an evaluation directory (`wamplan eval --out`); the videos go to "
+                                          "RUN/videos/pairs/seed{seed:04d}_c{a}_vs_c{b}.webm")
+    p.add_argument("--pair", default="1,7", help="the two conditions, top one first (default: 1,7)")
+    p.add_argument("--seeds", default=None, help="seeds to film, e.g. 0-3,9 (default: those one condition solved and "
+                                                 "the other did not)")
+    p.add_argument("--first-chunk", default="open-loop", help="the records' first-chunk variant (default: open-loop)")
+    p.add_argument("--device", default="auto", help="torch device for the episodes re-run (default: auto)")
+    for name in ("video_every", "video_size", "decoder"):  # how an episode the run did not film is filmed
+        f = VideoConfig.__dataclass_fields__[name]
+        p.add_argument("--" + name.replace("_", "-"), type=type(f.default), default=f.default,
+                       help=f"{f.metadata['help']} (default: {f.default!r})")
+    p.set_defaults(func=cmd_film)
+
+
+def cmd_film(args: argparse.Namespace) -> int:
+    from wamplan.config import int_list
+    from wamplan.envs.media import require_webm
+    from wamplan.errors import UserError
+    from wamplan.evaluation.conditions import CONDITIONS
+    from wamplan.evaluation.pairs import disagreeing_seeds, film_pairs, paired_records
+    from wamplan.evaluation.records import RECORDS, no_records, read_records
+    from wamplan.evaluation.videos import VideoConfig, require_video_dir
+
+    pair = int_list(args.pair, "--pair", example="1,7")
+    if len(pair) != 2 or pair[0] == pair[1] or not all(c in CONDITIONS for c in pair):
+        raise UserError(f"--pair {args.pair}: name two different conditions of 1-7, e.g. 1,7")
+    a, b = pair
+    if not (args.run / RECORDS).is_file():
+        raise UserError(no_records(args.run))
+    videos = VideoConfig(videos="all", video_every=args.video_every, video_size=args.video_size, decoder=args.decoder)
+    require_webm()
+    require_video_dir(args.run)
+    records = read_records(args.run)
+    both = paired_records(records, a, b, args.first_chunk)
+    if args.seeds is None:
+        seeds = disagreeing_seeds(records, a, b, args.first_chunk)
+        if not seeds:
+            print(f"conditions {a} and {b} agree on all {len(both)} seeds they share in {args.run}: nothing to film "
+                  f"(pass --seeds to film some anyway)")
+            return 0
+    else:
+        seeds = int_list(args.seeds, "--seeds")
+        missing = [s for s in seeds if s not in both]
+        if missing:
+            raise UserError(f"--seeds: {args.run} holds no records of both conditions {a} and {b} for seeds "
+                            f"{missing[:8]}; pick seeds both ran")
+    print(f"filming {len(seeds)} seeds, condition {a} above condition {b}")
+    done, differed = [], 0
+    for f in film_pairs(args.run, a, b, seeds, videos, args.first_chunk, args.device):
+        said = f" (re-ran condition{'s' if len(f.rerun) > 1 else ''} {', '.join(map(str, f.rerun))})" if f.rerun else ""
+        print(f"seed {f.seed}: {a} {f.outcomes[a]} | {b} {f.outcomes[b]} -> {f.path}{said}")
+        for c, (was, now) in f.differed.items():
+            differed += 1
+            print(f"warning: seed {f.seed} condition {c} re-ran to {now[0]} in {now[1]} steps, but its record says "
+                  f"{was[0]} in {was[1]} steps (re-runs are identical only on the machine that made the run): its "
+                  f"video shows the re-run", file=sys.stderr)
+        done.append(f.seed)
+    print(json.dumps({"pairs": len(done), "seeds": done, "reruns_differing": differed}))
+    return 0
+
+
 def _report_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("dir", type=Path, help="evaluation directory; the report is written there")
     p.add_argument("more", nargs="*", metavar="RUN", help="further evaluation directories whose records join DIR's "
@@ -108,7 +184,8 @@ def _local_chunk_length(wam: str) -> int | None:
 def cmd_explain(args: argparse.Namespace) -> int:
     from wamplan.device import resolve_device
     from wamplan.errors import UserError, require_file, require_paths, require_seeds
-    from wamplan.evaluation.mechanism import explain_chunk, mechanism_figure
+    from wamplan.evaluation.explain import explain_chunk
+    from wamplan.evaluation.mechanism import mechanism_figure
     from wamplan.cli.eval_options import eval_config_from_args
 
     require_seeds(args.seed, flag="--seed")
@@ -138,6 +215,8 @@ def cmd_explain(args: argparse.Namespace) -> int:
 
 def cmd_eval(args: argparse.Namespace) -> int:
     from wamplan.cli.eval_options import eval_config_from_args
+    from wamplan.config import from_args
+    from wamplan.evaluation.videos import VIDEOS, VideoConfig, plan_video_note
     from wamplan.errors import require_dir, require_positive, require_seeds
     from wamplan.evaluation.conditions import parse_conditions
     from wamplan.evaluation.records import read_records, record_key
@@ -152,6 +231,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     require_dir(args.out)
     cfg = eval_config_from_args(args)  # the env's settings (backends) are checked here, before any work
     cfg.check_for(conds)
+    videos = from_args(VideoConfig, args)
     backend.check()
     from wamplan.device import resolve_device
     from wamplan.evaluation.runner import run_evaluation
@@ -162,9 +242,16 @@ def cmd_eval(args: argparse.Namespace) -> int:
     total = len(conds) * len(seeds)
     have = sum((c, s, cfg.policy.first_chunk) in done for c in conds for s in seeds)
     counts: dict[int, Counter] = {c: Counter() for c in conds}
-    records = run_evaluation(cfg, conds, seeds, args.out, workers=args.workers, backend=backend)  # checks inputs
+    records = run_evaluation(cfg, conds, seeds, args.out, workers=args.workers, backend=backend,
+                             videos=videos)  # checks inputs, the video directory and codec
     if have:  # after the checks: a resume they refuse says only why
         print(f"resuming: {have} of {total} episodes already recorded in {args.out}")
+    filmed = videos.filmed(seeds)
+    if filmed and have < total:
+        print(f"filming seeds {_seed_list(sorted(filmed))} of every condition into {args.out / VIDEOS}")
+        note = plan_video_note(videos, conds, cfg.oracle_blend)
+        if note:
+            print(note, file=sys.stderr)
     bar = progress_bar(total=total, initial=have, desc="eval", unit="ep")
     proxy: Counter = Counter()  # a planning proxy's chunks, by what it did (the WAM is one at --wam-url)
     for rec in records:
@@ -180,6 +267,13 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if proxy and not proxy["planned"]:
         print(proxy_warning(proxy), file=sys.stderr)
     return 0
+
+
+def _seed_list(seeds: list[int]) -> str:
+    """0-3 for a run of consecutive seeds, else 0,5,9 (at most 8 shown)."""
+    if seeds == list(range(seeds[0], seeds[-1] + 1)) and len(seeds) > 2:
+        return f"{seeds[0]}-{seeds[-1]}"
+    return ",".join(map(str, seeds[:8])) + (",..." if len(seeds) > 8 else "")
 
 
 def proxy_warning(chunks: Counter) -> str:

@@ -1,4 +1,5 @@
-"""The mechanism of feedback planning, for one chunk, in one picture (``wamplan explain``).
+"""The mechanism of feedback planning, for one chunk, in one picture (``wamplan explain``; the run that fills it is
+:func:`wamplan.evaluation.explain.explain_chunk`).
 
 At chunk boundary t of a condition-7 episode (the WAM with planning in the world model), per view:
 
@@ -13,6 +14,9 @@ the model preferred is also better in the simulator, and where the model's pictu
 The views are the planned policy's (its world model's cameras, in order); where the task's privileged state
 has the cube and the hole (the cube task), each real column also says how far the cube ended from the hole's
 axis.
+
+The same columns, one picture per chunk boundary of a whole episode, are an evaluation's plan video
+(:func:`mechanism_frame`, ``wamplan.evaluation.filming``): there only the chunk that ran is real.
 """
 
 from __future__ import annotations
@@ -23,7 +27,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from wamplan.errors import UserError
 
 
 @dataclass
@@ -31,66 +34,56 @@ class Mechanism:
     step: int
     now: np.ndarray  # (V, H, W, 3) uint8
     target: np.ndarray  # (V, h, w, 3) uint8, the WAM's predicted views at t+H
-    model: dict[str, np.ndarray]  # "wam" / "plan" -> (V, S, S, 3) float in [0, 1], decoded predictions
-    real: dict[str, np.ndarray]  # "wam" / "plan" -> (V, H, W, 3) uint8 after executing the chunk
+    model: dict[str, np.ndarray]  # "wam" / "plan" -> (V, S, S, 3) float in [0, 1], decoded predictions ({}: none)
+    real: dict[str, np.ndarray]  # "wam" / "plan" -> (V, H, W, 3) uint8 after executing the chunk (those simulated)
     model_cost: dict[str, float]
     true_cost: dict[str, float]
     cube_xy_mm: dict[str, float] | None  # the cube's xy distance to the hole axis after each chunk (None: no cube)
     cameras: tuple[str, ...]  # the V views, in order
     chunk: int  # H: the target is at step + chunk
+    reached: int | None = None  # the step of the real views (None: step + chunk)
 
 
-@torch.no_grad()  # not inference mode: the env built here must hold ordinary tensors
-def explain_chunk(cfg, decoder: str | Path, seed: int, chunk_index: int) -> Mechanism:
-    """Run condition 7 of ``cfg`` (an ``EvalConfig``) on ``seed`` up to chunk ``chunk_index`` (>= 1), plan that
-    chunk, and compare the WAM's chunk with the plan in the model and in the simulator."""
-    from wamplan.evaluation.runner import EvalWorker
-    from wamplan.wam.once import OnceWAM
-    from wamplan.policies.rollout import run_episode
-    from wamplan.worldmodel.decoder import load_decoder
-
-    if chunk_index < 1:
-        raise UserError(f"--chunk {chunk_index}: chunk 0 always runs open loop; pick a chunk index >= 1")
-    worker = EvalWorker(cfg)
-    policy = worker.policy(7)
-    policy.wam = policy.target_wam = once = OnceWAM(policy.wam)  # one query per step, kept for the picture
-    once.new_episode()
-    env, t = worker.env, chunk_index * policy.chunk
-    r = run_episode(env, policy, seed, max_steps=t)
-    if r.length < t:
-        raise UserError(f"seed {seed} ended ({r.outcome}) at step {r.length}, before chunk {chunk_index}; pick an "
-                        f"earlier --chunk")
-    obs = env.observe(with_images=True)
-    decision = policy.plan_chunk(obs)
-    target_views = once.last.images
-    target = decision.target if decision.target is not None else policy.encode(target_views)  # (V, N, D)
-    dec = load_decoder(decoder, encoder=policy.encoder, task=cfg.env.spec.name)
-    chunks = {"wam": decision.seed, "plan": decision.executed}  # (H, A) each
-    cands = torch.as_tensor(np.stack(list(chunks.values())), device=policy.device)  # (2, H, A)
+@torch.no_grad()
+def model_pictures(policy, decoder, chunks: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray], torch.Tensor]:
+    """The planned ``policy``'s world model's predicted views at the end of each chunk (name -> (H, A) actions),
+    decoded to pixels by ``decoder`` -> (name -> (V, S, S, 3) float in [0, 1], the predicted embeddings
+    (C, V, N, D) in ``chunks``' order). Its dynamics must be prepared for the
+    current boundary (as the policy leaves it after planning) and learned (a simulator backend would step the env)."""
+    cands = torch.as_tensor(np.stack(list(chunks.values())), device=policy.device)  # (C, H, A)
     covered = policy.dynamics.covered(policy.chunk)
-    z = policy.dynamics.terminal(policy.clip(cands[:, :covered]))  # (2, V, N, D), for the pictures
-    model_cost = policy.objective(target)(policy.clip(cands[:, :covered]))  # (2,) what the planner minimised
-    pics = dec(z.flatten(0, 1).float().to(next(dec.parameters()).device))  # (2V, 3, S, S)
-    cams = policy.cameras
-    pics = pics.permute(0, 2, 3, 1).reshape(2, len(cams), *pics.shape[2:], 3).cpu().numpy()
-    snap = env.snapshot()
-    real, true_cost, xy = {}, {}, {}
-    for k, acts in chunks.items():
-        env.restore(snap)
-        for a in acts:
-            env.step(a)
-        views = env.render(cams)
-        real[k] = np.stack([views[c] for c in cams])
-        true_cost[k] = float(policy.cost(policy.encode(views)[None], target)[0])
-        s = env.privileged_state()
-        if "cube_pose" in s and "hole_pos" in s:
-            xy[k] = float(np.linalg.norm(s["cube_pose"][:2] - s["hole_pos"][:2]) * 1000)
-    env.restore(snap)
-    return Mechanism(step=t, now=np.stack([obs.images[c] for c in cams]),
-                     target=np.stack([target_views[c] for c in cams]),
-                     model={k: pics[i] for i, k in enumerate(chunks)}, real=real,
-                     model_cost={k: float(model_cost[i]) for i, k in enumerate(chunks)}, true_cost=true_cost,
-                     cube_xy_mm=xy or None, cameras=tuple(cams), chunk=policy.chunk)
+    z = policy.dynamics.terminal(policy.clip(cands[:, :covered]))  # (C, V, N, D)
+    pics = decoder(z.flatten(0, 1).float().to(next(decoder.parameters()).device))  # (C·V, 3, S, S)
+    pics = pics.permute(0, 2, 3, 1).reshape(len(chunks), z.shape[1], *pics.shape[2:], 3).cpu().numpy()
+    return {k: pics[i] for i, k in enumerate(chunks)}, z  # (V, S, S, 3) each
+
+
+def columns(m: Mechanism) -> list[tuple[str, np.ndarray | None]]:
+    """The picture's columns, left to right, as (label, (V, h, w, 3) views): now, the WAM's target, the model under
+    the WAM's chunk and under the plan, the real views after each chunk; a column ``m`` lacks (no decoder, a chunk
+    not simulated) is left out, a cost or cube distance it lacks is not written."""
+    def said(k: str, kind: str) -> str:
+        cost = (m.model_cost if kind == "model" else m.true_cost).get(k)
+        cube = f", cube {m.cube_xy_mm[k]:.1f} mm" if kind == "real" and m.cube_xy_mm and k in m.cube_xy_mm else ""
+        return ("" if cost is None or cost != cost else f"\ncost {cost:.3f}") + cube
+
+    names = {"wam": "WAM's chunk", "plan": "plan"}
+    cols = [(f"now (step {m.step})", m.now), (f"WAM's target (step {m.step + m.chunk})", m.target)]
+    cols += [(f"model, {names[k]}{said(k, 'model')}", m.model[k]) for k in ("wam", "plan") if k in m.model]
+    at = f" (step {m.reached})" if m.reached is not None else ""
+    cols += [(f"real, {names[k]}{at}{said(k, 'real')}", m.real[k]) for k in ("wam", "plan") if k in m.real]
+    return cols
+
+
+def mechanism_frame(m: Mechanism, size: int, title: str = "") -> np.ndarray:
+    """The picture of :func:`mechanism_figure` as one (h, w, 3) uint8 image, views ``size`` px, the cameras as rows
+    (a plan video's frame; no matplotlib, a few ms)."""
+    from wamplan.envs.media import labelled_grid
+
+    cols = [(label, [None] * len(m.cameras) if views is None else list(views)) for label, views in columns(m)]
+    if title:
+        cols[0] = (f"{title}\n{cols[0][0]}", cols[0][1])
+    return labelled_grid(cols, size, rows=m.cameras, header=30)
 
 
 def mechanism_figure(m: Mechanism, out: str | Path, title: str = "") -> Path:
@@ -101,12 +94,7 @@ def mechanism_figure(m: Mechanism, out: str | Path, title: str = "") -> Path:
 
     from wamplan.plot import save_figure
 
-    cube = {k: f", cube {m.cube_xy_mm[k]:.1f} mm" if m.cube_xy_mm else "" for k in ("wam", "plan")}
-    cols = [(f"now (step {m.step})", m.now), (f"WAM's target (step {m.step + m.chunk})", m.target),
-            (f"model, WAM's chunk\ncost {m.model_cost['wam']:.3f}", m.model["wam"]),
-            (f"model, plan\ncost {m.model_cost['plan']:.3f}", m.model["plan"]),
-            (f"real, WAM's chunk\ncost {m.true_cost['wam']:.3f}{cube['wam']}", m.real["wam"]),
-            (f"real, plan\ncost {m.true_cost['plan']:.3f}{cube['plan']}", m.real["plan"])]
+    cols = columns(m)
     cams = m.cameras
     fig, axes = plt.subplots(len(cams), len(cols), figsize=(2.2 * len(cols), 2.3 * len(cams) + 0.6),
                              squeeze=False)
