@@ -32,6 +32,7 @@ from wamplan.envs.spec import check_same_task
 from wamplan.evaluation.conditions import CONDITIONS
 from wamplan.evaluation.config import EvalConfig
 from wamplan.evaluation.records import CONFIG, RECORDS, append_record, read_records, read_settings, record_key
+from wamplan.evaluation.videos import VideoConfig, write_record_videos
 from wamplan.locks import dir_lock
 from wamplan.parallel import Backend, imap_workers
 from wamplan.planning.dynamics import task_name
@@ -39,16 +40,22 @@ from wamplan.planning.gates import DISCARDED
 from wamplan.planning.defaults import DEFAULT_PLANNER
 
 TRACE_EVERY = 4  # steps between the cube's privileged samples in a record's "trace" (evaluation/trace.py)
+VIDEO_KEY, VIDEO_ERROR_KEY = "_videos", "_video_error"  # a filmed episode's videos / failure, never stored
 
 
 class EvalWorker:
-    """Holds the env, the WAM, the models; ``worker((condition, seed))`` runs one episode -> record."""
+    """Holds the env, the WAM, the models; ``worker((condition, seed))`` runs one episode -> record. With ``videos``
+    the episodes of the ``filmed`` seeds are filmed (:mod:`wamplan.evaluation.filming`): their record carries the
+    encoded videos under :data:`VIDEO_KEY` (and why filming failed under :data:`VIDEO_ERROR_KEY`), which the driver
+    writes out and removes before it stores the record."""
 
-    def __init__(self, cfg: EvalConfig):
+    def __init__(self, cfg: EvalConfig, videos: VideoConfig | None = None, filmed: frozenset[int] = frozenset()):
         from wamplan.envs.core import TaskEnv
         from wamplan.wam import load_wam
 
         self.cfg = cfg
+        self.videos, self.filmed = videos, frozenset(filmed)
+        self._decoders: dict[int, Any] = {}  # id(encoder) -> the plan videos' picture decoder for its tokens
         self.env = TaskEnv(cfg.env)
         if cfg.wam_url:
             from wamplan.wam.cosmos_client import CosmosPolicyClient
@@ -105,7 +112,12 @@ class EvalWorker:
 
         cid, seed = job
         trace = CubeTrace(every=TRACE_EVERY) if CubeTrace.fits(self.env.task) else None
-        r = run_episode(self.env, self.policy(cid), seed, max_steps=self.cfg.env.episode_steps, on_obs=trace)
+        film = self._film(cid, seed)
+        hooks = [h for h in (trace, film) if h is not None]
+        r = run_episode(self.env, self.policy(cid), seed, max_steps=self.cfg.env.episode_steps,
+                        images_at=film.images_at if film else None,
+                        on_obs=(lambda env, obs, a: [h(env, obs, a) for h in hooks]) if hooks else None)
+        videos = film.finish(self.env, r.length) if film else None  # {"episode": WebM bytes, "plan": ...}
         chunks = r.policy_info.get("chunks")  # PlannedPolicy: per-chunk records; WAMPolicy: a count
         planned = [ch for ch in chunks if ch.get("planned")] if isinstance(chunks, list) else []
         searched = [ch for ch in chunks if ch.get("planned") or ch.get("open_loop") in DISCARDED] \
@@ -121,7 +133,21 @@ class EvalWorker:
                     chunk_timing_s=timing,
                     chunks=[{k: (round(v, 4) if isinstance(v, float) else v) for k, v in ch.items()} for ch in searched],
                     **({"proxy": r.policy_info["proxy"]} if "proxy" in r.policy_info else {}),
-                    **(trace.summary() if trace else {}), **self._blend(cid), finished=time.time())
+                    **(trace.summary() if trace else {}), **self._blend(cid), finished=time.time(),
+                    **({VIDEO_KEY: videos} if videos else {}),
+                    **({VIDEO_ERROR_KEY: film.error} if film and film.error else {}))
+
+    def _film(self, cid: int, seed: int):
+        """The :class:`~wamplan.evaluation.filming.EpisodeFilm` of episode (``cid``, ``seed``), or None if unfilmed."""
+        if self.videos is None or seed not in self.filmed:
+            return None
+        from wamplan.evaluation.filming import EpisodeFilm, load_plan_decoder
+
+        policy = self.policy(cid)
+        if CONDITIONS[cid].dynamics == "none":
+            return EpisodeFilm(policy, self.env.task.cameras, self.videos)
+        decoder = load_plan_decoder(self.videos.decoder, policy, self.cfg.env.spec.name, self._decoders)
+        return EpisodeFilm(policy, policy.cameras, self.videos, plan=True, decoder=decoder)
 
     def _blend(self, cid: int) -> dict[str, float]:
         """The record's mark of the --oracle-blend diagnostic, where it changed the dynamics (none otherwise)."""
@@ -155,6 +181,32 @@ def settings(cfg: EvalConfig) -> dict[str, Any]:
                               env=dataclasses.replace(cfg.env, max_episode_steps=cfg.env.episode_steps))
     return {k: v for k, v in _flat(to_dict(ran)).items() if k not in ("policy.first_chunk", "device")
             and not (k in ("wam_url", "wam_profile", "policy.requery_every") and not v)}
+
+
+def config_from_settings(out: str | Path, variant: str = "open-loop", device: str = "auto") -> EvalConfig:
+    """The :class:`EvalConfig` the evaluation in ``out`` ran with, rebuilt from its stored settings
+    (``eval_config.json``, :func:`settings`), for the records of first-chunk ``variant`` (not stored: one directory may
+    hold several), on ``device``; one line if ``out`` stores none or settings this version cannot build."""
+    from wamplan.config import ConfigError, from_dict
+    from wamplan.errors import UserError
+    from wamplan.evaluation.records import no_records
+
+    stored = read_settings(out)
+    if stored is None:
+        raise UserError(no_records(out))
+    nested: dict[str, Any] = {}
+    for key, value in _without_retired(Path(out), stored).items():
+        *parents, name = key.split(".")
+        d = nested
+        for part in parents:
+            d = d.setdefault(part, {})
+        d[name] = value
+    nested.setdefault("policy", {})["first_chunk"] = variant
+    try:
+        return from_dict(EvalConfig, dict(nested, device=device))
+    except ConfigError as e:
+        raise UserError(f"{Path(out) / CONFIG} holds settings this wamplan cannot run ({e}); re-run the episode with "
+                        f"the wamplan version that made it") from None
 
 
 def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -240,10 +292,11 @@ def sim_encoder(cfg: EvalConfig, model_encoder: Callable[[str], Any]):
     return make_encoder("patch-pixels").to(resolve_device(cfg.device))
 
 
-def _check_inputs(cfg: EvalConfig, conditions: list[int]) -> None:
-    """Load the WAM and the world models the conditions need once, here, on the CPU: a damaged or foreign
-    checkpoint stops the run (in one line) before it stores its settings, so a failed start never locks its
-    output directory. The workers load their own copies."""
+def _check_inputs(cfg: EvalConfig, conditions: list[int], videos: VideoConfig | None = None) -> None:
+    """Load the WAM and the world models the conditions need once, here, on the CPU (and the plan videos'
+    ``--decoder`` with each world model's encoder): a damaged or foreign checkpoint stops the run (in one line)
+    before it stores its settings, so a failed start never locks its output directory. The workers load their own
+    copies."""
     from wamplan.encoders.foreground import load_foreground
     from wamplan.errors import UserError, require_paths
     from wamplan.planning.costs import pool_fits
@@ -276,26 +329,40 @@ def _check_inputs(cfg: EvalConfig, conditions: list[int]) -> None:
                                 f"predicts {n} tokens a view; pass a divisor of {math.isqrt(n)}")
             if cfg.cost.foreground:  # a readout of another encoder, task or views: refused here, not in the workers
                 load_foreground(cfg.cost.foreground, encoder, spec.name, predictor.cameras or spec.cameras)
+            if videos is not None and videos.first != 0 and videos.decoder:  # another kind, task or encoder: one line
+                from wamplan.worldmodel.decoder import load_decoder
+
+                require_paths([videos.decoder], "--decoder", "train one with `wamplan wm train-decoder`")
+                load_decoder(videos.decoder, encoder=encoder, task=spec.name)
 
 
 def run_evaluation(cfg: EvalConfig, conditions: list[int], seeds: list[int], out_dir: str | Path,
-                   workers: int = 1, backend: Backend = Backend()) -> Iterator[dict[str, Any]]:
+                   workers: int = 1, backend: Backend = Backend(), videos: VideoConfig | None = None
+                   ) -> Iterator[dict[str, Any]]:
     """Run the missing (condition, seed) jobs on ``backend``, appending each record as it finishes (here, in the
-    driver, whatever runs the episodes); yields the records. The checks (settings, inputs) run when this is
-    called, before the first record is asked for. The directory is held (``.lock``, :func:`wamplan.locks.dir_lock`)
-    from then until the last record is written: a second evaluation into it is refused in one line."""
+    driver, whatever runs the episodes); yields the records. The checks (settings, inputs, the video directory and
+    codec) run when this is called, before the first record is asked for. The directory is held (``.lock``,
+    :func:`wamplan.locks.dir_lock`) from then until the last record is written: a second evaluation into it is
+    refused in one line. ``videos`` (None: none) films the episodes of its chosen seeds into ``out/videos``
+    (:mod:`wamplan.evaluation.videos`), each episode's videos written before its record."""
     from wamplan.errors import require_dir, require_own_dir
 
     backend.check()
     out = require_dir(out_dir)
     require_own_dir(out, (RECORDS, CONFIG), "an evaluation directory")  # not a store or a training run
+    if videos is not None and videos.first != 0:  # a directory or codec that cannot take them: before any episode
+        from wamplan.envs.media import require_webm
+        from wamplan.evaluation.videos import require_video_dir
+
+        require_webm()
+        require_video_dir(out)
     held, locked = ExitStack(), out.is_dir()
     try:
         if locked:  # held from here: a second evaluation into it is refused before it loads anything
             held.enter_context(dir_lock(out, "evaluated into"))
         now, jobs = _todo(out, cfg, conditions, seeds)
         if jobs:
-            _check_inputs(cfg, conditions)
+            _check_inputs(cfg, conditions, videos)
         if not locked:  # a new directory, made only now that the inputs loaded: a failed start leaves none
             out.mkdir(parents=True, exist_ok=True)
             held.enter_context(dir_lock(out, "evaluated into"))
@@ -304,7 +371,8 @@ def run_evaluation(cfg: EvalConfig, conditions: list[int], seeds: list[int], out
     except BaseException:
         held.close()
         raise
-    return _run_jobs(cfg, jobs, out, workers, backend, held)
+    filmed = videos.filmed(seeds) if videos is not None else frozenset()
+    return _run_jobs(partial(EvalWorker, cfg, videos, filmed), jobs, out, workers, backend, held)
 
 
 def _todo(out: Path, cfg: EvalConfig, conditions: list[int], seeds: list[int]
@@ -318,9 +386,10 @@ def _todo(out: Path, cfg: EvalConfig, conditions: list[int], seeds: list[int]
     return _settings_to_store(out, cfg, recorded=bool(done)), jobs
 
 
-def _run_jobs(cfg: EvalConfig, jobs: list[tuple[int, int]], out: Path, workers: int, backend: Backend,
-              held: ExitStack) -> Iterator[dict[str, Any]]:
+def _run_jobs(make_worker: Callable[[], EvalWorker], jobs: list[tuple[int, int]], out: Path, workers: int,
+              backend: Backend, held: ExitStack) -> Iterator[dict[str, Any]]:
     with held:  # the directory's lock, released with the last record (or when the caller stops asking)
-        for rec in imap_workers(partial(EvalWorker, cfg), jobs, workers, backend):
+        for rec in imap_workers(make_worker, jobs, workers, backend):
+            write_record_videos(out, rec, rec.pop(VIDEO_KEY, None), rec.pop(VIDEO_ERROR_KEY, None))
             append_record(out, rec)
             yield rec
