@@ -533,7 +533,7 @@ def test_the_client_prints_the_servers_reason(act_server):
     from wamplan.wam.base import WAMServerError
     from wamplan.wam.cosmos_client import CosmosPolicyClient
 
-    client = CosmosPolicyClient(url=f"{act_server.url}/act", proprio_dim=7)  # fitted back to 10 by the server
+    client = CosmosPolicyClient(url=f"{act_server.url}/act")
     obs = Observation(step=0, proprio=np.zeros(10, np.float32), images={c: np.zeros((8, 8, 3), np.uint8)
                                                                         for c in CAMERAS})
     assert client.predict(obs, "t").actions.shape == (16, 5)
