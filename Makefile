@@ -13,8 +13,11 @@ setup:
 demo: setup
 	@bash scripts/demo.sh $(DEMO_OUT)
 
+# two pytest workers, one torch thread each (the 2-core machine's cores); a test file stays on one worker, so its
+# module fixtures are built once. TEST_WORKERS=0 runs in this process.
+TEST_WORKERS ?= 2
 test: setup
-	$(PY) -m pytest -q
+	OMP_NUM_THREADS=1 $(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 
 test-slow: setup
 	$(PY) -m pytest -q -m slow
