@@ -19,6 +19,8 @@ if [ -f "$CK/tinywam/model.safetensors" ]; then
     mv "$OUT/eval" "$old" && echo "an older demo evaluation (another planner) was kept in $old"
   fi
   args=(--wam "$CK/tinywam" --episodes "$SEEDS" --seed-start 0 --out "$OUT/eval" --workers 2)
+  # the first 4 seeds of each condition are filmed into eval/videos; the decoder draws the plan videos' model columns
+  [ -f "$CK/decoder/model.safetensors" ] && args+=(--decoder "$CK/decoder")
   if [ -f "$CK/wm_augmented/model.safetensors" ]; then
     $W eval --conditions 1,7 "${args[@]}" --wm-augmented "$CK/wm_augmented"
   elif [ -f "$CK/wm_plain/model.safetensors" ]; then
@@ -38,4 +40,4 @@ if [ -f "$CK/tinywam/model.safetensors" ]; then
 else
   echo "no demo checkpoints in $CK: docs/results.md, 'The shipped checkpoints and the commands that made them', has the commands that make them"
 fi
-echo "demo outputs in $OUT: views.png, expert_rollout.json, videos/, eval/report.md, eval/figure3.png, mechanism.png"
+echo "demo outputs in $OUT: views.png, expert_rollout.json, videos/, eval/report.md, eval/figure3.png, eval/videos/ (docs/videos.md), mechanism.png"
