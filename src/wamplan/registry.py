@@ -117,3 +117,19 @@ class Registry(dict):
     def get(self, name: str, default=None):
         return dict.get(self.load(), name, default)
 
+
+
+def lazy_exports(package: str, homes: dict[str, Iterable[str]]) -> tuple[Callable[[str], object], list[str]]:
+    """A package's PEP 562 ``__getattr__`` and ``__all__`` for names that live in its modules (module -> names):
+    each name is imported from ``package.module`` when first asked for, then kept in the package's namespace."""
+    where = {name: module for module, names in homes.items() for name in names}
+
+    def __getattr__(name: str) -> object:
+        module = where.get(name)
+        if module is None:
+            raise AttributeError(f"module {package!r} has no attribute {name!r}")
+        value = getattr(importlib.import_module(f"{package}.{module}"), name)
+        setattr(sys.modules[package], name, value)  # later lookups skip this function
+        return value
+
+    return __getattr__, sorted(where)

@@ -9,8 +9,7 @@ The names below are loaded on first use, so that importing a torch-free part of 
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from wamplan.registry import lazy_exports
 
 _HOMES = {
     "base": ("PLANNERS", "IterationStats", "Objective", "PlanResult", "Planner", "SamplingPlanner", "make_planner",
@@ -22,14 +21,4 @@ _HOMES = {
     "mppi": ("MPPIPlanner",),
     "costs": ("COSTS", "CostFn", "cls_cost", "make_cost", "patch_cost", "register_cost"),
 }
-_WHERE = {name: module for module, names in _HOMES.items() for name in names}
-__all__ = sorted(_WHERE)
-
-
-def __getattr__(name: str) -> Any:
-    module = _WHERE.get(name)
-    if module is None:
-        raise AttributeError(f"module 'wamplan.planning' has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"wamplan.planning.{module}"), name)
-    globals()[name] = value  # later lookups skip this function
-    return value
+__getattr__, __all__ = lazy_exports(__name__, _HOMES)

@@ -12,8 +12,7 @@ training.
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from wamplan.registry import lazy_exports
 
 _HOMES = {
     "config": ("DecoderConfig", "DecoderTrainConfig", "PredictorConfig", "TrainConfig"),
@@ -23,14 +22,4 @@ _HOMES = {
     "losses": ("window_loss",),
     "train": ("compute_feature_stats", "evaluate_predictor", "train_predictor"),
 }
-_WHERE = {name: module for module, names in _HOMES.items() for name in names}
-__all__ = sorted(_WHERE)
-
-
-def __getattr__(name: str) -> Any:
-    module = _WHERE.get(name)
-    if module is None:
-        raise AttributeError(f"module 'wamplan.worldmodel' has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"wamplan.worldmodel.{module}"), name)
-    globals()[name] = value  # later lookups skip this function
-    return value
+__getattr__, __all__ = lazy_exports(__name__, _HOMES)
