@@ -122,7 +122,7 @@ def cmd_film(args: argparse.Namespace) -> int:
     from wamplan.evaluation.conditions import CONDITIONS
     from wamplan.evaluation.pairs import disagreeing_seeds, film_pairs, paired_records
     from wamplan.evaluation.records import RECORDS, no_records, read_records
-    from wamplan.evaluation.videos import VideoConfig, require_video_dir
+    from wamplan.evaluation.videos import VideoConfig, plan_video_note, require_video_dir
 
     pair = int_list(args.pair, "--pair", example="1,7")
     if len(pair) != 2 or pair[0] == pair[1] or not all(c in CONDITIONS for c in pair):
@@ -148,8 +148,12 @@ def cmd_film(args: argparse.Namespace) -> int:
             raise UserError(f"--seeds: {args.run} holds no records of both conditions {a} and {b} for seeds "
                             f"{missing[:8]}; pick seeds both ran")
     print(f"filming {len(seeds)} seeds, condition {a} above condition {b}")
-    done, differed = [], 0
+    done, differed, noted = [], 0, False
     for f in film_pairs(args.run, a, b, seeds, videos, args.first_chunk, args.device):
+        note = plan_video_note(videos, f.rerun) if f.rerun and not noted else None
+        if note:  # once, for the first episode re-run of a planned condition
+            print(note, file=sys.stderr)
+            noted = True
         said = f" (re-ran condition{'s' if len(f.rerun) > 1 else ''} {', '.join(map(str, f.rerun))})" if f.rerun else ""
         print(f"seed {f.seed}: {a} {f.outcomes[a]} | {b} {f.outcomes[b]} -> {f.path}{said}")
         for c, (was, now) in f.differed.items():
