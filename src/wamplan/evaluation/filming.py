@@ -88,12 +88,13 @@ def load_plan_decoder(path: str, policy: Any, task: str, cache: dict[int, Any]):
 
 
 class EpisodeFilm:
-    """Films one episode of ``policy`` (``cameras`` side by side, views ``cfg.video_size`` px); with
-    ``plan`` the chunk boundaries of a planned policy too, the model's pictures drawn by ``decoder`` (or left out:
-    None)."""
+    """Films one episode of ``policy`` (the task's ``cameras`` side by side, views ``cfg.video_size`` px); with
+    ``plan`` the chunk boundaries of a planned policy too, in the views it plans with (``policy.cameras``), the model's
+    pictures drawn by ``decoder`` (or left out: None)."""
 
     def __init__(self, policy: Any, cameras: tuple[str, ...], cfg: VideoConfig, plan: bool = False, decoder=None):
         self.policy, self.cameras, self.cfg = policy, tuple(cameras), cfg
+        self.plan_cameras = tuple(policy.cameras) if plan else ()  # the world model's views, in its order
         self.frames: dict[int, dict[str, np.ndarray]] = {}  # step -> camera -> (s, s, 3) uint8
         self.boundaries: list[dict[str, Any]] = []  # per chunk decision: its step, target, model pictures, costs
         self.targets = record_targets(policy) if plan else None
@@ -116,8 +117,9 @@ class EpisodeFilm:
         except Exception as e:  # filming never ends an episode; the record keeps it, the video says why not
             self._fail(e)
 
-    def _small(self, views: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        return {c: resize_view(views[c], self.cfg.video_size) for c in self.cameras}
+    def _small(self, views: dict[str, np.ndarray], cameras: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
+        """camera -> (H, W, 3) -> camera -> (s, s, 3) uint8 for ``cameras`` (default: the task's)."""
+        return {c: resize_view(views[c], self.cfg.video_size) for c in cameras or self.cameras}
 
     def _fail(self, e: Exception) -> None:
         from wamplan.errors import reason
@@ -133,7 +135,7 @@ class EpisodeFilm:
         self._decided = d.step
         target = self.targets.images.get(d.step)
         kept: dict[str, Any] = dict(step=d.step, reason=d.reason, model={}, cost={},
-                                    target=None if target is None else self._small(target))
+                                    target=None if target is None else self._small(target, self.plan_cameras))
         if self.decoder is not None and d.plan is not None and d.target is not None:
             from wamplan.evaluation.mechanism import model_pictures
 
@@ -167,18 +169,18 @@ class EpisodeFilm:
         from wamplan.evaluation.mechanism import Mechanism, mechanism_frame
 
         def views(t: int) -> np.ndarray | None:  # (V, s, s, 3) the views filmed at step t
-            return np.stack([self.frames[t][c] for c in self.cameras]) if t in self.frames else None
+            return np.stack([self.frames[t][c] for c in self.plan_cameras]) if t in self.frames else None
 
         pictures = []
         for i, b in enumerate(self.boundaries):
             reached = self.boundaries[i + 1]["step"] if i + 1 < len(self.boundaries) else length
             ran = "wam" if b["reason"] is not None else "plan"
             real = views(reached)
-            target = None if b["target"] is None else np.stack([b["target"][c] for c in self.cameras])
+            target = None if b["target"] is None else np.stack([b["target"][c] for c in self.plan_cameras])
             model = b["model"] or ({"wam": None, "plan": None} if self.decoder is not None else {})  # one layout
             m = Mechanism(step=b["step"], now=views(b["step"]), target=target, model=model,
                           real={} if real is None else {ran: real}, model_cost=b["cost"], true_cost={},
-                          cube_xy_mm=None, cameras=self.cameras, chunk=self.policy.chunk, reached=reached)
+                          cube_xy_mm=None, cameras=self.plan_cameras, chunk=self.policy.chunk, reached=reached)
             said = "planned" if b["reason"] is None else f"open loop ({b['reason']})"
             pictures.append(mechanism_frame(m, self.cfg.video_size, title=f"chunk {i}: {said}"))
         return encode_webm(pictures, fps=1, hold=1)

@@ -143,11 +143,10 @@ class EvalWorker:
             return None
         from wamplan.evaluation.filming import EpisodeFilm, load_plan_decoder
 
-        policy = self.policy(cid)
-        if CONDITIONS[cid].dynamics == "none":
-            return EpisodeFilm(policy, self.env.task.cameras, self.videos)
-        decoder = load_plan_decoder(self.videos.decoder, policy, self.cfg.env.spec.name, self._decoders)
-        return EpisodeFilm(policy, policy.cameras, self.videos, plan=True, decoder=decoder)
+        policy, plan = self.policy(cid), CONDITIONS[cid].dynamics != "none"
+        decoder = load_plan_decoder(self.videos.decoder, policy, self.cfg.env.spec.name, self._decoders) \
+            if plan else None
+        return EpisodeFilm(policy, self.env.task.cameras, self.videos, plan=plan, decoder=decoder)
 
     def _blend(self, cid: int) -> dict[str, float]:
         """The record's mark of the --oracle-blend diagnostic, where it changed the dynamics (none otherwise)."""
