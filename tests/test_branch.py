@@ -153,11 +153,9 @@ def test_branch_groups_stack_the_siblings_of_each_boundary(three_siblings, tmp_p
 
 
 @pytest.mark.filterwarnings("ignore:TinyWAM was trained on 224-px renders")  # a 64-px store keeps the test short
-def test_the_ranking_loss_trains_on_the_groups_against_the_wams_predicted_views(three_siblings, tmp_path, capsys):
-    """`wm train --rank-weight --rank-wam`: each group's target is the WAM's predicted views at its boundary,
-    encoded; the run logs the ranking loss and scores the held-out groups' ranking against their targets; a WAM
-    that cannot give those targets, or a weight without a WAM, is one line before any training."""
-    from wamplan.cli import main
+def test_each_group_gets_the_wams_predicted_views_at_its_boundary_as_its_target(three_siblings):
+    """wam.targets.group_targets: the WAM's predicted views at each group's boundary, encoded (the lab's ranking
+    probes score the siblings against them); BranchGroups.with_targets hands each item its group's."""
     from wamplan.data.readers import BranchGroups
     from wamplan.encoders import make_encoder
     from wamplan.wam.base import load_wam
@@ -169,63 +167,6 @@ def test_the_ranking_loss_trains_on_the_groups_against_the_wams_predicted_views(
     assert targets.shape == (2, 3, 16, 128) and not torch.equal(targets[0], targets[1])  # one per boundary
     item = groups.with_targets(targets)[1]
     assert torch.equal(item["target"], targets[1]) and item["a"].shape == (3, 7, 20)
-
-    run = tmp_path / "wm"
-    base = ["wm", "train", "--data", str(three_siblings), "--batch-size", "4", "--sibling-groups", "2",
-            "--val-fraction", "0.5"]
-    assert main([*base, "--out", str(run), "--max-steps", "2", "--log-every-steps", "1", "--rank-weight", "1",
-                 "--rank-wam", "checkpoints/mini/tinywam"]) == 0
-    logged = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
-    assert any(m.get("train/rank_kl", -1) >= 0 and "train/rank_top1" in m for m in logged)
-    capsys.readouterr()
-    assert main([*base, "--out", str(tmp_path / "w2"), "--rank-weight", "1"]) == 2
-    assert "rank_weight 1.0 and rank_wam '' go together" in capsys.readouterr().err.replace("--rank-", "rank_")
-    assert main([*base, "--out", str(tmp_path / "w3"), "--rank-weight", "1", "--rank-wam",
-                 "checkpoints/stack-cube/tinywam"]) == 2
-    err = capsys.readouterr().err
-    assert "--rank-wam" in err and "stack-cube" in err and len(err.strip().splitlines()) == 1
-    assert not (tmp_path / "w3").exists() or not any((tmp_path / "w3").iterdir())
-
-
-def test_the_api_refuses_a_ranking_loss_without_targets(three_siblings, tmp_path):
-    """train_predictor_on_stores with rank_weight > 0 and no group_targets: one UserError before any encoding."""
-    from wamplan.worldmodel.config import PredictorConfig, TrainConfig
-    from wamplan.worldmodel.stores import train_predictor_on_stores
-
-    with pytest.raises(UserError, match=r"needs each branch group's target: pass group_targets"):
-        train_predictor_on_stores([three_siblings], tmp_path / "wm", PredictorConfig(),
-                                  TrainConfig(rank_weight=0.1, rank_wam="checkpoints/mini/tinywam"),
-                                  encoder="patch-pixels", encoder_kwargs={"input_size": 64}, progress=False)
-    assert not (tmp_path / "wm").exists()
-
-
-def test_the_ranking_loss_is_the_kl_of_the_planners_weights():
-    """rank_loss: KL(true || predicted) of MPPI's weights of the siblings' costs to the target, both in the true
-    costs' range; 0 when the predictions are the truth, positive when the predicted costs differ less than the
-    true ones (a model that hardly moves with the chunk), positive and differentiable when the order is wrong."""
-    from wamplan.planning.configs import MPPIConfig
-    from wamplan.planning.mppi import MPPIPlanner
-    from wamplan.worldmodel.losses import mppi_log_weights, rank_loss
-
-    gen = torch.Generator().manual_seed(0)
-    costs = torch.rand(5, generator=gen)
-    planner = MPPIPlanner(MPPIConfig(temperature=0.1))
-    assert torch.allclose(mppi_log_weights(costs, 0.1).exp(), planner.weights(costs), atol=1e-6)
-
-    target = torch.randn(2, 3, 4, 8, generator=gen)  # (B, V, N, D)
-    true = target[:, None, None] + torch.randn(2, 5, 1, 3, 4, 8, generator=gen)  # (B, G, K, V, N, D)
-    batch = {"target": target}
-    zero, logs = rank_loss(None, batch, 1, 0.1, (true, true))
-    assert float(zero) == pytest.approx(0, abs=1e-6) and logs["rank_top1"] == 1
-    timid = target[:, None, None] + 0.2 * (true - target[:, None, None])  # the same order, a fifth of the distances
-    kl, logs = rank_loss(None, batch, 1, 0.1, (timid, true))
-    assert float(kl) > 0.1 and logs["rank_top1"] == 1
-    order = (true - target[:, None, None]).pow(2).flatten(2).mean(-1)  # (B, G) true costs
-    flipped = target[:, None, None] + (true - target[:, None, None]) / order[..., None, None, None, None]
-    pred = flipped.clone().requires_grad_(True)  # predicted cost 1 / true cost: the best sibling predicted worst
-    loss, logs = rank_loss(None, batch, 1, 0.1, (pred, true))
-    loss.backward()
-    assert float(loss.detach()) > 1 and logs["rank_top1"] == 0 and pred.grad.abs().sum() > 0
 
 
 def test_planned_collection_follows_the_planners_chunks_and_branches_them(tmp_path):

@@ -55,7 +55,16 @@ def test_wm_train_resume_refuses_other_data_and_config(stores, tmp_path, capsys)
     err = _one_line_error(capsys, [*args, "--lr", "0.5"])
     assert "different config" in err and "different lr: saved 0.001, now 0.5" in err
 
-    # the same command resumes (the max-steps stop is re-logged nowhere: records continue at step 4)
+    # the same command resumes (the max-steps stop is re-logged nowhere: records continue at step 4), a run saved
+    # with the retired ranking-loss keys too (stored by older versions, as checkpoints/stack-cube/wm_augmented)
+    from wamplan.checkpoint import CONFIG_FILE
+    from wamplan.worldmodel.config import RETIRED_TRAIN_KEYS
+
+    path = run / "checkpoint" / CONFIG_FILE
+    ckpt = json.loads(path.read_text())
+    ckpt["config"]["train"].update(rank_weight=0.0, rank_wam="", rank_temperature=0.1)
+    assert set(RETIRED_TRAIN_KEYS) <= set(ckpt["config"]["train"])
+    path.write_text(json.dumps(ckpt))
     assert main([*args[:-8], "--log-every-steps", "1", "--device", "cpu", "--epochs", "2"]) == 0
     recs = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
     steps = [r["global_step"] for r in recs if r["event"] == "step"]
@@ -147,8 +156,8 @@ def test_trainer_configs_share_one_base_and_read_the_shipped_checkpoints():
         if name in ("tinywam", "wm_augmented"):  # saved by the current code: the same keys, no more (but fields
             # added since, whose defaults change nothing the checkpoint did)
             newer = {"precision": "float32", "log": ()}
-            newer |= {"change_weight": 0, "state_weight": 0, "rank_weight": 0, "rank_wam": "",
-                      "rank_temperature": 0.1, "spread_weight": 0, "spread_only": False} if name == "wm_augmented" else {}
+            newer |= {"change_weight": 0, "state_weight": 0, "spread_weight": 0,
+                      "spread_only": False} if name == "wm_augmented" else {}
             assert set(to_dict(cls())) - set(newer) == set(saved), name
             assert all(getattr(cls(), k) == v for k, v in newer.items()), name
     parser = argparse.ArgumentParser()

@@ -296,38 +296,9 @@ def cmd_train(args: argparse.Namespace) -> int:
     metrics = train_predictor_on_stores(stores, args.out, architecture, train,
                                         encoder=encoder, encoder_kwargs=encoder_kwargs,
                                         encoder_path=args.encoder_path, val_fraction=args.val_fraction,
-                                        device=args.device, max_steps=args.max_steps, init=args.init,
-                                        group_targets=_rank_targets(train, stores, architecture.frameskip))
+                                        device=args.device, max_steps=args.max_steps, init=args.init)
     print(json.dumps(metrics))
     return 0
-
-
-def _rank_targets(train, stores: list[str], frameskip: int):
-    """``wm train --rank-wam``: the ranking loss's targets, the WAM's predicted views at each branch group's
-    boundary (``wam.targets``), as a function of (groups, encoder); the WAM is loaded and checked against the
-    stores' task and cameras before any encoding. None without --rank-wam."""
-    if not train.rank_wam:
-        return None
-    from functools import partial
-
-    from wamplan.envs.spec import check_same_task
-    from wamplan.wam.base import load_wam
-    from wamplan.wam.targets import check_target_wam, group_targets
-    from wamplan.data.store import stores_task
-
-    from wamplan.checkpoint import CheckpointError
-
-    require_paths([train.rank_wam], "--rank-wam", "pass the WAM checkpoint the planner will refine")
-    try:
-        wam = load_wam(train.rank_wam, device="cpu")
-    except CheckpointError as e:
-        raise UserError(f"--rank-wam: {e}") from None
-    task, cameras = stores_task(stores)
-    wam_task = getattr(getattr(wam, "task", None), "name", None)
-    if wam_task is not None:
-        check_same_task(task.name, wam_task, "--rank-wam", "use the WAM of the stores' task")
-    check_target_wam(wam, cameras, train.sibling_horizon * frameskip, "--rank-wam")
-    return partial(group_targets, wam)
 
 
 def cmd_train_decoder(args: argparse.Namespace) -> int:

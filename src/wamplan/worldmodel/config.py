@@ -176,6 +176,11 @@ class DecoderTrainConfig(AdamWConfig):
     none of the predictor's loss, window or sibling fields."""
 
 
+# Keys of TrainConfig that older runs stored and this version no longer has: the ranking loss's (removed: it hurt the
+# closed loop; the lab's table keeps its record). A resumed run and a saved config ignore them.
+RETIRED_TRAIN_KEYS = ("rank_temperature", "rank_wam", "rank_weight")
+
+
 @dataclass(frozen=True)
 class TrainConfig(AdamWConfig):
     """Optimisation of the predictor: the loop's fields and AdamW's betas (:class:`~wamplan.train_loop.AdamWConfig`),
@@ -193,14 +198,6 @@ class TrainConfig(AdamWConfig):
     sibling_horizon: int = field(4, "frames the sibling windows predict into the branch's chunk (chunk / Δ: the "
                                     "frames the planner's cost looks at)")
     sibling_groups: int = field(8, "branch groups (of --branches siblings each) per optimisation step")
-    rank_weight: float = field(0.0, "weight of the ranking loss on counterfactual branch groups (0: off): the "
-                                    "siblings' MPPI weights from their predicted costs to the group's target (the "
-                                    "WAM's predicted views, --rank-wam) must match those from their true costs (a KL "
-                                    "divergence): the planner's decision, not the latents, is what is fitted")
-    rank_wam: str = field("", "the WAM checkpoint whose predicted views at each group's boundary are the ranking "
-                              "loss's targets (the WAM the planner will refine); needed by --rank-weight")
-    rank_temperature: float = field(0.1, "temperature of the ranking loss's MPPI weights, a share of the group's cost "
-                                         "range (the planner's own temperature by default)")
     change_weight: float = field(0.0, "weigh each token's latent error by how much that token changes: weight "
                                       "1 + W * (its squared change from the current frame) / (the mean of that "
                                       "over the window's tokens), divided by 1 + W so the loss keeps its scale "
@@ -227,7 +224,7 @@ class TrainConfig(AdamWConfig):
                 f"TrainConfig.spread_weight must be a number >= 0 (0: off), got {self.spread_weight}")
         require(not self.spread_only or self.spread_weight > 0,
                 "TrainConfig.spread_only trains the spread head alone, so it needs spread_weight > 0")
-        others = [k for k in ("state_weight", "sibling_weight", "rank_weight", "change_weight") if getattr(self, k)]
+        others = [k for k in ("state_weight", "sibling_weight", "change_weight") if getattr(self, k)]
         require(not (self.spread_only and others), f"TrainConfig.spread_only trains the spread head alone, which "
                                                    f"{', '.join(others)} cannot reach; drop them")
         require(self.horizon >= 1, f"TrainConfig.horizon (K) must be >= 1, got {self.horizon}")
@@ -238,12 +235,6 @@ class TrainConfig(AdamWConfig):
         require(self.sibling_weight >= 0, f"TrainConfig.sibling_weight must be >= 0, got {self.sibling_weight}")
         require(self.sibling_horizon >= 1, f"TrainConfig.sibling_horizon must be >= 1, got {self.sibling_horizon}")
         require(self.sibling_groups >= 1, f"TrainConfig.sibling_groups must be >= 1, got {self.sibling_groups}")
-        require(self.rank_weight >= 0,
-                f"TrainConfig.rank_weight must be a number >= 0 (0: off), got {self.rank_weight}")
-        require((self.rank_weight > 0) == bool(self.rank_wam),
-                f"TrainConfig.rank_weight {self.rank_weight} and rank_wam {self.rank_wam!r} go together: the ranking "
-                f"loss needs the WAM that gives its targets, and that WAM is used by the ranking loss only")
-        require(self.rank_temperature > 0, f"TrainConfig.rank_temperature must be > 0, got {self.rank_temperature}")
         require(self.state_weight >= 0,
                 f"TrainConfig.state_weight must be a number >= 0 (0: off), got {self.state_weight}")
         require(self.change_weight >= 0, f"TrainConfig.change_weight must be >= 0 (0: off), got {self.change_weight}")

@@ -25,14 +25,14 @@ from wamplan.config import from_dict, require, to_dict
 from wamplan.device import resolve_device
 from wamplan.errors import UserError
 from wamplan.train_loop import DatasetBatches, fit, shown
-from wamplan.worldmodel.config import DecoderConfig, DecoderTrainConfig, TrainConfig
+from wamplan.worldmodel.config import RETIRED_TRAIN_KEYS, DecoderConfig, DecoderTrainConfig, TrainConfig
 from wamplan.worldmodel.layers import Block, init_weights
 
 KIND = "wm-decoder"
 # The predictor's training keys a decoder's does not have. Decoder runs made before the decoder had its own training
 # config stored them in their ``train`` section: loading never reads that section, and resuming ignores these keys.
-PREDICTOR_ONLY_TRAIN_KEYS = tuple(sorted(TrainConfig.__dataclass_fields__.keys()
-                                          - DecoderTrainConfig.__dataclass_fields__.keys()))
+PREDICTOR_ONLY_TRAIN_KEYS = tuple(sorted((TrainConfig.__dataclass_fields__.keys()
+                                           - DecoderTrainConfig.__dataclass_fields__.keys()) | set(RETIRED_TRAIN_KEYS)))
 
 
 class Decoder(nn.Module):

@@ -21,8 +21,7 @@ tokens where the arm and the cube move are not drowned by the many static ones; 
 
 A branch group (``data.readers.BranchGroups``) is G windows that share their context and differ in the chunk
 executed from the current frame: z (B, G, T, V, N, D), ... :func:`sibling_loss` scores how the prediction moves
-with the chunk, :func:`rank_loss` how the model weighs the siblings against a target; the held-out metrics of
-both are in :mod:`wamplan.worldmodel.siblings`.
+with the chunk; its held-out metrics are in :mod:`wamplan.worldmodel.siblings`.
 """
 
 from __future__ import annotations
@@ -183,51 +182,12 @@ def sibling_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], hor
                              f"sib_rel_h{horizon}": float((err[-1] / spread[-1].clamp_min(1e-12)).detach())}
 
 
-def cost_span(costs: torch.Tensor) -> torch.Tensor:
-    """Costs (..., G) -> their range max - min (..., 1), floored at 1e-12."""
-    return (costs.max(dim=-1, keepdim=True).values - costs.min(dim=-1, keepdim=True).values).clamp_min(1e-12)
-
-
-def mppi_log_weights(costs: torch.Tensor, temperature: float, span: torch.Tensor | None = None) -> torch.Tensor:
-    """Costs (..., G) of G candidates -> the log of MPPI's weights over them (..., G): softmax(-(c - min c) /
-    (temperature * span)), with span (..., 1) the costs' own range by default: the planner's range-normalised
-    weighting (``planning.mppi``)."""
-    span = cost_span(costs) if span is None else span
-    return torch.log_softmax(-costs / (temperature * span), dim=-1)  # the shift by min c cancels in the softmax
-
-
-def rank_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int, temperature: float,
-              futures: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[torch.Tensor, dict[str, float]]:
-    """The ranking loss of a batch of branch groups carrying their ``target`` (B, V, N, D)
-    (``BranchGroups.with_targets``): each sibling's cost is the squared distance of its outcome ``horizon`` frames
-    on to the target (the planner's patch cost, up to a constant); the loss is KL(true || predicted) between MPPI's
-    weights of the siblings from their true and from their predicted costs (:func:`mppi_log_weights`), a mean over
-    the groups: 0 when the model would weigh the siblings as the simulator does. Both are normalised by the TRUE
-    costs' range (a predicted range near zero would scale the gradients without bound), so the predicted costs must
-    also differ as much as the true ones do. ``futures`` (predicted, true
-    outcomes, each (B, G, K, V, N, D)) reuses a rollout already made. Logs ``rank_kl`` and ``rank_top1`` (the model's
-    lowest-cost sibling is the true one's)."""
-    zp, zt = futures if futures is not None else sibling_futures(model, batch, horizon)[:2]
-    t = batch["target"].to(zp.dtype)[:, None]  # (B, 1, V, N, D)
-    pred = (zp[:, :, -1] - t).pow(2).flatten(2).mean(-1)  # (B, G)
-    true = (zt[:, :, -1] - t).pow(2).flatten(2).mean(-1).detach()  # (B, G)
-    span = cost_span(true)  # (B, 1)
-    log_w, log_p = mppi_log_weights(true, temperature, span), mppi_log_weights(pred, temperature, span)  # (B, G)
-    kl = (log_w.exp() * (log_w - log_p)).sum(-1).mean()
-    top1 = (pred.argmin(-1) == true.argmin(-1)).float().mean()
-    return kl, {"rank_kl": float(kl.detach()), "rank_top1": float(top1)}
-
-
 def group_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], train: TrainConfig
                ) -> tuple[torch.Tensor, dict[str, float]]:
-    """``train.sibling_weight`` times :func:`sibling_loss` plus ``train.rank_weight`` times :func:`rank_loss` of a
-    batch of branch groups, from one rollout of the siblings."""
+    """``train.sibling_weight`` times :func:`sibling_loss` of a batch of branch groups."""
     zp, zt, copy = sibling_futures(model, batch, train.sibling_horizon)
     loss, logs = zp.new_zeros(()), {}
     if train.sibling_weight > 0:
         sib, sib_logs = sibling_loss(model, batch, train.sibling_horizon, train.gamma, (zp, zt, copy))
         loss, logs = loss + train.sibling_weight * sib, {**logs, **sib_logs}
-    if train.rank_weight > 0:
-        rk, rk_logs = rank_loss(model, batch, train.sibling_horizon, train.rank_temperature, (zp, zt))
-        loss, logs = loss + train.rank_weight * rk, {**logs, **rk_logs}
     return loss, logs

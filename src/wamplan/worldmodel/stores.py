@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Any, Callable, Iterator, Sequence
+from typing import Any, Iterator, Sequence
 
 from wamplan.checkpoint import CKPT_DIR, has_training_state
 from wamplan.data.features import feature_key
@@ -120,12 +120,9 @@ def train_predictor_on_stores(stores: Sequence[str | Path], out: str | Path, pre
                               train: TrainConfig, *, encoder: str, encoder_kwargs: dict[str, Any],
                               encoder_path: str | None = None, val_fraction: float = 0.1, device: str = "auto",
                               max_steps: int | None = None, progress: bool = True,
-                              init: str | Path | None = None,
-                              group_targets: Callable[[Any, Any], Any] | None = None) -> dict[str, Any]:
+                              init: str | Path | None = None) -> dict[str, Any]:
     """Train (or resume) the predictor on the windows of ``stores``; returns the last metrics. ``init``: a
-    predictor checkpoint to fine-tune from (``worldmodel.train.train_predictor``). ``group_targets(groups,
-    encoder)`` -> (len(groups), V, N, D): each branch group's planning target, encoded by the run's encoder
-    (``wam.targets.group_targets`` with a WAM); ``train.rank_weight`` > 0 needs it."""
+    predictor checkpoint to fine-tune from (``worldmodel.train.train_predictor``)."""
     from wamplan.data.readers import STATE_QUANTITIES, BranchGroups, WorldModelWindows
     from wamplan.data.store import stores_task
     from wamplan.worldmodel.load import KIND
@@ -142,10 +139,7 @@ def train_predictor_on_stores(stores: Sequence[str | Path], out: str | Path, pre
         saved = read_config(checkpoint_dir(init), KIND)["predictor"]
         predictor = dataclasses.replace(predictor, state_dim=saved.get("state_dim", 0),
                                         state_head=saved.get("state_head", predictor.state_head))
-    if train.rank_weight > 0 and group_targets is None:
-        raise UserError(f"--rank-weight {train.rank_weight} needs each branch group's target: pass group_targets "
-                        f"(wam.targets.group_targets with the WAM of --rank-wam)")
-    data, resume, info, key, (name, n, d), enc = _prepare(stores, out, KIND, encoder, encoder_kwargs, encoder_path,
+    data, resume, info, key, (name, n, d), _ = _prepare(stores, out, KIND, encoder, encoder_kwargs, encoder_path,
                                                           val_fraction, device, progress)
     predictor = dataclasses.replace(predictor, encoder=name, num_patches=n, enc_dim=d)  # the encoder's token layout
     kw = dict(frameskip=predictor.frameskip, history=predictor.context, horizon=train.horizon,
@@ -157,23 +151,18 @@ def train_predictor_on_stores(stores: Sequence[str | Path], out: str | Path, pre
             print(f"note: --val-fraction {val_fraction:g} held out no episode of these {len(tr.episodes)} (each is "
                   f"held out by a hash of its name), so nothing is scored held-out; raise it or add episodes")
     groups = val_groups = None
-    if train.sibling_weight > 0 or train.rank_weight > 0:
+    if train.sibling_weight > 0:
         groups, val_groups = (BranchGroups(stores, predictor.frameskip, predictor.context, train.sibling_horizon,
                                            split=split, val_fraction=val_fraction, features=key)
                               for split in ("train", "val"))
         if len(groups) < train.sibling_groups:
-            weight = f"--sibling-weight {train.sibling_weight}" if train.sibling_weight > 0 else \
-                f"--rank-weight {train.rank_weight}"
-            raise UserError(f"{weight} needs at least --sibling-groups "
+            raise UserError(f"--sibling-weight {train.sibling_weight} needs at least --sibling-groups "
                             f"{train.sibling_groups} groups of counterfactual branches in the training split of --data "
                             f"(`wamplan collect --source policy --branches N --branch-context "
                             f"{(predictor.context - 1) * predictor.frameskip}`); found {len(groups)}: collect more "
                             f"parents or lower --sibling-groups")
         if progress:
             print(f"branch groups: {len(groups)} train, {len(val_groups)} val, of {groups.group} siblings")
-        if train.rank_weight > 0:
-            for g in (groups, val_groups):
-                g.with_targets(group_targets(g, enc))
     _, metrics = train_predictor(tr, predictor, train, out, val_set=va if len(va) else None, device=device,
                                  resume=resume, max_steps=max_steps, progress=progress, encoder_info=info,
                                  data=data, init=init, group_set=groups, val_groups=val_groups, task=task,

@@ -23,12 +23,12 @@ from wamplan.device import resolve_device
 from wamplan.envs.spec import TaskSpec
 from wamplan.errors import UserError
 from wamplan.train_loop import DatasetBatches, evaluating, fit, saved_progress, shown
-from wamplan.worldmodel.config import PredictorConfig, TrainConfig
+from wamplan.worldmodel.config import RETIRED_TRAIN_KEYS, PredictorConfig, TrainConfig
 from wamplan.worldmodel.grow import check_init, grow_weights
 from wamplan.worldmodel.load import KIND
 from wamplan.worldmodel.losses import group_loss, per_horizon_mse, split_windows, spread_terms, window_loss
 from wamplan.worldmodel.predictor import WorldModelPredictor
-from wamplan.worldmodel.siblings import RANKING, evaluate_siblings, sibling_ranking
+from wamplan.worldmodel.siblings import evaluate_siblings
 
 NEW_ON_INIT = ("state_head.", "spread_head.")  # weights a fine-tune may add to (or drop from) its --init checkpoint's
 
@@ -167,16 +167,10 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
                                  2 * train.batch_size, dev)
         if val_groups is not None and len(val_groups):  # type: ignore[arg-type]
             out.update(evaluate_siblings(m, val_groups, train.sibling_horizon, train.sibling_groups, dev))
-            targets = getattr(val_groups, "targets", None)
-            if targets is not None:  # how the held-out siblings rank against their targets (the ranking loss's aim)
-                r = sibling_ranking(m, val_groups, train.sibling_horizon, train.sibling_groups, dev, targets)
-                out.update({k: float(r[k].mean()) for k in RANKING})
         return out
 
     groups = None
-    if group_set is not None and (train.sibling_weight > 0 or train.rank_weight > 0):
-        if train.rank_weight > 0 and getattr(group_set, "targets", None) is None:
-            raise ValueError("rank_weight > 0 needs branch groups with targets (BranchGroups.with_targets)")
+    if group_set is not None and train.sibling_weight > 0:
         done = (saved_progress(out_dir) or {}).get("global_step", 0) if resume else 0
         groups = _group_batches(group_set, train, start=done)
 
@@ -194,7 +188,7 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
                  step, train, run_dir=out_dir, kind=KIND,
                  config=config, data=data, device=dev, evaluate=evaluate if val_set is not None else None,
                  on_fresh_start=fresh_stats, resume=resume, max_steps=max_steps,
-                 progress=progress, desc="predictor", log=print if progress else None)
+                 progress=progress, desc="predictor", log=print if progress else None, retired=RETIRED_TRAIN_KEYS)
     return model.eval(), result.metrics
 
 
