@@ -53,21 +53,23 @@ install_browser() {
 
 install_python() {
   [ -x "$VENV/bin/python" ] || { log "creating $VENV"; "$PY" -m venv "$VENV"; }
-  local pip="$VENV/bin/python -m pip"
+  # --no-compile: pip does not byte-compile every module it installs (tens of seconds for torch, ray, transformers,
+  # wandb); Python compiles the ones it imports, once
+  local pip="$VENV/bin/python -m pip install -q --no-compile --disable-pip-version-check"
   if ! "$VENV/bin/python" -c 'import torch' 2>/dev/null; then
     # A CPU wheel of this version lies on the machine's disk; an unpinned torch pulls a multi-GB CUDA build.
-    log "installing torch (CPU)"; $pip install -q torch==2.13.0
+    log "installing torch (CPU)"; $pip torch==2.13.0
   fi
   local stamp="$VENV/.wamplan-installed"
   if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
     # with the logging extras, so that tests/test_train_log.py reads TensorBoard and W&B files back
-    log "installing wamplan and its dependencies"; $pip install -q -e '.[dev,tensorboard,wandb]'; touch "$stamp"
+    log "installing wamplan and its dependencies"; $pip -e '.[dev,tensorboard,wandb]'; touch "$stamp"
   fi
   if ! "$VENV/bin/python" -c 'import openpi_client.action_chunk_broker' 2>/dev/null; then
     # openpi's own robot client, for the tests that drive the proxy with it: without its numpy<2 pin (the modules
     # used need only msgpack, numpy and websockets, which wamplan installs, and dm-tree for its ActionChunkBroker)
-    log "installing openpi-client (tests)"; $pip install -q --no-deps openpi-client==0.1.2
-    $pip install -q dm-tree==0.1.10
+    log "installing openpi-client (tests)"; $pip --no-deps openpi-client==0.1.2
+    $pip dm-tree==0.1.10
   fi
 }
 

@@ -1,4 +1,5 @@
 import importlib.util
+import os
 from pathlib import Path
 from types import ModuleType
 
@@ -81,10 +82,23 @@ def expert_store(tmp_path_factory) -> Path:
     Shared: treat it as read-only. A test that writes into a store (collects more episodes, caches features,
     trains a world model on it) works on a copy: ``shutil.copytree(expert_store, tmp_path / "expert")``.
     """
+    from filelock import FileLock
+
     from wamplan.cli import main
 
-    root = tmp_path_factory.mktemp("session_store") / "expert"
-    assert main(["collect", "--source", "expert", "--episodes", "2", "--out", str(root), "--camera-size", "64"]) == 0
+    # under pytest-xdist each worker's base temp lies in one directory of this run: the first worker to ask
+    # collects the store there and the others wait for it, then read it
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        shared = tmp_path_factory.getbasetemp().parent / "session_store"
+        shared.mkdir(exist_ok=True)
+    else:
+        shared = tmp_path_factory.mktemp("session_store")
+    root, done = shared / "expert", shared / "expert.done"
+    with FileLock(str(shared / "expert.lock")):
+        if not done.is_file():
+            assert main(["collect", "--source", "expert", "--episodes", "2", "--out", str(root), "--camera-size",
+                         "64"]) == 0
+            done.touch()
     return root
 
 
