@@ -63,7 +63,13 @@ install_python() {
   local stamp="$VENV/.wamplan-installed"
   if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
     # with the logging extras, so that tests/test_train_log.py reads TensorBoard and W&B files back
-    log "installing wamplan and its dependencies"; $pip -e '.[dev,tensorboard,wandb]'; touch "$stamp"
+    log "installing wamplan and its dependencies"; $pip -e '.[dev,tensorboard,wandb]'
+    # compile, once and alone, the modules wamplan and its tests import (not every module installed)
+    log "compiling the modules wamplan imports"
+    "$VENV/bin/python" -c 'import torch, gymnasium, h5py, pyarrow, av, imageio, matplotlib.pyplot, fastapi, uvicorn
+import websockets, requests, transformers, safetensors, wamplan.envs, mani_skill.envs, wamplan.cli, wamplan.api
+import wamplan.planning.policy, wamplan.worldmodel.train, wamplan.wam.tinywam, wamplan.evaluation.runner
+import wamplan.evaluation.report, wamplan.proxy.app, ray, wandb, tensorboard' && touch "$stamp"
   fi
   if ! "$VENV/bin/python" -c 'import openpi_client.action_chunk_broker' 2>/dev/null; then
     # openpi's own robot client, for the tests that drive the proxy with it: without its numpy<2 pin (the modules
