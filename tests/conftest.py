@@ -21,8 +21,17 @@ def repo_script():
     return load
 
 
+# the files whose tests take longest, first: two workers that take files in this order (make test's `--dist
+# loadfile`) finish together instead of one running a long file alone at the end
+LONGEST_FIRST = ("test_ray.py", "test_proxy.py", "test_fidelity.py", "test_data.py", "test_readme.py",
+                 "test_oracle.py", "test_errors.py", "test_wm_benchmark.py", "test_branch.py", "test_worldmodel.py")
+
+
 def pytest_collection_modifyitems(config, items):
-    """Tests marked `gpu` need an accelerator: without one they are reported as skipped, not silently absent."""
+    """The longest files first (:data:`LONGEST_FIRST`, the rest in their order). Tests marked `gpu` need an
+    accelerator: without one they are reported as skipped, not silently absent."""
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: each file's tests keep their order
     import torch
 
     if torch.accelerator.is_available():
