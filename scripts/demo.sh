@@ -40,4 +40,4 @@ if [ -f "$CK/tinywam/model.safetensors" ]; then
 else
   echo "no demo checkpoints in $CK: docs/results.md, 'The shipped checkpoints and the commands that made them', has the commands that make them"
 fi
-echo "demo outputs in $OUT: views.png, expert_rollout.json, videos/, eval/report.md, eval/figure3.png, eval/videos/ (docs/videos.md), mechanism.png"
+echo "demo outputs in $OUT: views.png, expert_rollout.json, videos/, eval/report.md, eval/report.html (open it in a browser), eval/figure3.png, eval/videos/ (docs/videos.md), mechanism.png"
