@@ -21,9 +21,7 @@ from typing import Any, Sequence
 from urllib.parse import quote
 
 from wamplan.envs.spec import TaskSpec
-
-VIDEOS = "videos"
-PAIR = re.compile(r"seed(\d+)_c(\d+)_vs_c(\d+)\.webm")
+from wamplan.evaluation.videos import DEFAULT_VARIANT, PAIR_NAME, PAIRS, VIDEOS, video_name
 
 STYLE = """
 body { font: 14px/1.45 system-ui, sans-serif; margin: 24px auto; max-width: 1100px; color: #222; padding: 0 16px; }
@@ -88,8 +86,8 @@ def find_videos(dirs: Sequence[Path], out: Path) -> dict[tuple[int, int], list[t
     file wins); the episode and plan videos are matched to records by :func:`grid_html`, the pairs here."""
     found: dict[tuple[int, int], list[tuple[str, str]]] = {}
     for d in dirs:
-        for path in sorted((d / VIDEOS / "pairs").glob("seed*_c*_vs_c*.webm")):
-            m = PAIR.fullmatch(path.name)
+        for path in sorted((d / VIDEOS / PAIRS).glob("seed*_c*_vs_c*.webm")):
+            m = PAIR_NAME.fullmatch(path.name)
             if m:
                 seed, a, b = map(int, m.groups())
                 for c in (a, b):
@@ -103,13 +101,11 @@ def _link(path: Path, out: Path) -> str:
 
 def _episode_videos(rec: dict[str, Any], dirs: Sequence[Path], out: Path) -> list[tuple[str, str]]:
     """The episode video and the plan video of a record, where a directory of ``dirs`` holds them."""
-    stem = f"c{rec['condition']}_seed{rec['seed']:04d}"
-    names = [("episode", [f"{stem}_{'success' if rec['success'] else 'failure'}.webm"]),
-             ("plan", [f"{stem}_{o}_plan.webm" for o in dict.fromkeys(
-                 ("success" if rec["success"] else "failure", rec["outcome"]))])]
     links = []
-    for label, files in names:
-        hit = next((d / VIDEOS / f for d in dirs for f in files if (d / VIDEOS / f).is_file()), None)
+    for label, plan in (("episode", False), ("plan", True)):
+        name = video_name(rec["condition"], rec["seed"], bool(rec["success"]), rec.get("variant", DEFAULT_VARIANT),
+                          plan)
+        hit = next((d / VIDEOS / name for d in dirs if (d / VIDEOS / name).is_file()), None)
         if hit is not None:
             links.append((label, _link(hit, out)))
     return links

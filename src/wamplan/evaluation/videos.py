@@ -73,6 +73,9 @@ def pair_name(seed: int, a: int, b: int) -> str:
     return f"seed{seed:04d}_c{a}_vs_c{b}.webm"
 
 
+PAIR_NAME = re.compile(r"seed(\d+)_c(\d+)_vs_c(\d+)\.webm")  # pair_name's (seed, a, b) read back
+
+
 def episode_videos(out: str | Path, condition: int, seed: int, variant: str = DEFAULT_VARIANT) -> list[Path]:
     """The videos ``out/videos`` holds of one episode (either outcome, with its plan video)."""
     d = Path(out) / VIDEOS
