@@ -94,7 +94,7 @@ class RunLog:
             self.wandb.finish()
 
 
-def side_by_side(pred: np.ndarray, target: np.ndarray) -> np.ndarray:
+def beside_targets(pred: np.ndarray, target: np.ndarray) -> np.ndarray:
     """One picture of predictions beside their targets: row i is ``pred[i] | target[i]``; (B, H, W, 3) floats in
     [0, 1] each -> (B * H, 2 * W, 3) uint8."""
     rows = np.concatenate([pred, target], axis=2)  # (B, H, 2W, 3)

@@ -154,13 +154,13 @@ def evaluate(net: TinyWAMNet, items: WAMItems, batch_size: int = 64, gripper: in
 @torch.no_grad()
 def predicted_beside_future(net: TinyWAMNet, items: WAMItems, n: int = 4) -> Any:
     """The first view of ``n`` items spread over ``items``: TinyWAM's predicted view at the chunk's end beside the
-    real one, (n * S, 2 * S, 3) uint8 (``train_log.side_by_side``)."""
-    from wamplan.train_log import side_by_side
+    real one, (n * S, 2 * S, 3) uint8 (``train_log.beside_targets``)."""
+    from wamplan.train_log import beside_targets
 
     idx = torch.linspace(0, len(items) - 1, min(n, len(items))).long()  # (n,)
     b = make_batch(items, idx, next(net.parameters()).device)
     _, future = net(b["images"], b["proprio"])  # (n, V, 3, S, S)
-    return side_by_side(*(x[:, 0].permute(0, 2, 3, 1).float().cpu().numpy() for x in (future, b["future"])))
+    return beside_targets(*(x[:, 0].permute(0, 2, 3, 1).float().cpu().numpy() for x in (future, b["future"])))
 
 
 # ----------------------------------------------------------------------------------------------- training

@@ -100,13 +100,13 @@ def evaluate_decoder(model: Decoder, dataset: Dataset, batch_size: int = 64,
 @torch.no_grad()
 def decoded_beside_target(model: Decoder, dataset: Dataset, device: torch.device, n: int = 4) -> Any:
     """The first ``n`` items of ``dataset`` decoded, each beside the image it was encoded from: (n * S, 2 * S, 3)
-    uint8 (``train_log.side_by_side``)."""
-    from wamplan.train_log import side_by_side
+    uint8 (``train_log.beside_targets``)."""
+    from wamplan.train_log import beside_targets
 
     batch = next(iter(DataLoader(dataset, batch_size=n, shuffle=False)))
     pred = model(batch["z"].to(device))  # (n, 3, S, S)
     target = _target(batch["image"].to(device), model.cfg.image_size)  # (n, 3, S, S)
-    return side_by_side(*(x.permute(0, 2, 3, 1).float().cpu().numpy() for x in (pred, target)))
+    return beside_targets(*(x.permute(0, 2, 3, 1).float().cpu().numpy() for x in (pred, target)))
 
 
 def train_decoder(train_set: Dataset, cfg: DecoderConfig, train: DecoderTrainConfig, out_dir: str | Path, *,
