@@ -21,9 +21,8 @@ from typing import Any
 import numpy as np
 
 from wamplan.envs.media import encode_webm, resize_view, side_by_side
-from wamplan.evaluation.videos import VideoConfig
+from wamplan.evaluation.videos import FPS, VideoConfig
 
-FPS = 20  # the control rate: a video plays in real time
 HOLD_S = 1  # seconds the last picture of an episode video stays on screen
 
 

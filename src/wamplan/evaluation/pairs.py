@@ -17,9 +17,8 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from wamplan.evaluation.videos import DEFAULT_VARIANT, PAIRS, VIDEOS, VideoConfig, pair_name, video_name
-
-FPS = 20
+from wamplan.evaluation.videos import (DEFAULT_VARIANT, FPS, PAIRS, VIDEOS, VideoConfig, pair_name, variant_of,
+                                       video_name)
 
 
 @dataclass
@@ -32,12 +31,6 @@ class PairFilmed:
     outcomes: dict[int, str]
     rerun: list[int] = field(default_factory=list)
     differed: dict[int, tuple[tuple[str, int], tuple[str, int]]] = field(default_factory=dict)
-
-
-def variant_of(rec: dict[str, Any]) -> str:
-    """A record's first-chunk variant (records written before variants existed ran the paper's)."""
-    v = rec.get("variant", DEFAULT_VARIANT)
-    return DEFAULT_VARIANT if v == "default" else str(v)
 
 
 def paired_records(records: list[dict[str, Any]], a: int, b: int, variant: str = DEFAULT_VARIANT

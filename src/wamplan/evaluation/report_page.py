@@ -21,7 +21,7 @@ from typing import Any, Sequence
 from urllib.parse import quote
 
 from wamplan.envs.spec import TaskSpec
-from wamplan.evaluation.videos import DEFAULT_VARIANT, PAIR_NAME, PAIRS, VIDEOS, video_name
+from wamplan.evaluation.videos import PAIR_NAME, PAIRS, VIDEOS, variant_of, video_name
 
 STYLE = """
 body { font: 14px/1.45 system-ui, sans-serif; margin: 24px auto; max-width: 1100px; color: #222; padding: 0 16px; }
@@ -103,8 +103,7 @@ def _episode_videos(rec: dict[str, Any], dirs: Sequence[Path], out: Path) -> lis
     """The episode video and the plan video of a record, where a directory of ``dirs`` holds them."""
     links = []
     for label, plan in (("episode", False), ("plan", True)):
-        name = video_name(rec["condition"], rec["seed"], bool(rec["success"]), rec.get("variant", DEFAULT_VARIANT),
-                          plan)
+        name = video_name(rec["condition"], rec["seed"], bool(rec["success"]), variant_of(rec), plan)
         hit = next((d / VIDEOS / name for d in dirs if (d / VIDEOS / name).is_file()), None)
         if hit is not None:
             links.append((label, _link(hit, out)))

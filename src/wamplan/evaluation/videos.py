@@ -24,6 +24,7 @@ from wamplan.config import check_numbers, field, require
 VIDEOS = "videos"  # OUT/videos
 PAIRS = "pairs"  # OUT/videos/pairs
 DEFAULT_VARIANT = "open-loop"  # the paper's first chunk: names without a variant suffix
+FPS = 20  # the control rate: every video plays in real time
 _FIRST = re.compile(r"first(\d+)")
 
 
@@ -61,6 +62,13 @@ class VideoConfig:
         """The seeds filmed of a run over ``seeds`` (in the order given)."""
         seeds = list(seeds)
         return frozenset(seeds if self.first is None else seeds[:self.first])
+
+
+def variant_of(rec: dict[str, Any]) -> str:
+    """The first-chunk variant a record's videos are named by (records written before variants existed, and
+    ``records.record_key``'s "default", ran the paper's)."""
+    v = rec.get("variant", DEFAULT_VARIANT)
+    return DEFAULT_VARIANT if v == "default" else str(v)
 
 
 def video_name(condition: int, seed: int, success: bool, variant: str = DEFAULT_VARIANT, plan: bool = False) -> str:
@@ -148,8 +156,7 @@ def write_record_videos(out: str | Path, rec: dict[str, Any], videos: dict[str, 
 
     try:
         if videos:
-            write_episode_videos(out, rec["condition"], rec["seed"], rec.get("variant", DEFAULT_VARIANT),
-                                 bool(rec["success"]), videos)
+            write_episode_videos(out, rec["condition"], rec["seed"], variant_of(rec), bool(rec["success"]), videos)
     except OSError as e:
         error = reason(e)
     if error:
