@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import typing
 from collections import Counter
 from pathlib import Path
 
@@ -98,7 +99,11 @@ def _explain_options(p: argparse.ArgumentParser) -> None:
     p.set_defaults(func=cmd_explain)
 
 
+FILM_FIELDS = ("video_every", "video_size", "decoder")  # the VideoConfig fields `wamplan film` takes
+
+
 def _film_options(p: argparse.ArgumentParser) -> None:
+    from wamplan.config import add_field_argument
     from wamplan.evaluation.videos import VideoConfig
 
     p.add_argument("run", type=Path, help="an evaluation directory (`wamplan eval --out`); the videos go to "
@@ -108,10 +113,9 @@ def _film_options(p: argparse.ArgumentParser) -> None:
                                                  "the other did not)")
     p.add_argument("--first-chunk", default="open-loop", help="the records' first-chunk variant (default: open-loop)")
     p.add_argument("--device", default="auto", help="torch device for the episodes re-run (default: auto)")
-    for name in ("video_every", "video_size", "decoder"):  # how an episode the run did not film is filmed
-        f = VideoConfig.__dataclass_fields__[name]
-        p.add_argument("--" + name.replace("_", "-"), type=type(f.default), default=f.default,
-                       help=f"{f.metadata['help']} (default: {f.default!r})")
+    hints = typing.get_type_hints(VideoConfig)
+    for name in FILM_FIELDS:  # how an episode the run did not film is filmed
+        add_field_argument(p, "--" + name.replace("_", "-"), name, VideoConfig.__dataclass_fields__[name], hints[name])
     p.set_defaults(func=cmd_film)
 
 
@@ -130,7 +134,7 @@ def cmd_film(args: argparse.Namespace) -> int:
     a, b = pair
     if not (args.run / RECORDS).is_file():
         raise UserError(no_records(args.run))
-    videos = VideoConfig(videos="all", video_every=args.video_every, video_size=args.video_size, decoder=args.decoder)
+    videos = VideoConfig(videos="all", **{k: getattr(args, k) for k in FILM_FIELDS if getattr(args, k) is not None})
     require_webm()
     require_video_dir(args.run)
     records = read_records(args.run)

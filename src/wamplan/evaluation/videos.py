@@ -36,7 +36,7 @@ class VideoConfig:
                         ".webm (and _plan.webm for a planned condition): firstN (the first N seeds of the run, every "
                         "condition, e.g. first4), all, or none", listed=("firstN", "all", "none"))
     video_every: int = field(0, "also film a frame every this many control steps (each costs a render of every "
-                             "camera, ~75 ms at 224 px here); 0: only the frames the policy renders anyway (every "
+                             "camera); 0: only the frames the policy renders anyway (every "
                              "chunk boundary, a world model's history frames) and the last, one render an episode")
     video_size: int = field(160, "side in pixels of each view in the videos (an even number)")
     decoder: str = field("", "picture decoder (`wamplan wm train-decoder`) that draws the world model's predictions "
