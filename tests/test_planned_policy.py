@@ -314,3 +314,50 @@ def test_search_tensors_follow_the_dynamics_device(small_env, encoder):
     cands = torch.zeros(4, 16, 5, device=meta)
     cost = pol.cost(pol.dynamics.terminal(cands), target)  # would raise if the two sat on different devices
     assert cost.shape == (4,) and cost.device == meta
+
+
+def test_an_imagined_history_sees_only_boundaries_and_predicts_the_frames_between(small_env, encoder):
+    """history="imagined": the frames at t-8 and t-4 are the model's rollout from the previous boundary's context
+    (at step 16: frame 0 alone) under the actions executed since; the boundary's own frame is seen."""
+    model = _predictor(encoder)
+    with torch.no_grad():
+        for p in model.parameters():  # random weights throughout, so the predictions differ from the input
+            p.normal_(0.0, 0.2)
+    pol = PlannedPolicy(EchoWAM(), _cem(4, 1), LearnedDynamics(model), encoder, make_cost("patch"),
+                        config=PlannedPolicyConfig(history="imagined"))
+    seen = []
+    orig = pol.dynamics.prepare
+    pol.dynamics.prepare = lambda ctx: (seen.append(ctx), orig(ctx))[1]
+    assert [s for s in range(33) if pol.wants_images(s)] == [0, 16, 32]
+    obs = small_env.reset(0, with_images=True)
+    pol.reset(0)
+    first = (pol.encode(obs.images), torch.as_tensor(obs.proprio))
+    for t in range(33):
+        obs, _ = small_env.step(pol.act(obs), with_images=pol.wants_images(t + 1))
+        if t == 15:
+            now = pol.encode(obs.images)
+    assert [c["planned"] for c in pol.chunks] == [False, True, True]
+    acts = torch.from_numpy(np.stack(pol.history.executed[:12]).astype(np.float32))  # (12, A)
+    z, q = model.rollout(first[0][None, None], first[1][None, None].float(), torch.zeros(1, 0, 20),
+                         acts.reshape(1, 3, 20))  # the frames at 4, 8, 12 from frame 0 alone
+    ctx = seen[0]  # the chunk at step 16: frames 8, 12 imagined, 16 seen
+    torch.testing.assert_close(ctx.z[:2], z[0, 1:], rtol=1e-4, atol=1e-4)
+    torch.testing.assert_close(ctx.q[:2], q[0, 1:], rtol=1e-4, atol=1e-4)
+    torch.testing.assert_close(ctx.z[2], now, rtol=0, atol=0)
+    assert not torch.allclose(ctx.z[1], ctx.z[2], atol=1e-3)
+    np.testing.assert_allclose(ctx.a.numpy().reshape(8, 5), np.asarray(pol.history.executed[8:16]), atol=0)
+    acts = torch.from_numpy(np.stack(pol.history.executed[16:28]).astype(np.float32)).reshape(1, 3, 20)
+    z, _ = model.rollout(ctx.z[None], ctx.q[None], ctx.a[None], acts)  # the chunk at 32 rolls on from 16's context
+    torch.testing.assert_close(seen[1].z[:2], z[0, 1:], rtol=1e-4, atol=1e-4)
+
+
+def test_an_imagined_history_is_refused_where_nothing_can_imagine_it(small_env, encoder):
+    from wamplan.planning.history import PlanningError
+
+    imagined = PlannedPolicyConfig(history="imagined")
+    with pytest.raises(PlanningError, match="keeps none: leave --history at seen"):
+        PlannedPolicy(EchoWAM(), _cem(), SimulatorDynamics(small_env, encoder), encoder, make_cost("patch"),
+                      config=imagined)
+    with pytest.raises(PlanningError, match="frameskip 5, which does not divide the 16 steps"):
+        PlannedPolicy(EchoWAM(), _cem(), LearnedDynamics(_delta5_predictor(encoder)), encoder, make_cost("patch"),
+                      config=imagined)

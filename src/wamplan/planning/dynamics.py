@@ -111,6 +111,13 @@ class Dynamics(abc.ABC):
         z = self.terminal(actions)  # (B, V, N, D)
         return z, torch.zeros(z.shape[0], device=z.device)
 
+    def imagine(self, context: PlanningContext, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The frames a learned model predicts after ``context`` under the executed ``actions`` (L, A), L a
+        multiple of its frameskip Δ -> z (L/Δ, V, N, D), q (L/Δ, P) float32: the frames Δ, 2Δ, ... steps after the
+        context's last one (``history="imagined"``). Only a learned world model imagines."""
+        raise UserError(f"{type(self).__name__} predicts no frames to stand in for unseen history; "
+                        f"history='imagined' needs a learned world model")
+
 
 class LearnedDynamics(Dynamics):
     """The block-causal world-model predictor (``wamplan.worldmodel``), rolled out in the predictor's own dtype
@@ -164,6 +171,14 @@ class LearnedDynamics(Dynamics):
         """actions (B, L, A) -> the rollout's action blocks (B, S, Δ·A) in the predictor's device and dtype."""
         b, length, na = actions.shape
         return actions.to(self.device, self.dtype).reshape(b, length // self.frameskip, self.frameskip * na)
+
+    @torch.inference_mode()
+    def imagine(self, context: PlanningContext, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        dev, dt = self.device, self.dtype
+        z, q, a = context.z.to(dev, dt), context.q.to(dev, dt), context.a.to(dev, dt)  # (Tc, V, N, D), (Tc, P), (Tc-1, ΔA)
+        prefix = self.model.encode_prefix(z[None, :-1], q[None, :-1], a[None])  # the context may be one frame
+        zs, qs = self.model.rollout_from_prefix(prefix, z[None, -1], q[None, -1], self._blocks(actions[None]))
+        return zs[0].float(), qs[0].float()  # (S, V, N, D), (S, P)
 
     @torch.inference_mode()
     def terminal(self, actions: torch.Tensor) -> torch.Tensor:
@@ -245,6 +260,9 @@ class BlendedDynamics(Dynamics):
         self.model.prepare(context)
         self.oracle.prepare(context)
 
+    def imagine(self, context: PlanningContext, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.model.imagine(context, actions)  # the history is the learned model's
+
     def terminal(self, actions: torch.Tensor) -> torch.Tensor:
         z_model = self.model.terminal(actions).float()  # (B, V, N, D)
         z_sim = self.oracle.terminal(actions).float().to(z_model.device)  # (B, V, N, D)
@@ -284,6 +302,10 @@ class EnsembleDynamics(Dynamics):
     def prepare(self, context: PlanningContext | None) -> None:
         for m in self.members:
             m.prepare(context)
+
+    def imagine(self, context: PlanningContext, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        zs, qs = zip(*(m.imagine(context, actions) for m in self.members))  # M of (S, V, N, D), M of (S, P)
+        return torch.stack(zs).mean(dim=0), torch.stack(qs).mean(dim=0)  # the members' mean frames
 
     def members_terminal(self, actions: torch.Tensor) -> torch.Tensor:
         """actions (B, L, A) -> every member's terminal embeddings (M, B, V, N, D)."""

@@ -8,6 +8,11 @@ chunk (Δ=5, H=16: frames t-10, t-5, t). Before step 0 the robot rested: with ``
 stands in for the earlier ones, with the task's ``hold_action`` (arm still, gripper open) between them; without it, a
 history reaching before step 0 is no history (None). A frame that should exist but was never shown is a
 :class:`PlanningError`, never a silently unplanned chunk.
+
+With ``imagine`` (``history="imagined"``) only the planning points' own frames are seen: the history frames
+between them are the world model's predictions, rolled from the previous planning point's context (itself
+partly imagined; at step 0 the first frame alone, or the rest-state history) under the actions executed since.
+So a client that posts only at chunk boundaries gets a Δ < H model's history.
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ from wamplan.planning.dynamics import Dynamics, PlanningContext
 from wamplan.planning.policy_config import PlanningError
 
 Encode = Callable[[dict[str, np.ndarray]], torch.Tensor]  # camera -> (H, W, 3) uint8 views -> (V, N, D)
+Imagine = Callable[[PlanningContext, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]  # Dynamics.imagine
 
 
 class FrameHistory:
@@ -32,29 +38,34 @@ class FrameHistory:
     runs K < H steps of each chunk before asking again: K). ``keeps_frames`` is False for a backend that needs no history (the simulator):
     then only the executed actions are kept. Frames are encoded with ``encode`` and kept on ``device``.
     ``hold_action`` (A,): the action of the rest before step 0 (the task's ``hold_action``), needed with
-    ``rest_state``.
+    ``rest_state``. ``imagine`` (the dynamics' :meth:`~wamplan.planning.dynamics.Dynamics.imagine`): predict the
+    frames between planning points instead of seeing them; Δ must divide ``period``.
     """
 
     def __init__(self, chunk: int, frameskip: int, context: int, encode: Encode, device: torch.device, *,
                  keeps_frames: bool = True, rest_state: bool = False, hold_action: np.ndarray | None = None,
-                 period: int | None = None):
+                 period: int | None = None, imagine: Imagine | None = None):
         if rest_state and hold_action is None:
             raise ValueError("a rest-state history needs the task's hold_action (the action of the rest)")
         self.chunk, self.frameskip, self.context = chunk, frameskip, context
         self.period = period or chunk
+        if imagine is not None and self.period % frameskip:
+            raise ValueError(f"an imagined history steps by the frameskip {frameskip}, which must divide the "
+                             f"{self.period} steps between planning points")
         self.encode, self.device = encode, device
         self.keeps_frames, self.rest_state, self.hold_action = keeps_frames, rest_state, hold_action
+        self.imagine = imagine if keeps_frames else None
         self.reset()
 
     @classmethod
     def for_dynamics(cls, dynamics: Dynamics, chunk: int, encode: Encode, hold_action: np.ndarray,
-                     rest_state: bool = False, period: int | None = None) -> FrameHistory:
+                     rest_state: bool = False, period: int | None = None, imagined: bool = False) -> FrameHistory:
         """The history ``dynamics`` needs (its frameskip and context; none for a backend without history);
         ``hold_action`` (A,): the task's rest action; ``period``: steps between planning points (default the
-        chunk)."""
+        chunk); ``imagined``: the frames between planning points predicted by ``dynamics``, not seen."""
         return cls(chunk, getattr(dynamics, "frameskip", chunk), getattr(dynamics, "context", 1), encode,
                    dynamics.device, keeps_frames=dynamics.needs_history, rest_state=rest_state,
-                   hold_action=hold_action, period=period)
+                   hold_action=hold_action, period=period, imagine=dynamics.imagine if imagined else None)
 
     def reset(self) -> None:
         """Start a new episode."""
@@ -71,7 +82,10 @@ class FrameHistory:
 
     def wants(self, step: int) -> bool:
         """Whether ``step`` is a history frame: t - iΔ (0 <= i < Tc) for some planning point t >= step, the
-        planning points being every ``period`` steps (the chunk boundaries by default)."""
+        planning points being every ``period`` steps (the chunk boundaries by default). An imagined history sees
+        only the planning points."""
+        if self.imagine is not None:
+            return self.keeps_frames and step % self.period == 0
         return self.keeps_frames and any((step + i * self.frameskip) % self.period == 0 for i in range(self.context))
 
     def observe(self, obs: Observation) -> None:
@@ -98,9 +112,21 @@ class FrameHistory:
     def planning_context(self, t: int) -> PlanningContext | None:
         """History frames at t-(Tc-1)Δ .. t and the action blocks between them; None when the history reaches
         before step 0 (the chunk then runs open loop), or a rest-state history with ``rest_state``."""
-        steps = self.steps(t)
-        if steps[0] < 0 and not self.rest_state:
+        if self.steps(t)[0] < 0 and not self.rest_state:
             return None
+        return self._context(t)
+
+    def _context(self, t: int) -> PlanningContext:
+        """The context of step t: its history frames (imagined where unseen, with ``imagine``); steps before 0 are
+        the rest state with ``rest_state``, else left out (the context is shorter: what imagining from step 0
+        starts from)."""
+        steps = self.steps(t)
+        if not self.rest_state:
+            steps = [s for s in steps if s >= 0]
+        if self.imagine is not None:
+            for s in steps:
+                if s >= 0 and s not in self.frames and s % self.period:
+                    self._imagine_until(s)
         missing = [s for s in steps if s >= 0 and s not in self.frames]
         if missing:
             raise PlanningError(f"history frames at steps {missing} are missing for the chunk at step {t}; the "
@@ -108,7 +134,17 @@ class FrameHistory:
         # Before step 0 the robot rested: the first frame again, with hold-still actions (arm still, gripper open).
         z = torch.stack([self.frames[max(s, 0)][0] for s in steps])  # (Tc, V, N, D)
         q = torch.stack([self.frames[max(s, 0)][1] for s in steps])  # (Tc, P)
-        acts = np.stack([self.executed[s] if s >= 0 else self.hold_action
-                         for s in range(steps[0], t)])  # ((Tc-1)Δ, A)
-        a = torch.from_numpy(acts.reshape(self.context - 1, -1).astype(np.float32)).to(self.device)  # (Tc-1, Δ·A)
+        dim = len(self.executed[0]) if self.executed else len(self.hold_action)  # A
+        acts = np.zeros((t - steps[0], dim), np.float32)  # ((Tc-1)Δ, A)
+        for i, s in enumerate(range(steps[0], t)):
+            acts[i] = self.executed[s] if s >= 0 else self.hold_action
+        a = torch.from_numpy(acts.reshape(len(steps) - 1, self.frameskip * dim)).to(self.device)  # (Tc-1, Δ·A)
         return PlanningContext(z, q, a)
+
+    def _imagine_until(self, step: int) -> None:
+        """Predict the frames Δ, 2Δ, ..., up to ``step`` after the planning point before it, from that point's
+        context and the actions executed since, and keep them as history frames."""
+        start = step - step % self.period  # the planning point whose frame was seen
+        z, q = self.imagine(self._context(start), self.actions(start, step))  # (S, V, N, D), (S, P)
+        for i in range(len(z)):
+            self.frames.setdefault(start + (i + 1) * self.frameskip, (z[i].to(self.device), q[i].to(self.device)))

@@ -82,7 +82,7 @@ class PlannedPolicy(Policy):
         self.period = self.config.requery_every or self.chunk  # K: steps between the WAM's queries
         self.history = FrameHistory.for_dynamics(dynamics, self.chunk, self.encode, self.task.hold_action,
                                                  rest_state=self.config.first_chunk == "rest-history",
-                                                 period=self.period)
+                                                 period=self.period, imagined=self.config.history == "imagined")
         self.reset()
 
     @property

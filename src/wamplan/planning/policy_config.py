@@ -21,6 +21,7 @@ class PlanningError(UserError):
 
 WARM_STARTS = ("none", "residual")
 FIRST_CHUNKS = ("open-loop", "rest-history")
+HISTORIES = ("seen", "imagined")
 
 
 @dataclass(frozen=True)
@@ -34,6 +35,10 @@ class PlannedPolicyConfig:
 
     first_chunk: str = field("open-loop", "chunk 1: open-loop (the paper) or rest-history (planned from a "
                              "synthesised rest-state history)", choices=FIRST_CHUNKS)
+    history: str = field("seen", "a learned world model's history frames inside the last chunk: seen (the robot's "
+                         "views every frameskip steps) or imagined (predicted by the model from the last boundary "
+                         "with the actions run since: planning from chunk boundaries alone, what a client that posts "
+                         "only at boundaries gives)", choices=HISTORIES)
     plan_seed: int = field(0, "base seed of the planner's sampling (plus 1000 x the episode seed plus the step)")
     gate_threshold: float | None = field(None, "run the WAM's chunk without a search when its cost is at most this "
                                          "(see `wamplan gate-calibrate`); None = off")
@@ -54,6 +59,7 @@ class PlannedPolicyConfig:
     def __post_init__(self):
         check_numbers(self, infinite=("gate_threshold",))
         require(self.first_chunk in FIRST_CHUNKS, f"first_chunk must be one of {FIRST_CHUNKS}, got {self.first_chunk!r}")
+        require(self.history in HISTORIES, f"history must be one of {HISTORIES}, got {self.history!r}")
         require(self.warm_start in WARM_STARTS, f"warm_start must be one of {WARM_STARTS}, got {self.warm_start!r}")
         require(0.0 <= self.warm_weight <= 1.0, f"warm_weight must be in [0, 1], got {self.warm_weight}")
         require(self.disagreement_weight >= 0, f"disagreement_weight must be >= 0, got {self.disagreement_weight}")
@@ -83,6 +89,15 @@ def check_fits(cfg: PlannedPolicyConfig, chunk: int, dynamics: Dynamics) -> None
     if cfg.requery_every > chunk:
         raise PlanningError(f"--requery-every {cfg.requery_every} is longer than the WAM's {chunk}-step chunk; a "
                             f"robot can run at most the {chunk} actions it was given before asking again")
+    if cfg.history == "imagined":
+        period, frameskip = cfg.requery_every or chunk, getattr(dynamics, "frameskip", None)
+        if not dynamics.needs_history:
+            raise PlanningError(f"--history imagined predicts a learned world model's history frames; "
+                                f"{type(dynamics).__name__} keeps none: leave --history at seen")
+        if period % frameskip:
+            raise PlanningError(f"--history imagined rolls the world model from one planning point to the next in "
+                                f"steps of its frameskip {frameskip}, which does not divide the {period} steps "
+                                f"between them; use a model whose frameskip divides {period}, or --history seen")
     from wamplan.planning.dynamics import LearnedDynamics
 
     if cfg.disagreement_weight > 0 and isinstance(dynamics, LearnedDynamics) and not dynamics.spreads:

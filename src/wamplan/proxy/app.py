@@ -84,8 +84,9 @@ class Proxy:
                  make_policy: Any, request_map: dict[str, str], response_map: dict[str, str],
                  columns: tuple[int, ...], chunk_length: int, requery: int | None = None,
                  probe: tuple[protocol.ActRequest, Observation] | None = None,
-                 fit: Callable[[UpstreamShape], None] | None = None):
+                 fit: Callable[[UpstreamShape], None] | None = None, imagined: bool = False):
         """``requery``: the steps a client that sends no ``executed_actions`` runs of each chunk (default: all);
+        ``imagined``: the sessions' policies imagine the in-chunk history frames (``--history imagined``);
         ``probe``: the rest observation the start-up check and ``/health`` send the upstream; ``fit``: the check
         that refuses an upstream the world model cannot plan for (UserError), run on its first answer where the
         start-up probe got none."""
@@ -96,6 +97,7 @@ class Proxy:
         self.frameskip = getattr(dynamics, "frameskip", chunk_length)
         self.requery = requery or chunk_length  # K: what a client that says nothing runs of a chunk
         self.grid = planning_grid(self.requery, dynamics)
+        self.imagined = imagined
         self._probe, self._fit = probe, fit
         self.fit_checked = fit is None  # whether the fit check has seen an answer of the upstream
         self.health = UpstreamHealth(upstream, self.probe)
@@ -126,11 +128,15 @@ class Proxy:
         elif d == H:
             history = (f"history: chunk boundaries only (the world model's frameskip {d} is the chunk): the "
                        f"observations a client posts are its frames")
+        elif self.imagined:
+            history = (f"history: chunk boundaries only: the world model's frames every {d} steps inside a chunk are "
+                       f"imagined from the last boundary and the actions run since (--history imagined); "
+                       f"chunk_frames are not read")
         else:
             offsets = ", ".join(str(o) for o in range(d, H, d)) or "-"
             history = (f"history: in-chunk frames every {d} steps (the world model's frameskip {d}, not the {H}-step "
                        f"chunk): send the frames seen during a chunk in chunk_frames (offsets {offsets}), else its "
-                       f"chunks run open loop (no-history)")
+                       f"chunks run open loop (no-history; --history imagined plans them from the boundaries)")
         partial = (f"partial chunks: a client that runs k < {H} steps before asking again is followed (executed_"
                    f"actions of k rows; one that sends none runs {K}, --requery-every); a chunk is planned when the "
                    f"request falls on the world model's grid of {self.grid} steps, else answered open loop "
@@ -365,7 +371,7 @@ class Proxy:
                          f"apart, clients asking every {self.requery}); start serve with --requery-every "
                          f"{t - session.last} if the robot always runs that many")
             return out.actions, "off-grid", {}
-        if history.keeps_frames and t > 0 and (history.real(t) or history.rest_state):
+        if history.keeps_frames and history.imagine is None and t > 0 and (history.real(t) or history.rest_state):
             missing = [s for s in history.steps(t) if 0 <= s < t and s not in history.frames]
             if missing:
                 with self.model_lock:

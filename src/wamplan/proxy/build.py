@@ -169,7 +169,7 @@ def build_proxy(cfg: ProxyConfig, upstream: Upstream | None = None, planning: di
     make(AnsweredWAM(task, chunk, cameras))  # what only the world model can refuse (a pose term, an ensemble's
     # disagreement, a frameskip longer than the chunk, a --requery-every past it) is refused now, once
     proxy = Proxy(cfg, upstream, dynamics, encoder, task, make, request_map, response_map, columns, chunk,
-                  requery=requery, probe=probe, fit=fit)
+                  requery=requery, probe=probe, fit=fit, imagined=per_session.policy.history == "imagined")
     if why is None:
         proxy.fit_checked = True
         proxy.health.record(True, "it answered the start-up probe" if first is not None else "in process",
