@@ -581,7 +581,7 @@ def test_a_bad_value_is_named_by_its_option(tmp_path, capsys):
 
 def test_numbers_that_are_not_finite_are_named_by_their_option_before_any_work(tmp_path, capsys):
     wm = ["wm", "train", "--data", tmp_path, "--out", tmp_path / "run"]
-    refused(capsys, [*wm, "--spread-weight", "inf"], "error: --spread-weight must be a finite number, got inf")
+    refused(capsys, [*wm, "--state-weight", "inf"], "error: --state-weight must be a finite number, got inf")
     refused(capsys, [*wm, "--lr", "nan"], "error: --lr must be a finite number, got nan")
     refused(capsys, ["eval", "--conditions", "7", "--out", tmp_path / "e", "--wam", MINI / "tinywam", "--wm-augmented",
                      MINI / "wm_augmented", "--disagreement-weight", "inf"], "--disagreement-weight must be a finite")

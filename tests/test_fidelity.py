@@ -188,6 +188,13 @@ def test_fidelity_cli_checks_execute_and_oracle_blend_before_loading(capsys):
     assert "--oracle-blend 1.5 is outside (0, 1]" in capsys.readouterr().err
 
 
+def test_fidelity_refuses_a_spread_weight_without_an_ensemble(refused):
+    refused(["wm", "fidelity", "--wam", "checkpoints/mini/tinywam", "--wm", "checkpoints/mini/wm_augmented",
+             "--seeds", "500", "--plan-spread-weight", "1"], "--plan-spread-weight", "ensemble A+B")
+    refused(["wm", "fidelity", "--wam", "checkpoints/mini/tinywam", "--wm", "checkpoints/mini/wm_augmented",
+             "--seeds", "500", "--plan-spread-weight", "0"], "--plan-spread-weight 0 must be a finite number above 0")
+
+
 def test_the_summary_pairs_each_models_plan_gain_with_the_first_models():
     from wamplan.evaluation.fidelity import summarize
 

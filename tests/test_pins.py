@@ -7,7 +7,6 @@ import dataclasses
 
 import numpy as np
 import pytest
-import torch
 
 from wamplan.config import ConfigError
 
@@ -24,47 +23,6 @@ def test_integer_config_fields_are_number_checked():
             TrainConfig(**{field: value})
     with pytest.raises(ConfigError, match=r"TrainConfig\.lr must be a finite number, got '0.1'"):
         TrainConfig(lr="0.1")
-
-
-def _spread_model():
-    from wamplan.worldmodel import PredictorConfig, WorldModelPredictor
-
-    cfg = PredictorConfig(num_views=1, num_patches=4, enc_dim=8, action_dim=3, frameskip=2, context=3, depth=2,
-                          heads=2, head_dim=8, mlp_dim=32, proprio_emb=16, action_emb=16, spread_head=True)
-    torch.manual_seed(0)
-    model = WorldModelPredictor(cfg).eval()
-    with torch.no_grad():
-        for p in model.spread_head.parameters():  # a head whose log-variances vary from step to step
-            p.normal_(0, 0.5)
-        model.z_std.fill_(2.0)  # tokens spread twice the normalised unit: their variance is 4x
-    return model
-
-
-def test_token_variance_is_scaled_by_z_std_squared():
-    """Planted: the spread scaled by ``z_std`` instead of ``z_std**2`` (worldmodel/predictor.py)."""
-    model = _spread_model()
-    lv = torch.tensor([[0.0, float(np.log(0.25))]]).repeat(1, 4)  # (1, 8): variances 1 and 0.25 in normalised units
-    torch.testing.assert_close(model.token_variance(lv), torch.tensor([[4.0, 1.0] * 4]))
-
-
-def test_the_planners_spread_is_read_from_the_last_rollout_step():
-    """Planted: the spread read from the first rollout step instead of the last (planning/dynamics.py)."""
-    from wamplan.planning.dynamics import LearnedDynamics, PlanningContext
-
-    model = _spread_model()
-    cfg = model.cfg
-    g = torch.Generator().manual_seed(3)
-    z = torch.randn(1, cfg.context, cfg.num_views, cfg.num_patches, cfg.enc_dim, generator=g)
-    q, past = torch.zeros(1, cfg.context, cfg.proprio_dim), torch.zeros(1, cfg.context - 1, cfg.action_block_dim)
-    dyn = LearnedDynamics(model)
-    dyn.prepare(PlanningContext(z[0], q[0], past[0]))
-    cands = torch.rand(4, 3 * cfg.frameskip, cfg.action_dim, generator=g) * 2 - 1  # (B, L, A): three blocks
-    zp, spread = dyn.predict(cands)
-    _, _, lv = model.rollout(z, q, past, cands.reshape(4, 3, -1), spread=True)  # (B, S=3, V, N, D)
-    per_step = [model.token_variance(lv[:, s]).flatten(1).mean(1) for s in range(3)]  # (B,) each
-    torch.testing.assert_close(spread, per_step[-1])
-    assert not torch.allclose(spread, per_step[0], rtol=1e-2)  # the first step's differs: the test can tell
-    torch.testing.assert_close(zp, dyn.terminal(cands))
 
 
 def test_a_concat_encoders_input_size_is_its_largest_parts():

@@ -30,7 +30,7 @@ import time
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator, Protocol, Sequence
+from typing import Any, Callable, Iterable, Iterator, Mapping, Protocol, Sequence
 
 import torch
 from torch import nn
@@ -169,17 +169,17 @@ def check_data(run_dir: str | Path, kind: str, data: dict[str, Any]) -> None:
 
 
 def check_resume(run_dir: str | Path, kind: str, config: dict[str, Any], data: dict[str, Any] | None,
-                 retired: Sequence[str] = ()) -> None:
+                 retired: Mapping[str, Sequence[str]] | None = None) -> None:
     """The resume rule: the same data and the same config (but :data:`RUN_ONLY_FIELDS`) as the saved run.
-    ``retired``: keys of the ``train`` section that older runs of ``kind`` stored and this version no longer
-    has (ignored)."""
+    ``retired`` ({section: keys}): keys of the config's sections (``train``, ``predictor``, ...) that older runs of
+    ``kind`` stored and this version no longer has (ignored)."""
     if data is not None:
         check_data(run_dir, kind, data)
     saved = json.loads(json.dumps(read_config(run_paths(run_dir)[0], kind)))
     now = json.loads(json.dumps(config))
     diff = []
     for section in sorted((set(saved) | set(now)) - {"data"}):
-        skip = (*RUN_ONLY_FIELDS, *retired) if section == "train" else ()
+        skip = (*(RUN_ONLY_FIELDS if section == "train" else ()), *(retired or {}).get(section, ()))
         diff += _leaf_diff(saved.get(section), now.get(section), section, skip)
     if diff:
         raise UserError(f"{run_dir} was trained with a different config ({'; '.join(diff)}); re-run with the same "
@@ -219,7 +219,7 @@ def train(model: nn.Module, batches: Batches, step_fn: StepFn, cfg: LoopConfig, 
           evaluate: Callable[[nn.Module], dict[str, float]] | None = None,
           on_fresh_start: Callable[[], None] | None = None, resume: bool = False, max_steps: int | None = None,
           progress: bool = True, desc: str = "train", log: Callable[[str], None] | None = print,
-          retired: Sequence[str] = (), hold: Callable[[Path], None] = lambda run: None,
+          retired: Mapping[str, Sequence[str]] | None = None, hold: Callable[[Path], None] = lambda run: None,
           pictures: Pictures | None = None) -> FitResult:
     """Train ``model`` (already on ``device``) into ``run_dir`` with ``step_fn(model, batch) -> (loss, logs)``.
 
@@ -228,7 +228,7 @@ def train(model: nn.Module, batches: Batches, step_fn: StepFn, cfg: LoopConfig, 
     no_grad in eval mode after every epoch; ``on_fresh_start`` runs only when not resuming (e.g. to
     compute normalisation statistics). ``resume`` continues the run's checkpoint (an error without it if
     one exists). ``max_steps`` stops after that many optimisation steps in all (saved; resumable).
-    ``retired``: ``train`` keys that older runs of ``kind`` stored and this version no longer has (see
+    ``retired``: {section: keys} that older runs of ``kind`` stored and this version no longer has (see
     :func:`check_resume`). ``hold(run)`` is called before the run is first written (``fit`` takes its lock there).
     ``pictures(model)``: images logged (to the backends of ``cfg.log`` only) after each epoch's ``evaluate``.
     """

@@ -240,10 +240,9 @@ def _fidelity_options(p: argparse.ArgumentParser) -> None:
                         "the head's reading of each candidate's outcome and of the target (as `eval "
                         "--cost-state-weight W`), as LABEL+pose; the simulator's yardstick keeps the plain cost")
     p.add_argument("--plan-spread-weight", type=float, nargs="+", default=None, metavar="W",
-                   help="also score every model whose prediction has a spread (a spread head, `wm train "
-                        "--spread-weight`, or an ensemble A+B) ranking and searching with W times that spread added "
-                        "to its cost (as `eval --disagreement-weight W`; 1: the expected cost), as LABEL+spreadW, "
-                        "one twin per W; the simulator's yardstick keeps the plain cost")
+                   help="also score every ensemble A+B ranking and searching with W times its members' disagreement "
+                        "added to its cost (as `eval --disagreement-weight W`), as LABEL+spreadW, one twin per W; "
+                        "the simulator's yardstick keeps the plain cost")
     p.add_argument("--oracle-blend", type=float, default=None, metavar="W",
                    help="also score the first --wm model with its predictions moved W of the way to the simulator's "
                         "(as `eval --oracle-blend`; a diagnostic at the oracle's price), as LABEL@W")
@@ -515,7 +514,7 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
         labels += [weighed(lab) for lab, _ in specs]
     for w in args.plan_spread_weight or ():
         if not 0 < w < float("inf"):
-            raise UserError(f"--plan-spread-weight {w:g} must be a finite number above 0 (1: the expected cost)")
+            raise UserError(f"--plan-spread-weight {w:g} must be a finite number above 0 (e.g. 1)")
     if args.plan_state_weight is not None and not args.plan_state_weight > 0:
         raise UserError(f"--plan-state-weight {args.plan_state_weight:g} must be above 0 (e.g. 0.05)")
     cost, plan_cost = (_view_cost(flag, weights) for flag, weights in (
@@ -555,11 +554,11 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
         models += [Scored(posed(m.label), m.dynamics, m.encoder, cost=build_cost(pose, m.dynamics.read_state))
                    for m in headed]
         labels += [posed(m.label) for m in headed]
-    if args.plan_spread_weight:  # each model with a spread, planning with W times it added to its cost
+    if args.plan_spread_weight:  # each ensemble, planning with W times its disagreement added to its cost
         spreading = [m for m in models if m.label in dict(specs) and m.dynamics.spreads]
         if not spreading:
-            raise UserError("--plan-spread-weight needs a --wm model whose prediction has a spread: one trained with "
-                            "`wamplan wm train --spread-weight W`, or an ensemble A+B; none of these has one")
+            raise UserError("--plan-spread-weight needs a --wm ensemble A+B (several checkpoints joined by +), whose "
+                            "members' disagreement it weighs; none of these is one")
         twins = [(m, w) for m in spreading for w in dict.fromkeys(args.plan_spread_weight)]
         models += [Scored(spread(m.label, w), m.dynamics, m.encoder, PlannedPolicyConfig(disagreement_weight=w))
                    for m, w in twins]

@@ -8,16 +8,10 @@ actions the backend's rollout covers (``covered``): Δ·⌊H/Δ⌋ for the learn
 * :class:`LearnedDynamics` rolls all candidates of an iteration out in one batched, KV-cached forward
   of the predictor; the context frames before the current one are encoded once per chunk (batch 1) and
   shared by every candidate and every CEM iteration.
-  A predictor with a spread head (``wm train --spread-weight``) also gives, through ``predict``, its predicted
-  variance of the terminal tokens, averaged over views, patches and dims (the units of the plain patch cost): the
-  planned policy adds it to the cost with ``disagreement_weight``, and at weight 1 the plain patch cost becomes its
-  expected value under the model's Gaussian (with view weights, pooling, a foreground or the cls cost the term is a
-  penalty in the plain cost's units, not that cost's expectation).
 * :class:`EnsembleDynamics` holds several learned world models (checkpoints, or seeds of one recipe): it
   predicts their mean and, through ``predict``, their disagreement, the variance across members averaged
-  over views, patches and dims, plus the mean of the members' own predicted variances where they have spread
-  heads (the law of total variance), which the planned policy adds to the cost with a weight so the search
-  avoids actions the members disagree about or are unsure of.
+  over views, patches and dims (the units of the patch cost), which the planned policy adds to the cost
+  with a weight so the search avoids actions the members disagree about.
 * :class:`BlendedDynamics` (a diagnostic) moves a learned model's prediction a given share of the way to
   the simulator's, to measure how much of the model's error planning can bear.
 * :class:`SimulatorDynamics` (the oracle) hands all candidates to ``TaskEnv.simulate`` (restore the
@@ -84,7 +78,7 @@ class PlanningContext:
 
 class Dynamics(abc.ABC):
     needs_history: bool = False
-    spreads: bool = False  # whether ``predict`` gives a spread (members' disagreement or a predicted variance)
+    spreads: bool = False  # whether ``predict`` gives a spread (an ensemble's disagreement)
     task: TaskSpec | None = None  # the task it predicts; None: recorded nowhere
     cameras: tuple[str, ...] | None = None  # the views it stacks, in order; None: the task's
 
@@ -106,8 +100,7 @@ class Dynamics(abc.ABC):
 
     def predict(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """actions (B, L, A) -> (terminal embeddings (B, V, N, D), spread (B,)): the prediction's variance in the
-        units of the patch cost. A backend without ``spreads`` gives 0 (:class:`EnsembleDynamics` and a
-        :class:`LearnedDynamics` with a spread head override this)."""
+        units of the patch cost. A backend without ``spreads`` gives 0 (:class:`EnsembleDynamics` overrides this)."""
         z = self.terminal(actions)  # (B, V, N, D)
         return z, torch.zeros(z.shape[0], device=z.device)
 
@@ -131,7 +124,6 @@ class LearnedDynamics(Dynamics):
         self.cameras = predictor.cameras  # its views' cameras, in order (None: not known)
         self.frameskip = predictor.cfg.frameskip
         self.context = predictor.cfg.context
-        self.spreads = predictor.spread_head is not None
         self._prefix = None
         self._cur: tuple[torch.Tensor, torch.Tensor] | None = None
 
@@ -184,15 +176,6 @@ class LearnedDynamics(Dynamics):
     def terminal(self, actions: torch.Tensor) -> torch.Tensor:
         z, _ = self.model.rollout_from_prefix(self._prefix, *self._cur, self._blocks(actions))  # (B, S, V, N, D)
         return z[:, -1].float()  # (B, V, N, D)
-
-    @torch.inference_mode()
-    def predict(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        if not self.spreads:
-            return super().predict(actions)
-        z, _, lv = self.model.rollout_from_prefix(self._prefix, *self._cur, self._blocks(actions),
-                                                  spread=True)  # (B, S, V, N, D) x2
-        var = self.model.token_variance(lv[:, -1].float())  # (B, V, N, D) in the tokens' units
-        return z[:, -1].float(), var.flatten(1).mean(dim=1)  # (B, V, N, D), (B,)
 
 
 class SimulatorDynamics(Dynamics):
@@ -290,7 +273,7 @@ class EnsembleDynamics(Dynamics):
         self.needs_history = any(m.needs_history for m in members)
         self.frameskip = getattr(members[0], "frameskip", None)
         self.context = getattr(members[0], "context", 1)
-        self.spreads = len(self.members) > 1 or any(m.spreads for m in self.members)
+        self.spreads = len(self.members) > 1
 
     @property
     def device(self) -> torch.device:
@@ -315,11 +298,9 @@ class EnsembleDynamics(Dynamics):
         return self.members_terminal(actions).mean(dim=0)  # (B, V, N, D)
 
     def predict(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        zs, own = zip(*(m.predict(actions) for m in self.members))  # M of (B, V, N, D), M of (B,)
-        z = torch.stack([x.float().to(self.device) for x in zs])  # (M, B, V, N, D)
-        between = z.var(dim=0, correction=0).flatten(1).mean(dim=1)  # (B,) population variance, pooled
-        within = torch.stack([s.float().to(self.device) for s in own]).mean(dim=0)  # (B,) members' own, 0 without heads
-        return z.mean(dim=0), between + within
+        z = self.members_terminal(actions)  # (M, B, V, N, D)
+        spread = z.var(dim=0, correction=0).flatten(1).mean(dim=1)  # (B,) population variance, pooled
+        return z.mean(dim=0), spread
 
 
 def learned_dynamics(models: list[tuple]) -> tuple[Dynamics, object]:

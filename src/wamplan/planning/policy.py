@@ -254,8 +254,7 @@ class PlannedPolicy(Policy):
     # ------------------------------------------------------------------ scoring
     def objective(self, target: torch.Tensor):
         """candidates (B, H_opt, A) -> costs (B,): the cost of the dynamics' prediction against ``target``
-        (V, N, D), plus ``disagreement_weight`` times the prediction's spread (an ensemble's disagreement, a spread
-        head's variance)."""
+        (V, N, D), plus ``disagreement_weight`` times the prediction's spread (an ensemble's disagreement)."""
         w = self.config.disagreement_weight
 
         def objective(cands: torch.Tensor) -> torch.Tensor:

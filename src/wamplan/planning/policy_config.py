@@ -30,7 +30,7 @@ class PlannedPolicyConfig:
     plan executed whole).
 
     Contract: the search runs only for WAM-chunk costs above ``gate_threshold``; ``disagreement_weight`` needs an
-    ensemble of world models or one with a spread head.
+    ensemble of world models.
     """
 
     first_chunk: str = field("open-loop", "chunk 1: open-loop (the paper) or rest-history (planned from a "
@@ -45,10 +45,8 @@ class PlannedPolicyConfig:
     warm_start: str = field("none", "the search's initial mean: none (the WAM's chunk) or residual (plus "
                             "warm_weight x the previous planned chunk's correction, arm only)", choices=WARM_STARTS)
     warm_weight: float = field(0.5, "with warm_start=residual: the share of the previous correction carried over")
-    disagreement_weight: float = field(0.0, "add this times the prediction's spread to the cost: an ensemble's "
-                                       "disagreement plus its members' predicted variances, or one model's "
-                                       "predicted variance (a spread head: at 1 the plain patch cost's expectation); "
-                                       "0 = off")
+    disagreement_weight: float = field(0.0, "add this times the ensemble's disagreement to the cost (needs several "
+                                       "world models); 0 = off")
     accept_margin: float | None = field(None, "run the plan only if its cost is at least this fraction below the "
                                         "WAM chunk's, else the WAM's chunk; None = always the plan")
     requery_every: int = field(0, "query the WAM and plan every K steps, running the first K actions of each planned "
@@ -100,7 +98,7 @@ def check_fits(cfg: PlannedPolicyConfig, chunk: int, dynamics: Dynamics) -> None
                                 f"between them; use a model whose frameskip divides {period}, or --history seen")
     from wamplan.planning.dynamics import LearnedDynamics
 
-    if cfg.disagreement_weight > 0 and isinstance(dynamics, LearnedDynamics) and not dynamics.spreads:
-        raise PlanningError("disagreement_weight needs an ensemble of world models or one with a spread head, got one "
-                            "without; pass several checkpoints joined by + (eval --wm-augmented A+B, serve "
-                            "--world-model A+B), a model trained with `wm train --spread-weight`, or set it to 0")
+    if cfg.disagreement_weight > 0 and isinstance(dynamics, LearnedDynamics):
+        raise PlanningError("disagreement_weight needs an ensemble of world models, got one; pass several "
+                            "checkpoints joined by + (eval --wm-augmented A+B, serve --world-model A+B) or set it "
+                            "to 0")

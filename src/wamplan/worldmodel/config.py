@@ -11,8 +11,8 @@ import typing
 from dataclasses import dataclass
 from typing import Any
 
-from wamplan.config import (ConfigError, add_field_argument, as_options, check_numbers, field, preset_default_text,
-                            require)
+from wamplan.config import (ConfigError, add_field_argument, as_options, check_numbers, field, from_dict,
+                            preset_default_text, require)
 from wamplan.train_config import AdamWConfig
 
 ACTION_CONDITIONING = ("input", "adaln")  # PredictorConfig.action_conditioning
@@ -63,12 +63,6 @@ class PredictorConfig:
     state_head: str = field("mlp", "the state head: 'mlp' (each token squeezed to 16 features, then an MLP; trained "
                                    "from its random start) or 'ridge' (one linear read-out of the frame's tokens, "
                                    "started from a ridge fit on the training set's true latents before training)")
-    spread_head: bool = field(False, "also predict, from the same hidden state, each token dim's log-variance of the "
-                                     "prediction's error (a heteroscedastic Gaussian around the mean prediction); set "
-                                     "by `wm train --spread-weight`; the planner adds the predicted variance, pooled "
-                                     "over views, patches and dims, to its cost with --disagreement-weight (at weight "
-                                     "1 the expected value of the plain patch cost; with view weights, pooling, a "
-                                     "foreground or the cls cost, a penalty in the plain cost's units)")
 
     def __post_init__(self) -> None:
         check_numbers(self)
@@ -107,6 +101,18 @@ class PredictorConfig:
     def frame_tokens(self) -> int:
         """M' = M visual tokens (+ Delta action tokens with ``action_tokens``): one frame's tokens in the sequence."""
         return self.tokens_per_frame + (self.frameskip if self.action_tokens else 0)
+
+
+# Keys of PredictorConfig that older checkpoints stored and this version no longer has: the spread head's (removed: its
+# variance in the plan's cost hurt; the lab's table keeps its record). Loading drops them, and the head's weights
+# (``worldmodel.predictor.without_retired``).
+RETIRED_PREDICTOR_KEYS = ("spread_head",)
+
+
+def predictor_config(record: dict[str, Any]) -> PredictorConfig:
+    """The :class:`PredictorConfig` of a checkpoint's ``predictor`` record, without :data:`RETIRED_PREDICTOR_KEYS`
+    (other unknown keys are refused, as :func:`~wamplan.config.from_dict` does)."""
+    return from_dict(PredictorConfig, {k: v for k, v in record.items() if k not in RETIRED_PREDICTOR_KEYS})
 
 
 # The predictor's fields that `wamplan wm train` may override on top of a preset (the rest, the encoder's token
@@ -176,9 +182,10 @@ class DecoderTrainConfig(AdamWConfig):
     none of the predictor's loss, window or sibling fields."""
 
 
-# Keys of TrainConfig that older runs stored and this version no longer has: the ranking loss's (removed: it hurt the
-# closed loop; the lab's table keeps its record). A resumed run and a saved config ignore them.
-RETIRED_TRAIN_KEYS = ("rank_temperature", "rank_wam", "rank_weight")
+# Keys of TrainConfig that older runs stored and this version no longer has: the ranking loss's and the spread head's
+# (removed: each hurt the closed loop; the lab's table keeps their records). A resumed run and a saved config ignore
+# them (a run that trained a spread head is refused: ``worldmodel.train``).
+RETIRED_TRAIN_KEYS = ("rank_temperature", "rank_wam", "rank_weight", "spread_only", "spread_weight")
 
 
 @dataclass(frozen=True)
@@ -208,25 +215,9 @@ class TrainConfig(AdamWConfig):
                                      "read as the true frames do through that head (held fixed), so it must get "
                                      "right what says where the object is; needs stores with privileged poses")
 
-    spread_weight: float = field(0.0, "weight of the spread head's loss (0: off, no head): the Gaussian negative "
-                                      "log-likelihood of each predicted token's error under the head's predicted "
-                                      "variance, each step's own mean prediction held fixed in it (the shared blocks, "
-                                      "and through the predictions fed back to later steps the readout, learn from it "
-                                      "too, unless --spread-only)")
-    spread_only: bool = field(False, "train the spread head alone (every other weight frozen, from --init, a state "
-                                     "head included): the model's mean predictions stay the --init checkpoint's, bit "
-                                     "for bit; no other loss applies")
-
     def __post_init__(self) -> None:
         check_numbers(self)
         super().__post_init__()
-        require(self.spread_weight >= 0,
-                f"TrainConfig.spread_weight must be a number >= 0 (0: off), got {self.spread_weight}")
-        require(not self.spread_only or self.spread_weight > 0,
-                "TrainConfig.spread_only trains the spread head alone, so it needs spread_weight > 0")
-        others = [k for k in ("state_weight", "sibling_weight", "change_weight") if getattr(self, k)]
-        require(not (self.spread_only and others), f"TrainConfig.spread_only trains the spread head alone, which "
-                                                   f"{', '.join(others)} cannot reach; drop them")
         require(self.horizon >= 1, f"TrainConfig.horizon (K) must be >= 1, got {self.horizon}")
         require(0.0 < self.gamma <= 1.0, f"TrainConfig.gamma must be in (0, 1], got {self.gamma}")
         require(self.loss_form in ("mean", "sum"), f"TrainConfig.loss_form must be mean or sum, got {self.loss_form!r}")

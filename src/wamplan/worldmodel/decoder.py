@@ -137,7 +137,7 @@ def train_decoder(train_set: Dataset, cfg: DecoderConfig, train: DecoderTrainCon
                  run_dir=out_dir, kind=KIND, config=config, data=data, device=dev,
                  evaluate=evaluate if val_set is not None else None, resume=resume, max_steps=max_steps,
                  progress=progress, desc="decoder", log=print if progress else None,
-                 retired=PREDICTOR_ONLY_TRAIN_KEYS, pictures=pictures if val_set is not None else None)
+                 retired={"train": PREDICTOR_ONLY_TRAIN_KEYS}, pictures=pictures if val_set is not None else None)
     return model.eval(), result.metrics
 
 

@@ -11,9 +11,9 @@ from typing import Any
 import torch
 
 from wamplan.checkpoint import checkpoint_dir, read_config
-from wamplan.config import from_dict, to_dict
+from wamplan.config import to_dict
 from wamplan.errors import UserError
-from wamplan.worldmodel.config import PredictorConfig
+from wamplan.worldmodel.config import PredictorConfig, predictor_config
 from wamplan.worldmodel.load import KIND
 from wamplan.worldmodel.predictor import WorldModelPredictor
 
@@ -21,9 +21,8 @@ def check_init(init: str | Path, cfg: PredictorConfig, encoder_info: dict[str, A
     """A fine-tuning start must be a predictor of the same architecture over the same encoder's tokens, or one this
     run grows (:func:`grown_dims`). Returns the start's token size D when it is grown, else None."""
     saved = read_config(checkpoint_dir(init), KIND)
-    theirs = to_dict(from_dict(PredictorConfig, saved["predictor"]))  # fields added since it was saved: their defaults
-    theirs.update(state_dim=cfg.state_dim, state_head=cfg.state_head,  # a fine-tune may add (or drop) a state head
-                  spread_head=cfg.spread_head)  # or a spread head
+    theirs = to_dict(predictor_config(saved["predictor"]))  # fields added since it was saved: their defaults
+    theirs.update(state_dim=cfg.state_dim, state_head=cfg.state_head)  # a fine-tune may add (or drop) a state head
     their_encoder = {k: v for k, v in (saved.get("encoder") or {}).items() if k != "path"}
     old_dim = grown_dims(theirs, their_encoder, cfg, encoder_info)
     if old_dim is not None:

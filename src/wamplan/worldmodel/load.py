@@ -12,7 +12,7 @@ import torch
 from wamplan.checkpoint import checkpoint_dir, load_weights, read_config, read_meta
 from wamplan.device import resolve_device
 from wamplan.errors import UserError
-from wamplan.worldmodel.predictor import WorldModelPredictor
+from wamplan.worldmodel.predictor import WorldModelPredictor, without_retired
 from wamplan.worldmodel.splice import SPLICE_KIND, load_spliced
 
 KIND = "wm-predictor"  # a predictor checkpoint's kind (``checkpoint.read_config``)
@@ -38,7 +38,7 @@ def load_predictor(path: str | Path, device: str | torch.device = "cpu") -> Worl
     if _kind_of(ckpt) == SPLICE_KIND:  # a concat model whose parts other models predict
         return load_spliced(ckpt, dev)
     model = WorldModelPredictor.from_record(read_config(ckpt, KIND))
-    load_weights(ckpt, model)
+    load_weights(ckpt, model, adapt=without_retired)  # an older checkpoint's spread head is dropped
     return model.to(dev).eval()
 
 

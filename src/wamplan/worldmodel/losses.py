@@ -82,29 +82,14 @@ def state_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], zp: t
                                     "state_mm_h1": float(e_pred[0].detach().sqrt()) * mm}
 
 
-def spread_terms(model: WorldModelPredictor, zp: torch.Tensor, zt: torch.Tensor, log_var: torch.Tensor
-                 ) -> dict[str, torch.Tensor]:
-    """Per sample and step (B, K): the spread head's Gaussian negative log-likelihood of the prediction's error
-    (normalised units, constant dropped; each step's own mean zp is detached here, the predictions of earlier steps
-    fed back into it are not), the variance
-    ratio (squared error over predicted variance; 1 when calibrated), and, per token (mean over dims), the
-    predicted variance and the squared error (B, K, V, N), for their correlation. zp, zt, log_var (B, K, V, N, D)."""
-    r2 = ((zt.float() - zp.detach().float()) / model.z_std).pow(2)  # (B, K, V, N, D)
-    lv = log_var.float()
-    ratio = r2 * torch.exp(-lv)  # (B, K, V, N, D)
-    return {"nll": 0.5 * (lv + ratio).flatten(2).mean(-1), "ratio": ratio.flatten(2).mean(-1),
-            "tok_var": lv.exp().mean(-1), "tok_err": r2.mean(-1)}
-
-
 def window_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int,
-                gamma: float, loss_form: str = "mean", change_weight: float = 0.0, state_weight: float = 0.0,
-                spread_weight: float = 0.0) -> tuple[torch.Tensor, dict[str, float]]:
+                gamma: float, loss_form: str = "mean", change_weight: float = 0.0, state_weight: float = 0.0
+                ) -> tuple[torch.Tensor, dict[str, float]]:
     """Eq. 2: the discounted K-step autoregressive loss of a batch of windows. ``change_weight`` W > 0 weighs
     each token's squared error by :func:`change_weights` (the tokens that change count more); 0 is eq. 2.
-    ``state_weight`` > 0 adds that times :func:`state_loss` (the batch must carry ``s``); ``spread_weight`` > 0
-    that times the spread head's discounted negative log-likelihood (:func:`spread_terms`)."""
+    ``state_weight`` > 0 adds that times :func:`state_loss` (the batch must carry ``s``)."""
     (zc, qc, ac), a_future, (zt, qt) = split_windows(model, batch, horizon)
-    zp, qp, *lv = model.rollout(zc, qc, ac, a_future, spread=spread_weight > 0)  # (B, K, V, N, D), (B, K, P)
+    zp, qp = model.rollout(zc, qc, ac, a_future)  # (B, K, V, N, D), (B, K, P)
     ez = per_horizon_mse(zp, zt).mean(dim=0)  # (K,)
     eq = per_horizon_mse(qp, qt).mean(dim=0)  # (K,)
     logs = {"z_mse_h1": float(ez[0].detach()), "q_mse_h1": float(eq[0].detach())}
@@ -118,11 +103,6 @@ def window_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], hori
     if state_weight > 0:
         st, st_logs = state_loss(model, batch, zp, zt, horizon)
         loss, logs = loss + state_weight * st, {**logs, **st_logs}
-    if spread_weight > 0:
-        sp = spread_terms(model, zp, zt, lv[0])
-        loss = loss + spread_weight * (w * sp["nll"].mean(dim=0)).sum()
-        logs.update({f"spread_nll_h{horizon}": float(sp["nll"][:, -1].mean().detach()),
-                     f"spread_ratio_h{horizon}": float(sp["ratio"][:, -1].mean().detach())})
     return loss, logs
 
 SIBLING_SPLITS = ("group", "view", "token", "feature")  # how :func:`sibling_errors` splits a group's elements

@@ -15,10 +15,6 @@ Variants (``PredictorConfig``; the defaults are the model above, which the shipp
 * ``action_tokens=True``: each frame also carries Delta tokens, one per control step of its action block
   (MLP(a_{t,k}) + a learned step embedding), so M' = M + Delta tokens a frame run through the blocks; only
   the M visual tokens are read out.
-* ``spread_head=True``: a small MLP beside the token readout predicts each token dim's log-variance of the
-  prediction's error (normalised units, :meth:`WorldModelPredictor.token_variance` turns it into the tokens'
-  units); ``rollout(..., spread=True)`` returns it per step. It reads the hidden state and feeds nothing back, so
-  the mean predictions are those of the same weights without it.
 * ``predict_delta`` (readout as a change) and the width/depth fields. Both variants keep a frame's keys and
   values a function of that frame's own inputs and the frames before it, so the KV cache below holds for all.
 
@@ -55,10 +51,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from wamplan.config import from_dict
 from wamplan.envs.spec import DEFAULT_TASK, TaskSpec, get_task
 from wamplan.errors import UserError
-from wamplan.worldmodel.config import PredictorConfig
+from wamplan.worldmodel.config import PredictorConfig, predictor_config
 from wamplan.worldmodel.layers import KV, AdaLNBlock, Block, KVRing, init_weights, rope_angles
 
 
@@ -69,6 +64,16 @@ def action_blocks(actions: torch.Tensor, frameskip: int) -> torch.Tensor:
     if steps % frameskip:
         raise ValueError(f"{steps} actions do not split into blocks of frameskip {frameskip}")
     return actions.reshape(*lead, steps // frameskip, frameskip * dim)
+
+
+# Modules that older checkpoints hold and this version no longer builds: the spread head's (removed: its variance in
+# the plan's cost hurt; :data:`~wamplan.worldmodel.config.RETIRED_PREDICTOR_KEYS` are its config keys).
+RETIRED_MODULES = ("spread_head",)
+
+
+def without_retired(weights: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """A checkpoint's weights without those of :data:`RETIRED_MODULES`, at any depth (a splice's models too)."""
+    return {k: v for k, v in weights.items() if not set(k.split(".")) & set(RETIRED_MODULES)}
 
 
 @dataclass
@@ -156,8 +161,6 @@ class WorldModelPredictor(nn.Module):
         inv_freq = cfg.rope_base ** -(torch.arange(0, e, 2, dtype=torch.float32) / e)  # (e/2,) 1 .. base^-1
         self.register_buffer("inv_freq", inv_freq, persistent=False)
         self.state_head = StateHead(cfg) if cfg.state_dim else None
-        self.spread_head = (nn.Sequential(nn.Linear(d, d), nn.GELU(), nn.Linear(d, cfg.enc_dim))  # log-variance
-                            if cfg.spread_head else None)  # per token dim, from the normed hidden state
         if cfg.action_tokens:  # one token per control step of the action block
             self.action_token = nn.Sequential(nn.Linear(cfg.action_dim, d), nn.GELU(), nn.Linear(d, d))
             self.action_pos = nn.Parameter(torch.zeros(cfg.frameskip, d))  # (Delta, d), one per step of the block
@@ -176,7 +179,7 @@ class WorldModelPredictor(nn.Module):
         """An untrained predictor as a checkpoint's config record describes it: its ``predictor`` config, and the
         task and cameras of its ``data`` (a record without a task: the cube-insertion task's)."""
         trained_on = saved.get("data") or {}
-        return cls(from_dict(PredictorConfig, saved["predictor"]), trained_on.get("task") or DEFAULT_TASK,
+        return cls(predictor_config(saved["predictor"]), trained_on.get("task") or DEFAULT_TASK,
                    trained_on.get("cameras"))
 
     @property
@@ -269,19 +272,6 @@ class WorldModelPredictor(nn.Module):
             return z.to(dz.dtype) + dz, q.to(dq.dtype) + dq
         return dz + self.z_mean, dq
 
-    LOG_VAR_RANGE = (-12.0, 6.0)  # the spread head's log-variance is clamped to this (normalised units)
-
-    def _log_var(self, hn: torch.Tensor) -> torch.Tensor:
-        """normed visual hidden (B, T, M, d) (:meth:`_visual`) -> the spread head's log-variances (B, T, V, N, D) of
-        the next frame's tokens, in normalised units (per dim divided by z_std), clamped to :attr:`LOG_VAR_RANGE`."""
-        cfg = self.cfg
-        lv = self.spread_head(hn)  # (B, T, M, D)
-        return lv.unflatten(2, (cfg.num_views, cfg.num_patches)).clamp(*self.LOG_VAR_RANGE)
-
-    def token_variance(self, log_var: torch.Tensor) -> torch.Tensor:
-        """The spread head's log-variances (..., D) (normalised units) -> variances in the tokens' own units."""
-        return log_var.exp() * self.z_std.pow(2)
-
     def _check(self, z: torch.Tensor, q: torch.Tensor, a: torch.Tensor, frames: int | None = None) -> None:
         cfg = self.cfg
         want_z = (cfg.num_views, cfg.num_patches, cfg.enc_dim)
@@ -331,15 +321,11 @@ class WorldModelPredictor(nn.Module):
         return PrefixCache(frames, tp)
 
     def rollout_from_prefix(self, prefix: PrefixCache, z_cur: torch.Tensor, q_cur: torch.Tensor,
-                            a_future: torch.Tensor, spread: bool = False) -> tuple[torch.Tensor, ...]:
+                            a_future: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """KV-cached autoregressive rollout. z_cur (Bc, V, N, D), q_cur (Bc, P): the current frame (Bc = 1
         or B); a_future (B, S, Delta*A): a_future[:, 0] is executed from the current frame.
-        Returns predicted frames 1..S after the current one: z (B, S, V, N, D), q (B, S, P); with ``spread``
-        also the spread head's log-variances of those frames' tokens (B, S, V, N, D) (:meth:`_log_var`)."""
+        Returns predicted frames 1..S after the current one: z (B, S, V, N, D), q (B, S, P)."""
         self._check(z_cur[:, None], q_cur[:, None], a_future[:, :1], frames=1)
-        if spread and self.spread_head is None:
-            raise ValueError("this predictor has no spread head (PredictorConfig.spread_head is False); train one "
-                             "with `wamplan wm train --spread-weight W`")
         h_ctx, keep = self.cfg.context, self.cfg.context - 1
         window, t = list(prefix.frames), prefix.start
         # Without autograd, keys/values live in preallocated per-layer rings (no per-step concatenation).
@@ -347,7 +333,7 @@ class WorldModelPredictor(nn.Module):
         if keep > 0 and not torch.is_grad_enabled():
             rings = [KVRing(h_ctx, [frame[layer] for frame in window]) for layer in range(len(self.blocks))]
         z_t, q_t = z_cur[:, None], q_cur[:, None]  # (Bc, 1, V, N, D), (Bc, 1, P)
-        zs, qs, lvs = [], [], []
+        zs, qs = [], []
         for s in range(a_future.shape[1]):
             x, cond = self._embed(z_t, q_t, a_future[:, s:s + 1])  # (B, 1, M', d), (B, 1, Ea) or None
             if rings is not None:
@@ -356,18 +342,14 @@ class WorldModelPredictor(nn.Module):
             else:
                 h, kv = self._blocks(x, t, window, cond=cond)  # (B, 1, M', d); per layer (B, heads, M', e)
                 window = (window + [kv])[-keep:] if keep > 0 else []  # the last H_ctx-1 frames
-            hn = self._visual(h)  # (B, 1, M, d), read by the token readout and the spread head alike
-            if spread:
-                lvs.append(self._log_var(hn))  # (B, 1, V, N, D)
-            z_t, q_t = self._readout(hn, z_t, q_t)  # (B, 1, V, N, D), (B, 1, P)
+            z_t, q_t = self._readout(self._visual(h), z_t, q_t)  # (B, 1, V, N, D), (B, 1, P)
             zs.append(z_t)
             qs.append(q_t)
             t += 1
-        out = torch.cat(zs, dim=1), torch.cat(qs, dim=1)  # (B, S, V, N, D), (B, S, P)
-        return (*out, torch.cat(lvs, dim=1)) if spread else out
+        return torch.cat(zs, dim=1), torch.cat(qs, dim=1)  # (B, S, V, N, D), (B, S, P)
 
     def rollout(self, z_ctx: torch.Tensor, q_ctx: torch.Tensor, a_ctx_past: torch.Tensor,
-                a_future: torch.Tensor, naive: bool = False, spread: bool = False) -> tuple[torch.Tensor, ...]:
+                a_future: torch.Tensor, naive: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
         """Autoregressive S-step prediction from context frames.
 
         z_ctx (Bc, Tc, V, N, D), q_ctx (Bc, Tc, P): context frames, the last is the current one (Tc is
@@ -375,15 +357,12 @@ class WorldModelPredictor(nn.Module):
         a_future (B, S, Delta*A): candidate action blocks, a_future[:, 0] executed from the current frame.
         Bc is 1 (context shared by all B candidates, computed once) or B.
         Returns z (B, S, V, N, D), q (B, S, P): predictions Delta, 2 Delta, ..., S Delta steps ahead.
-        ``naive=True`` re-runs ``forward`` over the whole sequence every step (slow reference). ``spread``: also the
-        spread head's log-variances (B, S, V, N, D), as :meth:`rollout_from_prefix` gives them.
+        ``naive=True`` re-runs ``forward`` over the whole sequence every step (slow reference).
         """
         if naive:
-            if spread:
-                raise ValueError("the naive reference rollout gives no spread; use naive=False")
             return self._rollout_naive(z_ctx, q_ctx, a_ctx_past, a_future)
         prefix = self.encode_prefix(z_ctx[:, :-1], q_ctx[:, :-1], a_ctx_past)
-        return self.rollout_from_prefix(prefix, z_ctx[:, -1], q_ctx[:, -1], a_future, spread=spread)
+        return self.rollout_from_prefix(prefix, z_ctx[:, -1], q_ctx[:, -1], a_future)
 
     def _rollout_naive(self, z_ctx: torch.Tensor, q_ctx: torch.Tensor, a_ctx_past: torch.Tensor,
                        a_future: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

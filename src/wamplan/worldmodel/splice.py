@@ -26,7 +26,7 @@ from torch import nn
 
 from wamplan.checkpoint import load_weights, read_config
 from wamplan.errors import UserError
-from wamplan.worldmodel.predictor import PrefixCache, WorldModelPredictor
+from wamplan.worldmodel.predictor import PrefixCache, WorldModelPredictor, without_retired
 
 SPLICE_KIND = "wm-splice"
 SHARED = ("frameskip", "context", "num_views", "num_patches", "proprio_dim", "action_dim")  # cfg fields all share
@@ -45,9 +45,7 @@ class SplicedPredictor(nn.Module):
     predictions taken from ``parts[i]`` (a predictor over part i's own tokens, D_i dims). The predictor API of
     :class:`WorldModelPredictor` that planning and evaluation use: ``forward``, ``encode_prefix``,
     ``rollout_from_prefix``, ``rollout``, ``read_state`` (the base's head), ``cfg``/``task``/``cameras`` (the
-    base's). It predicts no spread (``spread_head`` is None)."""
-
-    spread_head = None
+    base's)."""
 
     def __init__(self, base: WorldModelPredictor, parts: dict[int, WorldModelPredictor],
                  dims: list[int], scales: list[float]) -> None:
@@ -163,5 +161,5 @@ def load_spliced(ckpt: str | Path, device: str | torch.device = "cpu") -> Splice
     model = SplicedPredictor(WorldModelPredictor.from_record(saved["base"]),
                              {int(i): WorldModelPredictor.from_record(rec) for i, rec in parts.items()},
                              saved["dims"], saved["scales"])
-    load_weights(ckpt, model)
+    load_weights(ckpt, model, adapt=without_retired)
     return model.to(device).eval()

@@ -131,14 +131,7 @@ def train_predictor_on_stores(stores: Sequence[str | Path], out: str | Path, pre
     task, cameras = stores_task(stores)
     check_image_stride(stores, predictor.frameskip)  # before encoding, which may take long
     predictor = predictor_for_task(predictor, task, cameras)
-    predictor = dataclasses.replace(predictor, state_dim=len(STATE_QUANTITIES) if train.state_weight > 0 else 0,
-                                    spread_head=train.spread_weight > 0)
-    if train.spread_only and init is not None:  # the head joins the --init model as it is, its state head included
-        from wamplan.checkpoint import checkpoint_dir, read_config
-
-        saved = read_config(checkpoint_dir(init), KIND)["predictor"]
-        predictor = dataclasses.replace(predictor, state_dim=saved.get("state_dim", 0),
-                                        state_head=saved.get("state_head", predictor.state_head))
+    predictor = dataclasses.replace(predictor, state_dim=len(STATE_QUANTITIES) if train.state_weight > 0 else 0)
     data, resume, info, key, (name, n, d), _ = _prepare(stores, out, KIND, encoder, encoder_kwargs, encoder_path,
                                                           val_fraction, device, progress)
     predictor = dataclasses.replace(predictor, encoder=name, num_patches=n, enc_dim=d)  # the encoder's token layout

@@ -16,21 +16,21 @@ from typing import Any, Sequence
 import torch
 from torch.utils.data import DataLoader, Dataset
 
-from wamplan.checkpoint import checkpoint_dir, load_weights
+from wamplan.checkpoint import CKPT_DIR, checkpoint_dir, has_training_state, load_weights, read_config
 from wamplan.config import to_dict
 from wamplan.data.readers import STATE_UNIT_MM
 from wamplan.device import resolve_device
 from wamplan.envs.spec import TaskSpec
 from wamplan.errors import UserError
 from wamplan.train_loop import DatasetBatches, evaluating, fit, saved_progress, shown
-from wamplan.worldmodel.config import RETIRED_TRAIN_KEYS, PredictorConfig, TrainConfig
+from wamplan.worldmodel.config import RETIRED_PREDICTOR_KEYS, RETIRED_TRAIN_KEYS, PredictorConfig, TrainConfig
 from wamplan.worldmodel.grow import check_init, grow_weights
 from wamplan.worldmodel.load import KIND
-from wamplan.worldmodel.losses import group_loss, per_horizon_mse, split_windows, spread_terms, window_loss
-from wamplan.worldmodel.predictor import WorldModelPredictor
+from wamplan.worldmodel.losses import group_loss, per_horizon_mse, split_windows, window_loss
+from wamplan.worldmodel.predictor import WorldModelPredictor, without_retired
 from wamplan.worldmodel.siblings import evaluate_siblings
 
-NEW_ON_INIT = ("state_head.", "spread_head.")  # weights a fine-tune may add to (or drop from) its --init checkpoint's
+NEW_ON_INIT = ("state_head.",)  # weights a fine-tune may add to (or drop from) its --init checkpoint's
 
 @torch.no_grad()
 def evaluate_predictor(model: WorldModelPredictor, dataset: Dataset, horizon: int, gamma: float,
@@ -39,12 +39,11 @@ def evaluate_predictor(model: WorldModelPredictor, dataset: Dataset, horizon: in
     device = device or next(model.parameters()).device
     sums: dict[str, torch.Tensor] = {}
     count = 0
-    headed = model.spread_head is not None
     with evaluating(model):
         for batch in DataLoader(dataset, batch_size=batch_size, shuffle=False):
             batch = {k: v.to(device) for k, v in batch.items()}
             (zc, qc, ac), a_future, (zt, qt) = split_windows(model, batch, horizon)
-            zp, qp, *lv = model.rollout(zc, qc, ac, a_future, spread=headed)  # (B, K, V, N, D), (B, K, P)
+            zp, qp = model.rollout(zc, qc, ac, a_future)  # (B, K, V, N, D), (B, K, P)
             parts = {"z_mse": per_horizon_mse(zp, zt), "q_mse": per_horizon_mse(qp, qt),
                      "copy_z_mse": per_horizon_mse(zc[:, -1:].expand_as(zt), zt),
                      "copy_q_mse": per_horizon_mse(qc[:, -1:].expand_as(qt), qt)}  # each (B, K)
@@ -53,12 +52,6 @@ def evaluate_predictor(model: WorldModelPredictor, dataset: Dataset, horizon: in
                 parts["state_pred_se"] = (model.read_state(zp) - st).pow(2).mean(dim=-1)  # (B, K)
                 parts["state_true_se"] = (model.read_state(zt) - st).pow(2).mean(dim=-1)  # (B, K)
                 parts["state_gap_se"] = (model.read_state(zp) - model.read_state(zt)).pow(2).mean(dim=-1)  # (B, K)
-            if headed:  # the spread head's fit, and the sums of the per-token log-log correlation
-                sp = spread_terms(model, zp, zt, lv[0])
-                x, y = sp["tok_var"].log().flatten(2).double(), sp["tok_err"].clamp_min(1e-12).log().flatten(2).double()
-                parts.update({"spread_nll": sp["nll"], "spread_ratio": sp["ratio"], "tok_x": x.mean(-1),
-                              "tok_y": y.mean(-1), "tok_xy": (x * y).mean(-1), "tok_xx": (x * x).mean(-1),
-                              "tok_yy": (y * y).mean(-1)})  # each (B, K)
             for k, v in parts.items():
                 sums[k] = sums.get(k, 0) + v.sum(dim=0).double()  # (K,)
             count += zc.shape[0]
@@ -67,12 +60,6 @@ def evaluate_predictor(model: WorldModelPredictor, dataset: Dataset, horizon: in
     for k, v in sums.items():
         mean = (v / max(count, 1)).cpu()  # (K,)
         out.update({f"{k}_h{i + 1}": float(mean[i]) for i in range(horizon)})
-    if headed:  # Pearson correlation, over held-out tokens, of log predicted variance with log squared error
-        m = {k: v.cpu() / max(count, 1) for k, v in sums.items() if k.startswith("tok_")}  # (K,) each
-        cov = m["tok_xy"] - m["tok_x"] * m["tok_y"]
-        corr = cov / ((m["tok_xx"] - m["tok_x"] ** 2) * (m["tok_yy"] - m["tok_y"] ** 2)).clamp_min(1e-24).sqrt()
-        out.update({f"spread_corr_h{i + 1}": float(corr[i]) for i in range(horizon)})
-        out = {k: v for k, v in out.items() if not k.startswith("tok_")}
     for k in ("state_pred", "state_true", "state_gap"):  # root-mean-square state errors in mm
         for i in range(horizon):
             if f"{k}_se_h{i + 1}" in out:
@@ -140,17 +127,14 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
     if init is not None:
         config["init"] = str(Path(init).resolve())
         old_dim = check_init(init, cfg, encoder_info)
-    if train.spread_only:
-        if init is None or old_dim is not None or model.spread_head is None:
-            raise UserError("--spread-only fits a spread head onto a trained model: pass its checkpoint as --init "
-                            "(with the same encoder) and --spread-weight W > 0")
-        for name, p in model.named_parameters():  # the mean predictions stay the --init checkpoint's
-            p.requires_grad_(name.startswith("spread_head."))
+    if resume:
+        _refuse_retired_head(out_dir)
 
     def fresh_stats() -> None:
         if init is not None:
-            load_weights(checkpoint_dir(init), model, dev, new=NEW_ON_INIT,
-                         adapt=None if old_dim is None else lambda w: grow_weights(w, model, old_dim))
+            load_weights(checkpoint_dir(init), model, dev, new=NEW_ON_INIT,  # an older start's spread head dropped
+                         adapt=lambda w: without_retired(w) if old_dim is None else
+                         grow_weights(without_retired(w), model, old_dim))
             model.float()
             if old_dim is not None:  # the grown dims' statistics from the data, the start's kept for its own
                 mean, std = compute_feature_stats(train_set, seed=train.seed)
@@ -159,8 +143,8 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
         else:
             mean, std = compute_feature_stats(train_set, seed=train.seed)
             model.set_feature_stats(mean, std)
-        if model.state_head is not None and cfg.state_head == "ridge" and not train.spread_only:
-            fit_state_head(model, train_set, seed=train.seed)  # with --spread-only the --init's head is kept
+        if model.state_head is not None and cfg.state_head == "ridge":
+            fit_state_head(model, train_set, seed=train.seed)
 
     def evaluate(m: torch.nn.Module) -> dict[str, float]:
         out = evaluate_predictor(m, val_set, train.horizon, train.gamma,  # type: ignore[arg-type]
@@ -176,7 +160,7 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
 
     def step(m: WorldModelPredictor, b: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, float]]:
         loss, logs = window_loss(m, b, train.horizon, train.gamma, train.loss_form, train.change_weight,
-                                 train.state_weight, train.spread_weight)
+                                 train.state_weight)
         if groups is not None:
             with torch.autocast(dev.type, enabled=False):  # --precision bfloat16: read and stack as stored
                 g = {k: v.to(dev) for k, v in next(groups).items()}
@@ -188,8 +172,23 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
                  step, train, run_dir=out_dir, kind=KIND,
                  config=config, data=data, device=dev, evaluate=evaluate if val_set is not None else None,
                  on_fresh_start=fresh_stats, resume=resume, max_steps=max_steps,
-                 progress=progress, desc="predictor", log=print if progress else None, retired=RETIRED_TRAIN_KEYS)
+                 progress=progress, desc="predictor", log=print if progress else None,
+                 retired={"train": RETIRED_TRAIN_KEYS, "predictor": RETIRED_PREDICTOR_KEYS})
     return model.eval(), result.metrics
+
+
+def _refuse_retired_head(out_dir: str | Path) -> None:
+    """One line if the run in ``out_dir`` trained a spread head (``wm train --spread-weight``, removed): its weights
+    and optimizer state hold the head, which this version no longer has, so it cannot resume. Its checkpoint still
+    loads, without the head (:func:`~wamplan.worldmodel.predictor.without_retired`)."""
+    ckpt = Path(out_dir) / CKPT_DIR
+    if not has_training_state(ckpt):
+        return
+    saved = read_config(ckpt, KIND)
+    if saved.get("predictor", {}).get("spread_head") or saved.get("train", {}).get("spread_weight"):
+        raise UserError(f"{out_dir} was trained with a spread head (wm train --spread-weight), an option wamplan no "
+                        f"longer has (it measured no gain): it cannot resume; use another --out, or fine-tune its "
+                        f"checkpoint with --init (the head is dropped)")
 
 
 def _group_batches(groups: Dataset, train: TrainConfig, start: int = 0):
