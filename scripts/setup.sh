@@ -9,7 +9,7 @@ cd "$(dirname "$0")/.."
 VENV=${WAMPLAN_VENV:-.venv}
 PY=${PYTHON:-python3}
 UV_VERSION=0.13.10  # the installer of wamplan's dependencies (pip's if it cannot be installed)
-log() { printf '[setup] %s\n' "$*"; }
+log() { printf '[setup %3ds] %s\n' "$SECONDS" "$*"; }
 
 mesa_ok() {
   # True when a GPU Vulkan driver is installed or lavapipe from Mesa >= 24.3 is.

@@ -70,6 +70,7 @@ class FrameHistory:
     def reset(self) -> None:
         """Start a new episode."""
         self.frames: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}  # step -> (z (V, N, D), q (P,)) on device
+        self.seen: set[int] = set()  # the steps of the frames shown, not imagined
         self.executed: list[np.ndarray] = []  # (A,) per step, clipped to [-1, 1]: the action run at that step
 
     def steps(self, t: int) -> list[int]:
@@ -98,8 +99,11 @@ class FrameHistory:
             raise PlanningError(f"the planned policy needs the views at step {t} (a history frame) but "
                                 f"got none; drive it with run_episode or render when wants_images(t) is true")
         self.frames[t] = (self.encode(obs.images), torch.as_tensor(obs.proprio, device=self.device))
-        oldest = t - (self.context - 1) * self.frameskip - self.period  # nothing older is needed again
+        self.seen.add(t)
+        # nothing older is needed again; an imagined history may roll from the frame seen a chunk or two before
+        oldest = t - (self.context - 1) * self.frameskip - (self.period if self.imagine is None else 2 * self.chunk)
         self.frames = {s: f for s, f in self.frames.items() if s >= oldest}
+        self.seen = {s for s in self.seen if s >= oldest}
 
     def record_action(self, action: np.ndarray) -> None:
         """Keep the (A,) action executed at the next step, clipped to [-1, 1] as the env runs it."""
@@ -125,7 +129,7 @@ class FrameHistory:
             steps = [s for s in steps if s >= 0]
         if self.imagine is not None:
             for s in steps:
-                if s >= 0 and s not in self.frames and s % self.period:
+                if 0 <= s < t and s not in self.frames:  # the frame of t itself is always seen
                     self._imagine_until(s)
         missing = [s for s in steps if s >= 0 and s not in self.frames]
         if missing:
@@ -142,9 +146,13 @@ class FrameHistory:
         return PlanningContext(z, q, a)
 
     def _imagine_until(self, step: int) -> None:
-        """Predict the frames Δ, 2Δ, ..., up to ``step`` after the planning point before it, from that point's
-        context and the actions executed since, and keep them as history frames."""
-        start = step - step % self.period  # the planning point whose frame was seen
+        """Predict the frames Δ, 2Δ, ..., up to ``step`` after the latest frame seen before it on its grid (the last
+        planning point's, as a rule), in one rollout from that frame's context under the actions executed since; keep
+        those not kept yet."""
+        start = max((s for s in self.seen if s < step and (step - s) % self.frameskip == 0), default=None)
+        if start is None:
+            raise PlanningError(f"no frame before step {step} to imagine it from; the policy must see the planning "
+                                f"points' frames from the episode start (reset it before each episode)")
         z, q = self.imagine(self._context(start), self.actions(start, step))  # (S, V, N, D), (S, P)
         for i in range(len(z)):
             self.frames.setdefault(start + (i + 1) * self.frameskip, (z[i].to(self.device), q[i].to(self.device)))

@@ -1,0 +1,68 @@
+"""``--history imagined`` on the planning proxy: a client that posts only at chunk boundaries, as Cosmos Policy's and
+openpi's clients do unmodified (no ``chunk_frames``), gets every chunk after the first planned by the shipped Δ = 4
+world model, with the actions of the same episode planned in process with ``history="imagined"``; the start-up
+banner says that the in-chunk frames are imagined."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from wamplan.api import planned_policy
+from wamplan.planning.policy_config import PlannedPolicyConfig
+from wamplan.proxy.app import create_proxy_app
+from wamplan.proxy.build import build_proxy
+from wamplan.proxy.config import ProxyConfig
+from wamplan.serving.runner import BackgroundServer
+from wamplan.wam.base import load_wam
+
+from test_proxy import WAM_CKPT, WM_CKPT, H, observation, post, request  # noqa: I001
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+CHUNKS = 3
+
+
+@pytest.fixture(scope="module")
+def proxy():
+    from test_proxy_openpi import WS_FIELDS
+
+    p = build_proxy(ProxyConfig(upstream=WAM_CKPT, world_model=WM_CKPT, device="cpu", errors="http",
+                                ws_fields=WS_FIELDS, fit_proprio=True),
+                    planning={"policy": PlannedPolicyConfig(history="imagined")})
+    with BackgroundServer(create_proxy_app(p)) as srv:
+        yield srv, p
+    p.close()
+
+
+def imagined_in_process(client: int) -> np.ndarray:
+    """The episode of ``observation(client, .)`` planned in process with an imagined history -> (CHUNKS x H, A)."""
+    policy = planned_policy(load_wam(WAM_CKPT, device="cpu"), world_model=WM_CKPT, device="cpu", history="imagined")
+    policy.reset(seed=0)
+    acts = [policy.act(observation(client, t, policy.wants_images(t))) for t in range(CHUNKS * H)]
+    assert [c["planned"] for c in policy.chunks] == [False] + [True] * (CHUNKS - 1)
+    return np.stack(acts)
+
+
+def test_boundary_posts_alone_are_planned_as_the_imagined_episode_in_process(proxy):
+    srv, p = proxy
+    assert ("history: chunk boundaries only: the world model's frames every 4 steps inside a chunk are imagined "
+            "from the last boundary and the actions run since (--history imagined)") in p.describe()
+    answers = [post(f"{srv.url}/s/plain/act", request(observation(5, k * H))) for k in range(CHUNKS)]
+    assert [a["wamplan"]["open_loop"] for a in answers] == ["first-chunk"] + [None] * (CHUNKS - 1)
+    got = np.concatenate([np.stack(a["actions"]) for a in answers])
+    want = imagined_in_process(5)
+    np.testing.assert_allclose(got, want, atol=1e-6)
+    assert not np.allclose(got[H:], np.concatenate([  # planned: not the WAM's own chunks
+        load_wam(WAM_CKPT, device="cpu").predict(observation(5, k * H), "").actions for k in range(1, CHUNKS)]))
+
+
+def test_openpis_unmodified_client_is_planned_from_the_boundaries(proxy):
+    pytest.importorskip("openpi_client", reason="openpi's client is installed by scripts/setup.sh (make test)")
+    from openpi_client.websocket_client_policy import WebsocketClientPolicy
+    from test_proxy_openpi import aloha
+
+    srv, _ = proxy
+    client = WebsocketClientPolicy(host=f"ws://{srv.host}:{srv.port}/s/arm")
+    answers = [client.infer(aloha(6, k * H)) for k in range(CHUNKS)]  # what its robot loop sends: observations only
+    assert [a["wamplan"]["open_loop"] for a in answers] == ["first-chunk"] + [None] * (CHUNKS - 1)
+    np.testing.assert_allclose(np.concatenate([a["actions"] for a in answers]), imagined_in_process(6), atol=1e-6)
