@@ -182,12 +182,16 @@ def test_a_directory_from_before_an_option_left_resumes_only_if_it_ran_what_runs
     path = tmp_path / "eval_config.json"
     stored = json.loads(path.read_text())
     retired = {"planner_config.noise_beta": 0.0, "policy.gate_above": None, "policy.rank_gate": None,
-               "policy.replan_every": None, "policy.bias_correction": 0.0, "policy.correction_gain": 1.0}
+               "policy.replan_every": None, "policy.bias_correction": 0.0, "policy.correction_gain": 1.0,
+               "cost.foreground": "", "cost.background_weight": 0.1}
     path.write_text(json.dumps({**stored, **retired}))
     _check_same_settings(tmp_path, _cfg())
     assert json.loads(path.read_text()) == stored
     path.write_text(json.dumps({**stored, **retired, "policy.correction_gain": 0.5}))
     with pytest.raises(UserError, match="--correction-gain 0.5, an option wamplan no longer has"):
+        _check_same_settings(tmp_path, _cfg())
+    path.write_text(json.dumps({**stored, **retired, "cost.foreground": "runs/fg"}))
+    with pytest.raises(UserError, match="--cost-foreground runs/fg, an option wamplan no longer has"):
         _check_same_settings(tmp_path, _cfg())
 
 

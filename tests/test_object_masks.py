@@ -94,6 +94,15 @@ def test_the_simulators_classes_are_the_robot_and_each_object(small_env):
     assert (labels["wrist"] == 1).any() and (labels["front"] == 3).any()  # the fingers in the wrist, the mount in front
 
 
+def test_the_simulators_foreground_is_the_robot_and_the_objects(small_env):
+    small_env.reset(0)
+    pictures, masks = small_env.render_foreground()
+    for cam, pic in small_env.render().items():
+        np.testing.assert_array_equal(pictures[cam], pic)  # the same pictures as render
+        assert masks[cam].shape == pic.shape[:2] and 0.02 < masks[cam].mean() < 0.5  # the table is most of it
+    assert masks["wrist"][-8:].mean() > masks["wrist"][:8].mean()  # the gripper's fingers, at the bottom
+
+
 def test_wm_train_masks_collects_once_trains_and_draws(tmp_path, capsys, refused):
     frames = tmp_path / "frames.npz"
     train = ["wm", "train-masks", "--epochs", "1", "--batch-size", "4", "--width", "8", "--device", "cpu",

@@ -316,37 +316,18 @@ def test_the_proxy_rolls_the_world_model_out_in_the_dtype_it_is_given():
         p.close()
 
 
-STACK_READOUT = "<a foreground readout fit on stack-cube>"  # stands for the stack_readout fixture's directory
-
-
-@pytest.fixture(scope="module")
-def stack_readout(tmp_path_factory) -> str:
-    """An untrained foreground readout of the shipped world model's encoder, saved as one fit on task 'stack-cube'
-    (its weights do not matter to the refusal)."""
-    from wamplan.encoders.foreground import ForegroundReadout, save_foreground
-    from wamplan.worldmodel.load import load_world_model
-
-    encoder = load_world_model(WM_CKPT)[1]
-    readout = ForegroundReadout(3, encoder.num_patches, encoder.dim)
-    out = tmp_path_factory.mktemp("fg") / "fg_stack"
-    return str(save_foreground(out, readout, encoder, {}, "stack-cube", ("front", "side", "wrist")))
-
-
 @pytest.mark.parametrize("flags, said", [
     (["--cost-view-weights", "1", "1"], "--cost-view-weights gives 2 weights, but task 'cube-insertion' has 3 "
                                         "cameras"),
     (["--num-elites", "4"], "--num-elites is an option of planner(s) ['cem', 'cem-gripper'], not of 'wamplan'"),
     (["--cost-state-weight", "0.3"], "needs a world model with a state head"),  # what only the model can refuse
-    (["--cost-foreground", STACK_READOUT],
-     "was fit on task 'stack-cube', but the planning acts in 'cube-insertion'"),  # a readout of another task
     (["--disagreement-weight", "0.1"], "pass several checkpoints joined by + (eval --wm-augmented A+B, serve "
                                        "--world-model A+B)"),
     (["--planner", "cem-gripper", "--gripper-dim", "9"], "gripper_dim 9 is not an entry of task 'cube-insertion''s"),
 ])
-def test_serve_refuses_planning_settings_that_do_not_fit_in_one_line(capsys, stack_readout, flags, said):
+def test_serve_refuses_planning_settings_that_do_not_fit_in_one_line(capsys, flags, said):
     from wamplan.cli.main import main
 
-    flags = [stack_readout if f == STACK_READOUT else f for f in flags]
     code = main(["serve", "--upstream", WAM_CKPT, "--world-model", WM_CKPT, "--device", "cpu", *flags])
     err = capsys.readouterr().err.strip()
     assert code == 2 and len(err.splitlines()) == 1 and said in err, err

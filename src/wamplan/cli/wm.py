@@ -1,4 +1,4 @@
-"""``wamplan wm encode|train|train-decoder|eval|viz|probe|foreground|fidelity``."""
+"""``wamplan wm encode|train|train-decoder|eval|viz|probe|train-masks|fidelity``."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from pathlib import Path
 from wamplan.config import ConfigError, Once, add_arguments, as_options, ensemble_members, from_args, int_list
 from wamplan.errors import (UserError, require_dir, require_distinct, require_file, require_paths,
                             require_seeds)
-from wamplan.cli.foreground import foreground_options, masks_options
+from wamplan.cli.masks import masks_options
 from wamplan.cli.main import add_command, add_group, first_screen, register_command
 
 
@@ -59,9 +59,6 @@ def _wm_commands(wm: argparse.ArgumentParser) -> None:
     add_command(s, "viz", _viz_options, help="ground truth vs autoregressive rollout(s), decoded (paper Figure 4)")
     add_command(s, "probe", _probe_options,
                 help="ridge probe from an encoder's frozen tokens to the cube's position (held-out mm)")
-    add_command(s, "foreground", foreground_options,
-                help="fit a foreground readout (robot and objects against the table, per patch token) on a world "
-                     "model's encoder: the object-centric cost's weights (eval --cost-foreground DIR)")
     add_command(s, "train-masks", masks_options,
                 help="train the object-masks encoder (per patch token, where the robot and each object are) on the "
                      "simulator's segmentation of a policy's episodes; re-running resumes")
@@ -221,15 +218,6 @@ def _fidelity_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cost-view-weights", type=float, nargs="+", default=None,
                    help="per-view weights of the planning cost (front side wrist), as `eval --cost-view-weights`; "
                         "both the model's and the simulator's costs use them")
-    p.add_argument("--cost-foreground", default="", metavar="DIR",
-                   help="a foreground readout (`wm foreground`): the run's cost weighs each token by its foreground, "
-                        "as `eval --cost-foreground`; both the model's and the simulator's costs use it")
-    p.add_argument("--cost-background-weight", type=float, default=None,
-                   help="with --cost-foreground or --plan-foreground: a pure-background token's weight (default: 0.1)")
-    p.add_argument("--plan-foreground", default="", metavar="DIR",
-                   help="also score every model ranking (and, with --plan, searching) in the cost weighed by this "
-                        "foreground readout (as `eval --cost-foreground`), as LABEL+fg; the simulator's yardstick "
-                        "keeps the run's cost")
     p.add_argument("--plan-view-weights", type=float, nargs="+", default=None, metavar="W",
                    help="also score every model ranking (and, with --plan, searching) with these per-view cost weights "
                         "(front side wrist), as LABEL+views; the simulator's yardstick "
@@ -459,25 +447,6 @@ def _view_cost(flag: str, weights: list[float] | None):
                         f"one per camera (e.g. 1 1 0.5)") from None
 
 
-def _foreground_cost(args: argparse.Namespace, path: str, flag: str, model):
-    """The patch cost (at ``--cost-view-weights``) weighed by the readout ``path`` (given as ``flag``), read with
-    ``model``'s encoder, which must be the one the readout was fit on (one line otherwise)."""
-    from wamplan.config import ConfigError
-    from wamplan.encoders.foreground import foreground_weigher
-    from wamplan.planning.costs import CostConfig, build_cost
-
-    require_paths([path], flag, "pass a readout made by `wamplan wm foreground`")
-    try:
-        cfg = CostConfig(view_weights=tuple(args.cost_view_weights or ()), foreground=path,
-                         **({} if args.cost_background_weight is None else
-                            {"background_weight": args.cost_background_weight}))
-    except ConfigError as e:
-        raise UserError(str(e).replace("background_weight", "--cost-background-weight")) from None
-    task = model.dynamics.task
-    return build_cost(cfg, weigh_tokens=foreground_weigher(path, model.encoder, cfg.background_weight, task.name,
-                                                           model.dynamics.cameras or task.cameras))
-
-
 def cmd_fidelity(args: argparse.Namespace) -> int:
     from wamplan.envs.config import EnvConfig
     from wamplan.envs.core import TaskEnv
@@ -505,13 +474,11 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
         label, _, paths = spec.rpartition("=")
         members = ensemble_members(paths)  # A+B+C: an ensemble, its mean prediction scored (as --wm-augmented)
         specs.append((label or "+".join(Path(p).name for p in members), members))
-    viewed, posed, weighed = "{}+views".format, "{}+pose".format, "{}+fg".format  # twins
+    viewed, posed = "{}+views".format, "{}+pose".format  # twins
     spread = "{}+spread{:g}".format
     labels = [lab for lab, _ in specs]
     if args.plan_view_weights is not None:
         labels += [viewed(lab) for lab, _ in specs]
-    if args.plan_foreground:
-        labels += [weighed(lab) for lab, _ in specs]
     for w in args.plan_spread_weight or ():
         if not 0 < w < float("inf"):
             raise UserError(f"--plan-spread-weight {w:g} must be a finite number above 0 (e.g. 1)")
@@ -530,7 +497,7 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
                         f"(name a model with LABEL=PATH)")
     dup = sorted(lab for lab, n in Counter(labels).items() if n > 1)
     if dup:
-        raise UserError(f"--wm labels must differ (twins are LABEL+views, LABEL+fg, LABEL@W): "
+        raise UserError(f"--wm labels must differ (twins are LABEL+views, LABEL@W): "
                         f"{', '.join(dup)} "
                         f"appears twice; name each model, e.g. --wm shipped=DIR,new=DIR")
     models, tasks = [], {}  # world-model path -> the task it was trained on
@@ -563,10 +530,6 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
         models += [Scored(spread(m.label, w), m.dynamics, m.encoder, PlannedPolicyConfig(disagreement_weight=w))
                    for m, w in twins]
         labels += [spread(m.label, w) for m, w in twins]
-    if args.plan_foreground:  # each model's twin, ranking and searching in the foreground-weighted cost
-        plain = [m for m in models if m.label in dict(specs)]
-        models += [Scored(weighed(m.label), m.dynamics, m.encoder,
-                          cost=_foreground_cost(args, args.plan_foreground, "--plan-foreground", m)) for m in plain]
     wam = load_wam(args.wam, device=args.device)
     cams = list(wam.task.cameras)
     for flag, weights in (("--cost-view-weights", args.cost_view_weights), ("--plan-view-weights",
@@ -578,16 +541,6 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
         if task != wam.task.name:
             raise UserError(f"--wm {path} was trained on task '{task}' but --wam {args.wam} acts in task "
                             f"'{wam.task.name}'; score world models of the WAM's task")
-    if args.cost_foreground:  # the run's cost, the yardstick included, weighed by the target's foreground
-        from wamplan.encoders.foreground import load_foreground
-
-        cost = _foreground_cost(args, args.cost_foreground, "--cost-foreground", models[0])
-        for m in models[1:]:  # one yardstick for all: every model's encoder and views must be the readout's
-            load_foreground(args.cost_foreground, m.encoder, m.dynamics.task.name,
-                            m.dynamics.cameras or m.dynamics.task.cameras)
-    elif args.cost_background_weight is not None and not args.plan_foreground:
-        raise UserError("--cost-background-weight weighs nothing without --cost-foreground or --plan-foreground DIR; "
-                        "give one of them")
     env_cfg = EnvConfig(task=wam.task.name, camera_size=args.camera_size)
     last = (env_cfg.episode_steps - 1) // wam.chunk_length  # the last chunk boundary inside an episode
     if max(cfg.boundaries) > last:
@@ -619,9 +572,7 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
     if args.json:
         from wamplan.config import to_dict
 
-        out.update(wam=args.wam, wm=args.wm, seeds=seeds, config=to_dict(cfg), camera_size=args.camera_size,
-                   cost_foreground=args.cost_foreground or None, plan_foreground=args.plan_foreground or None,
-                   cost_background_weight=args.cost_background_weight)
+        out.update(wam=args.wam, wm=args.wm, seeds=seeds, config=to_dict(cfg), camera_size=args.camera_size)
         write_json(args.json, out)
         print(f"wrote {args.json}")
     return 0

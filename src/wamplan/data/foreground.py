@@ -1,5 +1,5 @@
-"""Pictures with the simulator's segmentation, the training-only supervision of a foreground readout
-(:mod:`wamplan.encoders.foreground`) and of the ``object-masks`` encoder: a policy's episodes from given seeds, every
+"""Pictures with the simulator's segmentation, the training-only supervision of the ``object-masks`` encoder
+(:mod:`wamplan.encoders.object_masks`): a policy's episodes from given seeds, every
 ``every``-th step's pictures of the task's cameras and, per pixel, which class it shows (the table scene, the robot,
 each task object; :meth:`TaskEnv.render_segmentation`). Re-created from the command and seeds alone;
 :func:`save_frames` and :func:`load_frames` keep one collection for several fits."""

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 import torch
@@ -29,7 +29,6 @@ from torch import nn
 from wamplan.config import check_numbers, field, require, to_dict, with_default
 from wamplan.data.foreground import ForegroundFrames
 from wamplan.encoders.base import FrozenEncoder, register_encoder
-from wamplan.encoders.foreground import draw_frame_maps, episode_frames
 from wamplan.encoders.learned import load_trained
 from wamplan.errors import UserError
 from wamplan.train_config import AdamWConfig
@@ -236,6 +235,35 @@ def train_object_masks(frames: ForegroundFrames, out: str | Path, cfg: MaskTrain
                  evaluate=evaluate if len(va) else None, resume=resume, max_steps=max_steps, progress=progress,
                  desc="object-masks", log=print if progress else None)
     return result.metrics
+
+
+def episode_frames(frames: ForegroundFrames, seed: int, count: int) -> np.ndarray:
+    """Indices (count,) of up to ``count`` frames of episode ``seed``, spread evenly over it."""
+    idx = np.flatnonzero(frames.episode == seed)
+    return idx[np.linspace(0, len(idx) - 1, min(count, len(idx))).round().astype(int)]
+
+
+def draw_frame_maps(frames: ForegroundFrames, idx: np.ndarray, maps: Sequence[tuple[str, np.ndarray]], title: str,
+                    out: str | Path, **imshow: Any) -> Path:
+    """A PNG with a row per frame of ``idx``: per camera its picture, then each of ``maps`` (label, (len(idx), V,
+    g, g) maps of the frames) drawn with ``imshow``'s settings."""
+    import matplotlib.pyplot as plt
+
+    from wamplan.plot import save_figure
+
+    cams, per = frames.cameras, 1 + len(maps)
+    fig, axes = plt.subplots(len(idx), per * len(cams), figsize=(2.0 * per * len(cams), 2.1 * len(idx)),
+                             squeeze=False)
+    for r, i in enumerate(idx):
+        for c, cam in enumerate(cams):
+            panels = [(frames.images[i, c], f"{cam}, frame {r + 1}")] + [(m[r, c], label) for label, m in maps]
+            for k, (img, name) in enumerate(panels):
+                ax = axes[r, per * c + k]
+                ax.imshow(img, **imshow) if img.ndim == 2 else ax.imshow(img)
+                ax.set_title(name, fontsize=8)
+                ax.axis("off")
+    fig.suptitle(title, fontsize=10)
+    return save_figure(fig, out, dpi=70)
 
 
 def draw_masks(frames: ForegroundFrames, encoder: ObjectMaskEncoder, out: str | Path, seed: int | None = None,

@@ -235,7 +235,8 @@ def _same_setting(key: str, before: Any, now: Any) -> bool:
 # Settings that left the core (no measured gain; their record is in the lab's table) at the value that ran what runs
 # now: a directory that stored one of them at that value resumes, another value is refused.
 RETIRED = {"planner_config.noise_beta": 0.0, "policy.gate_above": None, "policy.rank_gate": None,
-           "policy.replan_every": None, "policy.bias_correction": 0.0, "policy.correction_gain": 1.0}
+           "policy.replan_every": None, "policy.bias_correction": 0.0, "policy.correction_gain": 1.0,
+           "cost.foreground": "", "cost.background_weight": 0.1}
 
 
 def _without_retired(out: Path, before: dict[str, Any]) -> dict[str, Any]:
@@ -244,7 +245,8 @@ def _without_retired(out: Path, before: dict[str, Any]) -> dict[str, Any]:
 
     for k, v in RETIRED.items():
         if k in before and before[k] != v:
-            flag = "--" + k.split(".", 1)[1].replace("_", "-")
+            section, name = k.split(".", 1)
+            flag = "--" + ("cost-" if section == "cost" else "") + name.replace("_", "-")
             raise UserError(f"{out} holds an evaluation run with {flag} {before[k]}, an option wamplan no longer has "
                             f"(it measured no gain); use another --out")
     return {k: v for k, v in before.items() if k not in RETIRED}
@@ -296,7 +298,6 @@ def _check_inputs(cfg: EvalConfig, conditions: list[int], videos: VideoConfig | 
     ``--decoder`` with each world model's encoder): a damaged or foreign checkpoint stops the run (in one line)
     before it stores its settings, so a failed start never locks its output directory. The workers load their own
     copies."""
-    from wamplan.encoders.foreground import load_foreground
     from wamplan.errors import UserError, require_paths
     from wamplan.planning.costs import pool_fits
     from wamplan.planning.policy_config import check_frameskip
@@ -312,11 +313,6 @@ def _check_inputs(cfg: EvalConfig, conditions: list[int], videos: VideoConfig | 
             wam.close()
     spec = cfg.env.spec
     load = functools.cache(lambda path: load_world_model(path, device="cpu"))  # (predictor, encoder), each once
-    if cfg.cost.foreground:
-        require_paths([cfg.cost.foreground], "--cost-foreground", "pass a readout made by `wamplan wm foreground`")
-        if any(CONDITIONS[c].dynamics == "simulator" for c in conditions):  # they encode with the sim encoder
-            enc = sim_encoder(cfg, lambda path: load(path)[1])
-            load_foreground(cfg.cost.foreground, enc.cpu(), spec.name, spec.cameras)
     for c in sorted(set(conditions)):
         for path in cfg.world_models(c):
             predictor, encoder = load(path)
@@ -326,8 +322,6 @@ def _check_inputs(cfg: EvalConfig, conditions: list[int], videos: VideoConfig | 
             if k > 1 and not pool_fits(n, k):
                 raise UserError(f"--cost-pool {k} needs a square token grid whose side {k} divides, but {path} "
                                 f"predicts {n} tokens a view; pass a divisor of {math.isqrt(n)}")
-            if cfg.cost.foreground:  # a readout of another encoder, task or views: refused here, not in the workers
-                load_foreground(cfg.cost.foreground, encoder, spec.name, predictor.cameras or spec.cameras)
             if videos is not None and videos.first != 0 and videos.decoder:  # another kind, task or encoder: one line
                 from wamplan.worldmodel.decoder import load_decoder
 

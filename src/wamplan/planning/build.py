@@ -52,14 +52,9 @@ def planned_policy(wam: WAM, dynamics: Dynamics, encoder: Any, planning: Plannin
     from wamplan.planning.policy import PlannedPolicy
 
     planning = planning or PlanningConfig()
-    planning.cost.check_cameras(wam.task.name, getattr(dynamics, "cameras", None) or wam.task.cameras)  # at build,
-    weigh = None  # not at the first plan
-    if planning.cost.foreground:  # the readout reads the target's tokens: it must be fit on this encoder
-        from wamplan.encoders.foreground import foreground_weigher
-
-        weigh = foreground_weigher(planning.cost.foreground, encoder, planning.cost.background_weight,
-                                   wam.task.name, dynamics.cameras or wam.task.cameras)
-    cost = build_cost(planning.cost, getattr(dynamics, "read_state", None), weigh)  # the pose term reads the state head
+    # view weights that do not fit the cameras are refused at build, not at the first plan
+    planning.cost.check_cameras(wam.task.name, getattr(dynamics, "cameras", None) or wam.task.cameras)
+    cost = build_cost(planning.cost, getattr(dynamics, "read_state", None))  # the pose term reads the state head
     return PlannedPolicy(wam, make_planner(planning.planner, planning.planner_config), dynamics, encoder, cost,
                          target_wam=target_wam, config=planning.policy,
                          world_models=tuple(str(Path(p).resolve()) for p in world_models))

@@ -21,10 +21,6 @@ class CostConfig:
     view_weights: tuple[float, ...] = field((), "per-camera weights (empty = uniform, the paper)")
     pool: int = field(1, "average each view's square token grid in blocks of pool x pool before the cost (2: a "
                          "4 x 4 grid to 2 x 2, a coarser spatial match that averages texture out; 1: off)")
-    foreground: str = field("", "a foreground readout (`wamplan wm foreground`): the patch cost weighs each token by "
-                                "how much of the WAM's predicted picture there shows the robot or an object; '' = off")
-    background_weight: float = field(0.1, "with a foreground readout: the weight of a pure-background token against a "
-                                          "pure-foreground one's 1 (1: eq. 3 exactly)")
     state_weight: float = field(0.0, "weight of the pose term (0: off): the squared distance (cm^2) between the "
                                      "world model's state-head reading of each candidate's predicted outcome and of "
                                      "the target; needs a world model trained with `wm train --state-weight`")
@@ -36,14 +32,6 @@ class CostConfig:
                 (not self.view_weights or sum(self.view_weights) > 0),
                 f"view_weights must be >= 0 with a positive sum, got {self.view_weights}")
         require(isinstance(self.pool, int) and self.pool >= 1, f"pool must be an int >= 1 (1: off), got {self.pool}")
-        require(0 < self.background_weight <= 1,
-                f"background_weight must be in (0, 1] (1: every token alike), got {self.background_weight}")
-        require(self.foreground or self.background_weight == 0.1,
-                f"background_weight {self.background_weight} weighs nothing without a foreground readout; give "
-                f"foreground=DIR too, or leave background_weight out")
-        require(not self.foreground or (self.name == "patch" and self.pool == 1),
-                f"foreground weighs patch tokens one by one: use it with the patch cost unpooled, name=patch and "
-                f"pool=1 (got name={self.name}, pool={self.pool})")
         require(self.state_weight >= 0, f"state_weight must be a number >= 0 (0: off), got {self.state_weight}")
 
     def check_cameras(self, task: str, cameras: Sequence[str]) -> None:

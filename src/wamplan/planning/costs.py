@@ -33,7 +33,6 @@ from wamplan.registry import Registry
 
 CostFn = Callable[[Tensor, Tensor], Tensor]  # (pred (B, V, ...), target (V, ...)) -> (B,)
 StateReader = Callable[[Tensor], Tensor]  # a world model's state head: z (..., V, N, D) -> (..., S)
-TokenWeigher = Callable[[Tensor], Tensor]  # target (V, N, D) -> each token's weight (V, N), all > 0
 COSTS = Registry("cost")
 
 
@@ -70,16 +69,11 @@ def _pool_views(per_view: Tensor, view_weights: Tensor | None) -> Tensor:
 
 
 @register_cost("patch")
-def patch_cost(pred: Tensor, target: Tensor, view_weights: Tensor | None = None,
-               token_weights: Tensor | None = None) -> Tensor:
-    """Eq. 3: MSE over views, patches and dims. pred (B, V, N, D), target (V, N, D) -> (B,). With
-    ``token_weights`` (V, N), all > 0, each view's patches are averaged with those weights instead of alike."""
+def patch_cost(pred: Tensor, target: Tensor, view_weights: Tensor | None = None) -> Tensor:
+    """Eq. 3: MSE over views, patches and dims. pred (B, V, N, D), target (V, N, D) -> (B,)."""
     _check(pred, target, "V, N, D")
     sq = (pred.float() - target.float().unsqueeze(0)).square()  # (B, V, N, D)
-    if token_weights is None:
-        return _pool_views(sq.mean(dim=(2, 3)), view_weights)  # (B, V) -> (B,)
-    w = token_weights.float().to(sq.device)  # (V, N)
-    return _pool_views((sq.mean(dim=3) * w).sum(dim=2) / w.sum(dim=1), view_weights)  # (B, V) -> (B,)
+    return _pool_views(sq.mean(dim=(2, 3)), view_weights)  # (B, V) -> (B,)
 
 
 @register_cost("cls")
@@ -91,18 +85,6 @@ def cls_cost(pred: Tensor, target: Tensor, view_weights: Tensor | None = None) -
     _check(pred, target, "V, D")
     diff = pred.float() - target.float().unsqueeze(0)  # (B, V, D)
     return _pool_views(diff.square().mean(dim=2), view_weights)  # (B, V) -> (B,)
-
-
-def with_token_weights(weigh: TokenWeigher, view_weights: Sequence[float] | None = None) -> CostFn:
-    """The patch cost with each token's squared error weighted, within its view, by ``weigh(target)`` (V, N)
-    (:func:`patch_cost`'s ``token_weights``), the views pooled as eq. 3 or by ``view_weights``. Equal weights give
-    eq. 3. pred (B, V, N, D), target (V, N, D) -> (B,)."""
-    vw = torch.tensor(tuple(view_weights), dtype=torch.float32) if view_weights else None  # (V,)
-
-    def fn(pred: Tensor, target: Tensor) -> Tensor:
-        return patch_cost(pred, target, vw, weigh(target))
-
-    return fn
 
 
 def make_cost(name: str = "patch", view_weights: Sequence[float] | None = None) -> CostFn:
@@ -153,16 +135,11 @@ def with_pooling(cost: CostFn, k: int) -> CostFn:
     return fn
 
 
-def build_cost(cfg: CostConfig, read_state: StateReader | None = None,
-               weigh_tokens: TokenWeigher | None = None) -> CostFn:
-    """The cost ``cfg`` names, with its view weights and token pooling; with a ``foreground`` readout, the patch
-    cost weighted token by token by ``weigh_tokens`` (its weigher: ``encoders.foreground.foreground_weigher``);
-    with ``state_weight`` > 0, plus the pose term read by ``read_state`` (a world model's state head:
-    ``LearnedDynamics.read_state``) from the unpooled tokens."""
-    if cfg.foreground:
-        require(weigh_tokens is not None, f"the foreground cost ({cfg.foreground}) needs its readout's weigher")
-    cost = with_token_weights(weigh_tokens, cfg.view_weights or None) if cfg.foreground else \
-        make_cost(cfg.name, cfg.view_weights or None)
+def build_cost(cfg: CostConfig, read_state: StateReader | None = None) -> CostFn:
+    """The cost ``cfg`` names, with its view weights and token pooling; with ``state_weight`` > 0, plus the pose
+    term read by ``read_state`` (a world model's state head: ``LearnedDynamics.read_state``) from the unpooled
+    tokens."""
+    cost = make_cost(cfg.name, cfg.view_weights or None)
     if cfg.pool > 1:
         cost = with_pooling(cost, cfg.pool)
     if not cfg.state_weight:
