@@ -27,6 +27,8 @@ def test_registry_lists_entries_and_rejects_unknown_names():
         make_encoder("nope")
     with pytest.raises(ValueError, match="twice"):
         register_encoder("patch-pixels")(PatchPixelEncoder)
+    with pytest.raises(UserError, match="encoder 'object-masks' left wamplan .* at commit f07acf1 or earlier"):
+        make_encoder("object-masks", ckpt="runs/masks")  # an encoder that left the core (lab/README.md)
 
 
 def test_patch_pixels_shapes_and_frozen():

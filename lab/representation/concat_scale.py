@@ -1,6 +1,6 @@
 """The factor a ``concat`` part needs for the planning cost to weigh it as much as the first part, per dim.
 
-    python lab/representation/concat_scale.py STORES '{"name": "object-masks", "ckpt": "runs/masks"}' [--base JSON]
+    python lab/representation/concat_scale.py STORES '{"name": "task-cnn", "ckpt": "enc16"}' [--base JSON]
 
 The planning cost is a plain mean over dims of squared differences, so what a part weighs is its per-dim
 variance. Over every stored frame of STORES (comma separated; all views, all tokens) the script prints each
@@ -45,7 +45,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("part", help="the part's encoder config as JSON, with its name")
     p.add_argument("--base", default=None, help="the first part's encoder config as JSON (default: the mini preset's)")
     args = p.parse_args(argv)
-    example = '\'{"name": "object-masks", "ckpt": DIR}\''
+    example = '\'{"name": "task-cnn", "ckpt": DIR}\''
     try:
         part, base = json.loads(args.part), json.loads(args.base) if args.base else None
     except json.JSONDecodeError as e:

@@ -1,5 +1,5 @@
 """The representation lever's probes: wrist_warp_probe.py's warp, concat_scale.py, and wm_sibling_picture.py's
-drawer and mask reader."""
+drawer."""
 
 from __future__ import annotations
 
@@ -9,9 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from wamplan.data.foreground import ForegroundFrames
 from wamplan.encoders import make_encoder
-from wamplan.encoders.object_masks import MaskTrainConfig, ObjectMaskEncoder, cell_shares, train_object_masks
 from wamplan.errors import UserError
 from wamplan.worldmodel import DecoderConfig, DecoderTrainConfig, train_decoder
 
@@ -92,30 +90,3 @@ def test_sibling_picture_draws_a_concat_model_through_the_part_its_decoder_knows
     with pytest.raises(UserError, match="trained on none of the encoders"):
         drawer(make_encoder(**a), tmp_path)
 
-
-def _squares(episodes: int, frames: int = 10, size: int = 64) -> ForegroundFrames:
-    """A red and a blue square at random places on a random grey texture, one camera: classes 1 and 2."""
-    rng = np.random.default_rng(0)
-    n = episodes * frames
-    images = rng.integers(60, 160, (n, 1, size, size, 3)).astype(np.uint8)
-    labels = np.zeros((n, 1, size, size), np.uint8)
-    for i in range(n):
-        for cls, colour in ((1, (220, 30, 20)), (2, (20, 40, 220))):
-            y, x = rng.integers(0, size - 16, 2)
-            labels[i, 0, y:y + 16, x:x + 16] = cls
-            images[i, 0, y:y + 16, x:x + 16] = colour
-    return ForegroundFrames(images, labels, np.repeat(np.arange(episodes), frames), ("cam",),
-                            ("background", "red", "blue"), "cube-insertion")
-
-
-def test_the_sibling_picture_reads_a_concats_mask_tokens_as_the_class_map_they_hold(tmp_path, repo_script):
-    frames = _squares(10)
-    cfg = MaskTrainConfig(epochs=12, batch_size=16, lr=3e-3, width=16, warmup_epochs=0.5, log_every_steps=1000)
-    train_object_masks(frames, tmp_path / "run", cfg, task="cube-insertion", progress=False)
-    enc = ObjectMaskEncoder(ckpt=str(tmp_path / "run"))
-    cat = make_encoder("concat", parts=[{"name": "patch-pixels"}, enc.config_dict()], scales=[1, 2])
-    picture = repo_script("lab/representation/wm_sibling_picture.py")
-    read = picture.mask_reader(cat)
-    true = cell_shares(frames.labels[-1:, 0], 3).argmax(1)[0].numpy()  # (16, 16), a held-out frame
-    assert (read(cat.encode(frames.images[-1, 0])[0]) == true).mean() > 0.8
-    assert picture.mask_reader(make_encoder("patch-pixels")) is None

@@ -6,9 +6,9 @@ actions), so one sees whether a model moves its prediction with the chunk as the
         --decoder checkpoints/mini/decoder --camera wrist --group 0 --out sib.png
 
 Each model reads the store's cached features of its own encoder; a model on a ``concat`` encoder is drawn
-through its first part the decoder was trained on (e.g. the patch-pixels dims of patch-pixels + task-cnn). A model
-whose encoder is or holds ``object-masks`` is also drawn as the class map its predicted mask tokens hold (no decoder
-needed), beside the real frame's own (its encoded mask tokens).
+through its first part the decoder was trained on (e.g. the patch-pixels dims of patch-pixels + task-cnn). (A model on
+``object-masks`` tokens was also drawn as the class maps they hold; that encoder left the core: commit f07acf1 or
+earlier.)
 """
 
 from __future__ import annotations
@@ -39,19 +39,6 @@ def drawer(encoder, decoder_path, task=None):
             return dec, (lambda z: z), ""
         return dec, (lambda z, i=i: encoder.part_tokens(z, i)), part.name
     raise UserError(f"decoder {decoder_path} was trained on none of the encoders of {encoder.config_dict()}")
-
-
-def mask_reader(encoder):
-    """tokens (N, D) of ``encoder`` -> its object masks' most likely class per cell (16, 16), or None where the
-    encoder neither is nor holds ``object-masks``."""
-    from wamplan.encoders.object_masks import token_maps
-
-    parts = list(enumerate(encoder.parts)) if encoder.name == "concat" else [(None, encoder)]
-    for i, part in parts:
-        if part.name == "object-masks":
-            own = (lambda z: z) if i is None else (lambda z, i=i: encoder.part_tokens(z, i))  # (N, D_part)
-            return lambda z: token_maps(own(z)[None].float())[0].argmax(0).numpy()
-    return None
 
 
 @torch.inference_mode()
@@ -105,30 +92,22 @@ def main(argv: list[str] | None = None) -> Path:
     v, hc, k = cameras.index(args.camera), cfg.context, args.horizon  # images (G, T, V, H, W, 3)
     n = min(args.siblings, pics["images"].shape[0])
     draw = [drawer(enc, args.decoder, model.task.name) for _, model, enc in models]
-    masks = [mask_reader(enc) for _, _, enc in models]
     rows = []
     for i in range(n):
         row = [("real", pics["images"][i, hc - 1 + k, v].numpy())]
-        for (label, model, enc), (dec, tokens, part), read in zip(models, draw, masks):
+        for (label, model, enc), (dec, tokens, part) in zip(models, draw):
             g = groups[feature_key(enc.config_dict())]
             z, q, a = g["z"][i:i + 1].float(), g["q"][i:i + 1].float(), g["a"][i:i + 1].float()
             zp, _ = model.rollout(z[:, :hc], q[:, :hc], a[:, :hc - 1], a[:, hc - 1:hc - 1 + k])  # (1, K, V, N, D)
             row.append((f"{label}\n({part} dims)" if part else label,
                         dec(tokens(zp[:, -1, v])).permute(0, 2, 3, 1)[0].numpy()))
-            if read is not None:
-                if not any(lab == "real masks" for lab, _ in row):
-                    row.insert(1, ("real masks", read(z[0, hc - 1 + k, v])))  # the real frame's own mask tokens
-                row.append((f"{label}\n(masks)", read(zp[0, -1, v])))
         rows.append(row)
     fig, axes = plt.subplots(n, len(rows[0]) + 1, figsize=(2 * (len(rows[0]) + 1), 2.1 * n), squeeze=False)
     for i, row in enumerate(rows):
         axes[i][0].imshow(pics["images"][i, hc - 1, v].numpy())  # the shared boundary frame
         axes[i][0].set_ylabel(f"sibling {i}", fontsize=8)
         for j, (label, pic) in enumerate(row, start=1):
-            if pic.ndim == 2:  # a class map: background, robot, then the task's objects
-                axes[i][j].imshow(pic, vmin=0, vmax=9, cmap="tab10", interpolation="nearest")
-            else:
-                axes[i][j].imshow(np.clip(pic, 0, 255 if pic.dtype == np.uint8 else 1))
+            axes[i][j].imshow(np.clip(pic, 0, 255 if pic.dtype == np.uint8 else 1))
             if i == 0:
                 axes[i][j].set_title(label if label.startswith("real") else f"{label}: predicted", fontsize=9)
         if i == 0:

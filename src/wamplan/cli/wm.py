@@ -1,4 +1,4 @@
-"""``wamplan wm encode|train|train-decoder|eval|viz|probe|train-masks|fidelity``."""
+"""``wamplan wm encode|train|train-decoder|eval|viz|probe|fidelity``."""
 
 from __future__ import annotations
 
@@ -10,7 +10,6 @@ from pathlib import Path
 from wamplan.config import ConfigError, Once, add_arguments, as_options, ensemble_members, from_args, int_list
 from wamplan.errors import (UserError, require_dir, require_distinct, require_file, require_paths,
                             require_seeds)
-from wamplan.cli.masks import masks_options
 from wamplan.cli.main import add_command, add_group, first_screen, register_command
 
 
@@ -59,9 +58,6 @@ def _wm_commands(wm: argparse.ArgumentParser) -> None:
     add_command(s, "viz", _viz_options, help="ground truth vs autoregressive rollout(s), decoded (paper Figure 4)")
     add_command(s, "probe", _probe_options,
                 help="ridge probe from an encoder's frozen tokens to the cube's position (held-out mm)")
-    add_command(s, "train-masks", masks_options,
-                help="train the object-masks encoder (per patch token, where the robot and each object are) on the "
-                     "simulator's segmentation of a policy's episodes; re-running resumes")
     add_command(s, "fidelity", _fidelity_options,
                 help="rank agreement of world models with the simulator on the same candidates; with --plan, the "
                      "gate: each model's own plan scored in the simulator")

@@ -34,7 +34,6 @@ from wamplan.envs.adapters import adapter_class
 from wamplan.envs.config import EnvConfig
 from wamplan.envs.spec import Observation, TaskSpec
 
-BACKGROUND = frozenset({"table-workspace", "ground"})  # the actors ManiSkill's TableSceneBuilder adds
 _CORNERS = np.array(list(itertools.product((0, 1), repeat=3)))  # (8, 3): min (0) or max (1) per axis
 
 
@@ -176,40 +175,6 @@ class TaskEnv:
         camera, the bodies wholly outside its view frustum while it draws: the same pixels, drawn faster. By default
         it culls unless a light of the scene casts shadows (a body outside the view could shade a pixel in it) or the
         physics runs on a GPU (whose poses the CPU side does not read back)."""
-        return {name: rgb for name, (rgb, _) in self._capture(cameras, cull, segmentation=False).items()}
-
-    def render_foreground(self, cameras: tuple[str, ...] | None = None
-                          ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
-        """The pictures of :meth:`render` and, per camera, where the foreground is: camera -> (H, W) bool, true on
-        every pixel of the robot and the task's objects, false on the scene's background (ManiSkill's table scene:
-        its ``BACKGROUND`` actors) and on empty space. Training-only supervision (the simulator's segmentation)."""
-        pictures, labels, _ = self.render_segmentation(cameras)
-        return pictures, {name: lab > 0 for name, lab in labels.items()}
-
-    def render_segmentation(self, cameras: tuple[str, ...] | None = None
-                            ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], tuple[str, ...]]:
-        """The pictures of :meth:`render`, per camera a class index per pixel (camera -> (H, W) uint8), and the class
-        names: 0 ``background`` (the scene's ``BACKGROUND`` actors and empty space), 1 ``robot`` (every articulation
-        link: the robot's, and a task's articulated object's if it had one), then the task's other actors by name,
-        sorted. Training-only supervision."""
-        from mani_skill.utils.structs import Link
-
-        shots = self._capture(cameras, None, segmentation=True)
-        ids = self.base.segmentation_id_map  # per-scene id -> the Actor or Link drawn with it
-        robot = [i for i, obj in ids.items() if obj.name not in BACKGROUND and isinstance(obj, Link)]
-        actors = {i: obj.name for i, obj in ids.items() if obj.name not in BACKGROUND and i not in robot}
-        classes = ("background", "robot", *sorted(set(actors.values())))
-        lut = np.zeros(max(ids, default=0) + 2, dtype=np.uint8)  # per-scene id -> class (0 where unlisted)
-        lut[robot] = 1
-        for i, name in actors.items():
-            lut[i] = classes.index(name)
-        return ({name: rgb for name, (rgb, _) in shots.items()},
-                {name: lut[np.clip(seg.astype(np.int64), 0, len(lut) - 1)] for name, (_, seg) in shots.items()},
-                classes)
-
-    def _capture(self, cameras: tuple[str, ...] | None, cull: bool | None, segmentation: bool
-                 ) -> dict[str, tuple[np.ndarray, np.ndarray | None]]:
-        """camera -> ((H, W, 3) uint8 picture, (H, W) int per-scene ids or None), culling as :meth:`render` says."""
         b = self.base
         if cull is None:
             cull = not (b.gpu_sim_enabled or self._casts_shadows())
@@ -225,9 +190,8 @@ class TaskEnv:
             finally:
                 for body in hidden:
                     body.visibility = 1.0
-            obs = cam.get_obs(rgb=True, depth=False, position=False, segmentation=segmentation)  # (1, H, W, C) each
-            rgb = obs["rgb"][0].cpu().numpy().copy()  # a GPU render backend returns CUDA tensors
-            out[name] = (rgb, obs["segmentation"][0, ..., 0].cpu().numpy() if segmentation else None)
+            rgb = cam.get_obs(rgb=True, depth=False, position=False, segmentation=False)["rgb"]  # (1, H, W, 3)
+            out[name] = rgb[0].cpu().numpy().copy()  # a GPU render backend returns CUDA tensors
         return out
 
     def _casts_shadows(self) -> bool:
