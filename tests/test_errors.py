@@ -581,7 +581,7 @@ def test_a_bad_value_is_named_by_its_option(tmp_path, capsys):
 
 def test_numbers_that_are_not_finite_are_named_by_their_option_before_any_work(tmp_path, capsys):
     wm = ["wm", "train", "--data", tmp_path, "--out", tmp_path / "run"]
-    refused(capsys, [*wm, "--state-weight", "inf"], "error: --state-weight must be a finite number, got inf")
+    refused(capsys, [*wm, "--change-weight", "inf"], "error: --change-weight must be a finite number, got inf")
     refused(capsys, [*wm, "--lr", "nan"], "error: --lr must be a finite number, got nan")
     refused(capsys, ["eval", "--conditions", "7", "--out", tmp_path / "e", "--wam", MINI / "tinywam", "--wm-augmented",
                      MINI / "wm_augmented", "--disagreement-weight", "inf"], "--disagreement-weight must be a finite")
@@ -645,9 +645,11 @@ def test_a_mistyped_option_gets_the_nearest_one(tmp_path, capsys):
     assert "did you mean" not in refused(capsys, ["eval", "--out", tmp_path, "--zzzz"], "--zzzz")
     # only options the command takes, never the refused one itself, never a flag its help merely mentions
     assert "did you mean" not in refused(capsys, ["data", "info", tmp_path, "--out", "x"], "--out x")
-    fidelity = ["wm", "fidelity", "--wam", "w", "--wm", "x=y", "--seeds", "1"]  # its help mentions --state-weight
-    assert refused(capsys, [*fidelity, "--state-weigth", "1"], "--state-weigth").endswith(
-        "did you mean --plan-state-weight?")  # an option it has, not the one its help text names
+    fidelity = ["wm", "fidelity", "--wam", "w", "--wm", "x=y", "--seeds", "1"]  # its help mentions eval's
+    assert "did you mean" not in refused(capsys, [*fidelity, "--disagreement-weigth", "1"],  # --disagreement-weight
+                                         "--disagreement-weigth")
+    assert refused(capsys, [*fidelity, "--plan-spread-weigth", "1"], "--plan-spread-weigth").endswith(
+        "did you mean --plan-spread-weight?")  # an option it has, not one its help text names
 
 
 def test_reproduce_checks_its_inputs_before_hours_of_work(tmp_path, capsys, monkeypatch):

@@ -183,7 +183,7 @@ def test_a_directory_from_before_an_option_left_resumes_only_if_it_ran_what_runs
     stored = json.loads(path.read_text())
     retired = {"planner_config.noise_beta": 0.0, "policy.gate_above": None, "policy.rank_gate": None,
                "policy.replan_every": None, "policy.bias_correction": 0.0, "policy.correction_gain": 1.0,
-               "cost.foreground": "", "cost.background_weight": 0.1}
+               "cost.foreground": "", "cost.background_weight": 0.1, "cost.state_weight": 0.0}
     path.write_text(json.dumps({**stored, **retired}))
     _check_same_settings(tmp_path, _cfg())
     assert json.loads(path.read_text()) == stored
@@ -192,6 +192,9 @@ def test_a_directory_from_before_an_option_left_resumes_only_if_it_ran_what_runs
         _check_same_settings(tmp_path, _cfg())
     path.write_text(json.dumps({**stored, **retired, "cost.foreground": "runs/fg"}))
     with pytest.raises(UserError, match="--cost-foreground runs/fg, an option wamplan no longer has"):
+        _check_same_settings(tmp_path, _cfg())
+    path.write_text(json.dumps({**stored, **retired, "cost.state_weight": 0.3}))
+    with pytest.raises(UserError, match="--cost-state-weight 0.3, an option wamplan no longer has"):
         _check_same_settings(tmp_path, _cfg())
 
 

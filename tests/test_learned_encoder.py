@@ -1,16 +1,44 @@
-"""The ``task-cnn`` encoder: trained on a store's own frames with a state read-out, frozen, loaded by the world
-model that was trained on its features, and refused when its weights are not the ones that model saw."""
+"""The ``task-cnn`` encoder: what its state read-out learns from, trained on a store's own frames, frozen, loaded by
+the world model that was trained on its features, and refused when its weights are not the ones that model saw."""
 
 import json
 import shutil
 
+import h5py
 import numpy as np
 import pytest
 import torch
 
+from wamplan.data.readers import STATE_QUANTITIES, state_targets
 from wamplan.errors import UserError
 
 pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+def test_state_targets_are_the_cube_relative_to_the_tcp_and_in_the_world_in_cm(expert_store):
+    path = sorted((expert_store / "episodes").glob("*.h5"))[0]
+    with h5py.File(path, "r") as f:
+        steps = [0, 4, 8]
+        s = state_targets(f, steps)
+        cube, tcp = f["cube_pose"][steps][:, :3], f["tcp_pose"][steps][:, :3]
+    assert s.shape == (3, len(STATE_QUANTITIES)) and s.dtype == np.float32
+    np.testing.assert_allclose(s[:, :3], (cube - tcp) * 100, rtol=1e-6)
+    np.testing.assert_allclose(s[:, 3:], cube * 100, rtol=1e-6)
+
+
+def test_stack_cube_stores_record_both_cubes_and_the_state_is_relative_to_the_target(tmp_path):
+    from wamplan.cli import main
+
+    out = tmp_path / "stack"
+    assert main(["collect", "--task", "stack-cube", "--source", "pink", "--episodes", "1", "--max-steps", "8",
+                 "--camera-size", "64", "--out", str(out)]) == 0
+    path = next((out / "episodes").glob("*.h5"))
+    with h5py.File(path, "r") as f:
+        a, b, tcp = f["cube_pose"][:, :3], f["target_pose"][:, :3], f["tcp_pose"][:, :3]  # (T+1, 3) each
+        s = state_targets(f, [0, 8])
+    assert a.shape == b.shape == (9, 3) and 0.02 < np.linalg.norm(a[0, :2] - b[0, :2]) < 0.5  # two cubes apart
+    np.testing.assert_allclose(s[:, :3], (a - tcp)[[0, 8]] * 100, rtol=1e-6)
+    np.testing.assert_allclose(s[:, 3:], (a - b)[[0, 8]] * 100, rtol=1e-6)
 
 
 @pytest.fixture(scope="module")

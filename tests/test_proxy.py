@@ -320,7 +320,6 @@ def test_the_proxy_rolls_the_world_model_out_in_the_dtype_it_is_given():
     (["--cost-view-weights", "1", "1"], "--cost-view-weights gives 2 weights, but task 'cube-insertion' has 3 "
                                         "cameras"),
     (["--num-elites", "4"], "--num-elites is an option of planner(s) ['cem', 'cem-gripper'], not of 'wamplan'"),
-    (["--cost-state-weight", "0.3"], "needs a world model with a state head"),  # what only the model can refuse
     (["--disagreement-weight", "0.1"], "pass several checkpoints joined by + (eval --wm-augmented A+B, serve "
                                        "--world-model A+B)"),
     (["--planner", "cem-gripper", "--gripper-dim", "9"], "gripper_dim 9 is not an entry of task 'cube-insertion''s"),

@@ -57,15 +57,16 @@ def test_wm_train_resume_refuses_other_data_and_config(stores, tmp_path, capsys)
 
     # the same command resumes (the max-steps stop is re-logged nowhere: records continue at step 4), a run saved
     # with the retired ranking-loss keys too (stored by older versions, as checkpoints/stack-cube/wm_augmented), and
-    # with the retired spread head's keys at their off values (stored by every run of stops 69-77)
+    # with the retired spread and state heads' keys at their off values (stored by every run of stops 55-77, the
+    # state head's by checkpoints/stack-cube/wm_augmented too)
     from wamplan.checkpoint import CONFIG_FILE
     from wamplan.worldmodel.config import RETIRED_PREDICTOR_KEYS, RETIRED_TRAIN_KEYS
 
     path = run / "checkpoint" / CONFIG_FILE
     ckpt = json.loads(path.read_text())
     ckpt["config"]["train"].update(rank_weight=0.0, rank_wam="", rank_temperature=0.1, spread_weight=0.0,
-                                   spread_only=False)
-    ckpt["config"]["predictor"].update(spread_head=False)
+                                   spread_only=False, state_weight=0.0)
+    ckpt["config"]["predictor"].update(spread_head=False, state_dim=0, state_head="mlp")
     assert set(RETIRED_TRAIN_KEYS) <= set(ckpt["config"]["train"])
     assert set(RETIRED_PREDICTOR_KEYS) <= set(ckpt["config"]["predictor"])
     path.write_text(json.dumps(ckpt))
@@ -76,18 +77,22 @@ def test_wm_train_resume_refuses_other_data_and_config(stores, tmp_path, capsys)
     assert steps == list(range(1, steps[-1] + 1)) and [r["epoch"] for r in recs if r["event"] == "epoch"] == [1, 2]
     assert "val/z_mse_h1" in recs[-1] and "train/loss" in recs[-1]  # seed 1 is a validation episode
 
-    # a run that trained a spread head holds the head's weights and optimizer state: it is refused in one line
-    ckpt = json.loads(path.read_text())
-    ckpt["config"]["train"].update(spread_weight=1.0, spread_only=False)
-    ckpt["config"]["predictor"].update(spread_head=True)
-    path.write_text(json.dumps(ckpt))
-    err = _one_line_error(capsys, resume)
-    assert "trained with a spread head" in err and "another --out" in err
+    # a run that trained a spread or a state head holds the head's weights and optimizer state: refused in one line
+    saved = json.loads(path.read_text())
+    for head, predictor, train in (("spread", {"spread_head": True}, {"spread_weight": 1.0, "spread_only": False}),
+                                   ("state", {"state_dim": 6, "state_head": "ridge"}, {"state_weight": 0.1})):
+        ckpt = json.loads(json.dumps(saved))
+        ckpt["config"]["train"].update(train)
+        ckpt["config"]["predictor"].update(predictor)
+        path.write_text(json.dumps(ckpt))
+        err = _one_line_error(capsys, resume)
+        assert f"trained with a {head} head (wm train --{head}-weight)" in err and "another --out" in err, err
 
 
-def test_a_predictor_saved_with_the_retired_spread_head_loads_without_it(tmp_path):
-    """A checkpoint of the spread head (``wm train --spread-weight``, removed in stop 78: its config keys and its
-    head's weights) loads as the same model without the head."""
+def test_a_predictor_saved_with_the_retired_heads_loads_without_them(tmp_path):
+    """A checkpoint of the spread head (``wm train --spread-weight``) or the state head (``--state-weight``), both
+    removed in stop 78 (their config keys and their heads' weights), loads as the same model without the head; the
+    shipped StackCube model, which stored the state head's keys off, loads."""
     import torch
     from safetensors.torch import save_file
 
@@ -96,20 +101,27 @@ def test_a_predictor_saved_with_the_retired_spread_head_loads_without_it(tmp_pat
 
     shipped = load_predictor("checkpoints/mini/wm_augmented")
     meta = read_meta("checkpoints/mini/wm_augmented")
-    record = json.loads(json.dumps(meta["config"]))
-    record["predictor"]["spread_head"] = True
-    record["train"].update(spread_weight=1.0, spread_only=True)
-    ckpt = save_checkpoint(tmp_path / "spread", shipped, record, kind=meta["kind"])
-    d, dim = shipped.cfg.width, shipped.cfg.enc_dim
-    head = {"spread_head.0.weight": torch.ones(d, d), "spread_head.0.bias": torch.ones(d),  # as the head was built
-            "spread_head.2.weight": torch.ones(dim, d), "spread_head.2.bias": torch.ones(dim)}
-    save_file({**load_tensors(ckpt / MODEL_FILE), **head}, str(ckpt / MODEL_FILE))
-
-    model = load_predictor(ckpt)
-    assert model.cfg == shipped.cfg and not hasattr(model, "spread_head")
+    d, dim, m = shipped.cfg.width, shipped.cfg.enc_dim, shipped.cfg.tokens_per_frame
+    heads = {  # as each head was built: its config keys and its weights
+        "spread": ({"spread_head": True}, {"spread_weight": 1.0, "spread_only": True},
+                   {"spread_head.0.weight": torch.ones(d, d), "spread_head.0.bias": torch.ones(d),
+                    "spread_head.2.weight": torch.ones(dim, d), "spread_head.2.bias": torch.ones(dim)}),
+        "state": ({"state_dim": 6, "state_head": "ridge"}, {"state_weight": 0.1},
+                  {"state_head.linear.weight": torch.ones(6, m * dim), "state_head.linear.bias": torch.ones(6)})}
     want = shipped.state_dict()
-    assert model.state_dict().keys() == want.keys()
-    assert all(torch.equal(v, want[k]) for k, v in model.state_dict().items())
+    for name, (predictor, train, weights) in heads.items():
+        record = json.loads(json.dumps(meta["config"]))
+        record["predictor"].update(predictor)
+        record["train"].update(train)
+        ckpt = save_checkpoint(tmp_path / name, shipped, record, kind=meta["kind"])
+        save_file({**load_tensors(ckpt / MODEL_FILE), **weights}, str(ckpt / MODEL_FILE))
+        model = load_predictor(ckpt)
+        assert model.cfg == shipped.cfg and not hasattr(model, f"{name}_head")
+        assert model.state_dict().keys() == want.keys()
+        assert all(torch.equal(v, want[k]) for k, v in model.state_dict().items())
+    stack = "checkpoints/stack-cube/wm_augmented"
+    assert {"state_dim", "state_head"} <= set(read_meta(stack)["config"]["predictor"])
+    assert load_predictor(stack).task.name == "stack-cube"
 
 
 def test_wam_train_resume_refuses_other_data_and_logs_metrics(stores, tmp_path, capsys):
@@ -196,7 +208,7 @@ def test_trainer_configs_share_one_base_and_read_the_shipped_checkpoints():
         if name in ("tinywam", "wm_augmented"):  # saved by the current code: the same keys, no more (but fields
             # added since, whose defaults change nothing the checkpoint did)
             newer = {"precision": "float32", "log": ()}
-            newer |= {"change_weight": 0, "state_weight": 0} if name == "wm_augmented" else {}
+            newer |= {"change_weight": 0} if name == "wm_augmented" else {}
             assert set(to_dict(cls())) - set(newer) == set(saved), name
             assert all(getattr(cls(), k) == v for k, v in newer.items()), name
     parser = argparse.ArgumentParser()

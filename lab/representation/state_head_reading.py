@@ -67,9 +67,10 @@ def readings(store: str, wam_path: str, wm_path: str, probe: str | None = None) 
     every boundary t of the store's episodes whose history frames and frame at t + H are stored."""
     wam = load_wam(wam_path, device="cpu")
     policy = planned_policy(wam, wm_path, device="cpu")
-    read = policy.dynamics.read_state if probe is None else ridge_reader(policy, probe)
-    if read is None:
-        raise SystemExit(f"{wm_path} has no state head (train one with `wamplan wm train --state-weight W`)")
+    read = getattr(policy.dynamics, "read_state", None) if probe is None else ridge_reader(policy, probe)
+    if read is None:  # the state head left the core at stop 78 (lab/README.md)
+        raise SystemExit(f"{wm_path}: a state head is read at commit 04a138b or earlier (the state head left "
+                         f"wamplan); here, pass --probe STORE")
     H, cams, dyn = wam.chunk_length, policy.cameras, policy.dynamics
     hist = [-i * dyn.frameskip for i in range(dyn.context - 1, -1, -1)]  # history offsets, oldest first
     out: dict[str, list[np.ndarray]] = {"truth": [], "real": [], "wam": [], "model": []}

@@ -149,20 +149,13 @@ def load_tensors(path: str | Path, device: str | torch.device = "cpu") -> dict[s
 
 
 def load_weights(path: str | Path, model: torch.nn.Module, device: str | torch.device = "cpu",
-                 new: tuple[str, ...] = (), adapt: Callable[[dict[str, torch.Tensor]], dict[str, torch.Tensor]]
-                 | None = None) -> None:
+                 adapt: Callable[[dict[str, torch.Tensor]], dict[str, torch.Tensor]] | None = None) -> None:
     """Load ``path``'s weights into ``model`` (built from the same checkpoint's config.json); weights that do not
-    fit the model are a one-line error naming the checkpoint. Weights whose names start with one of ``new`` may be
-    missing from the file (the model keeps its own) or from the model (the file's are dropped): parts a fine-tune
-    adds to or removes from the checkpoint it starts from. ``adapt`` maps the file's weights before they load
-    (e.g. a fine-tune that grows a layer)."""
+    fit the model are a one-line error naming the checkpoint. ``adapt`` maps the file's weights before they load
+    (e.g. a fine-tune that grows a layer, or an older checkpoint's parts this version no longer builds dropped)."""
     weights = load_tensors(Path(path) / MODEL_FILE, device)
     if adapt is not None:
         weights = adapt(weights)
-    if new:
-        own = model.state_dict()
-        weights = {k: v for k, v in weights.items() if k in own or not k.startswith(new)}
-        weights.update({k: v for k, v in own.items() if k not in weights and k.startswith(new)})
     try:
         model.load_state_dict(weights)
     except RuntimeError as e:  # size mismatch, missing or unexpected keys: the config no longer fits the weights

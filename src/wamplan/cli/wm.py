@@ -218,11 +218,6 @@ def _fidelity_options(p: argparse.ArgumentParser) -> None:
                    help="also score every model ranking (and, with --plan, searching) with these per-view cost weights "
                         "(front side wrist), as LABEL+views; the simulator's yardstick "
                         "keeps --cost-view-weights")
-    p.add_argument("--plan-state-weight", type=float, default=None, metavar="W",
-                   help="also score every model that has a state head (`wm train --state-weight`) ranking and "
-                        "searching with the pose term added to its cost, W times the squared distance (cm^2) between "
-                        "the head's reading of each candidate's outcome and of the target (as `eval "
-                        "--cost-state-weight W`), as LABEL+pose; the simulator's yardstick keeps the plain cost")
     p.add_argument("--plan-spread-weight", type=float, nargs="+", default=None, metavar="W",
                    help="also score every ensemble A+B ranking and searching with W times its members' disagreement "
                         "added to its cost (as `eval --disagreement-weight W`), as LABEL+spreadW, one twin per W; "
@@ -470,7 +465,7 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
         label, _, paths = spec.rpartition("=")
         members = ensemble_members(paths)  # A+B+C: an ensemble, its mean prediction scored (as --wm-augmented)
         specs.append((label or "+".join(Path(p).name for p in members), members))
-    viewed, posed = "{}+views".format, "{}+pose".format  # twins
+    viewed = "{}+views".format  # twins
     spread = "{}+spread{:g}".format
     labels = [lab for lab, _ in specs]
     if args.plan_view_weights is not None:
@@ -478,8 +473,6 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
     for w in args.plan_spread_weight or ():
         if not 0 < w < float("inf"):
             raise UserError(f"--plan-spread-weight {w:g} must be a finite number above 0 (e.g. 1)")
-    if args.plan_state_weight is not None and not args.plan_state_weight > 0:
-        raise UserError(f"--plan-state-weight {args.plan_state_weight:g} must be above 0 (e.g. 0.05)")
     cost, plan_cost = (_view_cost(flag, weights) for flag, weights in (
         ("--cost-view-weights", args.cost_view_weights), ("--plan-view-weights", args.plan_view_weights)))
     blend = f"{labels[0]}@{args.oracle_blend:g}" if args.oracle_blend is not None and labels else None
@@ -506,17 +499,6 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
         plain = {m.label: m for m in models}
         models += [Scored(viewed(label), plain[label].dynamics, plain[label].encoder, cost=plan_cost)
                    for label, _ in specs]
-    if args.plan_state_weight is not None:  # each model with a state head, planning with the pose term
-        from wamplan.planning.costs import CostConfig, build_cost
-
-        headed = [m for m in models if m.label in dict(specs) and getattr(m.dynamics, "read_state", None)]
-        if not headed:
-            raise UserError("--plan-state-weight needs a --wm model with a state head (`wamplan wm train "
-                            "--state-weight W`); none of these has one")
-        pose = CostConfig(view_weights=tuple(args.cost_view_weights or ()), state_weight=args.plan_state_weight)
-        models += [Scored(posed(m.label), m.dynamics, m.encoder, cost=build_cost(pose, m.dynamics.read_state))
-                   for m in headed]
-        labels += [posed(m.label) for m in headed]
     if args.plan_spread_weight:  # each ensemble, planning with W times its disagreement added to its cost
         spreading = [m for m in models if m.label in dict(specs) and m.dynamics.spreads]
         if not spreading:

@@ -144,7 +144,7 @@ _ITEM_FIX = ("`wamplan data check STORE` names every damaged episode: delete tho
              "(or `wamplan wm encode`) that wrote them")
 
 
-# What a world model's training-only state head predicts of each frame (:func:`state_targets`), in cm so the
+# What the ``task-cnn`` encoder's training-only read-out predicts of each frame (:func:`state_targets`), in cm so the
 # numbers sit near unit scale: the held object's position relative to the gripper's TCP, and relative to its target
 # where the store records one (stack-cube: the other cube), else in the world (the cube task's hole never moves,
 # so its world position and its offset from the hole differ by a constant).
@@ -157,8 +157,8 @@ def state_targets(f: h5py.File, steps: Sequence[int], path: str = "") -> np.ndar
     ``cube_pose``, ``tcp_pose`` and (where recorded) ``target_pose``; a store whose task records no object and TCP
     poses is refused."""
     if "cube_pose" not in f or "tcp_pose" not in f:
-        raise StoreError(f"{path or f.filename} records no privileged cube and TCP poses, which the world model's "
-                         f"state head learns from; train without --state-weight on this store")
+        raise StoreError(f"{path or f.filename} records no privileged cube and TCP poses, which the task-cnn "
+                         f"encoder's read-out learns from; train it on stores that record them")
     obj, tcp = f["cube_pose"][steps][:, :3], f["tcp_pose"][steps][:, :3]  # (T, 3) each, metres
     target = f["target_pose"][steps][:, :3] if "target_pose" in f else 0.0  # (T, 3) or the world's origin
     return (np.concatenate([obj - tcp, obj - target], axis=1) * 100.0).astype(np.float32)  # (T, 6) cm
@@ -232,8 +232,7 @@ class WAMSamples(_EpisodeDataset):
 
 class WorldModelWindows(_EpisodeDataset):
     """Items: ``q`` (T, P), ``a`` (T, Δ·A), and ``z`` (T, V, N, D) cached features (with ``features``) or
-    ``images`` (T, V, H, W, 3) uint8, where T = history + horizon frames at stride Δ (``frameskip``); with
-    ``state=True`` also ``s`` (T, 6), the frames' privileged :data:`STATE_QUANTITIES` (training only).
+    ``images`` (T, V, H, W, 3) uint8, where T = history + horizon frames at stride Δ (``frameskip``).
 
     ``a[i]`` is the block of Δ actions executed from frame i's step, so frame i+1 = step(frame i, a[i]).
     With ``window_end="frame"`` the last frame may be the episode's last frame on the Δ grid, so the final
@@ -242,12 +241,12 @@ class WorldModelWindows(_EpisodeDataset):
 
     def __init__(self, stores: Sequence[str | Path], frameskip: int = 4, history: int = 3, horizon: int = 2,
                  split: str = "train", val_fraction: float = 0.1, features: str | None = None,
-                 sources: Sequence[str] | None = None, window_end: str = "block", state: bool = False):
+                 sources: Sequence[str] | None = None, window_end: str = "block"):
         if window_end not in ("block", "frame"):
             raise ValueError(f"window_end must be block or frame, got {window_end!r}")
         super().__init__(stores, split, val_fraction, features=features, sources=sources)
         self.frameskip, self.frames = frameskip, history + horizon
-        self.features, self.state = features, state
+        self.features = features
         self._require_stride(frameskip, "frameskip", "; collect with --image-every dividing it")
         span = self.frames * frameskip  # steps covered by the frames and the last action block
         if window_end == "frame":
@@ -270,8 +269,6 @@ class WorldModelWindows(_EpisodeDataset):
         out = dict(q=torch.from_numpy(f["proprio"][steps]),  # (T, P)
                    a=torch.from_numpy(acts.reshape(self.frames, -1).astype(np.float32)),  # (T, Δ·A)
                    steps=torch.tensor(steps))
-        if self.state:
-            out["s"] = torch.from_numpy(state_targets(f, steps, e.path))  # (T, 6) cm
         if self.features is not None:
             cache = self._h5.get(e.features)
             out["z"] = torch.from_numpy(cache["z"][ks])  # (T, V, N, D) float16
@@ -331,9 +328,8 @@ class BranchGroups(WorldModelWindows):
 
     def __init__(self, stores: Sequence[str | Path], frameskip: int = 4, history: int = 3, horizon: int = 4,
                  group: int | None = None, split: str = "train", val_fraction: float = 0.1,
-                 features: str | None = None, state: bool = False):
-        super().__init__(stores, frameskip, history, horizon, split, val_fraction, features, window_end="frame",
-                         state=state)
+                 features: str | None = None):
+        super().__init__(stores, frameskip, history, horizon, split, val_fraction, features, window_end="frame")
         span = (self.frames - 1) * frameskip  # steps from the first frame to the last
         groups: dict[tuple, list[tuple[int, int]]] = {}
         for i, e in enumerate(self.episodes):

@@ -236,7 +236,7 @@ def _same_setting(key: str, before: Any, now: Any) -> bool:
 # now: a directory that stored one of them at that value resumes, another value is refused.
 RETIRED = {"planner_config.noise_beta": 0.0, "policy.gate_above": None, "policy.rank_gate": None,
            "policy.replan_every": None, "policy.bias_correction": 0.0, "policy.correction_gain": 1.0,
-           "cost.foreground": "", "cost.background_weight": 0.1}
+           "cost.foreground": "", "cost.background_weight": 0.1, "cost.state_weight": 0.0}
 
 
 def _without_retired(out: Path, before: dict[str, Any]) -> dict[str, Any]:

@@ -54,7 +54,7 @@ def planned_policy(wam: WAM, dynamics: Dynamics, encoder: Any, planning: Plannin
     planning = planning or PlanningConfig()
     # view weights that do not fit the cameras are refused at build, not at the first plan
     planning.cost.check_cameras(wam.task.name, getattr(dynamics, "cameras", None) or wam.task.cameras)
-    cost = build_cost(planning.cost, getattr(dynamics, "read_state", None))  # the pose term reads the state head
+    cost = build_cost(planning.cost)
     return PlannedPolicy(wam, make_planner(planning.planner, planning.planner_config), dynamics, encoder, cost,
                          target_wam=target_wam, config=planning.policy,
                          world_models=tuple(str(Path(p).resolve()) for p in world_models))

@@ -21,9 +21,6 @@ class CostConfig:
     view_weights: tuple[float, ...] = field((), "per-camera weights (empty = uniform, the paper)")
     pool: int = field(1, "average each view's square token grid in blocks of pool x pool before the cost (2: a "
                          "4 x 4 grid to 2 x 2, a coarser spatial match that averages texture out; 1: off)")
-    state_weight: float = field(0.0, "weight of the pose term (0: off): the squared distance (cm^2) between the "
-                                     "world model's state-head reading of each candidate's predicted outcome and of "
-                                     "the target; needs a world model trained with `wm train --state-weight`")
 
     def __post_init__(self) -> None:
         check_numbers(self)
@@ -32,7 +29,6 @@ class CostConfig:
                 (not self.view_weights or sum(self.view_weights) > 0),
                 f"view_weights must be >= 0 with a positive sum, got {self.view_weights}")
         require(isinstance(self.pool, int) and self.pool >= 1, f"pool must be an int >= 1 (1: off), got {self.pool}")
-        require(self.state_weight >= 0, f"state_weight must be a number >= 0 (0: off), got {self.state_weight}")
 
     def check_cameras(self, task: str, cameras: Sequence[str]) -> None:
         """Refuse, in one line, view weights that are not one per camera of ``task`` (its ``cameras``, in order)."""

@@ -11,11 +11,6 @@ Optional ``view_weights`` (V,) pool the per-view MSEs by a weighted average inst
 sum 1; uniform weights give eq. 3 exactly); a zero weight drops a camera, e.g. (0, 0, 1) = wrist only.
 Costs are computed in float32 whatever the prediction dtype (bf16 squared distances are too coarse
 to rank candidates).
-
-A world model trained with a state head (``wm train --state-weight``) can add a pose term
-(:func:`with_state_term`, ``CostConfig.state_weight``): the squared distance between the head's reading of each
-candidate's predicted outcome and its reading of the target, i.e. where the model says the object ends against
-where the WAM's predicted images show it.
 """
 
 from __future__ import annotations
@@ -32,7 +27,6 @@ from wamplan.planning.cost_config import COST_NAMES, CostConfig
 from wamplan.registry import Registry
 
 CostFn = Callable[[Tensor, Tensor], Tensor]  # (pred (B, V, ...), target (V, ...)) -> (B,)
-StateReader = Callable[[Tensor], Tensor]  # a world model's state head: z (..., V, N, D) -> (..., S)
 COSTS = Registry("cost")
 
 
@@ -98,17 +92,6 @@ def make_cost(name: str = "patch", view_weights: Sequence[float] | None = None) 
     return functools.partial(fn, view_weights=weights)
 
 
-def with_state_term(cost: CostFn, read_state: StateReader, weight: float) -> CostFn:
-    """``cost`` plus ``weight`` times the pose term: the mean over the S state quantities of the squared difference
-    between ``read_state`` of each prediction and of the target (cm^2 for wamplan's state head).
-    pred (B, V, N, D), target (V, N, D) -> (B,)."""
-    def fn(pred: Tensor, target: Tensor) -> Tensor:
-        pose = (read_state(pred).float() - read_state(target[None]).float()).square().mean(dim=-1)  # (B,)
-        return cost(pred, target) + weight * pose.to(pred.device)
-
-    return fn
-
-
 def pool_fits(num_tokens: int, k: int) -> bool:
     """Whether ``num_tokens`` form a square grid whose side ``k`` divides (what :func:`pool_tokens` needs)."""
     side = math.isqrt(num_tokens)
@@ -135,15 +118,9 @@ def with_pooling(cost: CostFn, k: int) -> CostFn:
     return fn
 
 
-def build_cost(cfg: CostConfig, read_state: StateReader | None = None) -> CostFn:
-    """The cost ``cfg`` names, with its view weights and token pooling; with ``state_weight`` > 0, plus the pose
-    term read by ``read_state`` (a world model's state head: ``LearnedDynamics.read_state``) from the unpooled
-    tokens."""
+def build_cost(cfg: CostConfig) -> CostFn:
+    """The cost ``cfg`` names, with its view weights and token pooling."""
     cost = make_cost(cfg.name, cfg.view_weights or None)
     if cfg.pool > 1:
         cost = with_pooling(cost, cfg.pool)
-    if not cfg.state_weight:
-        return cost
-    require(read_state is not None, f"a pose term (state_weight {cfg.state_weight:g}) needs a world model with "
-                                    f"a state head (`wamplan wm train --state-weight W`); this one has none")
-    return with_state_term(cost, read_state, cfg.state_weight)
+    return cost

@@ -135,18 +135,6 @@ class LearnedDynamics(Dynamics):
     def dtype(self) -> torch.dtype:
         return next(self.model.parameters()).dtype
 
-    @property
-    def read_state(self):
-        """The predictor's state head as ``fn(z (..., V, N, D)) -> (..., S)`` (float32), or None without one."""
-        if self.model.state_head is None:
-            return None
-
-        @torch.inference_mode()
-        def read(z: torch.Tensor) -> torch.Tensor:
-            return self.model.read_state(z.to(self.device, self.dtype)).float()
-
-        return read
-
     def covered(self, chunk: int) -> int:
         return self.frameskip * (chunk // self.frameskip)
 

@@ -16,7 +16,6 @@ from wamplan.config import (ConfigError, add_field_argument, as_options, check_n
 from wamplan.train_config import AdamWConfig
 
 ACTION_CONDITIONING = ("input", "adaln")  # PredictorConfig.action_conditioning
-STATE_HEADS = ("mlp", "ridge")  # PredictorConfig.state_head
 # The task of a world-model checkpoint that records none: every one made before tasks was trained on it.
 
 
@@ -57,12 +56,6 @@ class PredictorConfig:
     action_tokens: bool = field(False, "also give each frame Delta tokens of its own, one per control step of its "
                                        "action block (that step's action through an MLP plus a learned step "
                                        "embedding), which its visual tokens attend to; nothing reads them out")
-    state_dim: int = field(0, "S, privileged state quantities a training-only state head reads from any frame's "
-                              "latent, true or predicted (0: no head); set by `wm train --state-weight`, and "
-                              "nothing privileged is read at test time")
-    state_head: str = field("mlp", "the state head: 'mlp' (each token squeezed to 16 features, then an MLP; trained "
-                                   "from its random start) or 'ridge' (one linear read-out of the frame's tokens, "
-                                   "started from a ridge fit on the training set's true latents before training)")
 
     def __post_init__(self) -> None:
         check_numbers(self)
@@ -70,10 +63,6 @@ class PredictorConfig:
                      "context", "depth", "heads", "head_dim", "mlp_dim", "proprio_emb", "action_emb"):
             v = getattr(self, name)
             require(isinstance(v, int) and v > 0, f"PredictorConfig.{name} must be a positive int, got {v!r}")
-        require(isinstance(self.state_dim, int) and self.state_dim >= 0,
-                f"PredictorConfig.state_dim must be an int >= 0 (0: no state head), got {self.state_dim!r}")
-        require(self.state_head in STATE_HEADS,
-                f"PredictorConfig.state_head must be one of {list(STATE_HEADS)}, got {self.state_head!r}")
         require(self.head_dim % 2 == 0, f"PredictorConfig.head_dim must be even (rotary pairs), got {self.head_dim}")
         require(self.rope_base > 1.0, f"PredictorConfig.rope_base must be > 1, got {self.rope_base}")
         require(0.0 <= self.dropout < 1.0, f"PredictorConfig.dropout must be in [0, 1), got {self.dropout}")
@@ -103,10 +92,10 @@ class PredictorConfig:
         return self.tokens_per_frame + (self.frameskip if self.action_tokens else 0)
 
 
-# Keys of PredictorConfig that older checkpoints stored and this version no longer has: the spread head's (removed: its
-# variance in the plan's cost hurt; the lab's table keeps its record). Loading drops them, and the head's weights
+# Keys of PredictorConfig that older checkpoints stored and this version no longer has: the spread head's and the state
+# head's (removed: no measured gain; the lab's table keeps their records). Loading drops them, and the heads' weights
 # (``worldmodel.predictor.without_retired``).
-RETIRED_PREDICTOR_KEYS = ("spread_head",)
+RETIRED_PREDICTOR_KEYS = ("spread_head", "state_dim", "state_head")
 
 
 def predictor_config(record: dict[str, Any]) -> PredictorConfig:
@@ -120,7 +109,7 @@ def predictor_config(record: dict[str, Any]) -> PredictorConfig:
 # refuse it otherwise); to plan, it must not exceed the WAM's chunk (``planning.policy_config.check_frameskip``).
 # Δ = the chunk (16 for the cube task) makes the history the chunk boundaries alone: t-2H, t-H, t with context 3.
 ARCHITECTURE_FIELDS = ("frameskip", "context", "depth", "heads", "head_dim", "mlp_dim", "proprio_emb", "action_emb",
-                       "dropout", "predict_delta", "action_conditioning", "action_tokens", "state_head")
+                       "dropout", "predict_delta", "action_conditioning", "action_tokens")
 
 
 def add_architecture_arguments(parser: Any, presets: dict[str, PredictorConfig] | None = None) -> None:
@@ -182,10 +171,10 @@ class DecoderTrainConfig(AdamWConfig):
     none of the predictor's loss, window or sibling fields."""
 
 
-# Keys of TrainConfig that older runs stored and this version no longer has: the ranking loss's and the spread head's
-# (removed: each hurt the closed loop; the lab's table keeps their records). A resumed run and a saved config ignore
-# them (a run that trained a spread head is refused: ``worldmodel.train``).
-RETIRED_TRAIN_KEYS = ("rank_temperature", "rank_wam", "rank_weight", "spread_only", "spread_weight")
+# Keys of TrainConfig that older runs stored and this version no longer has: the ranking loss's, the spread head's and
+# the state head's (removed: none measured a gain; the lab's table keeps their records). A resumed run and a saved
+# config ignore them (a run that trained a spread or state head is refused: ``worldmodel.train``).
+RETIRED_TRAIN_KEYS = ("rank_temperature", "rank_wam", "rank_weight", "spread_only", "spread_weight", "state_weight")
 
 
 @dataclass(frozen=True)
@@ -209,11 +198,6 @@ class TrainConfig(AdamWConfig):
                                       "1 + W * (its squared change from the current frame) / (the mean of that "
                                       "over the window's tokens), divided by 1 + W so the loss keeps its scale "
                                       "(0: off, every token weighs the same)")
-    state_weight: float = field(0.0, "weight of the state-head loss (0: off): a small head learns the frames' "
-                                     "privileged poses (the held object relative to the gripper and to its target, "
-                                     "cm) from their true latents, and the predictor learns to make its predictions "
-                                     "read as the true frames do through that head (held fixed), so it must get "
-                                     "right what says where the object is; needs stores with privileged poses")
 
     def __post_init__(self) -> None:
         check_numbers(self)
@@ -226,7 +210,5 @@ class TrainConfig(AdamWConfig):
         require(self.sibling_weight >= 0, f"TrainConfig.sibling_weight must be >= 0, got {self.sibling_weight}")
         require(self.sibling_horizon >= 1, f"TrainConfig.sibling_horizon must be >= 1, got {self.sibling_horizon}")
         require(self.sibling_groups >= 1, f"TrainConfig.sibling_groups must be >= 1, got {self.sibling_groups}")
-        require(self.state_weight >= 0,
-                f"TrainConfig.state_weight must be a number >= 0 (0: off), got {self.state_weight}")
         require(self.change_weight >= 0, f"TrainConfig.change_weight must be >= 0 (0: off), got {self.change_weight}")
 

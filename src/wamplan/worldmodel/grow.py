@@ -22,7 +22,6 @@ def check_init(init: str | Path, cfg: PredictorConfig, encoder_info: dict[str, A
     run grows (:func:`grown_dims`). Returns the start's token size D when it is grown, else None."""
     saved = read_config(checkpoint_dir(init), KIND)
     theirs = to_dict(predictor_config(saved["predictor"]))  # fields added since it was saved: their defaults
-    theirs.update(state_dim=cfg.state_dim, state_head=cfg.state_head)  # a fine-tune may add (or drop) a state head
     their_encoder = {k: v for k, v in (saved.get("encoder") or {}).items() if k != "path"}
     old_dim = grown_dims(theirs, their_encoder, cfg, encoder_info)
     if old_dim is not None:

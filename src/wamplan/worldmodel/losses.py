@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import torch
 
-from wamplan.data.readers import STATE_UNIT_MM
 from wamplan.worldmodel.config import TrainConfig
 from wamplan.worldmodel.predictor import WorldModelPredictor
 
@@ -58,36 +57,11 @@ def change_weights(z_cur: torch.Tensor, z_target: torch.Tensor, change_weight: f
     return (1 + change_weight * rel) / (1 + change_weight)
 
 
-def state_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], zp: torch.Tensor, zt: torch.Tensor,
-               horizon: int) -> tuple[torch.Tensor, dict[str, float]]:
-    """The state head's loss on a batch of windows, two terms that never mix:
-
-    * the head learns to read the privileged targets ``batch["s"]`` (B, T, S) from every true frame's latent
-      (the latents are frozen features, so this trains the head alone);
-    * the predictor learns to make its predictions zp (B, K, V, N, D) read as the true frames zt (B, K, V, N, D)
-      do, through the head with its weights held fixed: the squared difference of the two readings, whose
-      gradient reaches the predictor only. The head is defined by the true latents, so the predictor cannot hide
-      a private code of the state in its predictions; it can only get the directions of the latent that the head
-      reads right.
-
-    Logs the root-mean-square errors in mm of the head on true latents against the targets (``state_mm_true``) and
-    of the predictions' reading against the true latents' at the first step (``state_mm_h1``)."""
-    s = batch["s"].float()  # (B, T, S) cm
-    e_true = (model.read_state(batch["z"].float()) - s).pow(2).mean()
-    fixed = {k: v.detach() for k, v in model.state_head.named_parameters()}
-    read = lambda z: torch.func.functional_call(model.state_head, fixed, (model.normalised(z),))  # noqa: E731
-    e_pred = (read(zp) - read(zt).detach()).pow(2).mean(dim=(0, 2))  # (K,)
-    mm = STATE_UNIT_MM
-    return e_true + e_pred.mean(), {"state_mm_true": float(e_true.detach().sqrt()) * mm,
-                                    "state_mm_h1": float(e_pred[0].detach().sqrt()) * mm}
-
-
 def window_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], horizon: int,
-                gamma: float, loss_form: str = "mean", change_weight: float = 0.0, state_weight: float = 0.0
+                gamma: float, loss_form: str = "mean", change_weight: float = 0.0
                 ) -> tuple[torch.Tensor, dict[str, float]]:
     """Eq. 2: the discounted K-step autoregressive loss of a batch of windows. ``change_weight`` W > 0 weighs
-    each token's squared error by :func:`change_weights` (the tokens that change count more); 0 is eq. 2.
-    ``state_weight`` > 0 adds that times :func:`state_loss` (the batch must carry ``s``)."""
+    each token's squared error by :func:`change_weights` (the tokens that change count more); 0 is eq. 2."""
     (zc, qc, ac), a_future, (zt, qt) = split_windows(model, batch, horizon)
     zp, qp = model.rollout(zc, qc, ac, a_future)  # (B, K, V, N, D), (B, K, P)
     ez = per_horizon_mse(zp, zt).mean(dim=0)  # (K,)
@@ -100,9 +74,6 @@ def window_loss(model: WorldModelPredictor, batch: dict[str, torch.Tensor], hori
     q_weight = 1.0 if loss_form == "mean" else qt[0, 0].numel() / zt[0, 0].numel()  # sum form: P / (V·N·D)
     w = gamma ** torch.arange(horizon, device=ez.device, dtype=ez.dtype)  # (K,)
     loss = (w * (ez + q_weight * eq)).sum()
-    if state_weight > 0:
-        st, st_logs = state_loss(model, batch, zp, zt, horizon)
-        loss, logs = loss + state_weight * st, {**logs, **st_logs}
     return loss, logs
 
 SIBLING_SPLITS = ("group", "view", "token", "feature")  # how :func:`sibling_errors` splits a group's elements

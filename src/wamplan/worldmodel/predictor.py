@@ -66,9 +66,9 @@ def action_blocks(actions: torch.Tensor, frameskip: int) -> torch.Tensor:
     return actions.reshape(*lead, steps // frameskip, frameskip * dim)
 
 
-# Modules that older checkpoints hold and this version no longer builds: the spread head's (removed: its variance in
-# the plan's cost hurt; :data:`~wamplan.worldmodel.config.RETIRED_PREDICTOR_KEYS` are its config keys).
-RETIRED_MODULES = ("spread_head",)
+# Modules that older checkpoints hold and this version no longer builds: the spread head's and the state head's
+# (removed: no measured gain; :data:`~wamplan.worldmodel.config.RETIRED_PREDICTOR_KEYS` are their config keys).
+RETIRED_MODULES = ("spread_head", "state_head")
 
 
 def without_retired(weights: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
@@ -90,44 +90,6 @@ class PrefixCache:
     @property
     def batch(self) -> int:
         return self.frames[0][0][0].shape[0] if self.frames else 1
-
-
-class StateHead(nn.Module):
-    """Privileged state (S,) from one frame's normalised latents (V, N, D), trained only as an auxiliary target
-    (``TrainConfig.state_weight``). ``cfg.state_head``: 'mlp' (each token squeezed to a few features, then an MLP
-    over the frame) or 'ridge' (one linear read-out of the frame's tokens; :func:`fit_ridge` starts it)."""
-
-    SQUEEZE, HIDDEN = 16, 256
-
-    def __init__(self, cfg: PredictorConfig) -> None:
-        super().__init__()
-        self.kind = cfg.state_head
-        if self.kind == "ridge":
-            self.linear = nn.Linear(cfg.tokens_per_frame * cfg.enc_dim, cfg.state_dim)
-            return
-        self.token = nn.Linear(cfg.enc_dim, self.SQUEEZE)
-        self.mlp = nn.Sequential(nn.GELU(), nn.Linear(cfg.tokens_per_frame * self.SQUEEZE, self.HIDDEN), nn.GELU(),
-                                 nn.Linear(self.HIDDEN, cfg.state_dim))
-
-    def forward(self, zn: torch.Tensor) -> torch.Tensor:
-        """zn (..., V, N, D) normalised latents -> (..., S)."""
-        if self.kind == "ridge":
-            return self.linear(zn.flatten(-3))  # (..., V N D) -> (..., S)
-        return self.mlp(self.token(zn).flatten(-3))  # (..., V N 16) -> (..., S)
-
-    @torch.no_grad()
-    def fit_ridge(self, zn: torch.Tensor, s: torch.Tensor, alpha: float = 1e-2) -> None:
-        """Set the linear read-out to the ridge solution on normalised latents zn (n, V, N, D) and targets s (n, S):
-        ``alpha`` times the mean squared feature is the penalty (the features are standardised, so about alpha)."""
-        x = zn.flatten(1).double()  # (n, V N D)
-        y = s.double()  # (n, S)
-        xm, ym = x.mean(0), y.mean(0)
-        xc, yc = x - xm, y - ym
-        gram = xc.T @ xc  # (F, F)
-        gram.diagonal().add_(alpha * float(gram.diagonal().mean()))
-        w = torch.linalg.solve(gram, xc.T @ yc)  # (F, S)
-        self.linear.weight.copy_(w.T.to(self.linear.weight))
-        self.linear.bias.copy_((ym - xm @ w).to(self.linear.bias))
 
 
 class WorldModelPredictor(nn.Module):
@@ -160,7 +122,6 @@ class WorldModelPredictor(nn.Module):
         self.register_buffer("z_std", torch.ones(cfg.enc_dim))  # (D,)
         inv_freq = cfg.rope_base ** -(torch.arange(0, e, 2, dtype=torch.float32) / e)  # (e/2,) 1 .. base^-1
         self.register_buffer("inv_freq", inv_freq, persistent=False)
-        self.state_head = StateHead(cfg) if cfg.state_dim else None
         if cfg.action_tokens:  # one token per control step of the action block
             self.action_token = nn.Sequential(nn.Linear(cfg.action_dim, d), nn.GELU(), nn.Linear(d, d))
             self.action_pos = nn.Parameter(torch.zeros(cfg.frameskip, d))  # (Delta, d), one per step of the block
@@ -286,13 +247,6 @@ class WorldModelPredictor(nn.Module):
             raise ValueError(f"z, q, a must hold {t} frames; got {z.shape[1]}, {q.shape[1]}, {a.shape[1]}")
 
     # -- public API ----------------------------------------------------------------------------------
-    def read_state(self, z: torch.Tensor) -> torch.Tensor:
-        """The state head's reading of latents z (..., V, N, D), true or predicted -> (..., S) (cfg.state_dim)."""
-        if self.state_head is None:
-            raise ValueError("this predictor has no state head (PredictorConfig.state_dim is 0); train one with "
-                             "`wamplan wm train --state-weight W`")
-        return self.state_head(self.normalised(z))
-
     def normalised(self, z: torch.Tensor) -> torch.Tensor:
         """Latents z (..., D) in the units the predictor reads them: per-dim standardised by the feature stats."""
         return (z.to(self.z_mean.dtype) - self.z_mean) / self.z_std

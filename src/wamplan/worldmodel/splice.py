@@ -44,8 +44,7 @@ class SplicedPredictor(nn.Module):
     """``base`` (a predictor over concat tokens of parts with dims ``dims`` and scales ``scales``) with part i's
     predictions taken from ``parts[i]`` (a predictor over part i's own tokens, D_i dims). The predictor API of
     :class:`WorldModelPredictor` that planning and evaluation use: ``forward``, ``encode_prefix``,
-    ``rollout_from_prefix``, ``rollout``, ``read_state`` (the base's head), ``cfg``/``task``/``cameras`` (the
-    base's)."""
+    ``rollout_from_prefix``, ``rollout``, ``cfg``/``task``/``cameras`` (the base's)."""
 
     def __init__(self, base: WorldModelPredictor, parts: dict[int, WorldModelPredictor],
                  dims: list[int], scales: list[float]) -> None:
@@ -76,11 +75,6 @@ class SplicedPredictor(nn.Module):
     @property
     def cameras(self) -> tuple[str, ...] | None:
         return self.base.cameras
-
-    @property
-    def state_head(self) -> nn.Module | None:
-        """The base's state head (it reads the spliced latents, all D dims), or None."""
-        return self.base.state_head
 
     def _part(self, i: int) -> tuple[int, int, float]:
         start = sum(self.dims[:i])
@@ -127,9 +121,6 @@ class SplicedPredictor(nn.Module):
         zb, qb = self.base.rollout(z_ctx, q_ctx, a_ctx_past, a_future, naive)
         own = {i: m.rollout(self._own(z_ctx, i), q_ctx, a_ctx_past, a_future, naive)[0] for i, m in self._models()}
         return self._join(zb, own), qb
-
-    def read_state(self, z: torch.Tensor) -> torch.Tensor:
-        return self.base.read_state(z)
 
     def compile_blocks(self, backend: Any = "inductor") -> "SplicedPredictor":
         """Every model's blocks through ``torch.compile`` (:meth:`WorldModelPredictor.compile_blocks`). Returns self."""

@@ -123,7 +123,7 @@ def train_predictor_on_stores(stores: Sequence[str | Path], out: str | Path, pre
                               init: str | Path | None = None) -> dict[str, Any]:
     """Train (or resume) the predictor on the windows of ``stores``; returns the last metrics. ``init``: a
     predictor checkpoint to fine-tune from (``worldmodel.train.train_predictor``)."""
-    from wamplan.data.readers import STATE_QUANTITIES, BranchGroups, WorldModelWindows
+    from wamplan.data.readers import BranchGroups, WorldModelWindows
     from wamplan.data.store import stores_task
     from wamplan.worldmodel.load import KIND
     from wamplan.worldmodel.train import train_predictor
@@ -131,12 +131,11 @@ def train_predictor_on_stores(stores: Sequence[str | Path], out: str | Path, pre
     task, cameras = stores_task(stores)
     check_image_stride(stores, predictor.frameskip)  # before encoding, which may take long
     predictor = predictor_for_task(predictor, task, cameras)
-    predictor = dataclasses.replace(predictor, state_dim=len(STATE_QUANTITIES) if train.state_weight > 0 else 0)
     data, resume, info, key, (name, n, d), _ = _prepare(stores, out, KIND, encoder, encoder_kwargs, encoder_path,
                                                           val_fraction, device, progress)
     predictor = dataclasses.replace(predictor, encoder=name, num_patches=n, enc_dim=d)  # the encoder's token layout
     kw = dict(frameskip=predictor.frameskip, history=predictor.context, horizon=train.horizon,
-              features=key, val_fraction=val_fraction, window_end=train.window_end, state=train.state_weight > 0)
+              features=key, val_fraction=val_fraction, window_end=train.window_end)
     tr, va = WorldModelWindows(stores, split="train", **kw), WorldModelWindows(stores, split="val", **kw)
     if progress:
         print(f"windows: {len(tr)} train, {len(va)} val ({len(tr.episodes)} / {len(va.episodes)} episodes)")

@@ -18,7 +18,6 @@ from torch.utils.data import DataLoader, Dataset
 
 from wamplan.checkpoint import CKPT_DIR, checkpoint_dir, has_training_state, load_weights, read_config
 from wamplan.config import to_dict
-from wamplan.data.readers import STATE_UNIT_MM
 from wamplan.device import resolve_device
 from wamplan.envs.spec import TaskSpec
 from wamplan.errors import UserError
@@ -30,7 +29,6 @@ from wamplan.worldmodel.losses import group_loss, per_horizon_mse, split_windows
 from wamplan.worldmodel.predictor import WorldModelPredictor, without_retired
 from wamplan.worldmodel.siblings import evaluate_siblings
 
-NEW_ON_INIT = ("state_head.",)  # weights a fine-tune may add to (or drop from) its --init checkpoint's
 
 @torch.no_grad()
 def evaluate_predictor(model: WorldModelPredictor, dataset: Dataset, horizon: int, gamma: float,
@@ -47,11 +45,6 @@ def evaluate_predictor(model: WorldModelPredictor, dataset: Dataset, horizon: in
             parts = {"z_mse": per_horizon_mse(zp, zt), "q_mse": per_horizon_mse(qp, qt),
                      "copy_z_mse": per_horizon_mse(zc[:, -1:].expand_as(zt), zt),
                      "copy_q_mse": per_horizon_mse(qc[:, -1:].expand_as(qt), qt)}  # each (B, K)
-            if model.state_head is not None and "s" in batch:  # squared state errors (cm^2), mean over S
-                st = batch["s"][:, model.cfg.context:model.cfg.context + horizon].float()  # (B, K, S)
-                parts["state_pred_se"] = (model.read_state(zp) - st).pow(2).mean(dim=-1)  # (B, K)
-                parts["state_true_se"] = (model.read_state(zt) - st).pow(2).mean(dim=-1)  # (B, K)
-                parts["state_gap_se"] = (model.read_state(zp) - model.read_state(zt)).pow(2).mean(dim=-1)  # (B, K)
             for k, v in parts.items():
                 sums[k] = sums.get(k, 0) + v.sum(dim=0).double()  # (K,)
             count += zc.shape[0]
@@ -60,25 +53,9 @@ def evaluate_predictor(model: WorldModelPredictor, dataset: Dataset, horizon: in
     for k, v in sums.items():
         mean = (v / max(count, 1)).cpu()  # (K,)
         out.update({f"{k}_h{i + 1}": float(mean[i]) for i in range(horizon)})
-    for k in ("state_pred", "state_true", "state_gap"):  # root-mean-square state errors in mm
-        for i in range(horizon):
-            if f"{k}_se_h{i + 1}" in out:
-                out[f"{k}_mm_h{i + 1}"] = out.pop(f"{k}_se_h{i + 1}") ** 0.5 * STATE_UNIT_MM
     out["loss"] = float((w * (sums["z_mse"] + sums["q_mse"]).cpu() / max(count, 1)).sum())
     out["copy_loss"] = float((w * (sums["copy_z_mse"] + sums["copy_q_mse"]).cpu() / max(count, 1)).sum())
     return out
-
-
-def fit_state_head(model: WorldModelPredictor, dataset: Dataset, max_items: int = 1500, seed: int = 0) -> None:
-    """Start a 'ridge' state head from the ridge fit of the privileged targets on the true latents of up to
-    ``max_items`` random windows of ``dataset`` (every frame of each)."""
-    n = len(dataset)  # type: ignore[arg-type]
-    idx = torch.randperm(n, generator=torch.Generator().manual_seed(seed))[:max_items].tolist()
-    items = [dataset[i] for i in idx]
-    z = torch.cat([it["z"].float() for it in items])  # (n T, V, N, D)
-    s = torch.cat([it["s"].float() for it in items])  # (n T, S)
-    dev = model.z_mean.device
-    model.state_head.fit_ridge(model.normalised(z.to(dev)), s.to(dev))
 
 
 def compute_feature_stats(dataset: Dataset, max_items: int = 2000, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
@@ -132,7 +109,7 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
 
     def fresh_stats() -> None:
         if init is not None:
-            load_weights(checkpoint_dir(init), model, dev, new=NEW_ON_INIT,  # an older start's spread head dropped
+            load_weights(checkpoint_dir(init), model, dev,  # an older start's spread or state head dropped
                          adapt=lambda w: without_retired(w) if old_dim is None else
                          grow_weights(without_retired(w), model, old_dim))
             model.float()
@@ -143,8 +120,6 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
         else:
             mean, std = compute_feature_stats(train_set, seed=train.seed)
             model.set_feature_stats(mean, std)
-        if model.state_head is not None and cfg.state_head == "ridge":
-            fit_state_head(model, train_set, seed=train.seed)
 
     def evaluate(m: torch.nn.Module) -> dict[str, float]:
         out = evaluate_predictor(m, val_set, train.horizon, train.gamma,  # type: ignore[arg-type]
@@ -159,8 +134,7 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
         groups = _group_batches(group_set, train, start=done)
 
     def step(m: WorldModelPredictor, b: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, float]]:
-        loss, logs = window_loss(m, b, train.horizon, train.gamma, train.loss_form, train.change_weight,
-                                 train.state_weight)
+        loss, logs = window_loss(m, b, train.horizon, train.gamma, train.loss_form, train.change_weight)
         if groups is not None:
             with torch.autocast(dev.type, enabled=False):  # --precision bfloat16: read and stack as stored
                 g = {k: v.to(dev) for k, v in next(groups).items()}
@@ -178,17 +152,20 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
 
 
 def _refuse_retired_head(out_dir: str | Path) -> None:
-    """One line if the run in ``out_dir`` trained a spread head (``wm train --spread-weight``, removed): its weights
-    and optimizer state hold the head, which this version no longer has, so it cannot resume. Its checkpoint still
-    loads, without the head (:func:`~wamplan.worldmodel.predictor.without_retired`)."""
+    """One line if the run in ``out_dir`` trained a spread head (``wm train --spread-weight``) or a state head
+    (``--state-weight``), both removed: its weights and optimizer state hold the head, which this version no longer
+    has, so it cannot resume. Its checkpoint still loads, without the head
+    (:func:`~wamplan.worldmodel.predictor.without_retired`)."""
     ckpt = Path(out_dir) / CKPT_DIR
     if not has_training_state(ckpt):
         return
     saved = read_config(ckpt, KIND)
-    if saved.get("predictor", {}).get("spread_head") or saved.get("train", {}).get("spread_weight"):
-        raise UserError(f"{out_dir} was trained with a spread head (wm train --spread-weight), an option wamplan no "
-                        f"longer has (it measured no gain): it cannot resume; use another --out, or fine-tune its "
-                        f"checkpoint with --init (the head is dropped)")
+    predictor, train = saved.get("predictor", {}), saved.get("train", {})
+    for head, built, weight in (("spread", "spread_head", "spread_weight"), ("state", "state_dim", "state_weight")):
+        if predictor.get(built) or train.get(weight):
+            raise UserError(f"{out_dir} was trained with a {head} head (wm train --{head}-weight), an option wamplan "
+                            f"no longer has (it measured no gain): it cannot resume; use another --out, or fine-tune "
+                            f"its checkpoint with --init (the head is dropped)")
 
 
 def _group_batches(groups: Dataset, train: TrainConfig, start: int = 0):
