@@ -18,9 +18,8 @@ counted), each arithmetic is timed on the same model and inputs and also given a
 With several ``--tasks``, each preset is sized for each task's views, proprio and action (as ``wm train`` does for
 a task's stores) and its time is also given as a ratio to the first task's.
 
-With ``--ckpt``, each world-model checkpoint (a predictor, or a spliced model: ``worldmodel.splice``) is timed after
-the presets with its own weights (the time does not depend on them), and its time also given as a ratio to the first
-preset's.
+With ``--ckpt``, each world-model checkpoint is timed after the presets with its own weights (the time does not
+depend on them), and its time also given as a ratio to the first preset's.
 """
 
 from __future__ import annotations

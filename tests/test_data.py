@@ -86,6 +86,17 @@ def test_store_records_its_task(store):
     assert s.cameras == CUBE_INSERTION.cameras and s.env["task"] == "cube-insertion"
 
 
+def test_stack_cube_stores_record_both_cubes_and_the_tcp(tmp_path):
+    """StackCube-v1's privileged poses: the cube to pick (``cube_pose``), the cube it goes on (``target_pose``)."""
+    out = tmp_path / "stack"
+    assert main(["collect", "--task", "stack-cube", "--source", "pink", "--episodes", "1", "--max-steps", "8",
+                 *SMALL, "--out", str(out)]) == 0
+    path = next((out / "episodes").glob("*.h5"))
+    with h5py.File(path, "r") as f:
+        a, b, tcp = f["cube_pose"][:, :3], f["target_pose"][:, :3], f["tcp_pose"][:, :3]  # (T+1, 3) each
+    assert a.shape == b.shape == tcp.shape == (9, 3) and 0.02 < np.linalg.norm(a[0, :2] - b[0, :2]) < 0.5  # apart
+
+
 def test_a_store_that_records_no_task_is_the_cube_tasks(expert_store, tmp_path, capsys):
     """A store written before tasks (no ``task`` in its manifest or env settings) holds cube-insertion episodes:
     collecting resumes it, and another task's collection is refused in one line naming both tasks."""

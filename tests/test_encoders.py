@@ -27,8 +27,11 @@ def test_registry_lists_entries_and_rejects_unknown_names():
         make_encoder("nope")
     with pytest.raises(ValueError, match="twice"):
         register_encoder("patch-pixels")(PatchPixelEncoder)
-    with pytest.raises(UserError, match="encoder 'object-masks' left wamplan .* at commit f07acf1 or earlier"):
-        make_encoder("object-masks", ckpt="runs/masks")  # an encoder that left the core (lab/README.md)
+    for name, kwargs, last in (("object-masks", {"ckpt": "runs/masks"}, "f07acf1"),  # encoders that left the core
+                               ("task-cnn", {"ckpt": "enc16"}, "9c6eb5d"),  # (lab/README.md)
+                               ("concat", {"parts": [{"name": "patch-pixels"}]}, "9c6eb5d")):
+        with pytest.raises(UserError, match=f"encoder '{name}' left wamplan .* at commit {last} or earlier"):
+            make_encoder(name, **kwargs)
 
 
 def test_patch_pixels_shapes_and_frozen():
@@ -174,26 +177,3 @@ def test_unknown_encoder_settings_are_named_with_the_ones_it_takes():
     with pytest.raises(UserError, match="encoder patch-pixels has no setting foo; it takes input_size, patch_size"):
         make_encoder("patch-pixels", foo=1)
 
-
-def test_concat_puts_its_parts_tokens_side_by_side_scaled_and_rebuilds_from_its_record():
-    images = np.random.default_rng(0).integers(0, 256, (3, 48, 48, 3), dtype=np.uint8)
-    a = dict(name="patch-pixels", input_size=32, patch_size=8, proj_dim=8)
-    b = dict(name="patch-pixels", input_size=64, patch_size=16, proj_dim=4, seed=2)
-    enc = make_encoder("concat", parts=[a, b], scales=[1, 0.5])
-    z = enc.encode(images)
-    assert z.shape == (3, 16, 12) and (enc.num_patches, enc.dim) == (16, 12)
-    torch.testing.assert_close(z[..., :8], make_encoder(**a).encode(images), atol=0, rtol=0)
-    torch.testing.assert_close(z[..., 8:], 0.5 * make_encoder(**b).encode(images), atol=0, rtol=0)
-    assert torch.equal(make_encoder(**enc.config_dict()).encode(images), z)
-    torch.testing.assert_close(enc.part_tokens(z, 1), make_encoder(**b).encode(images))  # its scale undone
-    assert torch.equal(enc.part_tokens(z, 0), z[..., :8])
-    with pytest.raises(UserError, match="part 2 asked for, it has 2 parts"):
-        enc.part_tokens(z, 2)
-    assert not any(p.requires_grad for p in enc.parameters())
-    for kwargs, message in [(dict(parts=[]), "parts must be a list"),
-                            (dict(parts=[a, dict(a, patch_size=16)]), "same grid"),
-                            (dict(parts=[a, b], scales=[1]), "one positive number per part"),
-                            (dict(parts=[a, b], scales=[1, 0]), "one positive number per part"),
-                            (dict(parts=[dict(name="concat", parts=[a])]), "may not itself be a concat")]:
-        with pytest.raises(UserError, match=message):
-            make_encoder("concat", **kwargs)

@@ -25,16 +25,6 @@ def test_integer_config_fields_are_number_checked():
         TrainConfig(lr="0.1")
 
 
-def test_a_concat_encoders_input_size_is_its_largest_parts():
-    """Planted: a concat encoder's ``input_size`` the smallest part's (encoders/concat.py)."""
-    from wamplan.encoders import make_encoder
-
-    small = dict(name="patch-pixels", input_size=32, patch_size=8, proj_dim=8)
-    large = dict(name="patch-pixels", input_size=64, patch_size=16, proj_dim=4)
-    for parts in ([small, large], [large, small]):
-        assert make_encoder("concat", parts=parts).input_size == 64
-
-
 def test_a_logged_episode_needs_its_last_frame_and_one_image_per_image_step():
     """Planted: ``EpisodeData.logged`` not requiring the frame at T, nor checking the image count against
     ``image_steps``."""

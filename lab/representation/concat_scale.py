@@ -1,5 +1,8 @@
 """The factor a ``concat`` part needs for the planning cost to weigh it as much as the first part, per dim.
 
+(``concat``, ``task-cnn`` and the frame reader this script uses, ``data.readers.StateFrames``, left the core at stop 78:
+it runs at commit 9c6eb5d or earlier; lab/representation/README.md.)
+
     python lab/representation/concat_scale.py STORES '{"name": "task-cnn", "ckpt": "enc16"}' [--base JSON]
 
 The planning cost is a plain mean over dims of squared differences, so what a part weighs is its per-dim

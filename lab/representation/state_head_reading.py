@@ -1,6 +1,9 @@
 """How well a world model's state head (or a ridge probe on its encoder's tokens) reads the pose from the WAM's
 predicted views and from the model's own predictions, against the real ones.
 
+(The state head left the core at stop 78, and with ``task-cnn`` the privileged targets this script reads,
+``data.readers.state_targets``: it runs at commit 9c6eb5d or earlier, a state head at 04a138b or earlier.)
+
 The pose term of the planning cost (``eval --cost-state-weight``) compares the head's reading of each candidate's
 predicted outcome with its reading of the WAM's predicted images at t + H. The head learnt from real frames; this
 script measures, at every chunk boundary t of held-out episodes of a WAM policy (a store from `wamplan collect

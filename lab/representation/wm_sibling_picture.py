@@ -5,10 +5,9 @@ actions), so one sees whether a model moves its prediction with the chunk as the
     python lab/representation/wm_sibling_picture.py STORE --wm shipped=checkpoints/mini/wm_augmented,new=RUN \\
         --decoder checkpoints/mini/decoder --camera wrist --group 0 --out sib.png
 
-Each model reads the store's cached features of its own encoder; a model on a ``concat`` encoder is drawn
-through its first part the decoder was trained on (e.g. the patch-pixels dims of patch-pixels + task-cnn). (A model on
-``object-masks`` tokens was also drawn as the class maps they hold; that encoder left the core: commit f07acf1 or
-earlier.)
+Each model reads the store's cached features of its own encoder, and the decoder must be one of that encoder. (A model
+on a ``concat`` encoder was drawn through its first part the decoder was trained on, and one on ``object-masks`` tokens
+also as the class maps they hold; those encoders left the core at stop 78: commits 9c6eb5d and f07acf1 or earlier.)
 """
 
 from __future__ import annotations
@@ -21,9 +20,8 @@ import torch
 
 
 def drawer(encoder, decoder_path, task=None):
-    """(decoder, tokens -> the decoder's tokens, the part drawn or '') for a model's encoder; a concat whose
-    decoder was not trained on its whole tokens is drawn through its first part the decoder was, its scale undone.
-    A decoder of none of them is refused in one line."""
+    """(decoder, tokens -> the decoder's tokens, the part drawn or '') for a model's encoder; a decoder of another
+    encoder is refused in one line."""
     from wamplan.checkpoint import checkpoint_dir, read_config
     from wamplan.data.features import feature_key
     from wamplan.errors import UserError
@@ -31,14 +29,10 @@ def drawer(encoder, decoder_path, task=None):
 
     dec = load_decoder(decoder_path, task=task)  # its kind and task, each refused as such
     theirs = read_config(checkpoint_dir(decoder_path), KIND).get("encoder")
-    parts = [(None, encoder)] + (list(enumerate(encoder.parts)) if encoder.name == "concat" else [])
-    for i, part in parts:
-        if theirs and feature_key(theirs) != feature_key(part.config_dict()):
-            continue
-        if i is None:
-            return dec, (lambda z: z), ""
-        return dec, (lambda z, i=i: encoder.part_tokens(z, i)), part.name
-    raise UserError(f"decoder {decoder_path} was trained on none of the encoders of {encoder.config_dict()}")
+    if theirs and feature_key(theirs) != feature_key(encoder.config_dict()):
+        raise UserError(f"decoder {decoder_path} was trained on another encoder's tokens than {encoder.config_dict()}; "
+                        f"pass a decoder of that encoder")
+    return dec, (lambda z: z), ""
 
 
 @torch.inference_mode()

@@ -46,9 +46,6 @@ def _wm_commands(wm: argparse.ArgumentParser) -> None:
     add_command(s, "encode", _encode_options,
                 help="encode the stores' images once with the preset's frozen encoder (cached)")
     add_command(s, "train", _train_options("train"), help="train the predictor (paper eq. 2); re-running resumes")
-    add_command(s, "train-encoder", _train_encoder_options,
-                help="train the task-cnn encoder on the stores' own images (state read-out + a 16-px redraw, "
-                     "privileged labels in training only); re-running resumes")
     add_command(s, "train-decoder", _train_options("train-decoder"),
                 help="train the decoder (pixels, for pictures only); re-running resumes")
     add_command(s, "eval", _eval_options, help="held-out latent errors per horizon against copying the last frame, "
@@ -68,8 +65,7 @@ class OneJSON(Once):
 
 
 ENCODER_KWARGS_HELP = ("the preset's encoder settings, overridden by this JSON object, e.g. '{\"basis\": \"dct\"}' "
-                       "(patch-pixels: input_size, patch_size, proj_dim, seed, basis; task-cnn: ckpt; concat: parts, "
-                       "a list of encoder configs, and scales, one per part)")
+                       "(patch-pixels: input_size, patch_size, proj_dim, seed, basis)")
 DEVICE_HELP = "torch device: auto, cpu, cuda, cuda:1, mps, ... (default: %(default)s)"
 
 
@@ -78,7 +74,7 @@ def _encode_options(p: argparse.ArgumentParser) -> None:
 
     p.add_argument("--data", required=True, help="episode stores, comma separated")
     p.add_argument("--preset", default="mini", choices=sorted(PRESETS), help="which encoder (wamplan/presets.py)")
-    p.add_argument("--encoder", default=None, help="a registered encoder instead of the preset's, e.g. task-cnn "
+    p.add_argument("--encoder", default=None, help="a registered encoder instead of the preset's, e.g. dinov2-vitb14 "
                                                    "(its settings from --encoder-kwargs only)")
     p.add_argument("--encoder-kwargs", default=None, metavar="JSON", action=OneJSON, help=ENCODER_KWARGS_HELP)
     p.add_argument("--encoder-path", default=None, help="local weights directory for DINOv2/DINOv3 encoders")
@@ -96,8 +92,8 @@ def _train_options(name: str):
         p.add_argument("--preset", default="mini", choices=sorted(PRESETS),
                        help="model and training sizes (wamplan/presets.py; default: mini); options below "
                             "override them")
-        p.add_argument("--encoder", default=None, help="a registered encoder instead of the preset's, e.g. task-cnn "
-                                                       "(its settings from --encoder-kwargs only)")
+        p.add_argument("--encoder", default=None, help="a registered encoder instead of the preset's, e.g. "
+                                                       "dinov2-vitb14 (its settings from --encoder-kwargs only)")
         p.add_argument("--encoder-kwargs", default=None, metavar="JSON", action=OneJSON, help=ENCODER_KWARGS_HELP)
         p.add_argument("--encoder-path", default=None, help="local weights directory for DINOv2/DINOv3 encoders")
         p.add_argument("--val-fraction", type=float, default=0.1,
@@ -107,8 +103,7 @@ def _train_options(name: str):
         if name == "train":
             p.add_argument("--init", type=Path, default=None,
                            help="fine-tune: start from this predictor checkpoint's weights and feature statistics "
-                                "(same preset and encoder; or a concat encoder whose first part is its encoder at "
-                                "scale 1: it grows onto the wider tokens)")
+                                "(same preset and encoder)")
             add_architecture_arguments(p.add_argument_group("predictor", "the preset's predictor, overridden"),
                                        {k: v.world_model.predictor for k, v in sorted(PRESETS.items())})
         cls, part = (TrainConfig, "train") if name == "train" else (DecoderTrainConfig, "decoder_train")
@@ -119,36 +114,6 @@ def _train_options(name: str):
         p.set_defaults(func=cmd_train if name == "train" else cmd_train_decoder)
 
     return build
-
-
-def _train_encoder_options(p: argparse.ArgumentParser) -> None:
-    from wamplan.encoders.learned import EncoderTrainConfig
-
-    p.add_argument("--data", required=True, help="episode stores with privileged poses, comma separated")
-    p.add_argument("--out", type=Path, required=True, help="run directory (checkpoint/, metrics.jsonl)")
-    p.add_argument("--val-fraction", type=float, default=0.1, help="fraction of episodes held out (default: 0.1)")
-    p.add_argument("--max-steps", type=int, default=None, help="stop after this many steps (resumable)")
-    p.add_argument("--device", default="auto", help=DEVICE_HELP)
-    add_arguments(p, EncoderTrainConfig)
-    p.set_defaults(func=cmd_train_encoder)
-
-
-def cmd_train_encoder(args: argparse.Namespace) -> int:
-    from wamplan.checkpoint import CKPT_DIR, has_training_state, read_config
-    from wamplan.config import from_dict
-    from wamplan.encoders.learned import KIND as ENCODER_KIND
-    from wamplan.encoders.learned import EncoderTrainConfig, train_task_cnn
-
-    require_dir(args.out)
-    resolve_device(args.device)
-    resume = has_training_state(args.out / CKPT_DIR)
-    # a resumed run keeps its saved settings where no option overrides them (the defaults may have changed since)
-    saved = from_dict(EncoderTrainConfig, read_config(args.out / CKPT_DIR, ENCODER_KIND)["train"]) if resume else None
-    metrics = train_task_cnn(_stores(args.data), args.out, from_args(EncoderTrainConfig, args, base=saved),
-                             val_fraction=args.val_fraction, device=args.device, max_steps=args.max_steps,
-                             resume=resume)
-    print(json.dumps(metrics))
-    return 0
 
 
 def _eval_options(p: argparse.ArgumentParser) -> None:

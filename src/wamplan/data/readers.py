@@ -144,26 +144,6 @@ _ITEM_FIX = ("`wamplan data check STORE` names every damaged episode: delete tho
              "(or `wamplan wm encode`) that wrote them")
 
 
-# What the ``task-cnn`` encoder's training-only read-out predicts of each frame (:func:`state_targets`), in cm so the
-# numbers sit near unit scale: the held object's position relative to the gripper's TCP, and relative to its target
-# where the store records one (stack-cube: the other cube), else in the world (the cube task's hole never moves,
-# so its world position and its offset from the hole differ by a constant).
-STATE_QUANTITIES = ("obj_tcp_x", "obj_tcp_y", "obj_tcp_z", "obj_target_x", "obj_target_y", "obj_target_z")
-STATE_UNIT_MM = 10.0  # millimetres per unit of the state targets
-
-
-def state_targets(f: h5py.File, steps: Sequence[int], path: str = "") -> np.ndarray:
-    """The :data:`STATE_QUANTITIES` of an episode file's ``steps``: (T, 6) float32 in cm, from its privileged
-    ``cube_pose``, ``tcp_pose`` and (where recorded) ``target_pose``; a store whose task records no object and TCP
-    poses is refused."""
-    if "cube_pose" not in f or "tcp_pose" not in f:
-        raise StoreError(f"{path or f.filename} records no privileged cube and TCP poses, which the task-cnn "
-                         f"encoder's read-out learns from; train it on stores that record them")
-    obj, tcp = f["cube_pose"][steps][:, :3], f["tcp_pose"][steps][:, :3]  # (T, 3) each, metres
-    target = f["target_pose"][steps][:, :3] if "target_pose" in f else 0.0  # (T, 3) or the world's origin
-    return (np.concatenate([obj - tcp, obj - target], axis=1) * 100.0).astype(np.float32)  # (T, 6) cm
-
-
 class _EpisodeDataset(Dataset):
     """The body every reader shares: the indexed episodes of ``stores``, a flat list of items (each a tuple
     whose first entry is the episode index), and HDF5 files opened lazily per process."""
@@ -275,20 +255,6 @@ class WorldModelWindows(_EpisodeDataset):
         else:
             out["images"] = torch.from_numpy(np.stack([f["images"][c][ks] for c in self.cameras], 1))  # (T, V, H, W, 3)
         return out
-
-
-class StateFrames(_EpisodeDataset):
-    """Items: every stored frame's ``images`` (V, H, W, 3) uint8 and its privileged ``s`` (6,) (:func:`state_targets`),
-    for training an encoder with state supervision (``encoders.learned``)."""
-
-    def __init__(self, stores: Sequence[str | Path], split: str = "train", val_fraction: float = 0.1):
-        super().__init__(stores, split, val_fraction)
-        self.items = [(i, k) for i, e in enumerate(self.episodes) for k in range(len(e.image_steps))]
-
-    def _read(self, idx: int) -> dict[str, torch.Tensor]:
-        e, f, (k,) = self._item(idx)
-        return dict(images=torch.from_numpy(np.stack([f["images"][c][k] for c in self.cameras])),  # (V, H, W, 3)
-                    s=torch.from_numpy(state_targets(f, [e.image_steps[k]], e.path)[0]))  # (6,)
 
 
 class FeatureFrames(_EpisodeDataset):

@@ -121,12 +121,11 @@ class FrozenEncoder(nn.Module):
         return torch.cat(parts) if parts else torch.empty(0, self.num_patches, self.dim)
 
 
-ENCODERS = Registry("encoder", modules=("wamplan.encoders.hf", "wamplan.encoders.patch_pixels",
-                                        "wamplan.encoders.learned", "wamplan.encoders.concat"))
+ENCODERS = Registry("encoder", modules=("wamplan.encoders.hf", "wamplan.encoders.patch_pixels"))
 register_encoder = ENCODERS.register  # a FrozenEncoder subclass or a factory function, by name
 # Encoders that left the core (no measured gain; their record is in the lab's table): name -> the last commit that
 # has them, where a world model or feature cache made with one still loads.
-RETIRED_ENCODERS = {"object-masks": "f07acf1"}
+RETIRED_ENCODERS = {"object-masks": "f07acf1", "task-cnn": "9c6eb5d", "concat": "9c6eb5d"}
 
 
 def encoder_names() -> list[str]:

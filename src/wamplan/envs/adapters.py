@@ -76,7 +76,7 @@ class PegInsertionSideAdapter(ManiSkillAdapter):
 
 class StackCubeAdapter(ManiSkillAdapter):
     """StackCube-v1 plus its cubes as privileged state: ``cube_pose`` the cube to pick (cubeA), ``target_pose`` the
-    cube to stack it on (cubeB), for stores and the world model's training-only state head."""
+    cube to stack it on (cubeB), recorded in the stores."""
 
     def privileged_state(self, evaluation: dict[str, Any]) -> dict[str, np.ndarray]:
         state = super().privileged_state(evaluation)

@@ -72,7 +72,7 @@ RETIRED_MODULES = ("spread_head", "state_head")
 
 
 def without_retired(weights: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-    """A checkpoint's weights without those of :data:`RETIRED_MODULES`, at any depth (a splice's models too)."""
+    """A checkpoint's weights without those of :data:`RETIRED_MODULES`, at any depth."""
     return {k: v for k, v in weights.items() if not set(k.split(".")) & set(RETIRED_MODULES)}
 
 

@@ -23,7 +23,7 @@ from wamplan.envs.spec import TaskSpec
 from wamplan.errors import UserError
 from wamplan.train_loop import DatasetBatches, evaluating, fit, saved_progress, shown
 from wamplan.worldmodel.config import RETIRED_PREDICTOR_KEYS, RETIRED_TRAIN_KEYS, PredictorConfig, TrainConfig
-from wamplan.worldmodel.grow import check_init, grow_weights
+from wamplan.worldmodel.grow import check_init
 from wamplan.worldmodel.load import KIND
 from wamplan.worldmodel.losses import group_loss, per_horizon_mse, split_windows, window_loss
 from wamplan.worldmodel.predictor import WorldModelPredictor, without_retired
@@ -85,8 +85,7 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
     ``checkpoint/`` + ``metrics.jsonl``). ``encoder_info`` (e.g. ``encoder.config_dict()``) is stored as
     provenance; ``data`` identifies the training data (``data.store.describe_stores``), checked on resume.
     ``init`` (a predictor checkpoint with the same config and encoder) fine-tunes: a fresh run starts from its
-    weights and feature statistics instead of a random initialisation and new statistics; with a ``concat``
-    encoder whose first part is the checkpoint's encoder it starts grown (:func:`grow_weights`).
+    weights and feature statistics instead of a random initialisation and new statistics.
     ``group_set`` (``data.readers.BranchGroups``) adds :func:`group_loss` (the sibling and ranking losses, the
     latter on groups with targets) on ``train.sibling_groups`` groups to every step's loss; ``val_groups`` adds the
     held-out sibling error to the validation metrics (:func:`evaluate_siblings`), and with targets their ranking
@@ -100,23 +99,16 @@ def train_predictor(train_set: Dataset, cfg: PredictorConfig, train: TrainConfig
     trained_on = shown(model.task.name if model.task is not None else None, cameras)
     config = {"predictor": to_dict(cfg), "train": to_dict(train), "encoder": encoder_info,
               **({"data": trained_on} if trained_on else {})}
-    old_dim = None
     if init is not None:
         config["init"] = str(Path(init).resolve())
-        old_dim = check_init(init, cfg, encoder_info)
+        check_init(init, cfg, encoder_info)
     if resume:
         _refuse_retired_head(out_dir)
 
     def fresh_stats() -> None:
         if init is not None:
-            load_weights(checkpoint_dir(init), model, dev,  # an older start's spread or state head dropped
-                         adapt=lambda w: without_retired(w) if old_dim is None else
-                         grow_weights(without_retired(w), model, old_dim))
+            load_weights(checkpoint_dir(init), model, dev, adapt=without_retired)  # an older start's heads dropped
             model.float()
-            if old_dim is not None:  # the grown dims' statistics from the data, the start's kept for its own
-                mean, std = compute_feature_stats(train_set, seed=train.seed)
-                model.set_feature_stats(torch.cat([model.z_mean[:old_dim].cpu(), mean[old_dim:]]),
-                                        torch.cat([model.z_std[:old_dim].cpu(), std[old_dim:]]))
         else:
             mean, std = compute_feature_stats(train_set, seed=train.seed)
             model.set_feature_stats(mean, std)
