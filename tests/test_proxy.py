@@ -63,7 +63,12 @@ def post(url: str, data: bytes) -> dict:
 
 @pytest.fixture(scope="module")
 def proxy():
-    p = build_proxy(ProxyConfig(upstream=WAM_CKPT, world_model=WM_CKPT, device="cpu", errors="http"))
+    """A proxy of the shipped models whose world model reads only the frames it is sent (``--history seen``): what
+    the tests below check; the default imagined history is tests/test_proxy_imagined.py's."""
+    from wamplan.planning.policy_config import PlannedPolicyConfig
+
+    p = build_proxy(ProxyConfig(upstream=WAM_CKPT, world_model=WM_CKPT, device="cpu", errors="http"),
+                    planning={"policy": PlannedPolicyConfig(history="seen")})
     with BackgroundServer(create_proxy_app(p)) as srv:
         yield srv, p
     p.close()
@@ -448,25 +453,6 @@ def test_planning_refuses_a_frameskip_longer_than_the_chunk_in_one_line(tmp_path
         planned_policy(load_wam(WAM_CKPT, device="cpu"), world_model=wm, device="cpu")
     assert "frameskip 32 is longer than the WAM's 16-step chunk" in str(e.value) and "\n" not in str(e.value)
     assert "wamplan wm train --frameskip 16" in str(e.value)
-
-
-def test_deploy_docs_smoke_test_prints_what_it_shows(proxy, capsys):
-    """docs/deploy.md's smoke test (a ```py block, then the ```text it prints) run against a proxy of the shipped
-    models, as the document starts one."""
-    import contextlib
-    import io
-    import re
-
-    text = (Path(__file__).resolve().parents[1] / "docs" / "deploy.md").read_text()
-    m = re.search(r"\*\*Smoke test\.\*\*.*?```py\n(.*?)```.*?```text\n(.*?)```", text, re.DOTALL)
-    assert m, "docs/deploy.md lost its smoke test (a ```py block and the ```text it prints)"
-    code, shown = m.groups()
-    srv, _ = proxy
-    assert "http://127.0.0.1:8778" in code
-    out = io.StringIO()
-    with contextlib.redirect_stdout(out):
-        exec(compile(code.replace("http://127.0.0.1:8778", srv.url), "deploy.md", "exec"), {})
-    assert out.getvalue() == shown
 
 
 def test_deploy_docs_world_model_from_robot_logs(tmp_path, monkeypatch):

@@ -66,3 +66,34 @@ def test_openpis_unmodified_client_is_planned_from_the_boundaries(proxy):
     answers = [client.infer(aloha(6, k * H)) for k in range(CHUNKS)]  # what its robot loop sends: observations only
     assert [a["wamplan"]["open_loop"] for a in answers] == ["first-chunk"] + [None] * (CHUNKS - 1)
     np.testing.assert_allclose(np.concatenate([a["actions"] for a in answers]), imagined_in_process(6), atol=1e-6)
+
+
+def test_deploy_docs_smoke_test_prints_what_it_shows(proxy, capsys):
+    """docs/deploy.md's smoke test (a ```py block, then the ```text it prints) run against a proxy of the shipped
+    models with the serve's default (imagined) history, as the document starts one."""
+    import contextlib
+    import io
+    import re
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "deploy.md").read_text()
+    m = re.search(r"\*\*Smoke test\.\*\*.*?```py\n(.*?)```.*?```text\n(.*?)```", text, re.DOTALL)
+    assert m, "docs/deploy.md lost its smoke test (a ```py block and the ```text it prints)"
+    code, shown = m.groups()
+    srv, _ = proxy
+    assert "http://127.0.0.1:8778" in code
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        exec(compile(code.replace("http://127.0.0.1:8778", srv.url), "deploy.md", "exec"), {})
+    assert out.getvalue() == shown
+
+
+def test_clients_running_steps_off_the_frames_grid_are_refused_at_start_up_in_one_line():
+    from wamplan.errors import UserError
+    from wamplan.proxy.config import ProxyPolicyConfig
+
+    with pytest.raises(UserError) as e:  # openpi's LIBERO client runs 5 steps; the shipped model's frames are 4 apart
+        build_proxy(ProxyConfig(upstream=WAM_CKPT, world_model=WM_CKPT, device="cpu"),
+                    planning={"policy": ProxyPolicyConfig(requery_every=5)})
+    assert "\n" not in str(e.value) and ("a client that runs 5 steps of each chunk leaves none on that grid; start "
+                                         "serve with --history seen") in str(e.value)

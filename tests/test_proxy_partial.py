@@ -92,7 +92,8 @@ def test_executed_actions_of_k_rows_move_the_step_and_say_when_it_falls_off_the_
     assert (report["step"], report["open_loop"], report["planned"]) == (13, "off-grid", False)
     assert report["notes"][0] == ("the robot ran 5 steps of the last chunk, so this request (step 13) falls off the "
                                    "steps the world model plans from (every 4: its frames 4 apart, clients asking "
-                                   "every 16); start serve with --requery-every 5 if the robot always runs that many")
+                                   "every 16); start serve with --requery-every 5 --history seen if the robot always runs "
+                                   "that many")
     direct = load_wam(WAM_CKPT, device="cpu").predict(observation(c, 13), "insert the cube into the square hole")
     np.testing.assert_array_equal(np.stack(third["actions"]), direct.actions)  # the WAM's own chunk
     assert bad.status_code == 400 and "chunk_frames offset '3' is not in 1..1 (the robot ran 2 steps" in bad.text

@@ -17,18 +17,19 @@ from wamplan.planning.cost_config import CostConfig
 from wamplan.planning.policy_config import PlannedPolicyConfig
 
 
-def add_planning_arguments(p: argparse.ArgumentParser) -> None:
-    """The planned policy's chunk rules, the cost (``--cost-*``), ``--planner`` and every planner's options."""
-    add_arguments(p.add_argument_group("planned policy"), PlannedPolicyConfig)
+def add_planning_arguments(p: argparse.ArgumentParser, policy: type = PlannedPolicyConfig) -> None:
+    """The planned policy's chunk rules (``policy``: its config class, e.g. one with other defaults), the cost
+    (``--cost-*``), ``--planner`` and every planner's options."""
+    add_arguments(p.add_argument_group("planned policy"), policy)
     add_arguments(p.add_argument_group("cost"), CostConfig, prefix="cost_")
     add_planner_arguments(p, default=EvalConfig.planner)
 
 
-def planning_from_args(args: argparse.Namespace) -> dict[str, Any]:
-    """:class:`EvalConfig`'s planning fields from the options of :func:`add_planning_arguments`:
-    ``planner``, ``planner_config``, ``policy`` and ``cost``."""
+def planning_from_args(args: argparse.Namespace, policy: type = PlannedPolicyConfig) -> dict[str, Any]:
+    """:class:`EvalConfig`'s planning fields from the options of :func:`add_planning_arguments` (with the same
+    ``policy`` class): ``planner``, ``planner_config``, ``policy`` and ``cost``."""
     planner, planner_config = planner_config_from_args(args)
-    return dict(planner=planner, planner_config=planner_config, policy=from_args(PlannedPolicyConfig, args),
+    return dict(planner=planner, planner_config=planner_config, policy=from_args(policy, args),
                 cost=from_args(CostConfig, args, prefix="cost_"))
 
 

@@ -21,12 +21,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _options(p: argparse.ArgumentParser) -> None:
     from wamplan.config import add_arguments
-    from wamplan.proxy.config import ProxyConfig
+    from wamplan.proxy.config import ProxyConfig, ProxyPolicyConfig
 
     from wamplan.cli.eval_options import add_planning_arguments
 
     add_arguments(p, ProxyConfig)
-    add_planning_arguments(p)  # the planner, cost and chunk rules, as `wamplan eval` takes them
+    add_planning_arguments(p, ProxyPolicyConfig)  # the planner, cost and chunk rules, as `wamplan eval` takes them
     add_listen_options(p, 8778, "shared secret every request must carry (X-WAMplan-Secret header, Authorization: "
                                 "Bearer or Api-Key, or ?token=SECRET in the URL); default: $WAMPLAN_ACT_SECRET, none if unset. "
                                 "The upstream's own secret, if any, is read from $WAMPLAN_UPSTREAM_SECRET")
@@ -38,7 +38,7 @@ def _options(p: argparse.ArgumentParser) -> None:
 def _serve(args: argparse.Namespace) -> int:
     import dataclasses
 
-    from wamplan.proxy.config import ProxyConfig
+    from wamplan.proxy.config import ProxyConfig, ProxyPolicyConfig
 
     secret = listen_secret(args)
     # the options given, onto the defaults; not from_args: ProxyConfig() alone is refused (no upstream)
@@ -52,7 +52,7 @@ def _serve(args: argparse.Namespace) -> int:
     from wamplan.serving.runner import bind_socket, run_app
 
     resolve_device(cfg.device)
-    planning = planning_from_args(args)
+    planning = planning_from_args(args, ProxyPolicyConfig)
     if cfg.record:  # an unwritable record directory is refused before anything loads
         from wamplan.proxy.record import check_record_dir
 

@@ -131,7 +131,7 @@ class Proxy:
         elif self.imagined:
             history = (f"history: chunk boundaries only: the world model's frames every {d} steps inside a chunk are "
                        f"imagined from the last boundary and the actions run since (--history imagined); "
-                       f"chunk_frames are not read")
+                       f"frames a client sends in chunk_frames are used instead")
         else:
             offsets = ", ".join(str(o) for o in range(d, H, d)) or "-"
             history = (f"history: in-chunk frames every {d} steps (the world model's frameskip {d}, not the {H}-step "
@@ -366,10 +366,12 @@ class Proxy:
         policy, t = session.policy, obs.step
         history = policy.history
         if t % self.grid:  # the robot ran a part of the chunk that leaves it between the world model's frames
+            # (an imagined history needs the robot's steps on the frames' grid: --history seen where they are not)
+            seen = " --history seen" if self.imagined and (t - session.last) % self.frameskip else ""
             notes.append(f"the robot ran {t - session.last} steps of the last chunk, so this request (step {t}) falls "
                          f"off the steps the world model plans from (every {self.grid}: its frames {self.frameskip} "
                          f"apart, clients asking every {self.requery}); start serve with --requery-every "
-                         f"{t - session.last} if the robot always runs that many")
+                         f"{t - session.last}{seen} if the robot always runs that many")
             return out.actions, "off-grid", {}
         if history.keeps_frames and history.imagine is None and t > 0 and (history.real(t) or history.rest_state):
             missing = [s for s in history.steps(t) if 0 <= s < t and s not in history.frames]

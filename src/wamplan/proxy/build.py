@@ -19,10 +19,11 @@ from wamplan.envs.spec import Observation, TaskSpec, check_same_task, get_task
 from wamplan.errors import UserError
 from wamplan.planning.build import PlanningConfig, planned_policy
 from wamplan.proxy.app import Proxy, planning_grid
-from wamplan.proxy.config import ProxyConfig
+from wamplan.proxy.config import ProxyConfig, ProxyPolicyConfig
 from wamplan.proxy.upstream import (AnsweredWAM, HttpUpstream, LocalUpstream, Upstream, UpstreamError, UpstreamShape,
                                     answer_shape)
 from wamplan.wam.protocol import ActRequest, resolve_maps
+
 
 
 def check_fit(task: TaskSpec, upstream: Upstream, chunk: int, columns: tuple[int, ...], cameras: tuple[str, ...],
@@ -102,7 +103,9 @@ def check_planning(planning: PlanningConfig, task: TaskSpec) -> None:
 def build_proxy(cfg: ProxyConfig, upstream: Upstream | None = None, planning: dict[str, Any] | None = None) -> Proxy:
     """The proxy of ``cfg``: the world model loaded, the upstream reached (or ``upstream``), the fit checked.
     ``planning``: :class:`~wamplan.planning.build.PlanningConfig`'s ``planner``, ``planner_config``, ``policy`` and
-    ``cost`` (any of them; unset: condition 7's defaults), checked against the world model's task and the chunk."""
+    ``cost`` (any of them; unset: condition 7's defaults, but for the history: :class:`ProxyPolicyConfig`'s imagined one, what
+    lets clients that post only at chunk boundaries be planned), checked against the world model's task and the
+    chunk."""
     from wamplan.planning.dynamics import learned_dynamics, task_name
     from wamplan.wam.base import LEGACY_TASK, load_wam
     from wamplan.wam.cosmos_client import profile_config
@@ -111,7 +114,7 @@ def build_proxy(cfg: ProxyConfig, upstream: Upstream | None = None, planning: di
     paths = [p for p in ensemble_members(cfg.world_model) if p]
     dynamics, encoder = learned_dynamics([load_world_model(p, device=cfg.device, dtype=cfg.wm_dtype) for p in paths])
     task = get_task(task_name(dynamics) or LEGACY_TASK)
-    plan_cfg = PlanningConfig(**(planning or {}))
+    plan_cfg = PlanningConfig(**{"policy": ProxyPolicyConfig(), **(planning or {})})
     cameras = tuple(dynamics.cameras or task.cameras)
     profile = cfg.profile
     client = profile_config(profile, task=task.name) if profile else None
@@ -162,11 +165,16 @@ def build_proxy(cfg: ProxyConfig, upstream: Upstream | None = None, planning: di
     if requery > chunk:
         raise UserError(f"--requery-every {requery} is longer than the upstream's {chunk}-step chunk; a robot runs at "
                         f"most the {chunk} actions it was given before asking again")
+    if plan_cfg.policy.history == "imagined" and frameskip and requery % frameskip:
+        raise UserError(f"--history imagined predicts the world model's frames every {frameskip} steps from a "
+                        f"client's last request, and a client that runs {requery} steps of each chunk leaves none on "
+                        f"that grid; start serve with --history seen (the in-chunk frames sent in chunk_frames) or "
+                        f"with a world model whose frameskip divides {requery}")
     # a session plans from any step on the grid its client's requests and the world model's frames share
     per_session = dataclasses.replace(plan_cfg, policy=dataclasses.replace(
         plan_cfg.policy, requery_every=planning_grid(requery, dynamics)))
     make = lambda wam: planned_policy(wam, dynamics, encoder, per_session, world_models=paths)  # noqa: E731
-    make(AnsweredWAM(task, chunk, cameras))  # what only the world model can refuse (a pose term, an ensemble's
+    make(AnsweredWAM(task, chunk, cameras))  # what only the world model can refuse (an ensemble's
     # disagreement, a frameskip longer than the chunk, a --requery-every past it) is refused now, once
     proxy = Proxy(cfg, upstream, dynamics, encoder, task, make, request_map, response_map, columns, chunk,
                   requery=requery, probe=probe, fit=fit, imagined=per_session.policy.history == "imagined")

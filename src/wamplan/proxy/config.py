@@ -7,14 +7,23 @@ from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import urlparse, urlunparse
 
-from wamplan.config import check_numbers, field, require
+from wamplan.config import check_numbers, field, require, with_default
 from wamplan.errors import UserError
 from wamplan.planning.build import WM_DTYPES
+from wamplan.planning.policy_config import PlannedPolicyConfig
 from wamplan.serving import DEFAULT_MAX_REQUEST_BYTES, ERROR_MODES
 from wamplan.wam.profiles import PROFILES, profile_names
 
 DEFAULT_ROBOT = "default"  # the session of plain /act (and of a WebSocket on /)
 PROXY_FIELDS = ("session_id", "reset", "seed", "executed_actions", "chunk_frames")  # read by the proxy, never forwarded
+
+
+@dataclass(frozen=True)
+class ProxyPolicyConfig(PlannedPolicyConfig):
+    """The proxy's chunk rules: condition 7's, with the in-chunk history imagined (its clients post only at chunk
+    boundaries; frames a client sends in ``chunk_frames`` are used where it sends them)."""
+
+    history: str = with_default(PlannedPolicyConfig, "history", "imagined")
 
 
 @dataclass(frozen=True)
