@@ -35,6 +35,11 @@ def test_wrong_settings_fail_in_one_line_before_anything_loads():
         wamplan.planned_policy(WAM, WM, gate=0.1)
     with pytest.raises(UserError, match="world_model /no/such/wm does not exist"):
         wamplan.planned_policy(WAM, "/no/such/wm")
+    # several world models (an ensemble) left the core: one checkpoint, in one line that says so
+    with pytest.raises(TypeError, match="a checkpoint directory .* got list .*an ensemble"):
+        wamplan.planned_policy(WAM, [WM, WM])
+    with pytest.raises(UserError, match=rf"^world_model {WM}\+{WM} joins 2 world models .* pass one checkpoint"):
+        wamplan.planned_policy(WAM, f"{WM}+{WM}")
     with pytest.raises(ConfigError, match="unknown keys"):
         wamplan.make_env(camera=64)
 
@@ -47,11 +52,11 @@ def test_the_api_builds_the_evaluations_policy(tmp_path):
     pol = wamplan.planned_policy(WAM, WM, device="cpu")
     assert pol.config == EvalConfig().policy and pol.planner.name == EvalConfig().planner
     assert pol.config_dict() == load_policy(WAM, plan_with=WM).config_dict()  # `collect --plan-with`, condition 7
-    pol = wamplan.planned_policy(wamplan.load_wam(WAM, device="cpu"), [WM, WM], planner="cem",
+    pol = wamplan.planned_policy(wamplan.load_wam(WAM, device="cpu"), WM, planner="cem",
                                  planner_config={"iterations": 2}, cost=CostConfig(view_weights=(0.0, 0.0, 1.0)),
                                  gate_threshold=0.05)
     assert pol.planner.name == "cem" and pol.planner.config.iterations == 2 and pol.config.gate_threshold == 0.05
-    assert type(pol.dynamics).__name__ == "EnsembleDynamics"
+    assert type(pol.dynamics).__name__ == "LearnedDynamics"
     pred, target = torch.rand(2, 3, 4, 8), torch.rand(3, 4, 8)  # (B, V, N, D), (V, N, D)
     torch.testing.assert_close(pol.cost(pred, target), (pred[:, 2] - target[2]).square().mean(dim=(1, 2)))
     # the cost also as its name or a dict of its fields, as planner_config takes a dict

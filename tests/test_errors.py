@@ -584,7 +584,7 @@ def test_numbers_that_are_not_finite_are_named_by_their_option_before_any_work(t
     refused(capsys, [*wm, "--change-weight", "inf"], "error: --change-weight must be a finite number, got inf")
     refused(capsys, [*wm, "--lr", "nan"], "error: --lr must be a finite number, got nan")
     refused(capsys, ["eval", "--conditions", "7", "--out", tmp_path / "e", "--wam", MINI / "tinywam", "--wm-augmented",
-                     MINI / "wm_augmented", "--disagreement-weight", "inf"], "--disagreement-weight must be a finite")
+                     MINI / "wm_augmented", "--warm-weight", "inf"], "--warm-weight must be a finite")
     refused(capsys, ["eval", "--conditions", "7", "--out", tmp_path / "e", "--wam", MINI / "tinywam", "--wm-augmented",
                      MINI / "wm_augmented", "--temperature=-inf"], "--temperature must be a finite number")
     refused(capsys, ["collect", "--source", "expert", "--episodes", "1", "--max-steps", "-4", "--out", tmp_path / "c"],
@@ -593,8 +593,8 @@ def test_numbers_that_are_not_finite_are_named_by_their_option_before_any_work(t
     from wamplan.config import ConfigError
     from wamplan.planning.policy import PlannedPolicyConfig
 
-    with pytest.raises(ConfigError, match="disagreement_weight must be a finite number, got '1'"):
-        PlannedPolicyConfig(disagreement_weight="1")  # a string from a hand-written call: named, not a TypeError
+    with pytest.raises(ConfigError, match="warm_weight must be a finite number, got '1'"):
+        PlannedPolicyConfig(warm_weight="1")  # a string from a hand-written call: named, not a TypeError
     import numpy as np
     import torch
 
@@ -645,11 +645,11 @@ def test_a_mistyped_option_gets_the_nearest_one(tmp_path, capsys):
     assert "did you mean" not in refused(capsys, ["eval", "--out", tmp_path, "--zzzz"], "--zzzz")
     # only options the command takes, never the refused one itself, never a flag its help merely mentions
     assert "did you mean" not in refused(capsys, ["data", "info", tmp_path, "--out", "x"], "--out x")
-    fidelity = ["wm", "fidelity", "--wam", "w", "--wm", "x=y", "--seeds", "1"]  # its help mentions eval's
-    assert "did you mean" not in refused(capsys, [*fidelity, "--disagreement-weigth", "1"],  # --disagreement-weight
-                                         "--disagreement-weigth")
-    assert refused(capsys, [*fidelity, "--plan-spread-weigth", "1"], "--plan-spread-weigth").endswith(
-        "did you mean --plan-spread-weight?")  # an option it has, not one its help text names
+    serve = ["serve", "--upstream", "w", "--world-model", "x"]  # its help mentions `wm train --data`
+    assert "did you mean" not in refused(capsys, [*serve, "--datta", "1"], "--datta")  # --data
+    fidelity = ["wm", "fidelity", "--wam", "w", "--wm", "x=y", "--seeds", "1"]
+    assert refused(capsys, [*fidelity, "--plan-view-weigths", "1"], "--plan-view-weigths").endswith(
+        "did you mean --plan-view-weights?")  # an option it has, not one its help text names
 
 
 def test_reproduce_checks_its_inputs_before_hours_of_work(tmp_path, capsys, monkeypatch):

@@ -4,6 +4,7 @@ a planner registered in planning/ appears in `eval` with no edit to the evaluati
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from dataclasses import dataclass
 
@@ -155,7 +156,7 @@ def test_the_world_models_arithmetic_reaches_the_models_the_runs_plan_in(tmp_pat
     finally:
         worker.env.close()
     for c, dtype in ((cfg, torch.bfloat16), (_cfg(), torch.float32)):
-        policy = plan_in_world_model(str(mini / "tinywam"), [str(mini / "wm_plain")], c.planning, c.device, c.wm_dtype)
+        policy = plan_in_world_model(str(mini / "tinywam"), str(mini / "wm_plain"), c.planning, c.device, c.wm_dtype)
         assert policy.dynamics.dtype == dtype
 
 
@@ -183,7 +184,8 @@ def test_a_directory_from_before_an_option_left_resumes_only_if_it_ran_what_runs
     stored = json.loads(path.read_text())
     retired = {"planner_config.noise_beta": 0.0, "policy.gate_above": None, "policy.rank_gate": None,
                "policy.replan_every": None, "policy.bias_correction": 0.0, "policy.correction_gain": 1.0,
-               "cost.foreground": "", "cost.background_weight": 0.1, "cost.state_weight": 0.0}
+               "cost.foreground": "", "cost.background_weight": 0.1, "cost.state_weight": 0.0,
+               "policy.disagreement_weight": 0.0}
     path.write_text(json.dumps({**stored, **retired}))
     _check_same_settings(tmp_path, _cfg())
     assert json.loads(path.read_text()) == stored
@@ -195,6 +197,9 @@ def test_a_directory_from_before_an_option_left_resumes_only_if_it_ran_what_runs
         _check_same_settings(tmp_path, _cfg())
     path.write_text(json.dumps({**stored, **retired, "cost.state_weight": 0.3}))
     with pytest.raises(UserError, match="--cost-state-weight 0.3, an option wamplan no longer has"):
+        _check_same_settings(tmp_path, _cfg())
+    path.write_text(json.dumps({**stored, **retired, "policy.disagreement_weight": 1.0}))
+    with pytest.raises(UserError, match="--disagreement-weight 1.0, an option wamplan no longer has"):
         _check_same_settings(tmp_path, _cfg())
 
 
@@ -274,23 +279,44 @@ def test_eval_plans_with_a_served_wam_through_a_profile(tmp_path, capsys):
 
 
 def test_a_missing_checkpoint_is_named_with_its_flag_and_fix(tmp_path):
-    """Every world model of a comma list must exist; the first one missing (an empty one included) is named."""
+    """The world model must exist; a missing one (an empty one included) is named with its flag."""
     ok = str(tmp_path)
-    cfg = _cfg("--wam", ok, "--wm-augmented", f"{ok},{tmp_path / 'gone'}")
     with pytest.raises(UserError, match=r"^--wm-augmented .*gone does not exist; train it or fix the path$"):
-        cfg.check_for([7])
-    with pytest.raises(UserError, match=r"^--wm-augmented \(empty\) does not exist"):
-        _cfg("--wam", ok, "--wm-augmented", f"{ok},").check_for([7])
+        _cfg("--wam", ok, "--wm-augmented", str(tmp_path / "gone")).check_for([7])
+    with pytest.raises(UserError, match=r"^condition 7 needs --wm-augmented CKPT"):
+        _cfg("--wam", ok).check_for([7])
     with pytest.raises(UserError, match=r"^--wam .*nowhere does not exist; train one with `wamplan wam train`"):
         _cfg("--wam", str(tmp_path / "nowhere")).check_for([1])
-    _cfg("--wam", ok, "--wm-augmented", f"{ok},{ok}").check_for([1, 7])  # all there: no error
-    assert _cfg("--wm-augmented", f"{ok}+{ok}").world_models(7) == [ok, ok]  # A+B: an ensemble, as in wm fidelity
-    plus = tmp_path / "exp+v2"  # an existing path with a + in it is one checkpoint
-    plus.mkdir()
-    assert _cfg("--wm-augmented", str(plus)).world_models(7) == [str(plus)]
-    assert _cfg("--wm-augmented", f"{plus},{ok}").world_models(7) == [str(plus), ok]
-    with pytest.raises(UserError, match=r"^--wm-augmented \(empty\) does not exist"):
-        _cfg("--wam", ok, "--wm-augmented", f"{ok}+").check_for([7])
+    _cfg("--wam", ok, "--wm-augmented", ok).check_for([1, 7])  # there: no error
+    assert _cfg("--wm-augmented", ok).world_model(7) == ok and _cfg("--wm-augmented", ok).world_model(1) == ""
+
+
+def test_several_world_models_joined_by_plus_or_commas_are_refused_but_a_path_holding_them_is_one(tmp_path):
+    """An ensemble (A+B, A,B) left the core: refused in one line naming the fix, where its pieces are checkpoints;
+    a path may hold a + or a comma, and then it is one checkpoint."""
+    from wamplan.config import joined_checkpoints
+
+    a, b = tmp_path / "wm_a", tmp_path / "wm_b"
+    for d in (a, b):
+        d.mkdir()
+        (d / "config.json").write_text("{}")
+    for spec in (f"{a}+{b}", f"{a},{b}", f"{a},{b}+{a}"):
+        with pytest.raises(UserError, match=rf"^--wm-augmented {re.escape(spec)} joins \d world models into an "
+                                            rf"ensemble, which wamplan no longer plans in .* pass one checkpoint, "
+                                            rf"e\.g\. --wm-augmented {re.escape(str(a))}$"):
+            _cfg("--wam", str(a), "--wm-augmented", spec).check_for([7])
+    for name in ("exp+v2", "exp,v2"):  # an existing path with a + or a comma in it is one checkpoint
+        one = tmp_path / name
+        one.mkdir()
+        assert _cfg("--wm-augmented", str(one)).world_model(7) == str(one)
+        _cfg("--wam", str(a), "--wm-augmented", str(one)).check_for([7])
+    assert joined_checkpoints(f"{a}+{tmp_path / 'gone'}") == []  # not all checkpoints: one path, and missing
+    with pytest.raises(UserError, match=r"^--wm-augmented .*wm_a\+.*gone does not exist"):
+        _cfg("--wam", str(a), "--wm-augmented", f"{a}+{tmp_path / 'gone'}").check_for([7])
+    plain = tmp_path / "plain"  # a directory that is not a checkpoint is not a piece of an ensemble
+    plain.mkdir()
+    assert joined_checkpoints(f"{a}+{plain}") == [] and joined_checkpoints(f"{a}+") == []
+    assert joined_checkpoints(f"{a}+{b}") == [str(a), str(b)]
 
 
 def test_progress_bars_refresh_rarely_when_written_to_a_log(tmp_path):
@@ -417,12 +443,23 @@ def test_a_directory_refuses_another_world_model_and_accepts_one_added_later(tmp
         with pytest.raises(UserError, match="other settings") as e:
             resume("--wm-plain", str(plain), "--wm-augmented", str(augmented))
         assert str(plain) in str(e.value)  # the changed setting, as requested
-    ensemble = tmp_path / "ensemble"
-    run_evaluation(_cfg("--wm-augmented", f"{a},{b}"), [7], [], ensemble)
-    append_record(ensemble, dict(condition=7, seed=0, variant="open-loop", success=False, outcome="failure", length=9))
-    run_evaluation(_cfg("--wm-augmented", f"{a}+{b}"), [7], [], ensemble)  # the same ensemble, spelled A+B
-    with pytest.raises(UserError, match="other settings"):
-        run_evaluation(_cfg("--wm-augmented", f"{a}+{a}"), [7], [], ensemble)  # another ensemble: refused
+    ensemble = tmp_path / "ensemble"  # a directory an older version ran with an ensemble (A,B or A+B): refused
+    for d in (a, b):
+        (d / "config.json").write_text("{}")
+    for spec in (f"{a},{b}", f"{a}+{b}"):
+        run_evaluation(_cfg("--wm-augmented", str(a)), [7], [], ensemble)
+        append_record(ensemble, dict(condition=7, seed=0, variant="open-loop", success=False, outcome="failure",
+                                     length=9))
+        stored = json.loads((ensemble / "eval_config.json").read_text())
+        (ensemble / "eval_config.json").write_text(json.dumps({**stored, "wm_augmented": spec}))
+        with pytest.raises(UserError, match=rf"^{re.escape(str(ensemble))} holds an evaluation run with "
+                                            rf"--wm-augmented {re.escape(spec)}, an ensemble of world models, which "
+                                            rf"wamplan no longer plans in"):
+            run_evaluation(_cfg("--wm-augmented", str(a)), [7], [], ensemble)
+        with pytest.raises(UserError, match="an ensemble of world models"):
+            run_evaluation(_cfg(), [1], [], ensemble)  # whatever runs now
+        (ensemble / "eval_config.json").unlink()
+        (ensemble / "records.jsonl").unlink()
 
 
 @pytest.mark.parametrize("argv", [

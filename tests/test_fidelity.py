@@ -188,11 +188,11 @@ def test_fidelity_cli_checks_execute_and_oracle_blend_before_loading(capsys):
     assert "--oracle-blend 1.5 is outside (0, 1]" in capsys.readouterr().err
 
 
-def test_fidelity_refuses_a_spread_weight_without_an_ensemble(refused):
-    refused(["wm", "fidelity", "--wam", "checkpoints/mini/tinywam", "--wm", "checkpoints/mini/wm_augmented",
-             "--seeds", "500", "--plan-spread-weight", "1"], "--plan-spread-weight", "ensemble A+B")
-    refused(["wm", "fidelity", "--wam", "checkpoints/mini/tinywam", "--wm", "checkpoints/mini/wm_augmented",
-             "--seeds", "500", "--plan-spread-weight", "0"], "--plan-spread-weight 0 must be a finite number above 0")
+def test_fidelity_refuses_an_ensemble_in_one_line(refused):
+    """A+B (an ensemble, which left the core) is refused before anything loads; commas still separate models."""
+    aug, plain = "checkpoints/mini/wm_augmented", "checkpoints/mini/wm_plain"
+    refused(["wm", "fidelity", "--wam", "checkpoints/mini/tinywam", "--wm", f"x={aug}+{plain}", "--seeds", "500"],
+            f"--wm {aug}+{plain} joins 2 world models into an ensemble", f"pass one checkpoint, e.g. --wm {aug}")
 
 
 def test_the_summary_pairs_each_models_plan_gain_with_the_first_models():

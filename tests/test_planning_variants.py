@@ -1,18 +1,13 @@
-"""Gated planning, warm starts and the uncertainty-aware (ensemble) cost of the planned policy."""
-
-import dataclasses
+"""Gated planning and warm starts of the planned policy."""
 
 import numpy as np
 import pytest
 import torch
 
-from wamplan.errors import UserError
 from wamplan.planning import CEMConfig, make_cost, make_planner
-from wamplan.planning.dynamics import Dynamics, EnsembleDynamics, LearnedDynamics, PlanningContext, learned_dynamics
-from wamplan.planning.history import PlanningError
+from wamplan.planning.dynamics import LearnedDynamics
 from wamplan.planning.policy import PlannedPolicy, PlannedPolicyConfig
 from wamplan.policies.rollout import run_episode
-from wamplan.worldmodel.predictor import WorldModelPredictor
 from test_planned_policy import EchoWAM, _predictor, encoder  # noqa: F401 (fixture; small_env is in conftest)
 
 
@@ -23,12 +18,6 @@ def _cem(n=8, iters=2):
 def _policy(encoder, **cfg):
     return PlannedPolicy(EchoWAM(), _cem(), LearnedDynamics(_predictor(encoder)), encoder, make_cost("patch"),
                          config=PlannedPolicyConfig(**cfg))
-
-
-def _ctx(encoder, seed=1):
-    g = torch.Generator().manual_seed(seed)
-    return PlanningContext(z=torch.randn(3, 3, encoder.num_patches, encoder.dim, generator=g),
-                           q=torch.randn(3, 10, generator=g), a=torch.rand(2, 20, generator=g) * 2 - 1)
 
 
 # ------------------------------------------------------------------ gated planning
@@ -128,79 +117,7 @@ def test_no_warm_start_seeds_every_search_with_the_wams_chunk(small_env, encoder
     assert len(inits) == 2 and torch.equal(inits[0], inits[1])
 
 
-# ------------------------------------------------------------------ ensemble / uncertainty-aware cost
-def test_identical_members_do_not_disagree(encoder):
-    model = _predictor(encoder)
-    ens = EnsembleDynamics([LearnedDynamics(model), LearnedDynamics(model)])
-    single = LearnedDynamics(model)
-    ctx = _ctx(encoder)
-    ens.prepare(ctx)
-    single.prepare(ctx)
-    cands = torch.rand(4, 16, 5, generator=torch.Generator().manual_seed(0)) * 2 - 1
-    z, spread = ens.predict(cands)
-    assert torch.equal(spread, torch.zeros(4))
-    torch.testing.assert_close(z, single.terminal(cands))
-    assert ens.covered(16) == 16 and ens.needs_history and ens.frameskip == 4 and ens.context == 3
-    other = WorldModelPredictor(dataclasses.replace(model.cfg, frameskip=8)).eval()
-    with pytest.raises(UserError, match=r"ensemble members differ in frameskip \[4, 8\]"):  # one line, not a trace
-        EnsembleDynamics([LearnedDynamics(model), LearnedDynamics(other)])
-
-
-def test_disagreement_is_the_variance_across_members(encoder):
-    a, b = _predictor(encoder), _predictor(encoder)
-    torch.manual_seed(5)
-    b = WorldModelPredictor(b.cfg).eval()  # other weights
-    (dyn, enc) = learned_dynamics([(a, encoder), (b, encoder)])
-    assert isinstance(dyn, EnsembleDynamics) and enc is encoder
-    dyn.prepare(_ctx(encoder))
-    cands = torch.rand(3, 16, 5, generator=torch.Generator().manual_seed(0)) * 2 - 1
-    z, spread = dyn.predict(cands)
-    za, zb = (m.terminal(cands) for m in dyn.members)
-    torch.testing.assert_close(z, (za + zb) / 2)
-    torch.testing.assert_close(spread, ((za - zb) / 2).square().flatten(1).mean(1))
-    assert spread.min() > 0
-    single, _ = learned_dynamics([(a, encoder)])
-    assert isinstance(single, LearnedDynamics)
-
-
-class ForkMember(Dynamics):
-    """Toy member: embedding = |s| with s the mean first action dimension, plus ``sign`` * 0.5·relu(s):
-    members agree for s < 0 and disagree for s > 0; their mean is |s| either way."""
-
-    def __init__(self, sign):
-        self.sign = sign
-
-    @property
-    def device(self):
-        return torch.device("cpu")
-
-    def covered(self, chunk):
-        return chunk
-
-    def terminal(self, actions):  # (B, L, A) -> (B, 1, 1, 1)
-        s = actions[:, :, 0].mean(1)  # (B,)
-        return (s.abs() + self.sign * 0.5 * s.clamp_min(0)).view(-1, 1, 1, 1)
-
-
-def _fork_search(weight, seed):
-    ens = EnsembleDynamics([ForkMember(+1), ForkMember(-1)])
-    pol = PlannedPolicy(EchoWAM(), make_planner("cem", CEMConfig(init_std=0.3)), ens, None, make_cost("patch"),
-                        config=PlannedPolicyConfig(disagreement_weight=weight))
-    target = torch.full((1, 1, 1), 0.4)  # |s| = 0.4: s = +0.4 and s = -0.4 are equally good for the mean
-    res = pol.planner.plan(torch.zeros(16, 5), pol.objective(target), seed=seed)
-    return res.mean[:, 0].mean().item()
-
-
-def test_disagreement_penalty_steers_the_search_away():
-    plain = [_fork_search(0.0, s) for s in range(8)]
-    careful = [_fork_search(10.0, s) for s in range(8)]
-    assert min(plain) < 0 < max(plain)  # without the penalty either side wins
-    assert all(s < -0.2 for s in careful), careful  # with it, always the side where the members agree
-
-
-def test_disagreement_weight_needs_an_ensemble(encoder):
-    with pytest.raises(PlanningError, match="ensemble"):
-        _policy(encoder, disagreement_weight=1.0)
+def test_an_unknown_warm_start_is_refused():
     with pytest.raises(ValueError, match="warm_start"):
         PlannedPolicyConfig(warm_start="shift")
 

@@ -325,8 +325,6 @@ def test_the_proxy_rolls_the_world_model_out_in_the_dtype_it_is_given():
     (["--cost-view-weights", "1", "1"], "--cost-view-weights gives 2 weights, but task 'cube-insertion' has 3 "
                                         "cameras"),
     (["--num-elites", "4"], "--num-elites is an option of planner(s) ['cem', 'cem-gripper'], not of 'wamplan'"),
-    (["--disagreement-weight", "0.1"], "pass several checkpoints joined by + (eval --wm-augmented A+B, serve "
-                                       "--world-model A+B)"),
     (["--planner", "cem-gripper", "--gripper-dim", "9"], "gripper_dim 9 is not an entry of task 'cube-insertion''s"),
 ])
 def test_serve_refuses_planning_settings_that_do_not_fit_in_one_line(capsys, flags, said):
@@ -335,6 +333,18 @@ def test_serve_refuses_planning_settings_that_do_not_fit_in_one_line(capsys, fla
     code = main(["serve", "--upstream", WAM_CKPT, "--world-model", WM_CKPT, "--device", "cpu", *flags])
     err = capsys.readouterr().err.strip()
     assert code == 2 and len(err.splitlines()) == 1 and said in err, err
+
+
+def test_serve_refuses_several_world_models_in_one_line(capsys):
+    """An ensemble (A+B, A,B) left the core: refused at start-up, before anything loads, naming the fix."""
+    from wamplan.cli.main import main
+
+    for joined in (f"{WM_CKPT}+{WM_CKPT}", f"{WM_CKPT},{WM_CKPT}"):
+        code = main(["serve", "--upstream", WAM_CKPT, "--world-model", joined, "--device", "cpu"])
+        err = capsys.readouterr().err.strip()
+        assert code == 2 and len(err.splitlines()) == 1, err
+        assert f"--world-model {joined} joins 2 world models" in err and f"pass one checkpoint, e.g. --world-model " \
+            f"{WM_CKPT}" in err, err
 
 
 def test_an_episode_through_the_proxy_takes_the_in_process_episodes_actions(proxy, small_env):

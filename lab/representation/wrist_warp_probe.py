@@ -33,7 +33,7 @@ import torch
 from wamplan.config import int_list
 from wamplan.envs.config import EnvConfig
 from wamplan.envs.core import TaskEnv
-from wamplan.planning.dynamics import PlanningContext, learned_dynamics
+from wamplan.planning.dynamics import LearnedDynamics, PlanningContext
 from wamplan.policies.rollout import run_episode
 from wamplan.wam import WAMPolicy, load_wam
 from wamplan.worldmodel.load import load_world_model
@@ -107,7 +107,7 @@ def rank_candidates(env: TaskEnv, snap, start: dict, chunk: np.ndarray, target: 
 def probe(wam_path: str, wm_path: str, seeds: list[int], candidates: int = 0, sigma: float = 0.1) -> dict:
     wam = load_wam(wam_path, device="cpu")
     predictor, encoder = load_world_model(wm_path)
-    dyn, _ = learned_dynamics([(predictor, encoder)])
+    dyn = LearnedDynamics(predictor)
     cams = predictor.cameras or wam.task.cameras
     vi = cams.index(CAM)
     step_every = dyn.frameskip

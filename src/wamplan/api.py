@@ -20,9 +20,9 @@ policy plans for its WAM's task, and refuses a world model made for another.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
-from wamplan.config import ensemble_members, from_dict
+from wamplan.config import from_dict, one_checkpoint
 from wamplan.errors import require_paths
 from wamplan.envs.spec import TASKS, Observation, TaskSpec, get_task, register_task
 from wamplan.envs.config import EnvConfig
@@ -42,13 +42,12 @@ __all__ = ["ChunkDecision", "CostConfig", "EpisodeResult", "Observation", "Plann
            "WAMOutput", "get_task", "load_wam", "make_env", "planned_policy", "register_task", "run_episode", "tasks"]
 
 
-def planned_policy(wam: WAM | str | Path, world_model: str | Path | Sequence[str | Path], *,
+def planned_policy(wam: WAM | str | Path, world_model: str | Path, *,
                    planner: str | None = None, planner_config: Any = None,
                    cost: CostConfig | str | dict[str, Any] | None = None,
                    device: str = "auto", **settings: Any) -> PlannedPolicy:
     """``wam`` (a :class:`WAM`, or its checkpoint directory) whose chunks are planned in ``world_model`` (a
-    checkpoint directory; several, as a list or joined by + (or commas), form an ensemble), as ``wamplan eval`` plans
-    condition 7.
+    checkpoint directory), as ``wamplan eval`` plans condition 7.
 
     ``planner``: a registered planner name (``wamplan.planning.PLANNERS``; default: the evaluation's);
     ``planner_config``: its config, or a dict of overrides of its fields; ``cost``: a :class:`CostConfig`, a cost
@@ -58,11 +57,12 @@ def planned_policy(wam: WAM | str | Path, world_model: str | Path | Sequence[str
     views and returns (A,) actions of the WAM's task; ``policy.plan_chunk(obs)`` decides one chunk ->
     :class:`ChunkDecision`.
     """
-    if not isinstance(world_model, (str, Path, list, tuple)):
-        raise TypeError(f"world_model must be a checkpoint directory (a str or Path) or a list of them (an ensemble), "
-                        f"got {type(world_model).__name__}; pass e.g. world_model='checkpoints/mini/wm_augmented'")
-    parts = [world_model] if isinstance(world_model, (str, Path)) else list(world_model)
-    paths = [p for part in parts for p in (ensemble_members(part) if isinstance(part, str) else [str(part)]) if p]
+    if not isinstance(world_model, (str, Path)):
+        many = " (several world models, an ensemble, are no longer planned in: it measured no gain)" \
+            if isinstance(world_model, (list, tuple)) else ""
+        raise TypeError(f"world_model must be a checkpoint directory (a str or Path), got "
+                        f"{type(world_model).__name__}{many}; pass e.g. world_model='checkpoints/mini/wm_augmented'")
+    path = one_checkpoint(str(world_model), "world_model")
     if isinstance(cost, str):
         cost = CostConfig(name=cost)
     elif isinstance(cost, dict):
@@ -72,8 +72,8 @@ def planned_policy(wam: WAM | str | Path, world_model: str | Path | Sequence[str
                         f"dict of CostConfig's fields")
     planning = PlanningConfig(DEFAULT_PLANNER if planner is None else planner, planner_config, cost or CostConfig(),
                               from_dict(PlannedPolicyConfig, settings))
-    require_paths(paths or [""], "world_model", "pass a world model checkpoint (from `wamplan wm train`)")
-    return plan_in_world_model(wam, paths, planning, device=device)
+    require_paths([path], "world_model", "pass a world model checkpoint (from `wamplan wm train`)")
+    return plan_in_world_model(wam, path, planning, device=device)
 
 
 def make_env(task: str = "cube-insertion", **settings: Any) -> TaskEnv:

@@ -262,14 +262,32 @@ def as_options(text: str, cls_name: str, flags: dict[str, str]) -> str:
     return text.replace(" or None", " or unset")
 
 
-def ensemble_members(spec: str) -> list[str]:
-    """The world-model checkpoints of ``spec``: one path, or an ensemble's members joined by ``+`` (``A+B``; commas,
-    ``A,B``, are read the same where an option takes one model). A comma-separated entry that is an existing path is
-    kept whole, ``+`` and all (``runs/exp+v2/wm``). An empty entry is kept, for the caller to refuse
-    (``errors.require_paths``) or drop."""
-    if not spec:
+# The last commit that plans in an ensemble of world models (several checkpoints joined by + or commas, with
+# --disagreement-weight): they left the core at stop 78, having measured no gain (lab/README.md).
+ENSEMBLES_LAST = "5eecf06"
+
+
+def joined_checkpoints(spec: str) -> list[str]:
+    """The world-model checkpoint directories ``spec`` joins with ``+`` or commas (``A+B``, ``A,B``: an ensemble,
+    which wamplan no longer plans in), or [] where it names one path. A path may hold a ``+`` or a comma: one that
+    exists is one checkpoint (``runs/exp+v2/wm``), and so is a spec whose pieces are not all checkpoint directories
+    (the caller's missing-path check then names it whole)."""
+    if not spec or Path(spec).exists():
         return []
-    return [m for part in spec.split(",") for m in ([part] if Path(part).exists() else part.split("+"))]
+    pieces = [m for part in spec.split(",") for m in ([part] if Path(part).exists() else part.split("+"))]
+    joined = len(pieces) > 1 and all(p and (Path(p) / "config.json").is_file() for p in pieces)
+    return pieces if joined else []
+
+
+def one_checkpoint(spec: str, flag: str) -> str:
+    """``spec``, one world-model checkpoint path; one line naming ``flag`` and the fix where it joins several
+    (:func:`joined_checkpoints`)."""
+    pieces = joined_checkpoints(spec)
+    if pieces:
+        raise UserError(f"{flag} {spec} joins {len(pieces)} world models into an ensemble, which wamplan no longer "
+                        f"plans in (it measured no gain; the last commit that has it is {ENSEMBLES_LAST}); pass one "
+                        f"checkpoint, e.g. {flag} {pieces[0]}")
+    return spec
 
 
 class Once(argparse.Action):

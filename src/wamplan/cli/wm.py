@@ -7,7 +7,7 @@ import json
 from collections import Counter
 from pathlib import Path
 
-from wamplan.config import ConfigError, Once, add_arguments, as_options, ensemble_members, from_args, int_list
+from wamplan.config import ConfigError, Once, add_arguments, as_options, from_args, int_list, one_checkpoint
 from wamplan.errors import (UserError, require_dir, require_distinct, require_file, require_paths,
                             require_seeds)
 from wamplan.cli.main import add_command, add_group, first_screen, register_command
@@ -164,8 +164,7 @@ def _probe_options(p: argparse.ArgumentParser) -> None:
 
 def _fidelity_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--wam", required=True, help="WAM checkpoint (e.g. checkpoints/mini/tinywam)")
-    p.add_argument("--wm", required=True, help="world-model checkpoints, comma separated; LABEL=PATH to name one; "
-                                               "A+B+C: an ensemble (the cost of its members' mean prediction)")
+    p.add_argument("--wm", required=True, help="world-model checkpoints, comma separated; LABEL=PATH to name one")
     p.add_argument("--seeds", required=True, help="episode seeds, e.g. 500-503 or 500,510 (keep test seeds out)")
     p.add_argument("--candidates", type=int, default=32, help="the WAM's chunk + N-1 samples")
     p.add_argument("--sigma", type=float, default=0.10, help="std of the candidates' noise around the WAM's chunk "
@@ -183,10 +182,6 @@ def _fidelity_options(p: argparse.ArgumentParser) -> None:
                    help="also score every model ranking (and, with --plan, searching) with these per-view cost weights "
                         "(front side wrist), as LABEL+views; the simulator's yardstick "
                         "keeps --cost-view-weights")
-    p.add_argument("--plan-spread-weight", type=float, nargs="+", default=None, metavar="W",
-                   help="also score every ensemble A+B ranking and searching with W times its members' disagreement "
-                        "added to its cost (as `eval --disagreement-weight W`), as LABEL+spreadW, one twin per W; "
-                        "the simulator's yardstick keeps the plain cost")
     p.add_argument("--oracle-blend", type=float, default=None, metavar="W",
                    help="also score the first --wm model with its predictions moved W of the way to the simulator's "
                         "(as `eval --oracle-blend`; a diagnostic at the oracle's price), as LABEL@W")
@@ -406,9 +401,8 @@ def _view_cost(flag: str, weights: list[float] | None):
 def cmd_fidelity(args: argparse.Namespace) -> int:
     from wamplan.envs.config import EnvConfig
     from wamplan.envs.core import TaskEnv
-    from wamplan.planning.dynamics import learned_dynamics
+    from wamplan.planning.dynamics import LearnedDynamics
     from wamplan.evaluation.fidelity import FidelityConfig, Scored, format_fidelity, run_fidelity
-    from wamplan.planning.policy import PlannedPolicyConfig
     from wamplan.wam import load_wam
     from wamplan.worldmodel.load import load_world_model
 
@@ -427,17 +421,13 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
     resolve_device(args.device)
     specs = []
     for spec in (s for s in args.wm.split(",") if s):
-        label, _, paths = spec.rpartition("=")
-        members = ensemble_members(paths)  # A+B+C: an ensemble, its mean prediction scored (as --wm-augmented)
-        specs.append((label or "+".join(Path(p).name for p in members), members))
+        label, _, path = spec.rpartition("=")
+        path = one_checkpoint(path, "--wm")  # A+B (an ensemble, which left the core): one line
+        specs.append((label or Path(path).name, path))
     viewed = "{}+views".format  # twins
-    spread = "{}+spread{:g}".format
     labels = [lab for lab, _ in specs]
     if args.plan_view_weights is not None:
         labels += [viewed(lab) for lab, _ in specs]
-    for w in args.plan_spread_weight or ():
-        if not 0 < w < float("inf"):
-            raise UserError(f"--plan-spread-weight {w:g} must be a finite number above 0 (e.g. 1)")
     cost, plan_cost = (_view_cost(flag, weights) for flag, weights in (
         ("--cost-view-weights", args.cost_view_weights), ("--plan-view-weights", args.plan_view_weights)))
     blend = f"{labels[0]}@{args.oracle_blend:g}" if args.oracle_blend is not None and labels else None
@@ -455,24 +445,15 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
                         f"{', '.join(dup)} "
                         f"appears twice; name each model, e.g. --wm shipped=DIR,new=DIR")
     models, tasks = [], {}  # world-model path -> the task it was trained on
-    for label, members in specs:
-        require_paths(members, "--wm", "pass a world-model checkpoint directory")
-        loaded = [load_world_model(path, device=args.device) for path in members]
-        tasks.update({path: predictor.task.name for path, (predictor, _) in zip(members, loaded)})
-        models.append(Scored(label, *learned_dynamics(loaded)))
+    for label, path in specs:
+        require_paths([path], "--wm", "pass a world-model checkpoint directory")
+        predictor, encoder = load_world_model(path, device=args.device)
+        tasks[path] = predictor.task.name
+        models.append(Scored(label, LearnedDynamics(predictor), encoder))
     if args.plan_view_weights is not None:  # each model's twin, sharing its dynamics, planning with those weights
         plain = {m.label: m for m in models}
         models += [Scored(viewed(label), plain[label].dynamics, plain[label].encoder, cost=plan_cost)
                    for label, _ in specs]
-    if args.plan_spread_weight:  # each ensemble, planning with W times its disagreement added to its cost
-        spreading = [m for m in models if m.label in dict(specs) and m.dynamics.spreads]
-        if not spreading:
-            raise UserError("--plan-spread-weight needs a --wm ensemble A+B (several checkpoints joined by +), whose "
-                            "members' disagreement it weighs; none of these is one")
-        twins = [(m, w) for m in spreading for w in dict.fromkeys(args.plan_spread_weight)]
-        models += [Scored(spread(m.label, w), m.dynamics, m.encoder, PlannedPolicyConfig(disagreement_weight=w))
-                   for m, w in twins]
-        labels += [spread(m.label, w) for m, w in twins]
     wam = load_wam(args.wam, device=args.device)
     cams = list(wam.task.cameras)
     for flag, weights in (("--cost-view-weights", args.cost_view_weights), ("--plan-view-weights",

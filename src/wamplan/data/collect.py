@@ -20,7 +20,7 @@ from functools import partial
 from pathlib import Path
 from typing import Any, Callable, Iterator, Sequence
 
-from wamplan.config import ensemble_members
+from wamplan.config import one_checkpoint
 from wamplan.data.record import collect_one
 from wamplan.data.store import MANIFEST, EpisodeData, EpisodeStore
 from wamplan.envs.config import EnvConfig
@@ -132,7 +132,7 @@ def collect(source: str, episodes: int, out: str | Path, *, seed_start: int = 0,
     ``backend``: worker processes here, or Ray actors (see ``wamplan.parallel``). ``branch`` (a
     ``wamplan.data.branch.BranchSpec``, policy sources only) also stores counterfactual branches per episode.
     ``policy_kwargs`` go to the policy's constructor (e.g. ``config=ExpertConfig(...)`` for the expert).
-    ``plan_with`` (world model checkpoints; policy sources, with ``load_policy`` as the loader) plans every
+    ``plan_with`` (a world model checkpoint; policy sources, with ``load_policy`` as the loader) plans every
     chunk of the WAM in that model, so the episodes (and branches) follow the planner's own trajectories; their
     source is ``policy:<wam>+plan:<world model>``, apart from the open-loop ``policy:<wam>`` episodes.
     Returns a summary (collected, skipped, seconds, episodes_per_min, outcomes)."""
@@ -160,9 +160,9 @@ def collect(source: str, episodes: int, out: str | Path, *, seed_start: int = 0,
             if loader is make_policy:
                 raise UserError("plan_with builds a planned WAM, which the registered policies' loader cannot: pass "
                                 "loader=wamplan.evaluation.build.load_policy")
-            members = ensemble_members(plan_with)
-            require_paths(members, "--plan-with", "pass a world model checkpoint (e.g. from `wamplan wm train`)")
-            tag += "+plan:" + "+".join(Path(p).resolve().name for p in members)
+            model = one_checkpoint(plan_with, "--plan-with")
+            require_paths([model], "--plan-with", "pass a world model checkpoint (e.g. from `wamplan wm train`)")
+            tag += "+plan:" + Path(model).resolve().name
             policy_kwargs = dict(policy_kwargs or {}, plan_with=plan_with)
     elif plan_with:
         raise UserError(f"--plan-with needs --source policy (it plans a WAM's chunks), got --source {source}")

@@ -8,7 +8,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from wamplan.config import ensemble_members
+from wamplan.config import one_checkpoint
 from wamplan.errors import UserError
 from wamplan.policies import POLICIES, Policy, make_policy
 
@@ -19,7 +19,7 @@ if TYPE_CHECKING:
 def load_policy(spec: str, instruction: str | None = None, plan_with: str = "", task: TaskSpec | None = None,
                 **kwargs: Any) -> Policy:
     """A registered policy name (``kwargs`` go to its constructor), or a directory holding a WAM checkpoint:
-    run open loop, or with ``plan_with`` (world model checkpoints, an ensemble's joined by + or commas) planned
+    run open loop, or with ``plan_with`` (a world model checkpoint) planned
     as condition 7 plans it, at the evaluation's default planner, cost and chunk rules. ``task``: the task the
     policy acts in; a registered policy is built for it, a WAM must have been made for it (one line otherwise)."""
     if spec in POLICIES:
@@ -43,4 +43,4 @@ def load_policy(spec: str, instruction: str | None = None, plan_with: str = "", 
     wam = load_wam(spec, device="auto")  # on the evaluation's default device, as it loads them
     if task is not None:
         check_same_task(task.name, task_name(wam), f"WAM {spec}")
-    return plan_in_world_model(wam, ensemble_members(plan_with))  # the world models must match the WAM's task
+    return plan_in_world_model(wam, one_checkpoint(plan_with, "--plan-with"))  # of the WAM's task

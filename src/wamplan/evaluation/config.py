@@ -7,7 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from wamplan.config import check_numbers, ensemble_members, field, require
+from wamplan.config import check_numbers, field, one_checkpoint, require
 from wamplan.envs.config import EnvConfig
 from wamplan.evaluation.conditions import CONDITIONS
 from wamplan.planning.build import WM_DTYPES, PlanningConfig
@@ -41,8 +41,7 @@ class EvalConfig:
         "episode's start and seed: what a planning proxy (`wamplan serve`) needs for a world model whose frameskip "
         "is shorter than the chunk, e.g. 4 8 12")
     wm_plain: str = field("", "plain world model checkpoint (condition 6)")
-    wm_augmented: str = field("", "augmented world model checkpoint (condition 7); several joined by + (or "
-                              "commas), A+B, form an ensemble (see --disagreement-weight); the same for --wm-plain")
+    wm_augmented: str = field("", "augmented world model checkpoint (condition 7)")
     sim_encoder: str = field("", "encoder for the simulator conditions (default: the plain world model's)")
     device: str = field("auto", "torch device for the models")
     wm_dtype: str = field("float32", "arithmetic of the world models' rollouts in the search: float32, or bfloat16 "
@@ -81,17 +80,16 @@ class EvalConfig:
 
     @staticmethod
     def world_model_flag(condition: int) -> str | None:
-        """The option naming the world model(s) ``condition`` plans in (``--wm-plain``, ``--wm-augmented``);
+        """The option naming the world model ``condition`` plans in (``--wm-plain``, ``--wm-augmented``);
         None when it plans in none."""
         attr = _WORLD_MODEL_FIELDS.get(CONDITIONS[condition].dynamics)
         return None if attr is None else "--" + attr.replace("_", "-")
 
-    def world_models(self, condition: int) -> list[str]:
-        """The world-model checkpoints ``condition`` plans in (several: an ensemble); [] when it plans in none
-        or none was given."""
+    def world_model(self, condition: int) -> str:
+        """The world-model checkpoint ``condition`` plans in; "" when it plans in none or none was given. Several
+        joined by + or commas (an ensemble, which left the core) are refused in one line."""
         attr = _WORLD_MODEL_FIELDS.get(CONDITIONS[condition].dynamics)
-        paths = getattr(self, attr) if attr else ""
-        return ensemble_members(paths)
+        return one_checkpoint(getattr(self, attr), self.world_model_flag(condition)) if attr else ""
 
     def check_for(self, conditions: list[int]) -> None:
         from wamplan.errors import UserError, require_paths
@@ -127,9 +125,9 @@ class EvalConfig:
             flag = self.world_model_flag(c)
             if flag is None:
                 continue
-            paths = self.world_models(c)
-            if not paths:
+            path = self.world_model(c)
+            if not path:
                 raise UserError(f"condition {c} needs {flag} CKPT (a world model from `wamplan wm train`)")
-            require_paths(paths, flag, "train it or fix the path")
+            require_paths([path], flag, "train it or fix the path")
         if self.wam:
             require_paths([self.wam], "--wam", "train one with `wamplan wam train` or fix the path")

@@ -206,7 +206,7 @@ class Scored:
     label: str
     dynamics: Dynamics
     encoder: Any
-    policy: PlannedPolicyConfig | None = None  # e.g. disagreement_weight: the model scored as that policy would
+    policy: PlannedPolicyConfig | None = None  # e.g. gate_threshold: the model scored as that policy would
     cost: CostFn | None = None  # the model's own planning cost (its ranking and search); None: the run's cost
 
 

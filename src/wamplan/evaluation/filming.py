@@ -66,11 +66,9 @@ def record_targets(policy: Any) -> TargetRecorder:
 def draws_model(policy: Any) -> bool:
     """Whether ``policy`` plans in a learned world model whose prediction can be decoded in a hook (a simulator or
     a blend with it would step the env)."""
-    from wamplan.planning.dynamics import EnsembleDynamics, LearnedDynamics
+    from wamplan.planning.dynamics import LearnedDynamics
 
-    dyn = getattr(policy, "dynamics", None)
-    members = dyn.members if isinstance(dyn, EnsembleDynamics) else [dyn]
-    return all(isinstance(m, LearnedDynamics) for m in members)
+    return isinstance(getattr(policy, "dynamics", None), LearnedDynamics)
 
 
 def load_plan_decoder(path: str, policy: Any, task: str, cache: dict[int, Any]):

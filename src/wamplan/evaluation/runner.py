@@ -27,7 +27,7 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
-from wamplan.config import ensemble_members, to_dict
+from wamplan.config import ENSEMBLES_LAST, joined_checkpoints, one_checkpoint, to_dict
 from wamplan.envs.spec import check_same_task
 from wamplan.evaluation.conditions import CONDITIONS
 from wamplan.evaluation.config import EvalConfig
@@ -83,7 +83,7 @@ class EvalWorker:
         if cid in self._policies:
             return self._policies[cid]
         from wamplan.planning.build import planned_policy
-        from wamplan.planning.dynamics import BlendedDynamics, SimulatorDynamics, learned_dynamics
+        from wamplan.planning.dynamics import BlendedDynamics, LearnedDynamics, SimulatorDynamics
         from wamplan.wam import WAMPolicy
         from wamplan.wam.oracle import ExpertOracleWAM
 
@@ -95,8 +95,9 @@ class EvalWorker:
                 enc = self._sim_encoder()
                 dyn, paths = SimulatorDynamics(self.env, enc), []
             else:
-                paths = cfg.world_models(cid)
-                dyn, enc = learned_dynamics([self._world_model(p) for p in paths])  # several: an ensemble
+                paths = [cfg.world_model(cid)]
+                predictor, enc = self._world_model(paths[0])
+                dyn = LearnedDynamics(predictor)
                 if cfg.oracle_blend > 0:  # the simulator encodes with the model's encoder: one embedding space
                     dyn = BlendedDynamics(dyn, SimulatorDynamics(self.env, enc), cfg.oracle_blend)
             oracle = ExpertOracleWAM(self.env) if "expert" in (c.seed, c.target) else None
@@ -224,25 +225,24 @@ def _store_settings(out: Path, now: dict[str, Any]) -> None:
     (out / CONFIG).write_text(json.dumps(now, indent=1, sort_keys=True) + "\n")
 
 
-def _same_setting(key: str, before: Any, now: Any) -> bool:
-    """One stored setting against the requested one; an ensemble spelled A,B or A+B is the same ensemble."""
-    if key in ("wm_plain", "wm_augmented") and isinstance(before, str) and isinstance(now, str):
-        a, b = ensemble_members(before), ensemble_members(now)
-        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
-    return _same(before, now)
-
-
 # Settings that left the core (no measured gain; their record is in the lab's table) at the value that ran what runs
 # now: a directory that stored one of them at that value resumes, another value is refused.
 RETIRED = {"planner_config.noise_beta": 0.0, "policy.gate_above": None, "policy.rank_gate": None,
            "policy.replan_every": None, "policy.bias_correction": 0.0, "policy.correction_gain": 1.0,
-           "cost.foreground": "", "cost.background_weight": 0.1, "cost.state_weight": 0.0}
+           "cost.foreground": "", "cost.background_weight": 0.1, "cost.state_weight": 0.0,
+           "policy.disagreement_weight": 0.0}
 
 
 def _without_retired(out: Path, before: dict[str, Any]) -> dict[str, Any]:
-    """The stored settings ``before`` without the :data:`RETIRED` ones; one line if one ran at another value."""
+    """The stored settings ``before`` without the :data:`RETIRED` ones; one line if one ran at another value, or if
+    a condition planned in an ensemble of world models (several checkpoints joined by + or commas)."""
     from wamplan.errors import UserError
 
+    for k in ("wm_plain", "wm_augmented"):
+        if isinstance(before.get(k), str) and joined_checkpoints(before[k]):
+            raise UserError(f"{out} holds an evaluation run with --{k.replace('_', '-')} {before[k]}, an ensemble of "
+                            f"world models, which wamplan no longer plans in (it measured no gain); use another --out "
+                            f"(or resume it at commit {ENSEMBLES_LAST})")
     for k, v in RETIRED.items():
         if k in before and before[k] != v:
             section, name = k.split(".", 1)
@@ -271,7 +271,7 @@ def _settings_to_store(out: Path, cfg: EvalConfig, recorded: bool = True) -> dic
         # a setting newer than the directory, requested at its default, is what the older version ran with
         default = settings(EvalConfig(planner=cfg.planner))
         diff = {k: (before.get(k), now.get(k)) for k in set(before) | set(now)
-                if not _same_setting(k, before.get(k), now.get(k)) and not (k in addable and not (before.get(k) and now.get(k)))
+                if not _same(before.get(k), now.get(k)) and not (k in addable and not (before.get(k) and now.get(k)))
                 and not (k not in before and k in default and _same(now[k], default[k]))}
         if diff:
             raise UserError(f"{out} holds an evaluation with other settings {diff} (stored, requested); "
@@ -281,15 +281,16 @@ def _settings_to_store(out: Path, cfg: EvalConfig, recorded: bool = True) -> dic
 
 
 def sim_encoder(cfg: EvalConfig, model_encoder: Callable[[str], Any]):
-    """The encoder the simulator conditions (2-5) encode with: ``--sim-encoder``, else the first world model's
-    (``model_encoder(path)``: one embedding space with conditions 6 and 7), else patch-pixels."""
+    """The encoder the simulator conditions (2-5) encode with: ``--sim-encoder``, else the plain world model's, else
+    the augmented one's (``model_encoder(path)``: one embedding space with conditions 6 and 7), else patch-pixels."""
     from wamplan.device import resolve_device
     from wamplan.encoders import make_encoder
 
     if cfg.sim_encoder:
         return make_encoder(cfg.sim_encoder).to(resolve_device(cfg.device))
     if cfg.wm_plain or cfg.wm_augmented:
-        return model_encoder(ensemble_members(cfg.wm_plain or cfg.wm_augmented)[0])
+        flag = "--wm-plain" if cfg.wm_plain else "--wm-augmented"
+        return model_encoder(one_checkpoint(cfg.wm_plain or cfg.wm_augmented, flag))
     return make_encoder("patch-pixels").to(resolve_device(cfg.device))
 
 
@@ -314,7 +315,8 @@ def _check_inputs(cfg: EvalConfig, conditions: list[int], videos: VideoConfig | 
     spec = cfg.env.spec
     load = functools.cache(lambda path: load_world_model(path, device="cpu"))  # (predictor, encoder), each once
     for c in sorted(set(conditions)):
-        for path in cfg.world_models(c):
+        path = cfg.world_model(c)
+        if path:
             predictor, encoder = load(path)
             check_world_model_task(cfg, path, predictor)
             check_frameskip(predictor.cfg.frameskip, cfg.env.spec.chunk_len)

@@ -1,7 +1,7 @@
-"""Building a planned policy: a WAM whose chunks are refined by a planner searching in a dynamics model (learned world
-models, or the simulator) under a cost and chunk rules, the one factory the evaluation, the Python API and the
+"""Building a planned policy: a WAM whose chunks are refined by a planner searching in a dynamics model (a learned world
+model, or the simulator) under a cost and chunk rules, the one factory the evaluation, the Python API and the
 planning proxy share. :class:`PlanningConfig` holds how it plans; :func:`planned_policy` builds one on given
-dynamics, :func:`plan_in_world_model` loads the world models (and the WAM) first. Importing this module does not
+dynamics, :func:`plan_in_world_model` loads the world model (and the WAM) first. Importing this module does not
 import torch."""
 
 from __future__ import annotations
@@ -60,14 +60,14 @@ def planned_policy(wam: WAM, dynamics: Dynamics, encoder: Any, planning: Plannin
                          world_models=tuple(str(Path(p).resolve()) for p in world_models))
 
 
-def plan_in_world_model(wam: WAM | str | Path, world_models: Sequence[str], planning: PlanningConfig | None = None,
+def plan_in_world_model(wam: WAM | str | Path, world_model: str | Path, planning: PlanningConfig | None = None,
                         device: str = "auto", wm_dtype: str = "float32") -> PlannedPolicy:
-    """``wam`` (a WAM, or its checkpoint directory) planned in the world model checkpoints ``world_models`` (several:
-    an ensemble), every model loaded onto ``device``, the world models' rollouts in ``wm_dtype`` (``WM_DTYPES``)."""
-    from wamplan.planning.dynamics import learned_dynamics
+    """``wam`` (a WAM, or its checkpoint directory) planned in the world model checkpoint ``world_model``, both
+    loaded onto ``device``, the world model's rollouts in ``wm_dtype`` (``WM_DTYPES``)."""
+    from wamplan.planning.dynamics import LearnedDynamics
     from wamplan.wam import load_wam
     from wamplan.worldmodel.load import load_world_model
 
-    dyn, enc = learned_dynamics([load_world_model(p, device=device, dtype=wm_dtype) for p in world_models])
+    predictor, enc = load_world_model(world_model, device=device, dtype=wm_dtype)
     wam = load_wam(wam, device=device) if isinstance(wam, (str, Path)) else wam
-    return planned_policy(wam, dyn, enc, planning, world_models=world_models)
+    return planned_policy(wam, LearnedDynamics(predictor), enc, planning, world_models=[str(world_model)])

@@ -8,10 +8,6 @@ actions the backend's rollout covers (``covered``): Δ·⌊H/Δ⌋ for the learn
 * :class:`LearnedDynamics` rolls all candidates of an iteration out in one batched, KV-cached forward
   of the predictor; the context frames before the current one are encoded once per chunk (batch 1) and
   shared by every candidate and every CEM iteration.
-* :class:`EnsembleDynamics` holds several learned world models (checkpoints, or seeds of one recipe): it
-  predicts their mean and, through ``predict``, their disagreement, the variance across members averaged
-  over views, patches and dims (the units of the patch cost), which the planned policy adds to the cost
-  with a weight so the search avoids actions the members disagree about.
 * :class:`BlendedDynamics` (a diagnostic) moves a learned model's prediction a given share of the way to
   the simulator's, to measure how much of the model's error planning can bear.
 * :class:`SimulatorDynamics` (the oracle) hands all candidates to ``TaskEnv.simulate`` (restore the
@@ -78,7 +74,6 @@ class PlanningContext:
 
 class Dynamics(abc.ABC):
     needs_history: bool = False
-    spreads: bool = False  # whether ``predict`` gives a spread (an ensemble's disagreement)
     task: TaskSpec | None = None  # the task it predicts; None: recorded nowhere
     cameras: tuple[str, ...] | None = None  # the views it stacks, in order; None: the task's
 
@@ -97,12 +92,6 @@ class Dynamics(abc.ABC):
     @abc.abstractmethod
     def terminal(self, actions: torch.Tensor) -> torch.Tensor:
         """actions (B, L, A) -> predicted terminal embeddings (B, V, N, D)."""
-
-    def predict(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """actions (B, L, A) -> (terminal embeddings (B, V, N, D), spread (B,)): the prediction's variance in the
-        units of the patch cost. A backend without ``spreads`` gives 0 (:class:`EnsembleDynamics` overrides this)."""
-        z = self.terminal(actions)  # (B, V, N, D)
-        return z, torch.zeros(z.shape[0], device=z.device)
 
     def imagine(self, context: PlanningContext, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The frames a learned model predicts after ``context`` under the executed ``actions`` (L, A), L a
@@ -238,65 +227,3 @@ class BlendedDynamics(Dynamics):
         z_model = self.model.terminal(actions).float()  # (B, V, N, D)
         z_sim = self.oracle.terminal(actions).float().to(z_model.device)  # (B, V, N, D)
         return torch.lerp(z_model, z_sim, self.weight)  # (B, V, N, D)
-
-
-class EnsembleDynamics(Dynamics):
-    """Several learned world models as one backend: the mean prediction, and the members' disagreement.
-
-    The members run one after another, each rolling out all B candidates in one batched forward (stacking
-    the members' weights into one vmapped forward is left for when members are many or large).
-    """
-
-    def __init__(self, members: list[Dynamics]):
-        if len(members) < 1:
-            raise ValueError("an ensemble needs at least one member; pass a list of LearnedDynamics")
-        for attr in ("frameskip", "context"):
-            vals = {getattr(m, attr, None) for m in members}
-            if len(vals) > 1:
-                raise UserError(f"ensemble members differ in {attr} {sorted(vals, key=str)}; use world models "
-                                 f"trained with the same {attr}")
-        self.members = list(members)
-        self.task = _shared_task(self.members, "checkpoint {i} of the ensemble")
-        self.cameras = next((m.cameras for m in members if m.cameras), None)
-        self.needs_history = any(m.needs_history for m in members)
-        self.frameskip = getattr(members[0], "frameskip", None)
-        self.context = getattr(members[0], "context", 1)
-        self.spreads = len(self.members) > 1
-
-    @property
-    def device(self) -> torch.device:
-        return self.members[0].device
-
-    def covered(self, chunk: int) -> int:
-        return min(m.covered(chunk) for m in self.members)
-
-    def prepare(self, context: PlanningContext | None) -> None:
-        for m in self.members:
-            m.prepare(context)
-
-    def imagine(self, context: PlanningContext, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        zs, qs = zip(*(m.imagine(context, actions) for m in self.members))  # M of (S, V, N, D), M of (S, P)
-        return torch.stack(zs).mean(dim=0), torch.stack(qs).mean(dim=0)  # the members' mean frames
-
-    def members_terminal(self, actions: torch.Tensor) -> torch.Tensor:
-        """actions (B, L, A) -> every member's terminal embeddings (M, B, V, N, D)."""
-        return torch.stack([m.terminal(actions).float().to(self.device) for m in self.members])
-
-    def terminal(self, actions: torch.Tensor) -> torch.Tensor:
-        return self.members_terminal(actions).mean(dim=0)  # (B, V, N, D)
-
-    def predict(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        z = self.members_terminal(actions)  # (M, B, V, N, D)
-        spread = z.var(dim=0, correction=0).flatten(1).mean(dim=1)  # (B,) population variance, pooled
-        return z.mean(dim=0), spread
-
-
-def learned_dynamics(models: list[tuple]) -> tuple[Dynamics, object]:
-    """(dynamics, encoder) for loaded world models [(predictor, encoder), ...]: one model's LearnedDynamics,
-    or an EnsembleDynamics of several. The members must share one encoder configuration (the target and
-    the history are encoded once, with the first member's encoder)."""
-    encs = [enc.config_dict() for _, enc in models]
-    if any(e != encs[0] for e in encs[1:]):
-        raise UserError(f"ensemble members use different encoders {encs}; train them on one encoder")
-    dyns = [LearnedDynamics(model) for model, _ in models]
-    return (dyns[0] if len(dyns) == 1 else EnsembleDynamics(dyns)), models[0][1]

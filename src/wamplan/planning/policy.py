@@ -254,16 +254,10 @@ class PlannedPolicy(Policy):
     # ------------------------------------------------------------------ scoring
     def objective(self, target: torch.Tensor):
         """candidates (B, H_opt, A) -> costs (B,): the cost of the dynamics' prediction against ``target``
-        (V, N, D), plus ``disagreement_weight`` times the prediction's spread (an ensemble's disagreement)."""
-        w = self.config.disagreement_weight
+        (V, N, D)."""
 
         def objective(cands: torch.Tensor) -> torch.Tensor:
-            if w == 0:
-                z, spread = self.dynamics.terminal(cands), None  # (B, V, N, D)
-            else:
-                z, spread = self.dynamics.predict(cands)  # (B, V, N, D), (B,)
-            c = self.cost(z, target)  # (B,)
-            return c if spread is None else c + w * spread.to(self.device)
+            return self.cost(self.dynamics.terminal(cands), target)  # (B, V, N, D) -> (B,)
 
         return objective
 

@@ -29,8 +29,7 @@ class PlannedPolicyConfig:
     """The planned policy's chunk rules; the defaults are the paper's (every chunk after the first planned, the
     plan executed whole).
 
-    Contract: the search runs only for WAM-chunk costs above ``gate_threshold``; ``disagreement_weight`` needs an
-    ensemble of world models.
+    Contract: the search runs only for WAM-chunk costs above ``gate_threshold``.
     """
 
     first_chunk: str = field("open-loop", "chunk 1: open-loop (the paper) or rest-history (planned from a "
@@ -45,8 +44,6 @@ class PlannedPolicyConfig:
     warm_start: str = field("none", "the search's initial mean: none (the WAM's chunk) or residual (plus "
                             "warm_weight x the previous planned chunk's correction, arm only)", choices=WARM_STARTS)
     warm_weight: float = field(0.5, "with warm_start=residual: the share of the previous correction carried over")
-    disagreement_weight: float = field(0.0, "add this times the ensemble's disagreement to the cost (needs several "
-                                       "world models); 0 = off")
     accept_margin: float | None = field(None, "run the plan only if its cost is at least this fraction below the "
                                         "WAM chunk's, else the WAM's chunk; None = always the plan")
     requery_every: int = field(0, "query the WAM and plan every K steps, running the first K actions of each planned "
@@ -60,7 +57,6 @@ class PlannedPolicyConfig:
         require(self.history in HISTORIES, f"history must be one of {HISTORIES}, got {self.history!r}")
         require(self.warm_start in WARM_STARTS, f"warm_start must be one of {WARM_STARTS}, got {self.warm_start!r}")
         require(0.0 <= self.warm_weight <= 1.0, f"warm_weight must be in [0, 1], got {self.warm_weight}")
-        require(self.disagreement_weight >= 0, f"disagreement_weight must be >= 0, got {self.disagreement_weight}")
         require(self.requery_every >= 0, f"--requery-every must be >= 0 (0: the WAM's chunk), got {self.requery_every}")
         _ = self.gates  # the Gates validate the gate settings
 
@@ -96,9 +92,3 @@ def check_fits(cfg: PlannedPolicyConfig, chunk: int, dynamics: Dynamics) -> None
             raise PlanningError(f"--history imagined rolls the world model from one planning point to the next in "
                                 f"steps of its frameskip {frameskip}, which does not divide the {period} steps "
                                 f"between them; use a model whose frameskip divides {period}, or --history seen")
-    from wamplan.planning.dynamics import LearnedDynamics
-
-    if cfg.disagreement_weight > 0 and isinstance(dynamics, LearnedDynamics):
-        raise PlanningError("disagreement_weight needs an ensemble of world models, got one; pass several "
-                            "checkpoints joined by + (eval --wm-augmented A+B, serve --world-model A+B) or set it "
-                            "to 0")

@@ -14,7 +14,6 @@ from typing import Any
 
 import numpy as np
 
-from wamplan.config import ensemble_members
 from wamplan.envs.spec import Observation, TaskSpec, check_same_task, get_task
 from wamplan.errors import UserError
 from wamplan.planning.build import PlanningConfig, planned_policy
@@ -106,13 +105,13 @@ def build_proxy(cfg: ProxyConfig, upstream: Upstream | None = None, planning: di
     ``cost`` (any of them; unset: condition 7's defaults, but for the history: :class:`ProxyPolicyConfig`'s imagined one, what
     lets clients that post only at chunk boundaries be planned), checked against the world model's task and the
     chunk."""
-    from wamplan.planning.dynamics import learned_dynamics, task_name
+    from wamplan.planning.dynamics import LearnedDynamics, task_name
     from wamplan.wam.base import LEGACY_TASK, load_wam
     from wamplan.wam.cosmos_client import profile_config
     from wamplan.worldmodel.load import load_world_model
 
-    paths = [p for p in ensemble_members(cfg.world_model) if p]
-    dynamics, encoder = learned_dynamics([load_world_model(p, device=cfg.device, dtype=cfg.wm_dtype) for p in paths])
+    predictor, encoder = load_world_model(cfg.world_model, device=cfg.device, dtype=cfg.wm_dtype)
+    dynamics = LearnedDynamics(predictor)
     task = get_task(task_name(dynamics) or LEGACY_TASK)
     plan_cfg = PlanningConfig(**{"policy": ProxyPolicyConfig(), **(planning or {})})
     cameras = tuple(dynamics.cameras or task.cameras)
@@ -173,9 +172,9 @@ def build_proxy(cfg: ProxyConfig, upstream: Upstream | None = None, planning: di
     # a session plans from any step on the grid its client's requests and the world model's frames share
     per_session = dataclasses.replace(plan_cfg, policy=dataclasses.replace(
         plan_cfg.policy, requery_every=planning_grid(requery, dynamics)))
-    make = lambda wam: planned_policy(wam, dynamics, encoder, per_session, world_models=paths)  # noqa: E731
-    make(AnsweredWAM(task, chunk, cameras))  # what only the world model can refuse (an ensemble's
-    # disagreement, a frameskip longer than the chunk, a --requery-every past it) is refused now, once
+    make = lambda wam: planned_policy(wam, dynamics, encoder, per_session, world_models=[cfg.world_model])  # noqa: E731
+    make(AnsweredWAM(task, chunk, cameras))  # what only the world model can refuse (a frameskip longer than the
+    # chunk, a --requery-every past it) is refused now, once
     proxy = Proxy(cfg, upstream, dynamics, encoder, task, make, request_map, response_map, columns, chunk,
                   requery=requery, probe=probe, fit=fit, imagined=per_session.policy.history == "imagined")
     if why is None:

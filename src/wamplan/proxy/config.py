@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import urlparse, urlunparse
 
-from wamplan.config import check_numbers, field, require, with_default
+from wamplan.config import check_numbers, field, one_checkpoint, require, with_default
 from wamplan.errors import UserError
 from wamplan.planning.build import WM_DTYPES
 from wamplan.planning.policy_config import PlannedPolicyConfig
@@ -32,8 +32,7 @@ class ProxyConfig:
 
     upstream: str = field("", "the WAM to plan for: its /act URL (http://HOST:PORT/act) or a local WAM checkpoint "
                               "directory")
-    world_model: str = field("", "world model checkpoint directory (several joined by + (or commas), A+B: an "
-                            "ensemble)")
+    world_model: str = field("", "world model checkpoint directory")
     profile: str = field("", "the upstream's fields and sizes: a client profile (cosmos-robocasa, cosmos-aloha); "
                              "unset: ALOHA's field names mapped onto the world model's cameras by position",
                     choices=profile_names)
@@ -79,6 +78,7 @@ class ProxyConfig:
         require(self.upstream_is_url or Path(self.upstream).exists() or not re.match(r"^[\w.-]+:\d+(/|$)", self.upstream),
                 f"--upstream {self.upstream} looks like an address without its scheme; pass http://{self.upstream}")
         require(bool(self.world_model), "--world-model: name a world model checkpoint (from `wamplan wm train`)")
+        one_checkpoint(self.world_model, "--world-model")  # several joined by + or commas (an ensemble): one line
         require(not self.profile or self.profile in PROFILES,
                 f"--profile: unknown profile '{self.profile}'; profiles are {sorted(PROFILES)}")
         require(self.errors in ERROR_MODES, f"--errors must be one of {list(ERROR_MODES)}, got {self.errors!r}")
