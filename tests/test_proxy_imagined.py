@@ -16,7 +16,7 @@ from wamplan.proxy.config import ProxyConfig
 from wamplan.serving.runner import BackgroundServer
 from wamplan.wam.base import load_wam
 
-from test_proxy import WAM_CKPT, WM_CKPT, H, observation, post, request  # noqa: I001
+from test_proxy import WAM_CKPT, WM_CKPT, H, observation  # noqa: I001
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 CHUNKS = 3
@@ -41,19 +41,6 @@ def imagined_in_process(client: int) -> np.ndarray:
     acts = [policy.act(observation(client, t, policy.wants_images(t))) for t in range(CHUNKS * H)]
     assert [c["planned"] for c in policy.chunks] == [False] + [True] * (CHUNKS - 1)
     return np.stack(acts)
-
-
-def test_boundary_posts_alone_are_planned_as_the_imagined_episode_in_process(proxy):
-    srv, p = proxy
-    assert ("history: chunk boundaries only: the world model's frames every 4 steps inside a chunk are imagined "
-            "from the last boundary and the actions run since (--history imagined)") in p.describe()
-    answers = [post(f"{srv.url}/s/plain/act", request(observation(5, k * H))) for k in range(CHUNKS)]
-    assert [a["wamplan"]["open_loop"] for a in answers] == ["first-chunk"] + [None] * (CHUNKS - 1)
-    got = np.concatenate([np.stack(a["actions"]) for a in answers])
-    want = imagined_in_process(5)
-    np.testing.assert_allclose(got, want, atol=1e-6)
-    assert not np.allclose(got[H:], np.concatenate([  # planned: not the WAM's own chunks
-        load_wam(WAM_CKPT, device="cpu").predict(observation(5, k * H), "").actions for k in range(1, CHUNKS)]))
 
 
 def test_openpis_unmodified_client_is_planned_from_the_boundaries(proxy):
@@ -97,3 +84,29 @@ def test_clients_running_steps_off_the_frames_grid_are_refused_at_start_up_in_on
                     planning={"policy": ProxyPolicyConfig(requery_every=5)})
     assert "\n" not in str(e.value) and ("a client that runs 5 steps of each chunk leaves none on that grid; start "
                                          "serve with --history seen") in str(e.value)
+
+
+def test_a_cube_episode_through_the_proxy_takes_the_in_process_imagined_episodes_actions(proxy, small_env):
+    """A CubeInsertion-v1 episode (seed 0, three chunks) whose client posts only its boundary observations (wamplan's
+    Cosmos Policy client without send_chunk_frames, as upstream's runs: no seed either, so the session plans with
+    episode seed 0) takes the actions of the same episode planned in process with the imagined history, every chunk
+    after the first planned."""
+    from wamplan.policies.rollout import run_episode
+    from wamplan.wam.base import WAMPolicy
+    from wamplan.wam.cosmos_client import CosmosPolicyClient
+
+    srv, p = proxy
+    assert ("history: chunk boundaries only: the world model's frames every 4 steps inside a chunk are imagined "
+            "from the last boundary and the actions run since (--history imagined)") in p.describe()
+    env, seed, steps = small_env, 0, CHUNKS * H
+    policy = planned_policy(load_wam(WAM_CKPT, device="cpu"), world_model=WM_CKPT, device="cpu", history="imagined")
+    want: list[np.ndarray] = []
+    run_episode(env, policy, seed, max_steps=steps, stop_on_success=False,
+                on_obs=lambda e, o, a: want.append(a) if a is not None else None)
+    client = CosmosPolicyClient(url=f"{srv.url}/s/cube/act")
+    driver, got = WAMPolicy(client), []
+    run_episode(env, driver, seed, max_steps=steps, stop_on_success=False,
+                on_obs=lambda e, o, a: got.append(a) if a is not None else None)
+    client.close()
+    np.testing.assert_allclose(np.stack(got), np.stack(want), atol=1e-6)
+    assert driver.info()["proxy"] == {"first-chunk": 1, "planned": CHUNKS - 1}
