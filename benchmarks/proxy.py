@@ -27,6 +27,7 @@ import requests
 from openpi_client.websocket_client_policy import WebsocketClientPolicy
 
 from wamplan.proxy.app import create_proxy_app
+from wamplan.planning.policy_config import PlannedPolicyConfig
 from wamplan.proxy.build import build_proxy
 from wamplan.proxy.config import ProxyConfig
 from wamplan.serving.runner import BackgroundServer
@@ -59,8 +60,9 @@ def main() -> None:
     rng = np.random.default_rng(0)
     times: dict[str, list[float]] = {"direct": [], "proxy open loop": [], "proxy planned": [],
                                      "openpi open loop": [], "openpi planned": []}
+    # the seen history: a request without its in-chunk frames runs open loop, which times the proxy's own cost
     proxy = build_proxy(ProxyConfig(upstream=str(CKPTS / "tinywam"), world_model=str(CKPTS / "wm_augmented"),
-                                    device="cpu", errors="http"))
+                                    device="cpu", errors="http"), planning={"policy": PlannedPolicyConfig(history="seen")})
     with BackgroundServer(create_app(load_wam(CKPTS / "tinywam", device="cpu"))) as direct, \
             BackgroundServer(create_proxy_app(proxy)) as srv:
         task = {"task_description": "insert the cube into the square hole"}
