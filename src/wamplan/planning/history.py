@@ -10,8 +10,9 @@ history reaching before step 0 is no history (None). A frame that should exist b
 :class:`PlanningError`, never a silently unplanned chunk.
 
 With ``imagine`` (``history="imagined"``) only the planning points' own frames are seen: the history frames
-between them are the world model's predictions, rolled from the previous planning point's context (itself
-partly imagined; at step 0 the first frame alone, or the rest-state history) under the actions executed since.
+between them are the world model's predictions, rolled from the context of the latest frame seen on their grid
+(itself partly imagined; at step 0 the first frame alone, or the rest-state history) under the actions executed
+since.
 So a client that posts only at chunk boundaries gets a Δ < H model's history.
 """
 
@@ -39,7 +40,8 @@ class FrameHistory:
     then only the executed actions are kept. Frames are encoded with ``encode`` and kept on ``device``.
     ``hold_action`` (A,): the action of the rest before step 0 (the task's ``hold_action``), needed with
     ``rest_state``. ``imagine`` (the dynamics' :meth:`~wamplan.planning.dynamics.Dynamics.imagine`): predict the
-    frames between planning points instead of seeing them; Δ must divide ``period``.
+    frames between planning points instead of seeing them (:func:`~wamplan.planning.policy_config.check_fits` says
+    which settings allow it).
     """
 
     def __init__(self, chunk: int, frameskip: int, context: int, encode: Encode, device: torch.device, *,
@@ -49,9 +51,6 @@ class FrameHistory:
             raise ValueError("a rest-state history needs the task's hold_action (the action of the rest)")
         self.chunk, self.frameskip, self.context = chunk, frameskip, context
         self.period = period or chunk
-        if imagine is not None and self.period % frameskip:
-            raise ValueError(f"an imagined history steps by the frameskip {frameskip}, which must divide the "
-                             f"{self.period} steps between planning points")
         self.encode, self.device = encode, device
         self.keeps_frames, self.rest_state, self.hold_action = keeps_frames, rest_state, hold_action
         self.imagine = imagine if keeps_frames else None

@@ -24,7 +24,6 @@ from wamplan.proxy.upstream import (AnsweredWAM, HttpUpstream, LocalUpstream, Up
 from wamplan.wam.protocol import ActRequest, resolve_maps
 
 
-
 def check_fit(task: TaskSpec, upstream: Upstream, chunk: int, columns: tuple[int, ...], cameras: tuple[str, ...],
               frameskip: int, encoder_size: int | None, world_model: str, shape: UpstreamShape | None = None,
               response_fields: tuple[str, ...] = (), explicit_columns: bool = True) -> None:
