@@ -131,10 +131,14 @@ class LearnedDynamics(Dynamics):
     def prepare(self, context: PlanningContext | None) -> None:
         if context is None:
             raise ValueError("the learned world model needs a history of frames to plan from")
+        self._prefix, self._cur = self._start(context)
+
+    def _start(self, context: PlanningContext):
+        """``context`` in the predictor's device and dtype -> (its cached prefix, batch 1, shared by every rollout
+        from it; the current frame: z (1, V, N, D), q (1, P)). The context may be one frame."""
         dev, dt = self.device, self.dtype
-        z, q, a = context.z.to(dev, dt), context.q.to(dev, dt), context.a.to(dev, dt)
-        self._prefix = self.model.encode_prefix(z[None, :-1], q[None, :-1], a[None])  # batch 1, shared
-        self._cur = (z[None, -1], q[None, -1])  # (1, V, N, D), (1, P)
+        z, q, a = (x.to(dev, dt) for x in (context.z, context.q, context.a))  # (Tc, V, N, D), (Tc, P), (Tc-1, ΔA)
+        return self.model.encode_prefix(z[None, :-1], q[None, :-1], a[None]), (z[None, -1], q[None, -1])
 
     def _blocks(self, actions: torch.Tensor) -> torch.Tensor:
         """actions (B, L, A) -> the rollout's action blocks (B, S, Δ·A) in the predictor's device and dtype."""
@@ -143,10 +147,8 @@ class LearnedDynamics(Dynamics):
 
     @torch.inference_mode()
     def imagine(self, context: PlanningContext, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        dev, dt = self.device, self.dtype
-        z, q, a = context.z.to(dev, dt), context.q.to(dev, dt), context.a.to(dev, dt)  # (Tc, V, N, D), (Tc, P), (Tc-1, ΔA)
-        prefix = self.model.encode_prefix(z[None, :-1], q[None, :-1], a[None])  # the context may be one frame
-        zs, qs = self.model.rollout_from_prefix(prefix, z[None, -1], q[None, -1], self._blocks(actions[None]))
+        prefix, cur = self._start(context)  # its own, not the planning point's (prepare's)
+        zs, qs = self.model.rollout_from_prefix(prefix, *cur, self._blocks(actions[None]))  # (1, S, V, N, D), (1, S, P)
         return zs[0].float(), qs[0].float()  # (S, V, N, D), (S, P)
 
     @torch.inference_mode()
