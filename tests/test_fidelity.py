@@ -134,9 +134,11 @@ def test_each_models_own_plan_is_scored_and_one_model_can_drive_the_episode(shor
     wam = load_wam("checkpoints/mini/tinywam", device="cpu")
     model, enc = load_world_model("checkpoints/mini/wm_augmented")
     models = [Scored("augmented", LearnedDynamics(model), enc)]
+    plain_model, plain_enc = load_world_model("checkpoints/mini/wm_plain")
+    two = [*models, Scored("plain", LearnedDynamics(plain_model), plain_enc)]
     cfg = FidelityConfig(num_candidates=4, top_k=2, boundaries=(2, 3))
     plain = run_fidelity(env, wam, models, [500], cfg)
-    planned = run_fidelity(env, wam, models, [500], dataclasses.replace(cfg, plan=True))
+    planned = run_fidelity(env, wam, two, [500], dataclasses.replace(cfg, plan=True))
     for a, b in zip(plain["records"], planned["records"]):
         assert b["models"]["augmented"]["model_costs"] == pytest.approx(a["models"]["augmented"]["model_costs"])
         assert "plan_gain" not in a["models"]["augmented"]
@@ -144,29 +146,24 @@ def test_each_models_own_plan_is_scored_and_one_model_can_drive_the_episode(shor
         true = b["models"]["augmented"]["true_costs"]  # the simulator's costs of the 4 candidates; 0: the WAM's
         assert row["plan_gain"] > -1 and row["plan_gain"] != pytest.approx(0.0)  # a searched plan, not the WAM's chunk
         assert row["plan_gain"] != pytest.approx((true[0] - min(true)) / true[0])  # not one of the fixed candidates
-        assert len(b["task"]["cand_xy_mm"]) == 5  # the 4 candidates, then the plan
-        assert row["plan_xy_change_mm"] == pytest.approx(b["task"]["cand_xy_mm"][4] - b["task"]["cand_xy_mm"][0])
+        xy = b["task"]["cand_xy_mm"]
+        assert len(xy) == 4 + 2  # the 4 candidates, then each model's plan in the order of the models
+        assert row["plan_xy_change_mm"] == pytest.approx(xy[4] - xy[0])
+        assert b["models"]["plain"]["plan_xy_change_mm"] == pytest.approx(xy[5] - xy[0])
     s = planned["summary"]["augmented"]
     assert s["plans"] == 2 and s["plan_gain_mean"] == pytest.approx(
         np.mean([r["models"]["augmented"]["plan_gain"] for r in planned["records"]]))
     assert "its own search's plan" in format_fidelity(planned["summary"], 2)
     assert plain["episodes"][0]["length"] == 3 * 16 + 1  # open loop: stopped after the last scored boundary
-    plain_model, plain_enc = load_world_model("checkpoints/mini/wm_plain")
-    two = [*models, Scored("plain", LearnedDynamics(plain_model), plain_enc)]
-    # (without the task metric: nothing below reads the candidates' xy, and stepping them costs seconds a boundary)
-    driven = run_fidelity(env, wam, two, [500], dataclasses.replace(cfg, execute="augmented", task_metric=False))
+    driven = run_fidelity(env, wam, two, [500], dataclasses.replace(cfg, execute="augmented"))
     ep = driven["episodes"][0]
     assert ep["success"] or ep["length"] == env.max_episode_steps  # its closed loop, to the end
     assert ep["length"] > 3 * 16 + 1
     first = driven["records"][0]["models"]["augmented"]
     assert "plan_gain" in first  # the executed plan is scored, with plan=False too
     assert "plan_gain" not in driven["records"][0]["models"]["plain"]  # plan=False: the others only score
-    both = run_fidelity(env, wam, two, [500], dataclasses.replace(cfg, execute="augmented", plan=True))
-    rec = both["records"][0]
-    xy = rec["task"]["cand_xy_mm"]
-    assert len(xy) == 4 + 2  # the 4 candidates, then each model's plan in the order of the models
-    assert rec["models"]["plain"]["plan_xy_change_mm"] == pytest.approx(xy[5] - xy[0])
-    assert rec["models"]["augmented"]["plan_xy_change_mm"] == pytest.approx(xy[4] - xy[0])
+    xy = driven["records"][0]["task"]["cand_xy_mm"]
+    assert len(xy) == 4 + 1 and first["plan_xy_change_mm"] == pytest.approx(xy[4] - xy[0])  # the executed plan's
     # boundary 2 follows a planned chunk from boundary 1: the state differs from the open-loop episode's
     assert first["model_costs"] != pytest.approx(plain["records"][0]["models"]["augmented"]["model_costs"])
     from wamplan.planning.policy import PlannedPolicyConfig
