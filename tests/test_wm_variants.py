@@ -57,7 +57,7 @@ def test_variants_are_off_by_default_and_old_configs_load_with_the_defaults():
         TrainConfig(change_weight=-1)
     from wamplan.errors import UserError
     from wamplan.presets import get_world_model_preset
-    from wamplan.worldmodel.grow import check_init
+    from wamplan.worldmodel.finetune import check_init
 
     mini = get_world_model_preset("mini").predictor
     check_init(SHIPPED / "wm_augmented", mini, None)  # `wm train --init` from a checkpoint saved before the options

@@ -1,6 +1,6 @@
 """Training the predictor (paper eq. 2, :mod:`wamplan.worldmodel.losses`) on windows of H_ctx + K frames, and
 its held-out evaluation (:func:`evaluate_predictor`). A fine-tune starts from a checkpoint
-(:mod:`wamplan.worldmodel.grow`); a trained one loads with :mod:`wamplan.worldmodel.load`.
+(:mod:`wamplan.worldmodel.finetune`); a trained one loads with :mod:`wamplan.worldmodel.load`.
 
 Normalisation: proprioception and actions are used as they are (roughly unit scale). Visual features
 are normalised per dimension at the predictor's *input* with a mean/std (D,) computed from the training
@@ -23,7 +23,7 @@ from wamplan.envs.spec import TaskSpec
 from wamplan.errors import UserError
 from wamplan.train_loop import DatasetBatches, evaluating, fit, saved_progress, shown
 from wamplan.worldmodel.config import RETIRED_PREDICTOR_KEYS, RETIRED_TRAIN_KEYS, PredictorConfig, TrainConfig
-from wamplan.worldmodel.grow import check_init
+from wamplan.worldmodel.finetune import check_init
 from wamplan.worldmodel.load import KIND
 from wamplan.worldmodel.losses import group_loss, per_horizon_mse, split_windows, window_loss
 from wamplan.worldmodel.predictor import WorldModelPredictor, without_retired

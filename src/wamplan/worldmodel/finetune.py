@@ -13,6 +13,7 @@ from wamplan.errors import UserError
 from wamplan.worldmodel.config import PredictorConfig, predictor_config
 from wamplan.worldmodel.load import KIND
 
+
 def check_init(init: str | Path, cfg: PredictorConfig, encoder_info: dict[str, Any] | None) -> None:
     """A fine-tuning start must be a predictor of the same architecture over the same encoder's tokens."""
     saved = read_config(checkpoint_dir(init), KIND)
