@@ -77,10 +77,13 @@ def _frames_match(decoded: np.ndarray, stored: np.ndarray) -> None:
 def test_v3_export_has_lerobots_files_schema_and_frames(dense_store, v3_export):
     root = v3_export
     keys = [f"observation.images.{c}" for c in CAMS]
-    assert {p.relative_to(root).as_posix() for p in root.rglob("*") if p.is_file()} == {
+    files = {p.relative_to(root).as_posix() for p in root.rglob("*") if p.is_file()}
+    assert files == {
         "meta/info.json", "meta/stats.json", "meta/tasks.parquet", "meta/wamplan.json",
         "meta/episodes/chunk-000/file-000.parquet", "data/chunk-000/file-000.parquet",
         *(f"videos/{k}/chunk-000/file-000.mp4" for k in keys)}
+    listing = [b for b in doc_blocks("Export") if b.startswith("meta/")][0]  # what the doc says an export holds
+    assert {line.split()[0] for line in listing.splitlines() if line[:1].isalpha()} == files
     info = json.loads((root / "meta/info.json").read_text())
     n = 2 * (STEPS + 1)
     assert info["codebase_version"] == "v3.0" and info["fps"] == 20 and info["total_frames"] == n
@@ -200,31 +203,54 @@ def _libero_like(root: Path, episodes: int = 2, frames: int = 6, size: int = 48)
     return made
 
 
+DOC = Path(__file__).resolve().parents[1] / "docs" / "lerobot.md"
+LIBERO = "Another robot's dataset: openpi's LIBERO set"
+
+
+def doc_section(title: str) -> str:
+    """The text of docs/lerobot.md's section ``## title``."""
+    text = DOC.read_text()
+    return text[text.index(f"## {title}\n"):].split("\n## ", 1)[0]
+
+
+def doc_blocks(title: str, lang: str = "") -> list[str]:
+    """The ```lang blocks of that section, in order."""
+    parts = doc_section(title).split("```")
+    return [b[len(lang) + 1:] for b in parts[1::2] if b.startswith(lang + "\n")]
+
+
 @pytest.fixture
 def libero_task():
-    """A task of LIBERO's sizes (7-D actions, 8-D state, two cameras), registered for the test only."""
-    spec = register_task(TaskSpec(name="libero-like", env_id="LiberoLike-v0", cameras=("agentview", "wrist"),
-                                  action_dim=7, proprio_dim=8, control_mode="ee_delta", max_episode_steps=100,
-                                  instruction="put the bowl on the plate", adapter="wamplan.envs.adapters:ManiSkillAdapter",
-                                  gripper_index=6))
-    yield spec
-    TASKS.pop(spec.name)
+    """The doc's LIBERO task (its Python block run as written), registered for the test only."""
+    code, = doc_blocks(LIBERO, "python")
+    exec(compile(code, str(DOC), "exec"), {})
+    yield TASKS["libero-panda"]
+    TASKS.pop("libero-panda")
 
 
-def test_a_libero_style_dataset_imports_with_a_key_map(tmp_path, libero_task, capsys):
+def test_the_docs_libero_session_prints_what_it_shows(tmp_path, monkeypatch, libero_task, capsys):
+    """docs/lerobot.md's LIBERO session, run on a two-episode stand-in in openpi's layout: the task's line, the
+    import report's fields it shows, what training reads of the store, and the refusal of a dataset without the
+    key map, word for word."""
     from wamplan.data.export import resize_frames
     from wamplan.data.readers import WAMSamples, WorldModelWindows
 
-    made = _libero_like(tmp_path / "libero")
-    out = tmp_path / "store"
-    argv = ["data", "import", "--format", "lerobot", tmp_path / "libero", out, "--task", "libero-like",
-            "--camera-size", 32, "--key-map", "action=actions", "observation.state=state",
-            "observation.images.agentview=image", "observation.images.wrist=wrist_image"]
-    assert main([str(a) for a in argv]) == 0
+    monkeypatch.chdir(tmp_path)
+    made = _libero_like(Path("libero"))
+    session, = [b for b in doc_blocks(LIBERO) if b.startswith("$ ")]
+    commands, outputs = [], []
+    for line in session.replace("\\\n    ", "").splitlines():
+        (commands if line.startswith("$ ") else outputs).append(line.removeprefix("$ "))
+    tasks_line, report_shown = outputs
+    assert main(["tasks"]) == 0
+    assert tasks_line in capsys.readouterr().out.splitlines()
+    argv = commands[1].split()[1:]
+    assert main(argv) == 0
     report = json.loads(capsys.readouterr().out)
-    assert (report["version"], report["episodes"], report["frames"], report["fps"]) == ("v2.1", 2, 12, 10)
-    store = EpisodeStore(out)
-    assert store.task_name == "libero-like" and store.image_every == 1
+    for key, value in json.loads(report_shown.replace(', "keys": {...}', "").replace(", ...}", "}")).items():
+        assert report[key] == value, key
+    store = EpisodeStore("store")
+    assert store.task_name == "libero-panda" and store.image_every == 1
     for path, ep in zip(store.episode_paths(), made):
         got = store.load(path)
         assert (got.source, got.outcome, got.length) == ("lerobot", "logged", 5)
@@ -233,10 +259,14 @@ def test_a_libero_style_dataset_imports_with_a_key_map(tmp_path, libero_task, ca
         np.testing.assert_array_equal(got.images["agentview"], resize_frames(ep["image"], 32))  # PNG is lossless
         np.testing.assert_array_equal(got.images["wrist"], resize_frames(ep["wrist_image"], 32))
     # what `wam train` and `wm train` read
-    item = WAMSamples([out], chunk=4, split="all")[0]
+    item = WAMSamples(["store"], chunk=4, split="all")[0]
     assert item["images"].shape == (2, 32, 32, 3) and item["actions"].shape == (4, 7)
-    window = WorldModelWindows([out], frameskip=1, history=2, horizon=1, split="all")[0]
+    window = WorldModelWindows(["store"], frameskip=1, history=2, horizon=1, split="all")[0]
     assert window["images"].shape == (3, 2, 32, 32, 3)
+    refusal = doc_section(LIBERO).split("refused with `")[1].split("`.)")[0].replace("\n", " ")
+    unmapped = [a if a != "store" else "store2" for a in argv[:argv.index("--key-map")]]
+    assert main(unmapped) == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1] == f"wamplan: error: {refusal}"
 
 
 def _break(kind: str, root: Path) -> str:
@@ -256,16 +286,19 @@ def _break(kind: str, root: Path) -> str:
     return "file-000.parquet: episode 0 has 7 rows, but the episodes metadata gives it 8 frames"
 
 
-@pytest.mark.parametrize("kind", ["not-lerobot", "version", "video", "frames"])
-def test_bad_input_is_one_line_and_leaves_no_out(v3_export, tmp_path, refused, kind):
-    root = tmp_path / "ds"
-    shutil.copytree(v3_export, root)
-    problem = _break(kind, root)
-    out = tmp_path / "out"
-    line = refused(["data", "import", "--format", "lerobot", root, out, "--task", "cube-insertion",
+KINDS = ["not-lerobot", "version", "video", "frames"]  # in the order docs/lerobot.md shows their lines
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_bad_input_is_one_line_and_leaves_no_out(v3_export, tmp_path, monkeypatch, refused, kind):
+    monkeypatch.chdir(tmp_path)
+    shutil.copytree(v3_export, "ds")
+    problem = _break(kind, Path("ds"))
+    line = refused(["data", "import", "--format", "lerobot", "ds", "out", "--task", "cube-insertion",
                     "--camera-size", SIZE], problem)
-    assert "\n" not in line
-    assert not out.exists() and [p.name for p in tmp_path.iterdir() if p.name != "ds"] == []
+    shown = [x for b in doc_blocks("Import") for x in b.splitlines() if x.startswith("wamplan: error: ds")]
+    assert line == shown[KINDS.index(kind)]  # the doc's line, word for word
+    assert not Path("out").exists() and [p.name for p in tmp_path.iterdir() if p.name != "ds"] == []
 
 
 def test_a_video_shorter_than_its_episode_is_refused(v3_export, tmp_path, refused):
