@@ -155,15 +155,18 @@ def test_each_models_own_plan_is_scored_and_one_model_can_drive_the_episode(shor
         np.mean([r["models"]["augmented"]["plan_gain"] for r in planned["records"]]))
     assert "its own search's plan" in format_fidelity(planned["summary"], 2)
     assert plain["episodes"][0]["length"] == 3 * 16 + 1  # open loop: stopped after the last scored boundary
-    driven = run_fidelity(env, wam, two, [500], dataclasses.replace(cfg, execute="augmented"))
+    # one model drives the episode with its plans while the other searches from the states they lead to
+    driven = run_fidelity(env, wam, two, [500], dataclasses.replace(cfg, execute="augmented", plan=True))
     ep = driven["episodes"][0]
     assert ep["success"] or ep["length"] == env.max_episode_steps  # its closed loop, to the end
     assert ep["length"] > 3 * 16 + 1
-    first = driven["records"][0]["models"]["augmented"]
-    assert "plan_gain" in first  # the executed plan is scored, with plan=False too
-    assert "plan_gain" not in driven["records"][0]["models"]["plain"]  # plan=False: the others only score
-    xy = driven["records"][0]["task"]["cand_xy_mm"]
-    assert len(xy) == 4 + 1 and first["plan_xy_change_mm"] == pytest.approx(xy[4] - xy[0])  # the executed plan's
+    rec = driven["records"][0]
+    first = rec["models"]["augmented"]
+    assert "plan_gain" in first and "plan_gain" in rec["models"]["plain"]  # the executed plan and the other's search
+    xy = rec["task"]["cand_xy_mm"]
+    assert len(xy) == 4 + 2  # the 4 candidates, the executed plan, the other model's plan
+    assert first["plan_xy_change_mm"] == pytest.approx(xy[4] - xy[0])
+    assert rec["models"]["plain"]["plan_xy_change_mm"] == pytest.approx(xy[5] - xy[0])
     # boundary 2 follows a planned chunk from boundary 1: the state differs from the open-loop episode's
     assert first["model_costs"] != pytest.approx(plain["records"][0]["models"]["augmented"]["model_costs"])
     from wamplan.planning.policy import PlannedPolicyConfig

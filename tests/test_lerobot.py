@@ -263,6 +263,9 @@ def test_the_docs_libero_session_prints_what_it_shows(tmp_path, monkeypatch, lib
     assert item["images"].shape == (2, 32, 32, 3) and item["actions"].shape == (4, 7)
     window = WorldModelWindows(["store"], frameskip=1, history=2, horizon=1, split="all")[0]
     assert window["images"].shape == (3, 2, 32, 32, 3)
+    assert len(commands) == 3 and main(commands[2].split()[1:]) == 0  # the doc's `wam train` on the store
+    assert Path("wamrun").is_dir()
+    capsys.readouterr()
     refusal = doc_section(LIBERO).split("refused with `")[1].split("`.)")[0].replace("\n", " ")
     unmapped = [a if a != "store" else "store2" for a in argv[:argv.index("--key-map")]]
     assert main(unmapped) == 2
@@ -297,7 +300,7 @@ def test_bad_input_is_one_line_and_leaves_no_out(v3_export, tmp_path, monkeypatc
     line = refused(["data", "import", "--format", "lerobot", "ds", "out", "--task", "cube-insertion",
                     "--camera-size", SIZE], problem)
     shown = [x for b in doc_blocks("Import") for x in b.splitlines() if x.startswith("wamplan: error: ds")]
-    assert line == shown[KINDS.index(kind)]  # the doc's line, word for word
+    assert len(shown) == len(KINDS) and line == shown[KINDS.index(kind)]  # the doc's line, word for word
     assert not Path("out").exists() and [p.name for p in tmp_path.iterdir() if p.name != "ds"] == []
 
 

@@ -44,9 +44,10 @@ def test_eval_on_ray_equals_local_and_resumes(ray_cluster, tmp_path, capsys):
     from wamplan.evaluation.runner import run_evaluation
     from wamplan.cli import build_parser
 
-    # An episode's record depends only on its seed and policy (tests/test_episode_independence.py): one local
-    # process (one thread, like a Ray actor) runs both seeds as the reference; on Ray the cut-short run's one actor
-    # records seed 900 and the resumed run starts a fresh actor for seed 901.
+    # An episode does not depend on what its process ran before (the reset rebuilds the scene once physics has
+    # stepped; tests/test_episode_independence.py): one local process (one thread, like a Ray actor) runs both seeds
+    # as the reference, so seed 901 runs second there and first on its own actor below. On Ray the cut-short run's
+    # one actor records seed 900 and the resumed run starts a fresh actor for seed 901.
     log = tmp_path / "local.log"
     with log.open("w") as f:
         code = subprocess.run([sys.executable, "-m", "wamplan.cli", *EVAL, "--out", str(tmp_path / "local")],

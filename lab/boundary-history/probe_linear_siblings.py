@@ -77,7 +77,7 @@ def main(ckpt: str, key: str, stores: list[str]) -> dict[str, float]:
     for name, xt, xv in (("chunk", at, av), ("displacement", st, sv)):
         half = len(xt) // 2  # λ chosen on the training groups' second half, fitted on their first
         _, lam = max((r2(flat(xt[half:]) @ ridge(flat(xt[:half]), flat(zt[:half]), lam), flat(zt[half:])), lam)
-                     for lam in (1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0))
+                     for lam in (1e-2, 1e-1, 1.0, 10.0, 1e2, 1e3, 1e4, 1e5))
         out[f"global_{name}_r2"] = r2(flat(xv) @ ridge(flat(xt), flat(zt), lam), flat(zv))
         out[f"global_{name}_lambda"] = lam
     for lam in (0.1, 1.0, 10.0):  # reported for each: no split is small enough to choose on

@@ -152,7 +152,7 @@ def load_weights(path: str | Path, model: torch.nn.Module, device: str | torch.d
                  adapt: Callable[[dict[str, torch.Tensor]], dict[str, torch.Tensor]] | None = None) -> None:
     """Load ``path``'s weights into ``model`` (built from the same checkpoint's config.json); weights that do not
     fit the model are a one-line error naming the checkpoint. ``adapt`` maps the file's weights before they load
-    (e.g. a fine-tune that grows a layer, or an older checkpoint's parts this version no longer builds dropped)."""
+    (e.g. an older checkpoint's parts that this version no longer builds, dropped)."""
     weights = load_tensors(Path(path) / MODEL_FILE, device)
     if adapt is not None:
         weights = adapt(weights)
