@@ -15,6 +15,8 @@ baseline the Δ = 16 models sit at):
 * local, displacement: per group, leave one sibling out, a ridge map from the other siblings' summed arm commands
   (xyz, then all A entries) to their frames; the held-out sibling predicted from its own. A state's own linear
   response.
+
+Per view: its share of the siblings' spread, and the local fit on its features alone.
 """
 
 from __future__ import annotations
@@ -83,6 +85,11 @@ def main(ckpt: str, key: str, stores: list[str]) -> dict[str, float]:
     for lam in (0.1, 1.0, 10.0):  # reported for each: no split is small enough to choose on
         out[f"local_xyz_r2_lambda{lam:g}"] = local_r2(zv, sv[..., :3], lam)
         out[f"local_all_r2_lambda{lam:g}"] = local_r2(zv, sv, lam)  # every commanded entry (gripper, yaw too)
+    per_view = zv.shape[-1] // len(split["val"].cameras)  # F = V·N·D, view-major
+    for v, cam in enumerate(split["val"].cameras):  # where the siblings differ, and how linear it is there
+        part = slice(v * per_view, (v + 1) * per_view)
+        out[f"{cam}_share_of_spread"] = float((zv[..., part] ** 2).sum() / (zv ** 2).sum())
+        out[f"{cam}_local_all_r2_lambda1"] = local_r2(zv[..., part], sv, 1.0)
     return out
 
 
