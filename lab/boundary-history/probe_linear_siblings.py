@@ -16,7 +16,7 @@ baseline the Δ = 16 models sit at):
   (xyz, then all A entries) to their frames; the held-out sibling predicted from its own. A state's own linear
   response.
 
-Per view: its share of the siblings' spread, and the local fit on its features alone.
+Per view: its share of the siblings' spread, the local fit on its features alone, and CKPT's own slope there.
 """
 
 from __future__ import annotations
@@ -41,6 +41,21 @@ def deviations(data: BranchGroups, model, h: int) -> tuple[torch.Tensor, torch.T
     s = a.reshape(*a.shape[:2], data.frameskip, -1).sum(2)  # (M, G, A)
     centre = lambda x: x - x.mean(1, keepdim=True)
     return centre(z), centre(a), centre(s)
+
+
+def model_slopes(data: BranchGroups, model, h: int) -> torch.Tensor:
+    """(V,): per view, the slope of the model's predicted sibling deviations on the true ones (sib_gain's reading,
+    0 = the same prediction for every sibling, 1 = the true differences)."""
+    num, den = torch.zeros(model.cfg.num_views), torch.zeros(model.cfg.num_views)
+    for i in range(len(data)):
+        item = data[i]
+        z, q, a = item["z"].float(), item["q"].float(), item["a"].float()  # (G, T, V, N, D), (G, T, P), (G, T, Δ·A)
+        zp, _ = model(z[:, :h], q[:, :h], a[:, :h])  # output h-1 predicts frame h
+        pred, true = model.normalised(zp[:, h - 1]), model.normalised(z[:, h])  # (G, V, N, D)
+        pred, true = pred - pred.mean(0), true - true.mean(0)
+        num += (pred * true).sum((0, 2, 3))
+        den += (true * true).sum((0, 2, 3))
+    return num / den
 
 
 def ridge(x: torch.Tensor, y: torch.Tensor, lam: float) -> torch.Tensor:
@@ -86,10 +101,12 @@ def main(ckpt: str, key: str, stores: list[str]) -> dict[str, float]:
         out[f"local_xyz_r2_lambda{lam:g}"] = local_r2(zv, sv[..., :3], lam)
         out[f"local_all_r2_lambda{lam:g}"] = local_r2(zv, sv, lam)  # every commanded entry (gripper, yaw too)
     per_view = zv.shape[-1] // len(split["val"].cameras)  # F = V·N·D, view-major
-    for v, cam in enumerate(split["val"].cameras):  # where the siblings differ, and how linear it is there
+    slopes = model_slopes(split["val"], model, h)
+    for v, cam in enumerate(split["val"].cameras):  # where the siblings differ, how linear it is, what CKPT follows
         part = slice(v * per_view, (v + 1) * per_view)
         out[f"{cam}_share_of_spread"] = float((zv[..., part] ** 2).sum() / (zv ** 2).sum())
         out[f"{cam}_local_all_r2_lambda1"] = local_r2(zv[..., part], sv, 1.0)
+        out[f"{cam}_model_slope"] = float(slopes[v])
     return out
 
 
