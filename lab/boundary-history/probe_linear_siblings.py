@@ -27,6 +27,7 @@ import torch
 
 from wamplan.data.readers import BranchGroups
 from wamplan.worldmodel.load import load_world_model
+from wamplan.worldmodel.siblings import pool_siblings, sibling_statistics
 
 
 def deviations(data: BranchGroups, model, h: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -43,19 +44,12 @@ def deviations(data: BranchGroups, model, h: int) -> tuple[torch.Tensor, torch.T
     return centre(z), centre(a), centre(s)
 
 
-def model_slopes(data: BranchGroups, model, h: int) -> torch.Tensor:
-    """(V,): per view, the slope of the model's predicted sibling deviations on the true ones (sib_gain's reading,
-    0 = the same prediction for every sibling, 1 = the true differences)."""
-    num, den = torch.zeros(model.cfg.num_views), torch.zeros(model.cfg.num_views)
-    for i in range(len(data)):
-        item = data[i]
-        z, q, a = item["z"].float(), item["q"].float(), item["a"].float()  # (G, T, V, N, D), (G, T, P), (G, T, Δ·A)
-        zp, _ = model(z[:, :h], q[:, :h], a[:, :h])  # output h-1 predicts frame h
-        pred, true = model.normalised(zp[:, h - 1]), model.normalised(z[:, h])  # (G, V, N, D)
-        pred, true = pred - pred.mean(0), true - true.mean(0)
-        num += (pred * true).sum((0, 2, 3))
-        den += (true * true).sum((0, 2, 3))
-    return num / den
+def model_slopes(data: BranchGroups, model) -> list[float]:
+    """Per view, ``model``'s sib_gain at one step (the slope of its predicted sibling differences on the true ones;
+    :func:`~wamplan.worldmodel.siblings.pool_siblings` of each view's statistics)."""
+    stats = sibling_statistics(model, data, 1, per="view")  # each (groups, 1, V)
+    return [pool_siblings({k: v[..., i] for k, v in stats.items()}, 1)["sib_gain_h1"]
+            for i in range(model.cfg.num_views)]
 
 
 def ridge(x: torch.Tensor, y: torch.Tensor, lam: float) -> torch.Tensor:
@@ -101,7 +95,7 @@ def main(ckpt: str, key: str, stores: list[str]) -> dict[str, float]:
         out[f"local_xyz_r2_lambda{lam:g}"] = local_r2(zv, sv[..., :3], lam)
         out[f"local_all_r2_lambda{lam:g}"] = local_r2(zv, sv, lam)  # every commanded entry (gripper, yaw too)
     per_view = zv.shape[-1] // len(split["val"].cameras)  # F = V·N·D, view-major
-    slopes = model_slopes(split["val"], model, h)
+    slopes = model_slopes(split["val"], model)
     for v, cam in enumerate(split["val"].cameras):  # where the siblings differ, how linear it is, what CKPT follows
         part = slice(v * per_view, (v + 1) * per_view)
         out[f"{cam}_share_of_spread"] = float((zv[..., part] ** 2).sum() / (zv ** 2).sum())
