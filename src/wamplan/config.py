@@ -263,7 +263,7 @@ def as_options(text: str, cls_name: str, flags: dict[str, str]) -> str:
 
 
 # The last commit that plans in an ensemble of world models (several checkpoints joined by + or commas, with
-# --disagreement-weight): they left the core at stop 78, having measured no gain (lab/README.md).
+# --disagreement-weight), named where such input is refused (their record: lab/README.md).
 ENSEMBLES_LAST = "5eecf06"
 
 
